@@ -1,0 +1,28 @@
+# Project-wide compile settings and the one helper per target pattern.
+
+# Warnings and optimisation applied to every kinfly target (never globally, so that
+# third-party code pulled in by find_package keeps its own flags).
+function(kinfly_target_defaults target)
+  target_compile_options(${target} PRIVATE -Wall -Wextra -Wpedantic -Wshadow -Wconversion
+                                           -Wno-sign-conversion)
+  # Release keeps IEEE semantics (the pipeline relies on isfinite checks), but drops errno
+  # bookkeeping from sqrt and lets the vectoriser reassociate nothing it should not.
+  target_compile_options(${target} PRIVATE $<$<CONFIG:Release>:-O3 -fno-math-errno>)
+  if(KINFLY_SANITIZE)
+    target_compile_options(${target} PRIVATE -fsanitize=address,undefined -fno-omit-frame-pointer
+                                             -fno-sanitize-recover=undefined)
+    target_link_options(${target} PRIVATE -fsanitize=address,undefined)
+  endif()
+endfunction()
+
+# kinfly_add_test(NAME name SOURCES a.cpp ... [LIBS lib ...])
+# One GoogleTest executable, registered test-by-test with CTest.
+function(kinfly_add_test)
+  cmake_parse_arguments(ARG "" "NAME" "SOURCES;LIBS" ${ARGN})
+  add_executable(${ARG_NAME} ${ARG_SOURCES})
+  kinfly_target_defaults(${ARG_NAME})
+  target_link_libraries(${ARG_NAME} PRIVATE ${ARG_LIBS} GTest::gtest GTest::gtest_main)
+  set_target_properties(${ARG_NAME} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/tests)
+  gtest_discover_tests(${ARG_NAME} DISCOVERY_TIMEOUT 60
+                       PROPERTIES ENVIRONMENT "OMP_NUM_THREADS=2")
+endfunction()

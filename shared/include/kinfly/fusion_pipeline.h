@@ -1,0 +1,79 @@
+// The loop: preprocess -> track -> integrate -> raycast, once per frame. Stage loops use the
+// OpenMP thread count set by the caller (omp_set_num_threads / OMP_NUM_THREADS). The map (volume) is
+// passed in, not owned, so the same pipeline runs onboard (dense) and on the ground (hashed).
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "kinfly/camera.h"
+#include "kinfly/depth_preprocessor.h"
+#include "kinfly/icp_tracker.h"
+#include "kinfly/image.h"
+#include "kinfly/raycaster.h"
+#include "kinfly/se3.h"
+#include "kinfly/tsdf_integrator.h"
+#include "kinfly/tsdf_volume.h"
+
+namespace kinfly {
+
+struct StageTimesMs {
+  double preprocess = 0, track = 0, integrate = 0, raycast = 0, total = 0;
+};
+
+struct FrameResult {
+  int64_t utime = 0;                   // [us] capture time, carried through unchanged
+  Pose T_world_cam = Pose::Identity();
+  TrackingStatus status = TrackingStatus::kLost;
+  float inlier_fraction = 0.f;
+  float rmse_m = 0.f;
+  float valid_depth_fraction = 0.f;
+  std::string lost_reason;
+  StageTimesMs ms;
+};
+
+class FusionPipeline {
+ public:
+  struct Params {
+    DepthPreprocessor::Params preprocess;
+    IcpTracker::Params icp;
+    TsdfIntegrator::Params integrate;
+    Raycaster::Params raycast;
+    // Frames with fewer valid depth pixels than this are not tracked or integrated.
+    float min_valid_depth_fraction = 0.05f;  // [0, 1)
+    std::string validate(float voxel_size_m) const;
+  };
+
+  // `input_camera` describes the raw depth images; `volume` must outlive the pipeline.
+  FusionPipeline(const PinholeCamera& input_camera, const Params& params, TsdfVolume* volume);
+
+  // Tracks the frame against the model, then fuses it.
+  FrameResult processFrame(ImageView<const uint16_t> raw_depth, int64_t utime);
+  // Fuses the frame at a given pose (motion capture, or a ground-station correction).
+  FrameResult processFrameAtPose(ImageView<const uint16_t> raw_depth, int64_t utime,
+                                 const Pose& T_world_cam);
+
+  const Pose& pose() const { return T_world_cam_; }
+  const PinholeCamera& camera() const { return preprocessor_.camera(); }
+  const DepthFrame& frame() const { return frame_; }
+  const ModelMaps& model() const { return model_; }
+  // Lambertian render of the model from the latest pose.
+  void renderShaded(ImageView<uint8_t> out) const;
+
+ private:
+  FrameResult fuse(FrameResult result, double preprocess_ms);
+
+  Params params_;
+  TsdfVolume* volume_;
+  DepthPreprocessor preprocessor_;
+  IcpTracker tracker_;
+  TsdfIntegrator integrator_;
+  Raycaster raycaster_;
+  DepthFrame frame_;
+  ModelMaps model_;
+  bool has_model_ = false;
+  Pose T_world_cam_ = Pose::Identity();
+  Pose T_world_model_ = Pose::Identity();  // camera the model maps were raycast from
+};
+
+}  // namespace kinfly

@@ -1,0 +1,66 @@
+// Stage 7: raycasting. Marches each pixel's ray through the TSDF, finds the zero crossing by
+// linear refinement on trilinearly interpolated values, and takes the normal from the TSDF
+// gradient. Gives the model maps for tracking and a shaded image.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "kinfly/camera.h"
+#include "kinfly/icp_tracker.h"
+#include "kinfly/image.h"
+#include "kinfly/se3.h"
+#include "kinfly/tsdf_volume.h"
+
+namespace kinfly {
+
+struct RaycastResult {
+  int hits = 0;           // pixels with a surface
+  float hit_fraction = 0.f;
+};
+
+// Trilinear TSDF sample at a world point. Returns false where any of the 8 voxels is
+// unobserved. `gradient` (optional) receives dTSDF/dp in 1/voxel units.
+bool sampleTsdf(const TsdfVolume& volume, const Eigen::Vector3f& p_world, float* tsdf,
+                Eigen::Vector3f* gradient = nullptr);
+
+class Raycaster {
+ public:
+  struct Params {
+    float min_depth_m = 0.3f;   // [m] >= 0
+    float max_depth_m = 4.0f;   // [m] > min_depth_m
+    // Step through observed space as a fraction of the truncation band (KinFu: 0.8); smaller
+    // never misses a thin surface, larger is faster.
+    float step_fraction = 0.8f;  // (0, 1]
+    // Ray ranges come from projecting allocated blocks onto tiles of this many pixels.
+    int range_tile_px = 8;       // >= 1
+    // With a depth hint (the frame just fused), rays search only this far either side of the
+    // measured depth: the tracker's correspondence gate (0.1 m) discards anything further, and a
+    // short search makes the raycast several times cheaper. Pixels without a hint march fully.
+    float hint_margin_m = 0.1f;  // [m] > 0
+    std::string validate() const;
+  };
+
+  Raycaster(const PinholeCamera& camera, const Params& params);
+  const Params& params() const { return params_; }
+
+  // Writes level 0 of `maps` (vertex and normal in the camera frame of T_world_cam).
+  // `depth_hint_m` (optional, same size as the camera, 0 = none) bounds each ray's search.
+  RaycastResult raycast(const TsdfVolume& volume, float truncation_m, const Pose& T_world_cam,
+                        ModelMaps* maps, ImageView<const float> depth_hint_m = {});
+
+  // Lambertian shading with the light at the camera; black where there is no surface.
+  static void shade(ImageView<const Eigen::Vector3f> vertex_cam,
+                    ImageView<const Eigen::Vector3f> normal_cam, ImageView<uint8_t> out);
+
+ private:
+  void computeRanges(const TsdfVolume& volume, const Pose& T_cam_world);
+
+  PinholeCamera camera_;
+  Params params_;
+  Image<Eigen::Vector2f> tile_range_;  // per tile: [near, far] depth of allocated blocks
+};
+
+}  // namespace kinfly

@@ -1,0 +1,54 @@
+// Stage 6: TSDF integration (seed pseudocode steps 1-14): projective signed distance along the
+// pixel ray, truncation, running weighted average, weight cap.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "kinfly/camera.h"
+#include "kinfly/image.h"
+#include "kinfly/se3.h"
+#include "kinfly/tsdf_volume.h"
+
+namespace kinfly {
+
+struct IntegrateResult {
+  int blocks_updated = 0;     // blocks within the truncation band of this frame
+  int blocks_allocated = 0;   // of which new this frame
+  int blocks_rejected = 0;    // outside a bounded volume
+};
+
+class TsdfIntegrator {
+ public:
+  struct Params {
+    float truncation_m = 0.04f;   // [m] > 2 voxels: band of the signed distance
+    float max_weight = 128.f;     // > 0: cap so the map can still follow change
+    // Allocation samples every n-th pixel: the band of one pixel spans a whole block, so
+    // neighbouring pixels add nothing (a block is >= 8 pixels wide at any range we keep).
+    int allocation_stride_px = 2;  // >= 1
+    std::string validate(float voxel_size_m) const;
+  };
+
+  explicit TsdfIntegrator(const Params& params);
+  const Params& params() const { return params_; }
+
+  // Integrates metric depth (0 = invalid) seen from T_world_cam into `volume`.
+  IntegrateResult integrate(ImageView<const float> depth_m, const PinholeCamera& camera,
+                            const Pose& T_world_cam, TsdfVolume* volume, bool parallel = true);
+
+ private:
+  Params params_;
+  uint32_t stamp_ = 0;
+  std::vector<VoxelBlock*> touched_;  // reused every frame; capacity grows with the map only
+};
+
+// The per-voxel update, shared by every integration loop.
+inline void updateVoxel(Voxel* v, float sdf_m, float truncation_m, float max_weight) {
+  if (sdf_m < -truncation_m) return;  // far behind the surface: unknown, not free
+  const float tsdf = sdf_m >= truncation_m ? 1.f : sdf_m / truncation_m;
+  const float w = v->weight;
+  v->tsdf = (v->tsdf * w + tsdf) / (w + 1.f);
+  v->weight = w + 1.f < max_weight ? w + 1.f : max_weight;
+}
+
+}  // namespace kinfly

@@ -1,0 +1,26 @@
+#include "kinfly/camera.h"
+
+#include <cmath>
+#include <sstream>
+
+namespace kinfly {
+
+std::string PinholeCamera::validate() const {
+  std::ostringstream why;
+  if (!(std::isfinite(fx) && fx > 0.f)) why << "fx must be a positive number (got " << fx << ")";
+  else if (!(std::isfinite(fy) && fy > 0.f)) why << "fy must be a positive number (got " << fy << ")";
+  else if (width <= 0 || height <= 0) why << "image size must be positive (got " << width << "x" << height << ")";
+  else if (!(std::isfinite(cx) && cx >= 0.f && cx <= static_cast<float>(width)))
+    why << "cx must lie inside the image width " << width << " (got " << cx << ")";
+  else if (!(std::isfinite(cy) && cy >= 0.f && cy <= static_cast<float>(height)))
+    why << "cy must lie inside the image height " << height << " (got " << cy << ")";
+  return why.str();
+}
+
+PinholeCamera PinholeCamera::scaled(int factor) const {
+  // Level pixel x' samples the finer pixel factor * x', so the principal point divides exactly.
+  const float f = static_cast<float>(factor);
+  return {fx / f, fy / f, cx / f, cy / f, width / factor, height / factor};
+}
+
+}  // namespace kinfly

@@ -1,0 +1,244 @@
+#include "kinfly/raycaster.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+
+#include "kinfly/numeric.h"
+#include <limits>
+#include <sstream>
+
+namespace kinfly {
+
+namespace {
+
+// Voxel reads with a small block cache. Slots are chosen by the parity of the block
+// coordinates, so the (up to) eight blocks around one trilinear sample never evict each other and
+// consecutive blocks along a ray land in different slots: most reads skip the hash lookup.
+class VoxelReader {
+ public:
+  explicit VoxelReader(const TsdfVolume& volume) : volume_(volume) {}
+
+  // Global voxel index g (voxel centre at g * voxel size); nullptr if unallocated.
+  const Voxel* voxel(int gx, int gy, int gz) {
+    // Arithmetic shift floors negative indices, as block indices require.
+    const BlockIndex b(gx >> 3, gy >> 3, gz >> 3);
+    const int slot = (b.x() & 1) | ((b.y() & 1) << 1) | ((b.z() & 1) << 2);
+    if (!valid_[slot] || !(index_[slot] == b)) {
+      index_[slot] = b;
+      block_[slot] = volume_.findBlock(b);
+      valid_[slot] = true;
+    }
+    const VoxelBlock* blk = block_[slot];
+    return blk == nullptr ? nullptr : &blk->voxels[VoxelBlock::linear(gx & 7, gy & 7, gz & 7)];
+  }
+
+  // Trilinear TSDF and its gradient (per voxel) at a point in voxel units.
+  bool trilinear(const Eigen::Vector3f& p_vox, float* tsdf, Eigen::Vector3f* gradient) {
+    const float fx = std::floor(p_vox.x()), fy = std::floor(p_vox.y()), fz = std::floor(p_vox.z());
+    const int gx = static_cast<int>(fx), gy = static_cast<int>(fy), gz = static_cast<int>(fz);
+    const float ax = p_vox.x() - fx, ay = p_vox.y() - fy, az = p_vox.z() - fz;
+    float c[8];
+    for (int i = 0; i < 8; ++i) {
+      const Voxel* v = voxel(gx + (i & 1), gy + ((i >> 1) & 1), gz + ((i >> 2) & 1));
+      if (v == nullptr || v->weight <= 0.f) return false;
+      c[i] = v->tsdf;
+    }
+    // Interpolate along x, then y, then z; the gradient is the derivative of the same polynomial.
+    const float c00 = c[0] + (c[1] - c[0]) * ax, c10 = c[2] + (c[3] - c[2]) * ax;
+    const float c01 = c[4] + (c[5] - c[4]) * ax, c11 = c[6] + (c[7] - c[6]) * ax;
+    const float c0 = c00 + (c10 - c00) * ay, c1 = c01 + (c11 - c01) * ay;
+    *tsdf = c0 + (c1 - c0) * az;
+    if (gradient != nullptr) {
+      const float dx0 = (c[1] - c[0]) + ((c[3] - c[2]) - (c[1] - c[0])) * ay;
+      const float dx1 = (c[5] - c[4]) + ((c[7] - c[6]) - (c[5] - c[4])) * ay;
+      (*gradient) << dx0 + (dx1 - dx0) * az, (c10 - c00) + ((c11 - c01) - (c10 - c00)) * az, c1 - c0;
+    }
+    return true;
+  }
+
+ private:
+  const TsdfVolume& volume_;
+  std::array<BlockIndex, 8> index_;
+  std::array<const VoxelBlock*, 8> block_{};
+  std::array<bool, 8> valid_{};
+};
+
+}  // namespace
+
+bool sampleTsdf(const TsdfVolume& volume, const Eigen::Vector3f& p_world, float* tsdf,
+                Eigen::Vector3f* gradient) {
+  VoxelReader reader(volume);
+  return reader.trilinear(p_world / volume.voxelSizeM(), tsdf, gradient);
+}
+
+std::string Raycaster::Params::validate() const {
+  std::ostringstream why;
+  if (!(min_depth_m >= 0.f)) why << "min_depth_m must be >= 0";
+  else if (!(max_depth_m > min_depth_m)) why << "max_depth_m must be > min_depth_m";
+  else if (!(step_fraction > 0.f && step_fraction <= 1.f)) why << "step_fraction must be in (0, 1]";
+  else if (range_tile_px < 1) why << "range_tile_px must be >= 1";
+  else if (!(hint_margin_m > 0.f)) why << "hint_margin_m must be > 0";
+  return why.str();
+}
+
+Raycaster::Raycaster(const PinholeCamera& camera, const Params& params)
+    : camera_(camera),
+      params_(params),
+      tile_range_((camera.width + params.range_tile_px - 1) / params.range_tile_px,
+                  (camera.height + params.range_tile_px - 1) / params.range_tile_px,
+                  Eigen::Vector2f::Zero()) {}
+
+void Raycaster::computeRanges(const TsdfVolume& volume, const Pose& T_cam_world) {
+  const float inf = std::numeric_limits<float>::infinity();
+  tile_range_.fill(Eigen::Vector2f(inf, 0.f));
+  const Eigen::Matrix3f R = T_cam_world.linear().cast<float>();
+  const Eigen::Vector3f t = T_cam_world.translation().cast<float>();
+  const float bs = volume.blockSizeM(), vs = volume.voxelSizeM();
+  const float near = params_.min_depth_m, far = params_.max_depth_m;
+  const int tiles_x = tile_range_.width(), tiles_y = tile_range_.height();
+  const float inv_tile = 1.f / static_cast<float>(params_.range_tile_px);
+  for (const VoxelBlock* blk : volume.allocatedBlocks()) {
+    // The block's voxel centres span [origin, origin + 7 voxels]; trilinear samples reach one
+    // voxel further into the next block, so the box covers a whole block size.
+    const Eigen::Vector3f lo = volume.voxelCentre(blk->index, 0, 0, 0) - Eigen::Vector3f::Constant(0.5f * vs);
+    float zmin = inf, zmax = -inf, umin = inf, umax = -inf, vmin = inf, vmax = -inf;
+    bool behind = false;
+    for (int c = 0; c < 8; ++c) {
+      const Eigen::Vector3f corner = lo + Eigen::Vector3f((c & 1) ? bs : 0.f, (c & 2) ? bs : 0.f,
+                                                          (c & 4) ? bs : 0.f);
+      const Eigen::Vector3f p = R * corner + t;
+      zmin = std::min(zmin, p.z());
+      zmax = std::max(zmax, p.z());
+      if (p.z() < near) {
+        behind = true;
+        continue;
+      }
+      const Eigen::Vector2f uv = camera_.project(p);
+      umin = std::min(umin, uv.x()); umax = std::max(umax, uv.x());
+      vmin = std::min(vmin, uv.y()); vmax = std::max(vmax, uv.y());
+    }
+    if (zmax < near || zmin > far) continue;
+    int tx0 = 0, tx1 = tiles_x - 1, ty0 = 0, ty1 = tiles_y - 1;
+    if (!behind) {  // a block cut by the near plane may cover any part of the image
+      tx0 = std::max(0, static_cast<int>(std::floor(umin * inv_tile)));
+      tx1 = std::min(tiles_x - 1, static_cast<int>(std::floor(umax * inv_tile)));
+      ty0 = std::max(0, static_cast<int>(std::floor(vmin * inv_tile)));
+      ty1 = std::min(tiles_y - 1, static_cast<int>(std::floor(vmax * inv_tile)));
+    }
+    for (int ty = ty0; ty <= ty1; ++ty)
+      for (int tx = tx0; tx <= tx1; ++tx) {
+        Eigen::Vector2f& r = tile_range_(tx, ty);
+        r.x() = std::min(r.x(), zmin);
+        r.y() = std::max(r.y(), zmax);
+      }
+  }
+}
+
+RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
+                                 const Pose& T_world_cam, ModelMaps* maps,
+                                 ImageView<const float> depth_hint_m) {
+  const bool use_hint = !depth_hint_m.empty();
+  const Pose T_cam_world = T_world_cam.inverse();
+  computeRanges(volume, T_cam_world);
+  const Eigen::Matrix3f R_wc = T_world_cam.linear().cast<float>();
+  const Eigen::Matrix3f R_cw = R_wc.transpose();
+  const float inv_vs = 1.f / volume.voxelSizeM();
+  const Eigen::Vector3f origin_vox = T_world_cam.translation().cast<float>() * inv_vs;
+  const float mu_vox = truncation_m * inv_vs;
+  const float far_step_vox = mu_vox * params_.step_fraction;
+  const int tile = params_.range_tile_px;
+  ImageView<Eigen::Vector3f> vmap = maps->vertex_ref[0].view();
+  ImageView<Eigen::Vector3f> nmap = maps->normal_ref[0].view();
+  int hits = 0;
+
+#pragma omp parallel for schedule(dynamic, 4) reduction(+ : hits)
+  for (int y = 0; y < camera_.height; ++y) {
+    VoxelReader reader(volume);
+    for (int x = 0; x < camera_.width; ++x) {
+      vmap(x, y) = invalidVector();
+      nmap(x, y) = invalidVector();
+      const Eigen::Vector2f range = tile_range_(x / tile, y / tile);
+      float z_begin = std::max(range.x(), params_.min_depth_m);
+      float z_end = std::min(range.y(), params_.max_depth_m);
+      if (use_hint && depth_hint_m(x, y) > 0.f) {
+        z_begin = std::max(z_begin, depth_hint_m(x, y) - params_.hint_margin_m);
+        z_end = std::min(z_end, depth_hint_m(x, y) + params_.hint_margin_m);
+      }
+      if (!(z_begin < z_end)) continue;
+      const Eigen::Vector3f ray_cam = camera_.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
+      const Eigen::Vector3f ray_vox = R_wc * ray_cam * inv_vs;  // voxel units per metre of depth
+      const float vox_per_z = ray_vox.norm();
+      const Eigen::Vector3f inv_dir = ray_vox.cwiseInverse();
+      float z = z_begin, prev_z = 0.f, prev_f = 0.f;
+      bool prev_known = false;
+      while (z <= z_end) {
+        const Eigen::Vector3f p = origin_vox + ray_vox * z;
+        const int gx = roundToInt(p.x()), gy = roundToInt(p.y()), gz = roundToInt(p.z());
+        const Voxel* voxel = reader.voxel(gx, gy, gz);
+        if (voxel == nullptr) {
+          // An unallocated block holds no surface: jump to where the ray leaves the region whose
+          // nearest voxels belong to it, [8b - 0.5, 8b + 7.5) per axis.
+          const Eigen::Vector3f lo(static_cast<float>((gx >> 3) * kBlockSide) - 0.5f,
+                                   static_cast<float>((gy >> 3) * kBlockSide) - 0.5f,
+                                   static_cast<float>((gz >> 3) * kBlockSide) - 0.5f);
+          float z_exit = std::numeric_limits<float>::infinity();
+          for (int a = 0; a < 3; ++a) {
+            if (ray_vox[a] == 0.f) continue;
+            const float bound = ray_vox[a] > 0.f ? lo[a] + kBlockSide : lo[a];
+            z_exit = std::min(z_exit, (bound - origin_vox[a]) * inv_dir[a]);
+          }
+          prev_known = false;
+          z = std::max(z_exit, z) + 0.01f / vox_per_z;  // a hundredth of a voxel past the face
+          continue;
+        }
+        const bool known = voxel->weight > 0.f;
+        const float f = voxel->tsdf;
+        if (known && prev_known && prev_f > 0.f && f <= 0.f) {
+          // Zero crossing: refine between the two samples on the interpolated field.
+          float f0, f1;
+          float z_hit = prev_z + (z - prev_z) * prev_f / (prev_f - f);
+          if (reader.trilinear(origin_vox + ray_vox * prev_z, &f0, nullptr) &&
+              reader.trilinear(p, &f1, nullptr) && f0 > 0.f && f1 <= 0.f)
+            z_hit = prev_z + (z - prev_z) * f0 / (f0 - f1);
+          float f_hit;
+          Eigen::Vector3f grad;
+          if (reader.trilinear(origin_vox + ray_vox * z_hit, &f_hit, &grad) && grad.squaredNorm() > 0.f) {
+            vmap(x, y) = ray_cam * z_hit;
+            nmap(x, y) = (R_cw * grad).normalized();
+            ++hits;
+          }
+          break;
+        }
+        if (known && prev_known && prev_f < 0.f && f > 0.f) break;  // left a surface from behind
+        prev_known = known;
+        prev_f = f;
+        prev_z = z;
+        // In observed space the TSDF bounds the distance to the surface; elsewhere step by a
+        // fraction of the band so no crossing is jumped over.
+        const float step_vox = known ? std::max(1.f, f * mu_vox * params_.step_fraction) : far_step_vox;
+        z += step_vox / vox_per_z;
+      }
+    }
+  }
+  return {hits, static_cast<float>(hits) / static_cast<float>(camera_.width * camera_.height)};
+}
+
+void Raycaster::shade(ImageView<const Eigen::Vector3f> vertex_cam,
+                      ImageView<const Eigen::Vector3f> normal_cam, ImageView<uint8_t> out) {
+  constexpr float kAmbient = 0.15f;  // keeps surfaces seen edge-on distinguishable from holes
+#pragma omp parallel for schedule(static)
+  for (int y = 0; y < out.height(); ++y)
+    for (int x = 0; x < out.width(); ++x) {
+      const Eigen::Vector3f& v = vertex_cam(x, y);
+      const Eigen::Vector3f& n = normal_cam(x, y);
+      if (!isValid(v) || !isValid(n)) {
+        out(x, y) = 0;
+        continue;
+      }
+      const float lambert = std::max(0.f, -n.dot(v.normalized()));
+      out(x, y) = static_cast<uint8_t>(255.f * (kAmbient + (1.f - kAmbient) * lambert));
+    }
+}
+
+}  // namespace kinfly

@@ -1,0 +1,40 @@
+#include "kinfly/se3.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace kinfly {
+
+Pose expTwist(const Eigen::Matrix<double, 6, 1>& xi) {
+  const Eigen::Vector3d omega = xi.head<3>();
+  const double angle = omega.norm();
+  Pose T = Pose::Identity();
+  if (angle > 0.0) T.linear() = Eigen::AngleAxisd(angle, omega / angle).toRotationMatrix();
+  T.translation() = xi.tail<3>();
+  return T;
+}
+
+Pose poseFromTum(const std::array<double, 7>& v) {
+  // Eigen's constructor order is (w, x, y, z); TUM's is (x, y, z, w).
+  Eigen::Quaterniond q(v[6], v[3], v[4], v[5]);
+  q.normalize();
+  Pose T = Pose::Identity();
+  T.linear() = q.toRotationMatrix();
+  T.translation() = Eigen::Vector3d(v[0], v[1], v[2]);
+  return T;
+}
+
+std::array<double, 7> poseToTum(const Pose& T) {
+  const Eigen::Quaterniond q(T.rotation());
+  const Eigen::Vector3d t = T.translation();
+  return {t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w()};
+}
+
+double rotationAngleRad(const Pose& T) {
+  const double c = std::clamp((T.linear().trace() - 1.0) * 0.5, -1.0, 1.0);
+  return std::acos(c);
+}
+
+bool isFinite(const Pose& T) { return T.matrix().allFinite(); }
+
+}  // namespace kinfly

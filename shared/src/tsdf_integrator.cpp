@@ -1,0 +1,100 @@
+#include "kinfly/tsdf_integrator.h"
+
+#include <cmath>
+
+#include "kinfly/numeric.h"
+#include <sstream>
+
+namespace kinfly {
+
+std::string TsdfIntegrator::Params::validate(float voxel_size_m) const {
+  std::ostringstream why;
+  if (!(truncation_m > 2.f * voxel_size_m))
+    why << "truncation_m (" << truncation_m << ") must exceed two voxels (" << 2.f * voxel_size_m << " m)";
+  else if (!(max_weight > 0.f)) why << "max_weight must be > 0";
+  else if (allocation_stride_px < 1) why << "allocation_stride_px must be >= 1";
+  return why.str();
+}
+
+TsdfIntegrator::TsdfIntegrator(const Params& params) : params_(params) {}
+
+IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const PinholeCamera& camera,
+                                          const Pose& T_world_cam, TsdfVolume* volume,
+                                          bool parallel) {
+  IntegrateResult result;
+  if (++stamp_ == 0) ++stamp_;  // 0 marks "never touched"
+  touched_.clear();
+  const float mu = params_.truncation_m;
+  const Eigen::Matrix3f R_wc = T_world_cam.linear().cast<float>();
+  const Eigen::Vector3f t_wc = T_world_cam.translation().cast<float>();
+  const size_t before = volume->numAllocatedBlocks();
+
+  // 1. Blocks within the truncation band of every (strided) measurement, each listed once.
+  const float sample_step_m = 0.5f * volume->blockSizeM();
+  BlockIndex last(INT32_MIN, INT32_MIN, INT32_MIN);
+  const int stride = params_.allocation_stride_px;
+  for (int y = 0; y < depth_m.height(); y += stride) {
+    const float* row = depth_m.row(y);
+    for (int x = 0; x < depth_m.width(); x += stride) {
+      const float d = row[x];
+      if (d <= 0.f) continue;
+      const Eigen::Vector3f ray = camera.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
+      const float ray_len = ray.norm();
+      const float z0 = std::max(d - mu / ray_len, 1e-3f), z1 = d + mu / ray_len;
+      const int samples = 1 + static_cast<int>(std::ceil((z1 - z0) * ray_len / sample_step_m));
+      for (int i = 0; i <= samples; ++i) {
+        const float z = z0 + (z1 - z0) * static_cast<float>(i) / static_cast<float>(samples);
+        const BlockIndex b = volume->blockOf(R_wc * (ray * z) + t_wc);
+        if (b == last) continue;  // neighbouring samples mostly share a block: skip the lookup
+        last = b;
+        VoxelBlock* blk = volume->allocateBlock(b);
+        if (blk == nullptr) {
+          ++result.blocks_rejected;
+          continue;
+        }
+        if (blk->touched_stamp == stamp_) continue;
+        blk->touched_stamp = stamp_;
+        touched_.push_back(blk);
+      }
+    }
+  }
+  result.blocks_updated = static_cast<int>(touched_.size());
+  result.blocks_allocated = static_cast<int>(volume->numAllocatedBlocks() - before);
+
+  // 2. Projective update of every voxel of those blocks.
+  const Pose T_cam_world = T_world_cam.inverse();
+  const Eigen::Matrix3f R = T_cam_world.linear().cast<float>();
+  const Eigen::Vector3f t = T_cam_world.translation().cast<float>();
+  const float vs = volume->voxelSizeM();
+  const Eigen::Matrix3f R_step = R * vs;  // camera-frame offset of one voxel along x, y, z
+  const float max_weight = params_.max_weight;
+  const int n = static_cast<int>(touched_.size());
+#pragma omp parallel for schedule(dynamic, 16) if (parallel)
+  for (int i = 0; i < n; ++i) {
+    VoxelBlock* blk = touched_[i];
+    const Eigen::Vector3f origin_cam = R * volume->voxelCentre(blk->index, 0, 0, 0) + t;
+    for (int z = 0; z < kBlockSide; ++z)
+      for (int y = 0; y < kBlockSide; ++y) {
+        const Eigen::Vector3f row_cam = origin_cam + R_step.col(1) * static_cast<float>(y) +
+                                        R_step.col(2) * static_cast<float>(z);
+        Voxel* voxel = &blk->voxels[VoxelBlock::linear(0, y, z)];
+        for (int x = 0; x < kBlockSide; ++x) {
+          const Eigen::Vector3f p = row_cam + R_step.col(0) * static_cast<float>(x);
+          if (p.z() <= 0.f) continue;
+          const float inv_z = 1.f / p.z();
+          const float xn = p.x() * inv_z, yn = p.y() * inv_z;
+          const int u = roundToInt(camera.fx * xn + camera.cx);
+          const int v = roundToInt(camera.fy * yn + camera.cy);
+          if (u < 0 || v < 0 || u >= depth_m.width() || v >= depth_m.height()) continue;
+          const float d = depth_m(u, v);
+          if (d <= 0.f) continue;
+          // Signed distance along the pixel ray, as KinFu computes it (depth scaled by lambda minus range).
+          const float sdf_m = (d - p.z()) * std::sqrt(1.f + xn * xn + yn * yn);
+          updateVoxel(&voxel[x], sdf_m, mu, max_weight);
+        }
+      }
+  }
+  return result;
+}
+
+}  // namespace kinfly

@@ -53,9 +53,8 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
     return fuse(result, preprocess_ms);
   }
   const auto track_start = std::chrono::steady_clock::now();
-  // Constant-position guess: the model was raycast from the last pose, so identity relative
-  // to it.
-  const IcpResult icp = tracker_.track(frame_, model_, T_world_model_.inverse() * T_world_cam_);
+  // The model was raycast from the last pose, so the guess relative to it is the identity.
+  const IcpResult icp = tracker_.track(frame_, model_, Pose::Identity());
   result.ms.track = msSince(track_start);
   result.status = icp.status;
   result.inlier_fraction = icp.inlier_fraction;
@@ -68,7 +67,7 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
     result.ms.total = msSince(start);
     return result;
   }
-  result.T_world_cam = T_world_model_ * icp.T_ref_cur;
+  result.T_world_cam = orthonormalized(T_world_cam_ * icp.T_ref_cur);
   return fuse(result, preprocess_ms);
 }
 
@@ -78,7 +77,7 @@ FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_dep
   const PreprocessResult pre = preprocessor_.process(raw_depth, &frame_);
   FrameResult result;
   result.utime = utime;
-  result.T_world_cam = T_world_cam;
+  result.T_world_cam = orthonormalized(T_world_cam);
   result.status = TrackingStatus::kGivenPose;
   result.valid_depth_fraction = pre.valid_fraction;
   return fuse(result, msSince(start));
@@ -97,7 +96,6 @@ FrameResult FusionPipeline::fuse(FrameResult result, double preprocess_ms) {
   raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_, &model_,
                      frame_.depth_m[0].view());
   model_.buildPyramid();
-  T_world_model_ = T_world_cam_;
   has_model_ = true;
   result.ms.raycast = msSince(t0);
   result.ms.total = result.ms.preprocess + result.ms.track + result.ms.integrate + result.ms.raycast;

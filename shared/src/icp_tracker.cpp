@@ -5,7 +5,10 @@
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 
+#include "kinfly/noise_model.h"
 #include "kinfly/numeric.h"
 #include <sstream>
 
@@ -62,6 +65,7 @@ std::string IcpTracker::Params::validate() const {
   if (!(max_translation_m > 0.f)) why << "max_translation_m must be > 0; ";
   if (!(max_rotation_rad > 0.f)) why << "max_rotation_rad must be > 0; ";
   if (!(max_rmse_m > 0.f)) why << "max_rmse_m must be > 0; ";
+  if (!(huber_sigmas >= 0.f)) why << "huber_sigmas must be >= 0; ";
   if (!(convergence_epsilon >= 0.0)) why << "convergence_epsilon must be >= 0; ";
   return why.str();
 }
@@ -103,7 +107,9 @@ constexpr int kChunks = 64;
 IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& model, int level,
                                   const Eigen::Matrix3f& R_ref_cur,
                                   const Eigen::Vector3f& t_ref_cur, float distance_gate_m,
-                                  float cos_angle_gate, bool parallel) {
+                                  float cos_angle_gate, bool noise_weighting, float huber_sigmas,
+                                  bool parallel) {
+  const float sigma_1m = kinectNoiseSigmaM(1.f);
   const ImageView<const Eigen::Vector3f> vmap = current.vertex_cam[level].view();
   const ImageView<const Eigen::Vector3f> nmap = current.normal_cam[level].view();
   const PinholeCamera& cam = model.camera[level];
@@ -128,11 +134,19 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
         if (!correspondence(vrow[x], nrow[x], R_ref_cur, t_ref_cur, cam, model, level, gate_sq,
                             cos_angle_gate, &J, &e))
           continue;
+        row[27] += e * e;  // the reported residual stays in metres, unweighted
+        const float sigma = kinectNoiseSigmaM(vrow[x].z());
+        float weight = noise_weighting ? (sigma_1m * sigma_1m) / (sigma * sigma) : 1.f;
+        const float abs_r = std::fabs(e) / sigma;
+        if (huber_sigmas > 0.f && abs_r > huber_sigmas) weight *= huber_sigmas / abs_r;
+        // The weight enters J^T J and J^T e once each: scale both factors by its square root.
+        const float sqrt_w = std::sqrt(weight);
+        J *= sqrt_w;
+        e *= sqrt_w;
         int k = 0;
         for (int i = 0; i < 6; ++i)
           for (int j = i; j < 6; ++j) row[k++] += J[i] * J[j];
         for (int i = 0; i < 6; ++i) row[21 + i] -= J[i] * e;
-        row[27] += e * e;
         ++s.inliers;
       }
       for (int i = 0; i < 21; ++i) s.ata[i] += row[i];
@@ -165,7 +179,8 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
     for (int it = 0; it < iterations; ++it) {
       const Eigen::Matrix3f R = T.linear().cast<float>();
       const Eigen::Vector3f t = T.translation().cast<float>();
-      last = buildSystem(current, model, level, R, t, params_.distance_gate_m, cos_gate, true);
+      last = buildSystem(current, model, level, R, t, params_.distance_gate_m, cos_gate,
+                         params_.noise_weighting, params_.huber_sigmas, true);
       ++result.iterations;
       if (last.inliers < params_.min_inliers) {
         std::ostringstream why;
@@ -185,7 +200,8 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
       if (llt.info() != Eigen::Success) return fail("Cholesky factorisation failed");
       const Eigen::Matrix<double, 6, 1> xi = llt.solve(b);
       if (!xi.allFinite()) return fail("non-finite ICP update");
-      T = expTwist(xi) * T;
+      T = orthonormalized(expTwist(xi) * T);
+      if (getenv("ICPDBG")) fprintf(stderr, "L%d it%d inl %d/%d err %.2fmm ratio %.2e w %.4f %.4f %.4f t %.4f %.4f %.4f\n", level, it, last.inliers, last.valid_points, 1000*sqrt(last.error_sq/last.inliers), min_ev/max_ev, xi[0],xi[1],xi[2],xi[3],xi[4],xi[5]);
       if (xi.norm() < params_.convergence_epsilon) break;
     }
   }

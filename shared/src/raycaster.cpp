@@ -195,12 +195,37 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
         const bool known = voxel->weight > 0.f;
         const float f = voxel->tsdf;
         if (known && prev_known && prev_f > 0.f && f <= 0.f) {
-          // Zero crossing: refine between the two samples on the interpolated field.
-          float f0, f1;
+          // Zero crossing, found on nearest-voxel signs. Bracket it on the trilinear field
+          // (stepping out by up to two voxels where the interpolated signs disagree with the
+          // nearest ones), then refine by regula falsi: the nearest-voxel interpolation alone is
+          // only good to half a voxel.
+          const float voxel_z = 1.f / vox_per_z;
+          float za = prev_z, zb = z, f0 = 0.f, f1 = 0.f;
+          bool ok = reader.trilinear(origin_vox + ray_vox * za, &f0, nullptr) &&
+                    reader.trilinear(origin_vox + ray_vox * zb, &f1, nullptr);
+          for (int k = 0; ok && f0 <= 0.f && k < 2; ++k) {
+            za -= voxel_z;
+            ok = reader.trilinear(origin_vox + ray_vox * za, &f0, nullptr);
+          }
+          for (int k = 0; ok && f1 > 0.f && k < 2; ++k) {
+            zb += voxel_z;
+            ok = reader.trilinear(origin_vox + ray_vox * zb, &f1, nullptr);
+          }
           float z_hit = prev_z + (z - prev_z) * prev_f / (prev_f - f);
-          if (reader.trilinear(origin_vox + ray_vox * prev_z, &f0, nullptr) &&
-              reader.trilinear(p, &f1, nullptr) && f0 > 0.f && f1 <= 0.f)
-            z_hit = prev_z + (z - prev_z) * f0 / (f0 - f1);
+          if (ok && f0 > 0.f && f1 <= 0.f) {
+            for (int it = 0; it < 4; ++it) {
+              z_hit = za + (zb - za) * f0 / (f0 - f1);
+              float fm;
+              if (!reader.trilinear(origin_vox + ray_vox * z_hit, &fm, nullptr)) break;
+              if (fm > 0.f) {
+                za = z_hit;
+                f0 = fm;
+              } else {
+                zb = z_hit;
+                f1 = fm;
+              }
+            }
+          }
           float f_hit;
           Eigen::Vector3f grad;
           if (reader.trilinear(origin_vox + ray_vox * z_hit, &f_hit, &grad) && grad.squaredNorm() > 0.f) {

@@ -1,6 +1,5 @@
 #include "kinfly/se3.h"
 
-#include <algorithm>
 #include <cmath>
 
 namespace kinfly {
@@ -30,9 +29,16 @@ std::array<double, 7> poseToTum(const Pose& T) {
   return {t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w()};
 }
 
+Pose orthonormalized(const Pose& T) {
+  Pose out = T;
+  out.linear() = Eigen::Quaterniond(T.linear()).normalized().toRotationMatrix();
+  return out;
+}
+
 double rotationAngleRad(const Pose& T) {
-  const double c = std::clamp((T.linear().trace() - 1.0) * 0.5, -1.0, 1.0);
-  return std::acos(c);
+  const Eigen::Matrix3d& R = T.linear();
+  const Eigen::Vector3d axis_sin(R(2, 1) - R(1, 2), R(0, 2) - R(2, 0), R(1, 0) - R(0, 1));
+  return std::atan2(0.5 * axis_sin.norm(), 0.5 * (R.trace() - 1.0));
 }
 
 bool isFinite(const Pose& T) { return T.matrix().allFinite(); }

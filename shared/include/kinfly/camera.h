@@ -17,8 +17,8 @@ struct PinholeCamera {
   // Empty string when valid, otherwise what is wrong (names the field).
   std::string validate() const;
 
-  // Intrinsics for an image downsampled by `factor` (pixel centres stay aligned: KinFu pyrDown
-  // averages 2x2 blocks, so the centre of block (0,0) sits at 0.5 in the finer image).
+  // Intrinsics for an image downsampled by `factor`, where coarse pixel x samples (or is centred
+  // on) fine pixel factor * x, as the pyramid and --downsample do.
   PinholeCamera scaled(int factor) const;
 
   Eigen::Vector3f backProject(float u_px, float v_px, float depth_m) const {

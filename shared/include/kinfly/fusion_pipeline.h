@@ -72,8 +72,9 @@ class FusionPipeline {
   DepthFrame frame_;
   ModelMaps model_;
   bool has_model_ = false;
+  // Latest fused pose; the model maps are always raycast from it, since lost frames change
+  // neither.
   Pose T_world_cam_ = Pose::Identity();
-  Pose T_world_model_ = Pose::Identity();  // camera the model maps were raycast from
 };
 
 }  // namespace kinfly

@@ -38,7 +38,8 @@ struct IcpResult {
   std::string reason;           // why the status is kLost (empty otherwise)
 };
 
-// One 6x6 system: A = sum J^T J, b = -sum J^T e, with J = [p x n, n]. Upper triangle packed.
+// One 6x6 system: A = sum w J^T J, b = -sum w J^T e, with J = [p x n, n] and w the residual's
+// weight. Upper triangle packed.
 struct IcpSystem {
   std::array<double, 21> ata{};
   std::array<double, 6> atb{};
@@ -63,6 +64,14 @@ class IcpTracker {
     float max_translation_m = 0.20f;      // [m] per frame: a larger jump is a divergence -> lost
     float max_rotation_rad = 0.35f;       // [rad] per frame (20 degrees)
     float max_rmse_m = 0.02f;             // [m] finest-level residual above this -> lost
+    // Weight each residual by the inverse variance of the sensor's depth noise at its range
+    // (noise_model.h), normalised to 1 at 1 m: the maximum-likelihood estimate under the seed's
+    // noise model. Without it the few far, noisy points (sigma ~ z^2) pull the pose off.
+    bool noise_weighting = true;
+    // Huber threshold in units of that noise sigma: residuals beyond it (pairs across depth
+    // edges, moved objects) get weight k/|r| instead of 1, so they cannot drag the solve.
+    // 0 disables the robust weight.
+    float huber_sigmas = 3.f;  // >= 0
     // Stop a level early when the update is this small (metres and radians alike).
     double convergence_epsilon = 1e-5;    // >= 0
 
@@ -80,7 +89,8 @@ class IcpTracker {
   // Builds one level's system; serial and threaded loops use the same per-pixel kernel.
   static IcpSystem buildSystem(const DepthFrame& current, const ModelMaps& model, int level,
                                const Eigen::Matrix3f& R_ref_cur, const Eigen::Vector3f& t_ref_cur,
-                               float distance_gate_m, float cos_angle_gate, bool parallel);
+                               float distance_gate_m, float cos_angle_gate, bool noise_weighting,
+                               float huber_sigmas, bool parallel);
 
  private:
   Params params_;

@@ -14,11 +14,17 @@ using Pose = Eigen::Isometry3d;
 // small angles, but the applied update is the exact rotation so repeated updates stay orthonormal.
 Pose expTwist(const Eigen::Matrix<double, 6, 1>& xi);
 
+// Projects the rotation back onto SO(3). Chained products drift off it by rounding, and
+// Isometry::inverse() transposes the rotation, which amplifies that drift frame after frame:
+// every pose the pipeline keeps passes through here.
+Pose orthonormalized(const Pose& T);
+
 // (tx, ty, tz, qx, qy, qz, qw) <-> pose.
 Pose poseFromTum(const std::array<double, 7>& t_xyz_q_xyzw);
 std::array<double, 7> poseToTum(const Pose& T);
 
-// Rotation angle of T's rotation in radians, in [0, pi].
+// Rotation angle of T's rotation in radians, in [0, pi] (atan2 form: exact for small angles and
+// well defined for a slightly non-orthonormal matrix, unlike acos of the trace).
 double rotationAngleRad(const Pose& T);
 
 bool isFinite(const Pose& T);

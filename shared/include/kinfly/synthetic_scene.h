@@ -9,16 +9,10 @@
 
 #include "kinfly/camera.h"
 #include "kinfly/image.h"
+#include "kinfly/noise_model.h"
 #include "kinfly/se3.h"
 
 namespace kinfly {
-
-// Axial noise of a Kinect v1 at range z (Nguyen, Izadi, Lovell 2012): sigma grows with z^2,
-// about 1.5 mm at 1 m and 4 cm at 5 m, as the seed describes.
-inline float kinectNoiseSigmaM(float z_m) {
-  const float d = z_m - 0.4f;
-  return 0.0012f + 0.0019f * d * d;
-}
 
 class SyntheticScene {
  public:

@@ -1,0 +1,92 @@
+#!/usr/bin/env bash
+# Installs what kinfly needs on Debian 12: the C++ toolchain and libraries from apt, and the
+# Python environment (.venv) from requirements.txt.
+#
+# Idempotent and fast when everything is present: apt is touched only when dpkg says a package
+# is missing, and pip only when requirements.txt changed since the last successful install.
+#
+# Usage: scripts/install-deps.sh [--bench]
+#   --bench  also (re)creates .venv-bench from requirements-bench.txt (Open3D, benchmark only)
+set -euo pipefail
+
+repo_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+
+# libopencv-dev (the metapackage) is deliberately absent: it pulls in GTK and Qt.
+apt_packages=(
+  build-essential cmake ninja-build pkg-config
+  libeigen3-dev libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev
+  libgtest-dev libgmock-dev libbenchmark-dev libcli11-dev
+  python3 python3-venv python3-dev
+)
+
+log() { echo "[install-deps] $*"; }
+
+# Prints the packages of "$@" that dpkg does not report as fully installed.
+missing_apt_packages() {
+  local pkg status
+  for pkg in "$@"; do
+    status="$(dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null || true)"
+    [[ "$status" == "install ok installed" ]] || echo "$pkg"
+  done
+}
+
+install_apt_packages() {
+  local missing
+  mapfile -t missing < <(missing_apt_packages "${apt_packages[@]}")
+  if ((${#missing[@]} == 0)); then
+    log "apt packages: all present"
+    return
+  fi
+  log "apt packages missing: ${missing[*]}"
+  local sudo=()
+  [[ "$(id -u)" == 0 ]] || sudo=(sudo)
+  "${sudo[@]}" apt-get update
+  # env, not a plain assignment: sudo resets the environment.
+  "${sudo[@]}" env DEBIAN_FRONTEND=noninteractive \
+    apt-get install -y --no-install-recommends "${missing[@]}"
+}
+
+# The system interpreter is preferred so that .venv matches what a fresh Debian 12 has, whatever
+# pyenv or conda shims sit first on PATH.
+pick_python() {
+  if [[ -x /usr/bin/python3 ]]; then echo /usr/bin/python3; else command -v python3; fi
+}
+
+# ensure_venv DIR REQUIREMENTS: creates DIR and installs REQUIREMENTS into it, skipping pip when
+# the stamp inside DIR records the same requirements hash (a half-failed install leaves no stamp).
+ensure_venv() {
+  local venv="$1" requirements="$2"
+  local stamp="$venv/.requirements.sha256"
+  local want
+  want="$(cat "$requirements" "$repo_root/requirements.txt" | sha256sum | cut -d' ' -f1)"
+  if [[ -x "$venv/bin/python" && -f "$stamp" && "$(cat "$stamp")" == "$want" ]]; then
+    log "$(basename "$venv"): up to date"
+    return
+  fi
+  if [[ ! -x "$venv/bin/python" ]]; then
+    log "creating $(basename "$venv")"
+    "$(pick_python)" -m venv "$venv"
+  fi
+  log "installing $(basename "$requirements") into $(basename "$venv")"
+  "$venv/bin/python" -m pip install --disable-pip-version-check -q --upgrade pip
+  "$venv/bin/python" -m pip install --disable-pip-version-check -q -r "$requirements"
+  echo "$want" >"$stamp"
+}
+
+main() {
+  local bench=0
+  for arg in "$@"; do
+    case "$arg" in
+      --bench) bench=1 ;;
+      -h | --help) sed -n '2,10p' "${BASH_SOURCE[0]}"; exit 0 ;;
+      *) echo "install-deps.sh: unknown argument '$arg'" >&2; exit 2 ;;
+    esac
+  done
+  install_apt_packages
+  ensure_venv "$repo_root/.venv" "$repo_root/requirements.txt"
+  if ((bench)); then
+    ensure_venv "$repo_root/.venv-bench" "$repo_root/requirements-bench.txt"
+  fi
+}
+
+main "$@"

@@ -1,0 +1,173 @@
+// IcpTracker: recovers known 6-DoF offsets on a well-constrained synthetic scene, reports
+// degenerate and empty input as lost without touching the pose, and its serial and threaded
+// system builders agree.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "kinfly/depth_preprocessor.h"
+#include "kinfly/icp_tracker.h"
+#include "test_util.h"
+
+namespace kinfly {
+namespace {
+
+// Recovered pose tolerances. With ~2e5 correspondences the statistical error of the estimate is
+// ~sigma/sqrt(N) = 0.02 mm even at 3 m, so what remains is projective association on a discrete
+// model (sub-pixel mismatch at edges and on the sphere), a few tenths of a millimetre. 5 mm is
+// half a ground-station voxel and 0.3 degrees moves a point at 3 m by 1.6 cm: beyond either the
+// map would visibly smear, and a tracker that stopped early or used a wrong sign would be off by
+// the whole 3 cm / 2 degree offset.
+constexpr double kTranslationTolM = 0.005;
+constexpr double kRotationTolDeg = 0.3;
+
+struct IcpFixture : public ::testing::Test {
+  IcpFixture()
+      : camera(test::tumCamera()),
+        preprocessor(camera, DepthPreprocessor::Params()),
+        model(camera),
+        current(preprocessor.camera()),
+        raw(camera.width, camera.height),
+        depth(camera.width, camera.height) {}
+
+  // Model maps of the reference camera (at the world origin), noise-free, like a raycast.
+  void buildModel(const SyntheticScene& scene) {
+    scene.renderDepth(camera, Pose::Identity(), test::kRenderMaxDepthM, depth);
+    test::fillModelFromDepth(depth, camera, &model);
+  }
+  // A noisy current frame seen from T_ref_cur.
+  PreprocessResult buildCurrent(const SyntheticScene& scene, const Pose& T_ref_cur,
+                                uint32_t seed) {
+    std::mt19937 rng(seed);
+    scene.renderRawDepth(camera, T_ref_cur, test::kRenderMaxDepthM, test::kTumDepthScale, &rng,
+                         raw);
+    return preprocessor.process(raw, &current);
+  }
+
+  PinholeCamera camera;
+  DepthPreprocessor preprocessor;
+  ModelMaps model;
+  DepthFrame current;
+  Image<uint16_t> raw;
+  Image<float> depth;
+};
+
+TEST_F(IcpFixture, RecoversRandomSixDofOffsets) {
+  const SyntheticScene scene = test::cornerScene();
+  buildModel(scene);
+  const IcpTracker tracker{IcpTracker::Params()};
+  std::mt19937 offsets(2024);
+  for (int trial = 0; trial < 5; ++trial) {
+    const Pose T_ref_cur_true =
+        test::randomOffset(&offsets, 0.03, test::degToRad(2.0));  // 3 cm, 2 degrees
+    const PreprocessResult pre = buildCurrent(scene, T_ref_cur_true, 100 + trial);
+    ASSERT_GT(pre.valid_fraction, 0.9f);
+    const IcpResult result = tracker.track(current, model, Pose::Identity());
+    ASSERT_EQ(result.status, TrackingStatus::kOk) << "trial " << trial << ": " << result.reason;
+    EXPECT_TRUE(result.reason.empty());
+    EXPECT_LT(test::orthonormalityError(result.T_ref_cur), test::kOrthonormalityTol);
+    EXPECT_LT(test::translationErrorM(result.T_ref_cur, T_ref_cur_true), kTranslationTolM)
+        << "trial " << trial;
+    EXPECT_LT(test::radToDeg(test::rotationErrorRad(result.T_ref_cur, T_ref_cur_true)),
+              kRotationTolDeg)
+        << "trial " << trial;
+    // Only a fraction passes: at 2-3 m the Kinect noise tilts many current normals beyond the
+    // 20 degree gate. The fraction must still be a proper fraction above the lost threshold.
+    EXPECT_GE(result.inlier_fraction, IcpTracker::Params().min_inlier_fraction);
+    EXPECT_LE(result.inlier_fraction, 1.f);
+    EXPECT_GT(result.rmse_m, 0.f);
+    EXPECT_LT(result.rmse_m, IcpTracker::Params().max_rmse_m);
+    EXPECT_GT(result.iterations, 0);
+  }
+}
+
+TEST_F(IcpFixture, StartsFromTheGuess) {
+  // The same offset, with the guess already close: the answer must not depend on the start.
+  const SyntheticScene scene = test::cornerScene();
+  buildModel(scene);
+  const Pose T_ref_cur_true =
+      test::makePose(Eigen::Vector3d(0.01, -0.02, 0.015), Eigen::Vector3d(0.02, -0.01, 0.015));
+  buildCurrent(scene, T_ref_cur_true, 7);
+  const IcpTracker tracker{IcpTracker::Params()};
+  const Pose guess =
+      test::makePose(Eigen::Vector3d(0.012, -0.018, 0.014), Eigen::Vector3d(0.018, -0.012, 0.01));
+  const IcpResult result = tracker.track(current, model, guess);
+  ASSERT_EQ(result.status, TrackingStatus::kOk) << result.reason;
+  EXPECT_LT(test::translationErrorM(result.T_ref_cur, T_ref_cur_true), kTranslationTolM);
+  EXPECT_LT(test::radToDeg(test::rotationErrorRad(result.T_ref_cur, T_ref_cur_true)),
+            kRotationTolDeg);
+}
+
+TEST_F(IcpFixture, SinglePlaneIsDegenerateAndKeepsGuess) {
+  // One plane leaves two translations and the rotation about its normal unconstrained.
+  SyntheticScene scene;
+  const Eigen::Vector3f n = Eigen::Vector3f(0.2f, -0.1f, -1.f).normalized();
+  scene.addPlane(n, n.dot(Eigen::Vector3f(0.f, 0.f, 1.5f)));
+  buildModel(scene);
+  const Pose T_ref_cur_true =
+      test::makePose(Eigen::Vector3d(0.0, 0.01, 0.0), Eigen::Vector3d(0.01, 0.0, 0.01));
+  buildCurrent(scene, T_ref_cur_true, 8);
+  const IcpTracker tracker{IcpTracker::Params()};
+  const Pose guess =
+      test::makePose(Eigen::Vector3d(0.0, 0.005, 0.0), Eigen::Vector3d(0.004, 0.0, 0.002));
+  const IcpResult result = tracker.track(current, model, guess);
+  EXPECT_EQ(result.status, TrackingStatus::kLost);
+  EXPECT_FALSE(result.reason.empty());
+  EXPECT_TRUE(isFinite(result.T_ref_cur));
+  EXPECT_TRUE(result.T_ref_cur.matrix() == guess.matrix()) << result.T_ref_cur.matrix();
+}
+
+TEST_F(IcpFixture, EmptyFrameIsLost) {
+  buildModel(test::cornerScene());
+  raw.fill(0);
+  const PreprocessResult pre = preprocessor.process(raw, &current);
+  ASSERT_EQ(pre.valid_pixels, 0);
+  const IcpTracker tracker{IcpTracker::Params()};
+  const Pose guess = test::makePose(Eigen::Vector3d(0.0, 0.01, 0.0), Eigen::Vector3d(0.02, 0, 0));
+  const IcpResult result = tracker.track(current, model, guess);
+  EXPECT_EQ(result.status, TrackingStatus::kLost);
+  EXPECT_FALSE(result.reason.empty());
+  EXPECT_TRUE(isFinite(result.T_ref_cur));
+  EXPECT_TRUE(result.T_ref_cur.matrix() == guess.matrix());
+  EXPECT_FALSE(std::isnan(result.rmse_m));
+  EXPECT_FALSE(std::isnan(result.inlier_fraction));
+}
+
+TEST_F(IcpFixture, SerialAndParallelSystemsAgree) {
+  const SyntheticScene scene = test::cornerScene();
+  buildModel(scene);
+  const Pose T_ref_cur_true =
+      test::makePose(Eigen::Vector3d(0.02, 0.01, -0.01), Eigen::Vector3d(0.01, 0.02, -0.01));
+  buildCurrent(scene, T_ref_cur_true, 9);
+  const float cos_gate = std::cos(IcpTracker::Params().normal_angle_gate_rad);
+  // Evaluate away from the solution so residuals and gradients are far from zero.
+  const Eigen::Matrix3f R = T_ref_cur_true.linear().cast<float>().transpose();
+  const Eigen::Vector3f t(0.005f, 0.f, 0.f);
+  for (int config = 0; config < 2 * kPyramidLevels; ++config) {
+    const int level = config % kPyramidLevels;
+    // Plain least squares, then the default noise-weighted Huber solve.
+    const bool weighting = config >= kPyramidLevels;
+    const float huber = weighting ? IcpTracker::Params().huber_sigmas : 0.f;
+    const IcpSystem serial = IcpTracker::buildSystem(current, model, level, R, t, 0.1f, cos_gate,
+                                                     weighting, huber, false);
+    const IcpSystem parallel = IcpTracker::buildSystem(current, model, level, R, t, 0.1f,
+                                                       cos_gate, weighting, huber, true);
+    ASSERT_GT(serial.inliers, 100);
+    EXPECT_EQ(serial.inliers, parallel.inliers);
+    // Rows are summed in double; a different summation order over ~3e5 rows could change a sum
+    // by at most ~N * 2^-53 relative (3e-11). 1e-9 allows that and nothing else.
+    constexpr double kRelSumTol = 1e-9;
+    double scale = 0.0;
+    for (double a : serial.ata) scale = std::max(scale, std::abs(a));
+    for (size_t i = 0; i < serial.ata.size(); ++i) {
+      EXPECT_NEAR(serial.ata[i], parallel.ata[i], kRelSumTol * scale) << "level " << level;
+    }
+    for (size_t i = 0; i < serial.atb.size(); ++i) {
+      EXPECT_NEAR(serial.atb[i], parallel.atb[i], kRelSumTol * scale) << "level " << level;
+    }
+    EXPECT_NEAR(serial.error_sq, parallel.error_sq, kRelSumTol * serial.error_sq);
+  }
+}
+
+}  // namespace
+}  // namespace kinfly

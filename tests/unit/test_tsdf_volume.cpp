@@ -1,0 +1,219 @@
+// TSDF storage: the hashed volume finds every block it allocated and grows with surface, not
+// extent; the dense volume holds a window of blocks that moves with the camera.
+#include <gtest/gtest.h>
+
+#include <random>
+#include <set>
+#include <tuple>
+#include <vector>
+
+#include "kinfly/tsdf_volume.h"
+#include "test_util.h"
+
+namespace kinfly {
+namespace {
+
+std::tuple<int, int, int> key(const BlockIndex& b) { return {b.x(), b.y(), b.z()}; }
+
+// Distinct random block indices in [-half_range, half_range]^3.
+std::vector<BlockIndex> randomBlocks(int count, int half_range, uint32_t seed) {
+  std::mt19937 rng(seed);
+  std::uniform_int_distribution<int> coord(-half_range, half_range);
+  std::set<std::tuple<int, int, int>> seen;
+  std::vector<BlockIndex> out;
+  while (static_cast<int>(out.size()) < count) {
+    const BlockIndex b(coord(rng), coord(rng), coord(rng));
+    if (seen.insert(key(b)).second) out.push_back(b);
+  }
+  return out;
+}
+
+TEST(HashedVolume, AllocateThenFind) {
+  HashedVolume volume(HashedVolume::Params{});
+  const BlockIndex a(1, -2, 3), b(-1000, 5, 77);
+  EXPECT_EQ(volume.findBlock(a), nullptr);
+  VoxelBlock* pa = volume.allocateBlock(a);
+  ASSERT_NE(pa, nullptr);
+  EXPECT_EQ(pa->index, a);
+  EXPECT_EQ(volume.findBlock(a), pa);
+  EXPECT_EQ(volume.allocateBlock(a), pa) << "allocating twice must return the same block";
+  EXPECT_EQ(volume.findBlock(b), nullptr);
+  EXPECT_EQ(volume.numAllocatedBlocks(), 1u);
+  // A fresh block is unobserved free space.
+  for (const Voxel& v : pa->voxels) {
+    ASSERT_EQ(v.weight, 0.f);
+    ASSERT_EQ(v.tsdf, 1.f);
+  }
+}
+
+TEST(HashedVolume, ManyBlocksSurviveRehashAndNewChunks) {
+  HashedVolume::Params params;
+  params.chunk_blocks = 64;  // small, so 5000 blocks need ~80 chunks and several rehashes
+  HashedVolume volume(params);
+  const std::vector<BlockIndex> blocks = randomBlocks(5000, 200, 1);
+  std::vector<VoxelBlock*> pointers;
+  for (size_t i = 0; i < blocks.size(); ++i) {
+    VoxelBlock* p = volume.allocateBlock(blocks[i]);
+    ASSERT_NE(p, nullptr);
+    p->voxels[0].tsdf = static_cast<float>(i);  // a marker to find the block's data again
+    p->voxels[0].weight = 1.f;
+    pointers.push_back(p);
+  }
+  ASSERT_EQ(volume.numAllocatedBlocks(), blocks.size());
+  for (size_t i = 0; i < blocks.size(); ++i) {
+    const VoxelBlock* p = volume.findBlock(blocks[i]);
+    ASSERT_EQ(p, pointers[i]) << "blocks must not move when the table grows";
+    ASSERT_EQ(p->index, blocks[i]);
+    ASSERT_EQ(p->voxels[0].tsdf, static_cast<float>(i));
+  }
+  // Neighbours of allocated blocks that were not allocated are still absent.
+  const std::vector<BlockIndex> others = randomBlocks(2000, 200, 2);
+  std::set<std::tuple<int, int, int>> allocated;
+  for (const BlockIndex& b : blocks) allocated.insert(key(b));
+  for (const BlockIndex& b : others) {
+    if (!allocated.count(key(b))) {
+      ASSERT_EQ(volume.findBlock(b), nullptr);
+    }
+  }
+  // allocatedBlocks() lists each block once, in allocation order.
+  const auto& listed = volume.allocatedBlocks();
+  for (size_t i = 0; i < blocks.size(); ++i) ASSERT_EQ(listed[i], pointers[i]);
+
+  volume.clear();
+  EXPECT_EQ(volume.numAllocatedBlocks(), 0u);
+  EXPECT_EQ(volume.findBlock(blocks[0]), nullptr);
+  VoxelBlock* again = volume.allocateBlock(blocks[0]);
+  ASSERT_NE(again, nullptr);
+  EXPECT_EQ(again->voxels[0].weight, 0.f) << "a block allocated after clear() starts empty";
+}
+
+TEST(HashedVolume, MemoryGrowsWithBlocksNotExtent) {
+  HashedVolume::Params params;
+  params.chunk_blocks = 256;
+  constexpr int kBlocks = 1500;
+  // 1 m at 1 cm voxels is 12.5 blocks across; 1 km is 12500.
+  const int near_half = 6, far_half = 6250;
+  HashedVolume near_volume(params), far_volume(params);
+  for (const BlockIndex& b : randomBlocks(kBlocks, near_half, 3)) near_volume.allocateBlock(b);
+  for (const BlockIndex& b : randomBlocks(kBlocks, far_half, 4)) far_volume.allocateBlock(b);
+  const double chunk_bytes = static_cast<double>(params.chunk_blocks) * sizeof(VoxelBlock);
+  EXPECT_NEAR(static_cast<double>(near_volume.memoryBytes()),
+              static_cast<double>(far_volume.memoryBytes()), chunk_bytes);
+  // Storage is at least the blocks themselves, and not wildly more: a chunk of slack plus an
+  // index of a few pointers per block.
+  const double block_bytes = static_cast<double>(kBlocks) * sizeof(VoxelBlock);
+  EXPECT_GE(static_cast<double>(far_volume.memoryBytes()), block_bytes);
+  EXPECT_LE(static_cast<double>(far_volume.memoryBytes()), block_bytes + chunk_bytes + 64.0 * kBlocks);
+
+  HashedVolume bigger(params);
+  for (const BlockIndex& b : randomBlocks(4 * kBlocks, near_half * 2, 5)) bigger.allocateBlock(b);
+  EXPECT_GE(static_cast<double>(bigger.memoryBytes()), 4 * block_bytes);
+}
+
+DenseVolume::Params smallDense() {
+  DenseVolume::Params params;
+  params.resolution_vox = 64;  // 8 blocks per side
+  params.voxel_size_m = 0.05f;
+  params.lookahead_m = 1.0f;
+  params.shift_threshold_blocks = 2;
+  return params;
+}
+
+bool inWindow(const DenseVolume& v, const BlockIndex& b) {
+  const BlockIndex r = b - v.originBlock();
+  return r.minCoeff() >= 0 && r.maxCoeff() < v.blocksPerSide();
+}
+
+TEST(DenseVolume, HoldsOnlyItsWindow) {
+  DenseVolume volume(smallDense());
+  ASSERT_EQ(volume.blocksPerSide(), 8);
+  const BlockIndex o = volume.originBlock();
+  const BlockIndex inside = o + BlockIndex(3, 0, 7);
+  const BlockIndex outside = o + BlockIndex(8, 0, 0);
+  const BlockIndex below = o + BlockIndex(0, -1, 0);
+  EXPECT_EQ(volume.findBlock(inside), nullptr) << "not allocated yet";
+  VoxelBlock* p = volume.allocateBlock(inside);
+  ASSERT_NE(p, nullptr);
+  EXPECT_EQ(p->index, inside);
+  EXPECT_EQ(volume.findBlock(inside), p);
+  EXPECT_EQ(volume.allocateBlock(outside), nullptr);
+  EXPECT_EQ(volume.allocateBlock(below), nullptr);
+  EXPECT_EQ(volume.findBlock(outside), nullptr);
+  EXPECT_EQ(volume.numAllocatedBlocks(), 1u);
+  // Fixed memory: all 512 blocks are reserved up front.
+  EXPECT_GE(volume.memoryBytes(), 512 * sizeof(VoxelBlock));
+  const size_t memory = volume.memoryBytes();
+  for (int x = 0; x < 8; ++x) volume.allocateBlock(o + BlockIndex(x, 1, 1));
+  EXPECT_EQ(volume.memoryBytes(), memory);
+}
+
+TEST(DenseVolume, ShiftKeepsOverlapAndClearsWhatLeaves) {
+  DenseVolume volume(smallDense());
+  const BlockIndex o = volume.originBlock();
+  // Mark every block of one row along x with its x offset.
+  for (int x = 0; x < 8; ++x) {
+    VoxelBlock* p = volume.allocateBlock(o + BlockIndex(x, 2, 2));
+    ASSERT_NE(p, nullptr);
+    p->voxels[5].tsdf = -0.25f * static_cast<float>(x) / 8.f;
+    p->voxels[5].weight = 3.f + static_cast<float>(x);
+  }
+  const int shifts_before = volume.shiftCount();
+  volume.shiftTo(o + BlockIndex(3, 0, 0));
+  EXPECT_EQ(volume.shiftCount(), shifts_before + 1);
+  EXPECT_EQ(volume.originBlock(), o + BlockIndex(3, 0, 0));
+  for (int x = 0; x < 3; ++x) {
+    EXPECT_EQ(volume.findBlock(o + BlockIndex(x, 2, 2)), nullptr) << "block " << x << " left";
+  }
+  for (int x = 3; x < 8; ++x) {
+    const VoxelBlock* p = volume.findBlock(o + BlockIndex(x, 2, 2));
+    ASSERT_NE(p, nullptr) << "block " << x << " stays";
+    EXPECT_EQ(p->index, o + BlockIndex(x, 2, 2));
+    EXPECT_EQ(p->voxels[5].weight, 3.f + static_cast<float>(x));
+    EXPECT_EQ(p->voxels[5].tsdf, -0.25f * static_cast<float>(x) / 8.f);
+  }
+  EXPECT_EQ(volume.numAllocatedBlocks(), 5u);
+  for (const VoxelBlock* p : volume.allocatedBlocks()) EXPECT_TRUE(inWindow(volume, p->index));
+  // Blocks entering the window reuse the slots of those that left: they must come back empty.
+  for (int x = 8; x < 11; ++x) {
+    const BlockIndex b = o + BlockIndex(x, 2, 2);
+    const VoxelBlock* found = volume.findBlock(b);
+    if (found != nullptr) {
+      for (const Voxel& v : found->voxels) ASSERT_EQ(v.weight, 0.f);
+    }
+    VoxelBlock* p = volume.allocateBlock(b);
+    ASSERT_NE(p, nullptr);
+    EXPECT_EQ(p->index, b);
+    for (const Voxel& v : p->voxels) ASSERT_EQ(v.weight, 0.f) << "stale data in block " << x;
+  }
+}
+
+TEST(DenseVolume, FollowCameraShiftsOnlyBeyondThreshold) {
+  const DenseVolume::Params params = smallDense();
+  DenseVolume volume(params);
+  const float block_m = volume.blockSizeM();  // 0.4 m
+  volume.followCamera(Pose::Identity());
+  const int settled = volume.shiftCount();
+  const BlockIndex settled_origin = volume.originBlock();
+  volume.followCamera(Pose::Identity());
+  EXPECT_EQ(volume.shiftCount(), settled) << "no motion, no shift";
+
+  // Half a block sideways is below the 2-block threshold.
+  volume.followCamera(test::makePose(Eigen::Vector3d::Zero(),
+                                     Eigen::Vector3d(0.5 * block_m, 0.0, 0.0)));
+  EXPECT_EQ(volume.shiftCount(), settled);
+  EXPECT_EQ(volume.originBlock(), settled_origin);
+
+  // Five blocks along x, turned 90 degrees to look along +x: the window must follow, and the
+  // point the camera looks at must be inside it.
+  const Pose far = test::makePose(Eigen::Vector3d(0.0, test::kPi / 2, 0.0),
+                                  Eigen::Vector3d(5.0 * block_m, 0.0, 0.0));
+  volume.followCamera(far);
+  EXPECT_GT(volume.shiftCount(), settled);
+  const Eigen::Vector3d look = far * Eigen::Vector3d(0.0, 0.0, params.lookahead_m);
+  EXPECT_TRUE(inWindow(volume, volume.blockOf(look.cast<float>())));
+  const Eigen::Vector3d cam = far.translation();
+  EXPECT_TRUE(inWindow(volume, volume.blockOf(cam.cast<float>())));
+}
+
+}  // namespace
+}  // namespace kinfly

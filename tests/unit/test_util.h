@@ -1,0 +1,126 @@
+// Shared helpers for the unit tests: synthetic scenes, poses, image conversions and pose errors.
+// Every random number comes from a std::mt19937 with a fixed seed.
+#pragma once
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <random>
+
+#include "kinfly/camera.h"
+#include "kinfly/depth_preprocessor.h"
+#include "kinfly/icp_tracker.h"
+#include "kinfly/image.h"
+#include "kinfly/se3.h"
+#include "kinfly/synthetic_scene.h"
+#include "kinfly/tsdf_volume.h"
+
+namespace kinfly::test {
+
+constexpr double kTumDepthScale = 1.0 / 5000.0;  // [m per unit] TUM PNGs
+constexpr float kRenderMaxDepthM = 5.f;          // [m] beyond every wall of the test scenes
+constexpr double kPi = 3.14159265358979323846;
+
+inline double degToRad(double deg) { return deg * kPi / 180.0; }
+inline double radToDeg(double rad) { return rad * 180.0 / kPi; }
+
+// The TUM freiburg3 camera of PinholeCamera's defaults, 640x480.
+inline PinholeCamera tumCamera() { return PinholeCamera(); }
+
+// A room corner in front of the first camera (camera at the origin looking along +z, y down):
+// floor, back wall and left wall, with a box standing on the floor and a sphere in front.
+// Three non-parallel planes fix translation; box and sphere add structure for rotation.
+inline SyntheticScene cornerScene() {
+  SyntheticScene scene;
+  scene.addPlane(Eigen::Vector3f(0.f, -1.f, 0.f), -0.9f);  // floor y = 0.9 (free side: y < 0.9)
+  scene.addPlane(Eigen::Vector3f(0.f, 0.f, -1.f), -3.0f);  // back wall z = 3.0
+  scene.addPlane(Eigen::Vector3f(1.f, 0.f, 0.f), -1.4f);   // left wall x = -1.4
+  scene.addBox(Eigen::Vector3f(0.45f, 0.55f, 2.1f), Eigen::Vector3f(0.25f, 0.35f, 0.25f));
+  scene.addSphere(Eigen::Vector3f(-0.45f, 0.25f, 1.9f), 0.3f);
+  return scene;
+}
+
+// Pose from a rotation vector (axis * angle, radians) and a translation.
+inline Pose makePose(const Eigen::Vector3d& rotation_vector, const Eigen::Vector3d& t) {
+  Pose T = Pose::Identity();
+  const double angle = rotation_vector.norm();
+  if (angle > 0.0) T.linear() = Eigen::AngleAxisd(angle, rotation_vector / angle).matrix();
+  T.translation() = t;
+  return T;
+}
+
+// Camera at `eye` looking at `target`, image y as close to world +y (down) as possible.
+inline Pose lookAt(const Eigen::Vector3d& eye, const Eigen::Vector3d& target) {
+  const Eigen::Vector3d z = (target - eye).normalized();
+  const Eigen::Vector3d x = Eigen::Vector3d::UnitY().cross(z).normalized();
+  const Eigen::Vector3d y = z.cross(x);
+  Pose T = Pose::Identity();
+  T.linear().col(0) = x;
+  T.linear().col(1) = y;
+  T.linear().col(2) = z;
+  T.translation() = eye;
+  return T;
+}
+
+// A random rigid motion with exactly the given translation length and rotation angle.
+inline Pose randomOffset(std::mt19937* rng, double translation_m, double rotation_rad) {
+  std::normal_distribution<double> n01(0.0, 1.0);
+  Eigen::Vector3d axis(n01(*rng), n01(*rng), n01(*rng));
+  Eigen::Vector3d dir(n01(*rng), n01(*rng), n01(*rng));
+  return makePose(axis.normalized() * rotation_rad, dir.normalized() * translation_m);
+}
+
+inline double translationErrorM(const Pose& a, const Pose& b) {
+  return (a.translation() - b.translation()).norm();
+}
+// Angle of a^-1 b from the skew and symmetric parts (atan2 stays accurate at small angles,
+// where acos of the trace loses precision and clamps a slightly non-orthonormal matrix to 0).
+inline double rotationErrorRad(const Pose& a, const Pose& b) {
+  const Eigen::Matrix3d R = a.linear().transpose() * b.linear();
+  const Eigen::Vector3d skew(R(2, 1) - R(1, 2), R(0, 2) - R(2, 0), R(1, 0) - R(0, 1));
+  return std::atan2(0.5 * skew.norm(), 0.5 * (R.trace() - 1.0));
+}
+// Frobenius norm of R^T R - I: how far a pose's rotation is from a rotation.
+inline double orthonormalityError(const Pose& T) {
+  return (T.linear().transpose() * T.linear() - Eigen::Matrix3d::Identity()).norm();
+}
+// Products of a few hundred exact rotations drift by ~1e-14; anything near 1e-9 is growing.
+constexpr double kOrthonormalityTol = 1e-9;
+
+// Raw uint16 -> metres, 0 stays 0 (the conversion the engine does, without range limits).
+inline void rawToMetres(ImageView<const uint16_t> raw, double depth_scale_m,
+                        ImageView<float> depth_m) {
+  for (int y = 0; y < raw.height(); ++y) {
+    for (int x = 0; x < raw.width(); ++x) {
+      depth_m(x, y) = static_cast<float>(raw(x, y) * depth_scale_m);
+    }
+  }
+}
+
+// Model maps as a perfect raycast would give them: level 0 from exact depth, then the pyramid.
+inline void fillModelFromDepth(ImageView<const float> depth_m, const PinholeCamera& camera,
+                               ModelMaps* model) {
+  computeVertexMap(depth_m, camera, model->vertex_ref[0]);
+  computeNormalMap(model->vertex_ref[0], model->normal_ref[0]);
+  model->buildPyramid();
+}
+
+// Global voxel index -> voxel, nullptr where its block is not allocated.
+inline const Voxel* voxelAt(const TsdfVolume& volume, const Eigen::Vector3i& g) {
+  const BlockIndex b(static_cast<int>(std::floor(g.x() / static_cast<double>(kBlockSide))),
+                     static_cast<int>(std::floor(g.y() / static_cast<double>(kBlockSide))),
+                     static_cast<int>(std::floor(g.z() / static_cast<double>(kBlockSide))));
+  const VoxelBlock* block = volume.findBlock(b);
+  if (block == nullptr) return nullptr;
+  const Eigen::Vector3i l = g - b * kBlockSide;
+  return &block->voxels[VoxelBlock::linear(l.x(), l.y(), l.z())];
+}
+
+// Angle between two vectors in degrees.
+inline double angleDeg(const Eigen::Vector3f& a, const Eigen::Vector3f& b) {
+  const double c = a.normalized().dot(b.normalized());
+  return radToDeg(std::acos(std::clamp(c, -1.0, 1.0)));
+}
+
+}  // namespace kinfly::test

@@ -77,7 +77,7 @@ FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_dep
   const PreprocessResult pre = preprocessor_.process(raw_depth, &frame_);
   FrameResult result;
   result.utime = utime;
-  result.T_world_cam = orthonormalized(T_world_cam);
+  result.T_world_cam = T_world_cam;
   result.status = TrackingStatus::kGivenPose;
   result.valid_depth_fraction = pre.valid_fraction;
   return fuse(result, msSince(start));

@@ -3,11 +3,11 @@
 #include <CLI/CLI.hpp>
 #include <omp.h>
 #include <sys/resource.h>
-#include <sys/stat.h>
 
 #include <algorithm>
 #include <cerrno>
 #include <cstring>
+#include <filesystem>
 #include <numeric>
 #include <cstdio>
 #include <cstdlib>
@@ -167,8 +167,9 @@ int main(int argc, char** argv) {
   params.integrate.truncation_m = opt.truncation_m > 0.f ? opt.truncation_m : 4.f * voxel_m;
   if (std::string why = params.validate(voxel_m); !why.empty()) return fail(why);
 
-  if (::mkdir(opt.out_dir.c_str(), 0755) != 0 && errno != EEXIST)
-    return fail("cannot create " + opt.out_dir + ": " + std::strerror(errno));
+  std::error_code mkdir_error;
+  std::filesystem::create_directories(opt.out_dir, mkdir_error);
+  if (mkdir_error) return fail("cannot create " + opt.out_dir + ": " + mkdir_error.message());
   omp_set_num_threads(opt.threads);
 
   kinfly::FusionPipeline pipeline(camera, params, volume.get());

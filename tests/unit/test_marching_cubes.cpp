@@ -2,7 +2,6 @@
 // accurate, and written to PLY with the right counts.
 #include <gtest/gtest.h>
 
-#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -246,38 +245,6 @@ TEST(MarchingCubes, WritePlyHeaderMatchesMesh) {
   EXPECT_EQ(static_cast<long>(in.tellg() - body_start), vertices * 24 + faces * 13);
   std::remove(path.c_str());
   EXPECT_NE(writePly(mesh, "/nonexistent-dir/x.ply"), "");
-}
-
-TEST(MarchingCubes, HundredThousandBlocksInSeconds) {
-  // A 0.8 m x 0.8 m x 40 m slab of 100k blocks (1 cm voxels) with a wavy surface through it:
-  // the scale of a large ground-station map.
-  HashedVolume::Params params;
-  params.voxel_size_m = kVoxelM;
-  params.chunk_blocks = 16384;
-  HashedVolume volume(params);
-  for (int bz = 0; bz < 500; ++bz)
-    for (int by = 0; by < 20; ++by)
-      for (int bx = 0; bx < 10; ++bx) {
-        VoxelBlock* b = volume.allocateBlock(BlockIndex(bx, by, bz));
-        for (int z = 0; z < kBlockSide; ++z)
-          for (int y = 0; y < kBlockSide; ++y)
-            for (int x = 0; x < kBlockSide; ++x) {
-              const Eigen::Vector3f p = volume.voxelCentre(b->index, x, y, z);
-              const float sdf = 0.8f - p.y() + 0.05f * std::sin(10.f * p.x() + 3.f * p.z());
-              Voxel& v = b->voxels[VoxelBlock::linear(x, y, z)];
-              v.tsdf = std::clamp(sdf / kTruncationM, -1.f, 1.f);
-              v.weight = 1.f;
-            }
-      }
-  ASSERT_EQ(volume.numAllocatedBlocks(), 100000u);
-  const auto start = std::chrono::steady_clock::now();
-  const TriangleMesh mesh = MarchingCubes(MarchingCubes::Params()).extract(volume);
-  const double seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  EXPECT_GT(mesh.triangles.size(), 100000u);
-  // Not a benchmark: a generous bound that only a quadratic or per-cube-allocating
-  // implementation would exceed (typically well under one second in Release).
-  EXPECT_LT(seconds, 10.0);
 }
 
 }  // namespace

@@ -1,6 +1,8 @@
 // kinfly-fuse: offline KinectFusion over a recorded TUM RGB-D sequence. Writes the camera
 // trajectory, a mesh of the fused map and per-stage timing statistics.
 #include <CLI/CLI.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
 #include <omp.h>
 #include <sys/resource.h>
 
@@ -219,6 +221,12 @@ int main(int argc, char** argv) {
   const std::string traj_path = opt.out_dir + "/trajectory.tum";
   if (std::string why = kinfly::writeTumTrajectory(traj_path, trajectory); !why.empty()) return fail(why);
 
+  const std::string render_path = opt.out_dir + "/render.png";
+  kinfly::Image<uint8_t> render(pipeline.camera().width, pipeline.camera().height, 0);
+  pipeline.renderShaded(render.view());
+  if (!cv::imwrite(render_path, cv::Mat(render.height(), render.width(), CV_8UC1, render.data())))
+    return fail("cannot write " + render_path);
+
   std::fprintf(stderr, "meshing %zu blocks...\n", volume->numAllocatedBlocks());
   const kinfly::TriangleMesh mesh = kinfly::MarchingCubes(kinfly::MarchingCubes::Params()).extract(*volume);
   const std::string mesh_path = opt.out_dir + "/mesh.ply";
@@ -253,8 +261,8 @@ int main(int argc, char** argv) {
   js.close();
   if (!js) return fail("failed writing " + stats_path);
 
-  std::fprintf(stderr, "done: %zu frames, median %.1f ms/frame (%d lost)\n  trajectory: %s\n  mesh:       %s\n  stats:      %s\n",
+  std::fprintf(stderr, "done: %zu frames, median %.1f ms/frame (%d lost)\n  trajectory: %s\n  mesh:       %s\n  render:     %s\n  stats:      %s\n",
                entries.size(), percentile(frame_ms, 0.5), status_counts["lost"], traj_path.c_str(),
-               mesh_path.c_str(), stats_path.c_str());
+               mesh_path.c_str(), render_path.c_str(), stats_path.c_str());
   return 0;
 }

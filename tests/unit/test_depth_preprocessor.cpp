@@ -237,9 +237,7 @@ TEST(DepthPreprocessor, NormalMapOfPlaneIsPlaneNormal) {
   Image<float> depth(cam.width, cam.height);
   scene.renderDepth(cam, Pose::Identity(), test::kRenderMaxDepthM, depth);
   Image<uint16_t> raw(cam.width, cam.height);
-  for (int i = 0; i < raw.numPixels(); ++i) {
-    raw.data()[i] = static_cast<uint16_t>(std::lround(depth.data()[i] / test::kTumDepthScale));
-  }
+  test::metresToRaw(depth, raw);
   DepthFrame frame(pre.camera());
   pre.process(raw, &frame);
   // Quantisation staircases the plane in 0.2 mm steps over ~2.8 mm pixels; the bilateral filter
@@ -308,9 +306,7 @@ TEST(DepthPreprocessor, DownsampleTwoGivesQvgaWithScaledIntrinsics) {
   Image<float> depth(cam.width, cam.height);
   scene.renderDepth(cam, Pose::Identity(), test::kRenderMaxDepthM, depth);
   Image<uint16_t> raw(cam.width, cam.height);
-  for (int i = 0; i < raw.numPixels(); ++i) {
-    raw.data()[i] = static_cast<uint16_t>(std::lround(depth.data()[i] / test::kTumDepthScale));
-  }
+  test::metresToRaw(depth, raw);
   DepthFrame frame(pre.camera());
   EXPECT_EQ(frame.raw_depth_m.width(), 320);
   pre.process(raw, &frame);

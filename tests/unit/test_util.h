@@ -89,6 +89,12 @@ inline double orthonormalityError(const Pose& T) {
 constexpr double kOrthonormalityTol = 1e-9;
 
 // Raw uint16 -> metres, 0 stays 0 (the conversion the engine does, without range limits).
+// Noise-free sensor image: metric depth quantised to TUM units (0.2 mm), 0 stays 0.
+inline void metresToRaw(ImageView<const float> depth_m, ImageView<uint16_t> raw) {
+  for (int i = 0; i < raw.numPixels(); ++i)
+    raw.data()[i] = static_cast<uint16_t>(std::lround(depth_m.data()[i] / kTumDepthScale));
+}
+
 inline void rawToMetres(ImageView<const uint16_t> raw, double depth_scale_m,
                         ImageView<float> depth_m) {
   for (int y = 0; y < raw.height(); ++y) {

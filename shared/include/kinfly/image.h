@@ -38,7 +38,10 @@ template <typename T>
 class Image {
  public:
   Image() = default;
-  Image(int width, int height, const T& fill = T())
+  // Value-initialised pixels: zero for arithmetic types; Eigen vectors are left unset, so give
+  // them an explicit fill where the contents are read before being written.
+  Image(int width, int height) : width_(width), height_(height), data_(static_cast<size_t>(width) * height) {}
+  Image(int width, int height, const T& fill)
       : width_(width), height_(height), data_(static_cast<size_t>(width) * height, fill) {}
   // Copies are explicit (copyFrom) so a per-frame deep copy never hides in an assignment.
   Image(const Image&) = delete;

@@ -66,6 +66,7 @@ demo: deps build
 	@echo "kinfly-fuse fused $(SAMPLE) into:"
 	@echo "  mesh        $(DEMO_OUT)/mesh.ply"
 	@echo "  trajectory  $(DEMO_OUT)/trajectory.tum"
+	@echo "  render      $(DEMO_OUT)/render.png"
 	@echo "  statistics  $(DEMO_OUT)/stats.json"
 	@echo "ATE against the sample's ground truth (first frames have no GT within 20 ms):"
 	@$(PY) $(REPO_ROOT)/tests/tools/kinfly_eval.py ate $(DEMO_OUT)/trajectory.tum $(SAMPLE)/groundtruth.txt

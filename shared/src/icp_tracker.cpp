@@ -223,13 +223,7 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
     why << "inlier fraction " << result.inlier_fraction << " below min_inlier_fraction";
   else if (result.rmse_m > params_.max_rmse_m)
     why << "residual " << result.rmse_m << " m exceeds max_rmse_m";
-  if (!why.str().empty()) {
-    const float inl = result.inlier_fraction, rmse = result.rmse_m;
-    fail(why.str());
-    result.inlier_fraction = inl;
-    result.rmse_m = rmse;
-    return result;
-  }
+  if (!why.str().empty()) return fail(why.str());  // keeps the measured inliers and residual
   result.T_ref_cur = T;
   result.status = TrackingStatus::kOk;
   return result;

@@ -12,7 +12,6 @@
 #include <filesystem>
 #include <numeric>
 #include <cstdio>
-#include <cstdlib>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -42,6 +41,7 @@ struct Options {
   int max_frames = 0;
   int downsample = 1;
   double pose_max_dt_s = 0.02;
+  bool verbose = false;
 };
 
 int fail(const std::string& message) {
@@ -126,6 +126,7 @@ int main(int argc, char** argv) {
       ->capture_default_str()->check(CLI::PositiveNumber);
   app.add_option("--downsample", opt.downsample, "run the whole pipeline at 1/N resolution (2: 320x240, as the drone does)")
       ->capture_default_str()->check(CLI::IsMember({1, 2, 4}));
+  app.add_flag("--verbose", opt.verbose, "progress line for every frame (default: every 20th and every lost frame)");
   CLI11_PARSE(app, argc, argv);
 
   std::vector<kinfly::TumDepthEntry> entries;
@@ -210,7 +211,7 @@ int main(int argc, char** argv) {
       stage_ms["integrate"].push_back(r.ms.integrate);
       stage_ms["raycast"].push_back(r.ms.raycast);
     }
-    if (std::getenv("KINFLY_VERBOSE") != nullptr || (i + 1) % 20 == 0 || i + 1 == entries.size() || r.status == TrackingStatus::kLost) {
+    if (opt.verbose || (i + 1) % 20 == 0 || i + 1 == entries.size() || r.status == TrackingStatus::kLost) {
       std::fprintf(stderr, "[%4zu/%zu] %-5s %6.1f ms (pre %.1f track %.1f fuse %.1f ray %.1f)  inliers %3.0f%%  rmse %.1f mm  blocks %zu%s%s\n",
                    i + 1, entries.size(), kinfly::toString(r.status), r.ms.total, r.ms.preprocess, r.ms.track,
                    r.ms.integrate, r.ms.raycast, 100.0 * r.inlier_fraction, 1000.0 * r.rmse_m,

@@ -102,8 +102,10 @@ FrameResult FusionPipeline::fuse(FrameResult result, double preprocess_ms) {
   return result;
 }
 
-void FusionPipeline::renderShaded(ImageView<uint8_t> out) const {
-  Raycaster::shade(model_.vertex_ref[0].view(), model_.normal_ref[0].view(), out);
+void FusionPipeline::renderShaded(ImageView<uint8_t> out) {
+  if (!render_maps_) render_maps_ = std::make_unique<ModelMaps>(camera());
+  raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_, render_maps_.get());
+  Raycaster::shade(render_maps_->vertex_ref[0].view(), render_maps_->normal_ref[0].view(), out);
 }
 
 }  // namespace kinfly

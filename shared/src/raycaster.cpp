@@ -78,6 +78,133 @@ class VoxelReader {
   std::array<bool, 8> valid_{};
 };
 
+
+// The search along one pixel's ray, in voxel units: p(z) = origin_vox + ray_vox * z, where z is
+// the depth in metres and ray_vox the voxels travelled per metre of depth.
+struct RayCaster {
+  Eigen::Vector3f origin_vox;
+  float mu_vox;         // truncation band [voxels]
+  float step_fraction;  // of the band, for steps through observed space
+
+  // Newton's method on the trilinear TSDF, started at the depth just measured (which the TSDF
+  // has just fused, so the surface is usually within a voxel of it): two or three samples instead
+  // of a march. Gives up (false) when the field there is unobserved, truncated or not a front
+  // face, or when the iterate leaves [z_min, z_max]; the caller then marches.
+  bool newton(VoxelReader* reader, const Eigen::Vector3f& ray_vox, float z_start, float z_min,
+              float z_max, float* z_hit, Eigen::Vector3f* gradient) const {
+    constexpr int kMaxIterations = 4;
+    // Converged when the next update is under this fraction of a voxel; the march's regula falsi
+    // stops at a twentieth.
+    constexpr float kToleranceVox = 0.05f;
+    const float tolerance_z = kToleranceVox / ray_vox.norm();
+    float z = z_start;
+    for (int it = 0; it < kMaxIterations; ++it) {
+      float f;
+      if (!reader->trilinear(origin_vox + ray_vox * z, &f, gradient)) return false;
+      // Inside the band |f| < 1; at the clamp the field is flat and says nothing about distance.
+      if (std::fabs(f) >= 1.f) return false;
+      const float slope = gradient->dot(ray_vox);  // dTSDF/dz; negative through a front face
+      if (!(slope < 0.f)) return false;
+      const float dz = -f / slope;
+      z += dz;
+      if (!(z >= z_min && z <= z_max)) return false;
+      if (std::fabs(dz) < tolerance_z) {
+        *z_hit = z;
+        return gradient->squaredNorm() > 0.f;
+      }
+    }
+    return false;
+  }
+
+  // KinectFusion's march: steps bounded by the TSDF through observed space, whole unallocated
+  // blocks skipped, the sign change found on nearest voxels, then bracketed on the trilinear
+  // field and refined by regula falsi.
+  bool march(VoxelReader* reader, const Eigen::Vector3f& ray_vox, float z_begin, float z_end,
+             float* z_hit, Eigen::Vector3f* gradient) const {
+    const float vox_per_z = ray_vox.norm();
+    const Eigen::Vector3f inv_dir = ray_vox.cwiseInverse();
+    const float far_step_vox = mu_vox * step_fraction;
+    float z = z_begin, prev_z = 0.f, prev_f = 0.f;
+    bool prev_known = false;
+    while (z <= z_end) {
+      const Eigen::Vector3f p = origin_vox + ray_vox * z;
+      const int gx = roundToInt(p.x()), gy = roundToInt(p.y()), gz = roundToInt(p.z());
+      const Voxel* voxel = reader->voxel(gx, gy, gz);
+      if (voxel == nullptr) {
+        // An unallocated block holds no surface: jump to where the ray leaves the region whose
+        // nearest voxels belong to it, [8b - 0.5, 8b + 7.5) per axis.
+        const Eigen::Vector3f lo(static_cast<float>((gx >> 3) * kBlockSide) - 0.5f,
+                                 static_cast<float>((gy >> 3) * kBlockSide) - 0.5f,
+                                 static_cast<float>((gz >> 3) * kBlockSide) - 0.5f);
+        float z_exit = std::numeric_limits<float>::infinity();
+        for (int a = 0; a < 3; ++a) {
+          if (ray_vox[a] == 0.f) continue;
+          const float bound = ray_vox[a] > 0.f ? lo[a] + kBlockSide : lo[a];
+          z_exit = std::min(z_exit, (bound - origin_vox[a]) * inv_dir[a]);
+        }
+        prev_known = false;
+        z = std::max(z_exit, z) + 0.01f / vox_per_z;  // a hundredth of a voxel past the face
+        continue;
+      }
+      const bool known = voxel->weight > 0.f;
+      const float f = voxel->tsdf;
+      if (known && prev_known && prev_f > 0.f && f <= 0.f)
+        return refine(reader, ray_vox, prev_z, prev_f, z, f, z_hit, gradient);
+      if (known && prev_known && prev_f < 0.f && f > 0.f) return false;  // left a surface from behind
+      prev_known = known;
+      prev_f = f;
+      prev_z = z;
+      // In observed space the TSDF bounds the distance to the surface; elsewhere step by a
+      // fraction of the band so no crossing is jumped over.
+      const float step_vox = known ? std::max(1.f, f * mu_vox * step_fraction) : far_step_vox;
+      z += step_vox / vox_per_z;
+    }
+    return false;
+  }
+
+  // A sign change between nearest voxels at depths z0 (f0 > 0) and z1 (f1 <= 0). Brackets it on
+  // the trilinear field (stepping out by up to two voxels where the interpolated signs disagree
+  // with the nearest ones), then refines by regula falsi: the nearest-voxel interpolation alone is
+  // only good to half a voxel.
+  bool refine(VoxelReader* reader, const Eigen::Vector3f& ray_vox, float z0, float f0_nearest,
+              float z1, float f1_nearest, float* z_hit, Eigen::Vector3f* gradient) const {
+    const float voxel_z = 1.f / ray_vox.norm();
+    float za = z0, zb = z1, f0 = 0.f, f1 = 0.f;
+    bool ok = reader->trilinear(origin_vox + ray_vox * za, &f0, nullptr) &&
+              reader->trilinear(origin_vox + ray_vox * zb, &f1, nullptr);
+    for (int k = 0; ok && f0 <= 0.f && k < 2; ++k) {
+      za -= voxel_z;
+      ok = reader->trilinear(origin_vox + ray_vox * za, &f0, nullptr);
+    }
+    for (int k = 0; ok && f1 > 0.f && k < 2; ++k) {
+      zb += voxel_z;
+      ok = reader->trilinear(origin_vox + ray_vox * zb, &f1, nullptr);
+    }
+    float z = z0 + (z1 - z0) * f0_nearest / (f0_nearest - f1_nearest);
+    if (ok && f0 > 0.f && f1 <= 0.f) {
+      // The trilinear field is nearly linear across one cell: two secant steps bring the
+      // bracket well under a twentieth of a voxel, and each costs a trilinear sample.
+      for (int it = 0; it < 2 && (zb - za) > 0.05f * voxel_z; ++it) {
+        z = za + (zb - za) * f0 / (f0 - f1);
+        float fm;
+        if (!reader->trilinear(origin_vox + ray_vox * z, &fm, nullptr)) break;
+        if (fm > 0.f) {
+          za = z;
+          f0 = fm;
+        } else {
+          zb = z;
+          f1 = fm;
+        }
+      }
+    }
+    float f_hit;
+    if (!reader->trilinear(origin_vox + ray_vox * z, &f_hit, gradient) || !(gradient->squaredNorm() > 0.f))
+      return false;
+    *z_hit = z;
+    return true;
+  }
+};
+
 }  // namespace
 
 bool sampleTsdf(const TsdfVolume& volume, const Eigen::Vector3f& p_world, float* tsdf,
@@ -159,8 +286,7 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
   const Eigen::Matrix3f R_cw = R_wc.transpose();
   const float inv_vs = 1.f / volume.voxelSizeM();
   const Eigen::Vector3f origin_vox = T_world_cam.translation().cast<float>() * inv_vs;
-  const float mu_vox = truncation_m * inv_vs;
-  const float far_step_vox = mu_vox * params_.step_fraction;
+  const RayCaster ray{origin_vox, truncation_m * inv_vs, params_.step_fraction};
   const int tile = params_.range_tile_px;
   ImageView<Eigen::Vector3f> vmap = maps->vertex_ref[0].view();
   ImageView<Eigen::Vector3f> nmap = maps->normal_ref[0].view();
@@ -175,90 +301,25 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
       const Eigen::Vector2f range = tile_range_(x / tile, y / tile);
       float z_begin = std::max(range.x(), params_.min_depth_m);
       float z_end = std::min(range.y(), params_.max_depth_m);
-      if (use_hint && depth_hint_m(x, y) > 0.f) {
-        z_begin = std::max(z_begin, depth_hint_m(x, y) - params_.hint_margin_m);
-        z_end = std::min(z_end, depth_hint_m(x, y) + params_.hint_margin_m);
+      float hint = 0.f;
+      if (use_hint) {
+        hint = depth_hint_m(x, y);
+        if (!(hint > 0.f)) continue;
+        z_begin = std::max(z_begin, hint - params_.hint_margin_m);
+        z_end = std::min(z_end, hint + params_.hint_margin_m);
       }
       if (!(z_begin < z_end)) continue;
       const Eigen::Vector3f ray_cam = camera_.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
       const Eigen::Vector3f ray_vox = R_wc * ray_cam * inv_vs;  // voxel units per metre of depth
-      const float vox_per_z = ray_vox.norm();
-      const Eigen::Vector3f inv_dir = ray_vox.cwiseInverse();
-      float z = z_begin, prev_z = 0.f, prev_f = 0.f;
-      bool prev_known = false;
-      while (z <= z_end) {
-        const Eigen::Vector3f p = origin_vox + ray_vox * z;
-        const int gx = roundToInt(p.x()), gy = roundToInt(p.y()), gz = roundToInt(p.z());
-        const Voxel* voxel = reader.voxel(gx, gy, gz);
-        if (voxel == nullptr) {
-          // An unallocated block holds no surface: jump to where the ray leaves the region whose
-          // nearest voxels belong to it, [8b - 0.5, 8b + 7.5) per axis.
-          const Eigen::Vector3f lo(static_cast<float>((gx >> 3) * kBlockSide) - 0.5f,
-                                   static_cast<float>((gy >> 3) * kBlockSide) - 0.5f,
-                                   static_cast<float>((gz >> 3) * kBlockSide) - 0.5f);
-          float z_exit = std::numeric_limits<float>::infinity();
-          for (int a = 0; a < 3; ++a) {
-            if (ray_vox[a] == 0.f) continue;
-            const float bound = ray_vox[a] > 0.f ? lo[a] + kBlockSide : lo[a];
-            z_exit = std::min(z_exit, (bound - origin_vox[a]) * inv_dir[a]);
-          }
-          prev_known = false;
-          z = std::max(z_exit, z) + 0.01f / vox_per_z;  // a hundredth of a voxel past the face
-          continue;
-        }
-        const bool known = voxel->weight > 0.f;
-        const float f = voxel->tsdf;
-        if (known && prev_known && prev_f > 0.f && f <= 0.f) {
-          // Zero crossing, found on nearest-voxel signs. Bracket it on the trilinear field
-          // (stepping out by up to two voxels where the interpolated signs disagree with the
-          // nearest ones), then refine by regula falsi: the nearest-voxel interpolation alone is
-          // only good to half a voxel.
-          const float voxel_z = 1.f / vox_per_z;
-          float za = prev_z, zb = z, f0 = 0.f, f1 = 0.f;
-          bool ok = reader.trilinear(origin_vox + ray_vox * za, &f0, nullptr) &&
-                    reader.trilinear(origin_vox + ray_vox * zb, &f1, nullptr);
-          for (int k = 0; ok && f0 <= 0.f && k < 2; ++k) {
-            za -= voxel_z;
-            ok = reader.trilinear(origin_vox + ray_vox * za, &f0, nullptr);
-          }
-          for (int k = 0; ok && f1 > 0.f && k < 2; ++k) {
-            zb += voxel_z;
-            ok = reader.trilinear(origin_vox + ray_vox * zb, &f1, nullptr);
-          }
-          float z_hit = prev_z + (z - prev_z) * prev_f / (prev_f - f);
-          if (ok && f0 > 0.f && f1 <= 0.f) {
-            // The trilinear field is nearly linear across one cell: two secant steps bring the
-            // bracket well under a twentieth of a voxel, and each costs a trilinear sample.
-            for (int it = 0; it < 2 && (zb - za) > 0.05f * voxel_z; ++it) {
-              z_hit = za + (zb - za) * f0 / (f0 - f1);
-              float fm;
-              if (!reader.trilinear(origin_vox + ray_vox * z_hit, &fm, nullptr)) break;
-              if (fm > 0.f) {
-                za = z_hit;
-                f0 = fm;
-              } else {
-                zb = z_hit;
-                f1 = fm;
-              }
-            }
-          }
-          float f_hit;
-          Eigen::Vector3f grad;
-          if (reader.trilinear(origin_vox + ray_vox * z_hit, &f_hit, &grad) && grad.squaredNorm() > 0.f) {
-            vmap(x, y) = ray_cam * z_hit;
-            nmap(x, y) = (R_cw * grad).normalized();
-            ++hits;
-          }
-          break;
-        }
-        if (known && prev_known && prev_f < 0.f && f > 0.f) break;  // left a surface from behind
-        prev_known = known;
-        prev_f = f;
-        prev_z = z;
-        // In observed space the TSDF bounds the distance to the surface; elsewhere step by a
-        // fraction of the band so no crossing is jumped over.
-        const float step_vox = known ? std::max(1.f, f * mu_vox * params_.step_fraction) : far_step_vox;
-        z += step_vox / vox_per_z;
+      float z_hit = 0.f;
+      Eigen::Vector3f grad;
+      const bool hit =
+          (hint > 0.f && ray.newton(&reader, ray_vox, hint, z_begin, z_end, &z_hit, &grad)) ||
+          ray.march(&reader, ray_vox, z_begin, z_end, &z_hit, &grad);
+      if (hit) {
+        vmap(x, y) = ray_cam * z_hit;
+        nmap(x, y) = (R_cw * grad).normalized();
+        ++hits;
       }
     }
   }

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <string>
 
 #include "kinfly/camera.h"
@@ -57,8 +58,9 @@ class FusionPipeline {
   const PinholeCamera& camera() const { return preprocessor_.camera(); }
   const DepthFrame& frame() const { return frame_; }
   const ModelMaps& model() const { return model_; }
-  // Lambertian render of the model from the latest pose.
-  void renderShaded(ImageView<uint8_t> out) const;
+  // Lambertian render of the model from the latest pose: a full raycast, every pixel, on demand
+  // (the per-frame model maps only cover the pixels measured).
+  void renderShaded(ImageView<uint8_t> out);
 
  private:
   FrameResult fuse(FrameResult result, double preprocess_ms);
@@ -71,6 +73,7 @@ class FusionPipeline {
   Raycaster raycaster_;
   DepthFrame frame_;
   ModelMaps model_;
+  std::unique_ptr<ModelMaps> render_maps_;  // allocated by the first renderShaded()
   bool has_model_ = false;
   // Latest fused pose; the model maps are always raycast from it, since lost frames change
   // neither.

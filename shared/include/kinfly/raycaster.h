@@ -36,9 +36,9 @@ class Raycaster {
     float step_fraction = 0.8f;  // (0, 1]
     // Ray ranges come from projecting allocated blocks onto tiles of this many pixels.
     int range_tile_px = 8;       // >= 1
-    // With a depth hint (the frame just fused), rays search only this far either side of the
-    // measured depth: the tracker's correspondence gate (0.1 m) discards anything further, and a
-    // short search makes the raycast several times cheaper. Pixels without a hint march fully.
+    // With a depth hint (the frame just fused), a ray starts Newton's method at the measured
+    // depth and, should that fail, marches only this far either side of it: the tracker's
+    // correspondence gate (0.1 m) discards anything further.
     float hint_margin_m = 0.1f;  // [m] > 0
     std::string validate() const;
   };
@@ -46,8 +46,13 @@ class Raycaster {
   Raycaster(const PinholeCamera& camera, const Params& params);
   const Params& params() const { return params_; }
 
-  // Writes level 0 of `maps` (vertex and normal in the camera frame of T_world_cam).
-  // `depth_hint_m` (optional, same size as the camera, 0 = none) bounds each ray's search.
+  // Writes level 0 of `maps` (vertex and normal in the camera frame of T_world_cam), invalid
+  // where no surface is found. Without `depth_hint_m` every pixel is cast (a render). With it
+  // (the frame just fused, same size as the camera, 0 = no measurement) only measured pixels are
+  // cast, each searching near its measurement: these are the model maps for tracking, where the
+  // next frame's measurements associate (a camera that saw nothing at a pixel rarely does one
+  // frame later), and a third of a Kinect image can be holes whose rays would otherwise march
+  // through all the empty space behind the scene.
   RaycastResult raycast(const TsdfVolume& volume, float truncation_m, const Pose& T_world_cam,
                         ModelMaps* maps, ImageView<const float> depth_hint_m = {});
 

@@ -46,11 +46,14 @@ class VoxelReader {
       if (v0 == nullptr) return false;
       constexpr int kDy = kBlockSide, kDz = kBlockSide * kBlockSide;
       static constexpr int kOffset[8] = {0, 1, kDy, kDy + 1, kDz, kDz + 1, kDz + kDy, kDz + kDy + 1};
+      // One test for the eight weights instead of eight branches.
+      float min_weight = v0[0].weight;
       for (int i = 0; i < 8; ++i) {
         const Voxel& v = v0[kOffset[i]];
-        if (v.weight <= 0.f) return false;
+        min_weight = std::min(min_weight, v.weight);
         c[i] = v.tsdf;
       }
+      if (!(min_weight > 0.f)) return false;
     } else {
       for (int i = 0; i < 8; ++i) {
         const Voxel* v = voxel(gx + (i & 1), gy + ((i >> 1) & 1), gz + ((i >> 2) & 1));
@@ -280,8 +283,9 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
                                  const Pose& T_world_cam, ModelMaps* maps,
                                  ImageView<const float> depth_hint_m) {
   const bool use_hint = !depth_hint_m.empty();
-  const Pose T_cam_world = T_world_cam.inverse();
-  computeRanges(volume, T_cam_world);
+  // Tile ranges cost a pass over every allocated block, which grows with the map; a hinted ray
+  // already knows its range.
+  if (!use_hint) computeRanges(volume, T_world_cam.inverse());
   const Eigen::Matrix3f R_wc = T_world_cam.linear().cast<float>();
   const Eigen::Matrix3f R_cw = R_wc.transpose();
   const float inv_vs = 1.f / volume.voxelSizeM();
@@ -298,16 +302,13 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
     for (int x = 0; x < camera_.width; ++x) {
       vmap(x, y) = invalidVector();
       nmap(x, y) = invalidVector();
-      const Eigen::Vector2f range = tile_range_(x / tile, y / tile);
-      float z_begin = std::max(range.x(), params_.min_depth_m);
-      float z_end = std::min(range.y(), params_.max_depth_m);
-      float hint = 0.f;
-      if (use_hint) {
-        hint = depth_hint_m(x, y);
-        if (!(hint > 0.f)) continue;
-        z_begin = std::max(z_begin, hint - params_.hint_margin_m);
-        z_end = std::min(z_end, hint + params_.hint_margin_m);
-      }
+      const float hint = use_hint ? depth_hint_m(x, y) : 0.f;
+      if (use_hint && !(hint > 0.f)) continue;
+      const Eigen::Vector2f range = use_hint ? Eigen::Vector2f(hint - params_.hint_margin_m,
+                                                               hint + params_.hint_margin_m)
+                                             : tile_range_(x / tile, y / tile);
+      const float z_begin = std::max(range.x(), params_.min_depth_m);
+      const float z_end = std::min(range.y(), params_.max_depth_m);
       if (!(z_begin < z_end)) continue;
       const Eigen::Vector3f ray_cam = camera_.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
       const Eigen::Vector3f ray_vox = R_wc * ray_cam * inv_vs;  // voxel units per metre of depth

@@ -1,6 +1,8 @@
 #include "kinfly/tsdf_integrator.h"
 
+#include <array>
 #include <cmath>
+#include <cstdint>
 
 #include "kinfly/numeric.h"
 #include <sstream>
@@ -29,35 +31,51 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
   const Eigen::Vector3f t_wc = T_world_cam.translation().cast<float>();
   const size_t before = volume->numAllocatedBlocks();
 
-  // 1. Blocks within the truncation band of every (strided) measurement, each listed once.
+  // 1. Blocks within the truncation band of every (strided) measurement. Rows are scanned in
+  // parallel, in fixed chunks, each dropping the blocks it has just listed (a small
+  // direct-mapped cache: neighbouring pixels share their blocks); the short candidate lists are
+  // then allocated serially, in chunk order, so the block order does not depend on the threads.
   const float sample_step_m = 0.5f * volume->blockSizeM();
-  BlockIndex last(INT32_MIN, INT32_MIN, INT32_MIN);
   const int stride = params_.allocation_stride_px;
-  for (int y = 0; y < depth_m.height(); y += stride) {
-    const float* row = depth_m.row(y);
-    for (int x = 0; x < depth_m.width(); x += stride) {
-      const float d = row[x];
-      if (d <= 0.f) continue;
-      const Eigen::Vector3f ray = camera.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
-      const float ray_len = ray.norm();
-      const float z0 = std::max(d - mu / ray_len, 1e-3f), z1 = d + mu / ray_len;
-      const int samples = 1 + static_cast<int>(std::ceil((z1 - z0) * ray_len / sample_step_m));
-      for (int i = 0; i <= samples; ++i) {
-        const float z = z0 + (z1 - z0) * static_cast<float>(i) / static_cast<float>(samples);
-        const BlockIndex b = volume->blockOf(R_wc * (ray * z) + t_wc);
-        if (b == last) continue;  // neighbouring samples mostly share a block: skip the lookup
-        last = b;
-        VoxelBlock* blk = volume->allocateBlock(b);
-        if (blk == nullptr) {
-          ++result.blocks_rejected;
-          continue;
+  const int rows = (depth_m.height() + stride - 1) / stride;
+#pragma omp parallel for schedule(dynamic, 1) if (parallel)
+  for (int c = 0; c < kAllocationChunks; ++c) {
+    std::vector<BlockIndex>& candidates = candidates_[c];
+    candidates.clear();
+    std::array<BlockIndex, kRecentBlocks> recent;
+    recent.fill(BlockIndex::Constant(INT32_MIN));
+    for (int r = rows * c / kAllocationChunks; r < rows * (c + 1) / kAllocationChunks; ++r) {
+      const int y = r * stride;
+      const float* row = depth_m.row(y);
+      for (int x = 0; x < depth_m.width(); x += stride) {
+        const float d = row[x];
+        if (d <= 0.f) continue;
+        const Eigen::Vector3f ray = camera.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
+        const float ray_len = ray.norm();
+        const float z0 = std::max(d - mu / ray_len, 1e-3f), z1 = d + mu / ray_len;
+        const int samples = 1 + static_cast<int>(std::ceil((z1 - z0) * ray_len / sample_step_m));
+        for (int i = 0; i <= samples; ++i) {
+          const float z = z0 + (z1 - z0) * static_cast<float>(i) / static_cast<float>(samples);
+          const BlockIndex b = volume->blockOf(R_wc * (ray * z) + t_wc);
+          BlockIndex& slot = recent[hashBlockIndex(b) % kRecentBlocks];
+          if (slot == b) continue;
+          slot = b;
+          candidates.push_back(b);
         }
-        if (blk->touched_stamp == stamp_) continue;
-        blk->touched_stamp = stamp_;
-        touched_.push_back(blk);
       }
     }
   }
+  for (const std::vector<BlockIndex>& candidates : candidates_)
+    for (const BlockIndex& b : candidates) {
+      VoxelBlock* blk = volume->allocateBlock(b);
+      if (blk == nullptr) {
+        ++result.blocks_rejected;
+        continue;
+      }
+      if (blk->touched_stamp == stamp_) continue;
+      blk->touched_stamp = stamp_;
+      touched_.push_back(blk);
+    }
   result.blocks_updated = static_cast<int>(touched_.size());
   result.blocks_allocated = static_cast<int>(volume->numAllocatedBlocks() - before);
 

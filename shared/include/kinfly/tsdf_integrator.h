@@ -2,6 +2,8 @@
 // pixel ray, truncation, running weighted average, weight cap.
 #pragma once
 
+#include <array>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -37,9 +39,14 @@ class TsdfIntegrator {
                             const Pose& T_world_cam, TsdfVolume* volume, bool parallel = true);
 
  private:
+  static constexpr int kAllocationChunks = 32;
+  static constexpr int kRecentBlocks = 64;
+
   Params params_;
   uint32_t stamp_ = 0;
-  std::vector<VoxelBlock*> touched_;  // reused every frame; capacity grows with the map only
+  // Reused every frame; capacities grow with the surface in view, not per frame.
+  std::array<std::vector<BlockIndex>, kAllocationChunks> candidates_;
+  std::vector<VoxelBlock*> touched_;
 };
 
 // The per-voxel update, shared by every integration loop.

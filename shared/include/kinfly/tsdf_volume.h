@@ -12,6 +12,7 @@
 #include <cstdint>
 #include <vector>
 
+#include "kinfly/numeric.h"
 #include "kinfly/se3.h"
 
 namespace kinfly {
@@ -77,9 +78,8 @@ class TsdfVolume {
 
   BlockIndex blockOf(const Eigen::Vector3f& p_world) const {
     const float inv = 1.f / blockSizeM();
-    return {static_cast<int>(std::floor(p_world.x() * inv)),
-            static_cast<int>(std::floor(p_world.y() * inv)),
-            static_cast<int>(std::floor(p_world.z() * inv))};
+    return {floorToInt(p_world.x() * inv), floorToInt(p_world.y() * inv),
+            floorToInt(p_world.z() * inv)};
   }
   // Voxel centres sit at integer multiples of the voxel size: global voxel g is at g * voxel.
   Eigen::Vector3f voxelCentre(const BlockIndex& b, int x, int y, int z) const {

@@ -81,7 +81,6 @@ class VoxelReader {
   std::array<bool, 8> valid_{};
 };
 
-
 // The search along one pixel's ray, in voxel units: p(z) = origin_vox + ray_vox * z, where z is
 // the depth in metres and ray_vox the voxels travelled per metre of depth.
 struct RayCaster {
@@ -90,15 +89,18 @@ struct RayCaster {
   float step_fraction;  // of the band, for steps through observed space
 
   // Newton's method on the trilinear TSDF, started at the depth just measured (which the TSDF
-  // has just fused, so the surface is usually within a voxel of it): two or three samples instead
+  // has just fused, so the surface is usually within a voxel of it): mostly one sample, instead
   // of a march. Gives up (false) when the field there is unobserved, truncated or not a front
   // face, or when the iterate leaves [z_min, z_max]; the caller then marches.
   bool newton(VoxelReader* reader, const Eigen::Vector3f& ray_vox, float z_start, float z_min,
               float z_max, float* z_hit, Eigen::Vector3f* gradient) const {
     constexpr int kMaxIterations = 4;
-    // Converged when the next update is under this fraction of a voxel; the march's regula falsi
-    // stops at a twentieth.
-    constexpr float kToleranceVox = 0.05f;
+    // An update shorter than this is taken without sampling again: along a ray the trilinear
+    // field is a cubic that is nearly linear over a voxel, so the step's own error is second
+    // order (the unit test holds it to the march's accuracy). A twentieth of a voxel costs a
+    // second sample for nearly every pixel and a quarter more raycast time, for no gain in
+    // tracking (ATE 0.747 vs 0.738 cm on the TUM teddy sequence).
+    constexpr float kToleranceVox = 0.5f;
     const float tolerance_z = kToleranceVox / ray_vox.norm();
     float z = z_start;
     for (int it = 0; it < kMaxIterations; ++it) {

@@ -5,8 +5,6 @@
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 #include <cmath>
-#include <cstdio>
-#include <cstdlib>
 
 #include "kinfly/noise_model.h"
 #include "kinfly/numeric.h"
@@ -201,7 +199,6 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
       const Eigen::Matrix<double, 6, 1> xi = llt.solve(b);
       if (!xi.allFinite()) return fail("non-finite ICP update");
       T = orthonormalized(expTwist(xi) * T);
-      if (getenv("ICPDBG")) fprintf(stderr, "L%d it%d inl %d/%d err %.2fmm ratio %.2e w %.4f %.4f %.4f t %.4f %.4f %.4f\n", level, it, last.inliers, last.valid_points, 1000*sqrt(last.error_sq/last.inliers), min_ev/max_ev, xi[0],xi[1],xi[2],xi[3],xi[4],xi[5]);
       if (xi.norm() < params_.convergence_epsilon) break;
     }
   }

@@ -8,6 +8,21 @@
 
 namespace kinfly {
 
+namespace {
+int paddedWidth(int width) {
+  return (width + PackedPoints::kRowPadding - 1) / PackedPoints::kRowPadding * PackedPoints::kRowPadding;
+}
+}  // namespace
+
+PackedPoints::PackedPoints(int width, int height)
+    : vx(paddedWidth(width), height),
+      vy(paddedWidth(width), height),
+      vz(paddedWidth(width), height),
+      nx(paddedWidth(width), height),
+      ny(paddedWidth(width), height),
+      nz(paddedWidth(width), height),
+      row_count(static_cast<size_t>(height), 0) {}
+
 DepthFrame::DepthFrame(const PinholeCamera& level0_camera)
     : raw_depth_m(level0_camera.width, level0_camera.height, 0.f) {
   for (int l = 0; l < kPyramidLevels; ++l) {
@@ -15,6 +30,7 @@ DepthFrame::DepthFrame(const PinholeCamera& level0_camera)
     depth_m[l] = Image<float>(camera[l].width, camera[l].height, 0.f);
     vertex_cam[l] = Image<Eigen::Vector3f>(camera[l].width, camera[l].height, invalidVector());
     normal_cam[l] = Image<Eigen::Vector3f>(camera[l].width, camera[l].height, invalidVector());
+    points[l] = PackedPoints(camera[l].width, camera[l].height);
   }
 }
 
@@ -129,6 +145,31 @@ void computeNormalMap(ImageView<const Eigen::Vector3f> vertex_cam,
   }
 }
 
+void packPoints(ImageView<const Eigen::Vector3f> vertex_cam,
+                ImageView<const Eigen::Vector3f> normal_cam, PackedPoints* points) {
+  const int w = vertex_cam.width(), h = vertex_cam.height();
+#pragma omp parallel for schedule(static)
+  for (int y = 0; y < h; ++y) {
+    const Eigen::Vector3f* v = vertex_cam.row(y);
+    const Eigen::Vector3f* n = normal_cam.row(y);
+    float *vx = points->vx.view().row(y), *vy = points->vy.view().row(y),
+          *vz = points->vz.view().row(y), *nx = points->nx.view().row(y),
+          *ny = points->ny.view().row(y), *nz = points->nz.view().row(y);
+    int count = 0;
+    for (int x = 0; x < w; ++x) {
+      if (!isValid(v[x]) || !isValid(n[x])) continue;
+      vx[count] = v[x].x();
+      vy[count] = v[x].y();
+      vz[count] = v[x].z();
+      nx[count] = n[x].x();
+      ny[count] = n[x].y();
+      nz[count] = n[x].z();
+      ++count;
+    }
+    points->row_count[y] = count;
+  }
+}
+
 DepthPreprocessor::DepthPreprocessor(const PinholeCamera& input_camera, const Params& params)
     : input_camera_(input_camera),
       camera_(input_camera.scaled(params.downsample)),
@@ -177,6 +218,7 @@ PreprocessResult DepthPreprocessor::process(ImageView<const uint16_t> raw, Depth
   for (int l = 0; l < kPyramidLevels; ++l) {
     computeVertexMap(frame->depth_m[l].view(), frame->camera[l], frame->vertex_cam[l].view());
     computeNormalMap(frame->vertex_cam[l].view(), frame->normal_cam[l].view());
+    packPoints(frame->vertex_cam[l].view(), frame->normal_cam[l].view(), &frame->points[l]);
   }
   return {valid, static_cast<float>(valid) / static_cast<float>(w * h)};
 }

@@ -284,6 +284,38 @@ TEST(DepthPreprocessor, ComputeNormalMapOfExactPlane) {
   }
 }
 
+TEST(DepthPreprocessor, PackedPointsAreTheValidPixelsInRowOrder) {
+  const PinholeCamera cam = test::tumCamera();
+  DepthPreprocessor pre(cam, defaultParams());
+  const HoleyPlane plane = makeHoleyPlane(cam, 14);
+  DepthFrame frame(pre.camera());
+  pre.process(plane.raw, &frame);
+  for (int l = 0; l < kPyramidLevels; ++l) {
+    const PackedPoints& points = frame.points[l];
+    int total = 0;
+    for (int y = 0; y < frame.camera[l].height; ++y) {
+      int i = 0;
+      for (int x = 0; x < frame.camera[l].width; ++x) {
+        const Eigen::Vector3f& v = frame.vertex_cam[l](x, y);
+        const Eigen::Vector3f& n = frame.normal_cam[l](x, y);
+        if (!isValid(v) || !isValid(n)) continue;
+        ASSERT_LT(i, points.row_count[y]) << "level " << l << " row " << y;
+        // A copy, so bit for bit.
+        ASSERT_EQ(points.vx(i, y), v.x());
+        ASSERT_EQ(points.vy(i, y), v.y());
+        ASSERT_EQ(points.vz(i, y), v.z());
+        ASSERT_EQ(points.nx(i, y), n.x());
+        ASSERT_EQ(points.ny(i, y), n.y());
+        ASSERT_EQ(points.nz(i, y), n.z());
+        ++i;
+      }
+      ASSERT_EQ(i, points.row_count[y]) << "level " << l << " row " << y;
+      total += i;
+    }
+    EXPECT_GT(total, frame.camera[l].width * frame.camera[l].height / 2) << "level " << l;
+  }
+}
+
 TEST(DepthPreprocessor, DownsampleTwoGivesQvgaWithScaledIntrinsics) {
   const PinholeCamera cam = test::tumCamera();
   DepthPreprocessor::Params params = defaultParams();

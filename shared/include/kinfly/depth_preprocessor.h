@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include "kinfly/camera.h"
 #include "kinfly/image.h"
@@ -22,6 +23,20 @@ inline Eigen::Vector3f invalidVector() {
 }
 inline bool isValid(const Eigen::Vector3f& v) { return !std::isnan(v.x()); }
 
+// The points of one level that the tracker can use (vertex and normal both valid), one image per
+// coordinate with each row's points packed to its front: the tracker reads them contiguously,
+// skips nothing, and its per-point loops vectorise.
+struct PackedPoints {
+  // Rows hold a multiple of this many points, so that the tracker's 4-wide loads past a row's
+  // last point stay inside the row.
+  static constexpr int kRowPadding = 4;
+  PackedPoints() = default;
+  PackedPoints(int width, int height);
+  Image<float> vx, vy, vz;  // [m] camera frame
+  Image<float> nx, ny, nz;  // unit, facing the camera
+  std::vector<int> row_count;  // points packed into each row
+};
+
 // Everything the tracker and integrator need from one depth image. Level 0 is the finest.
 struct DepthFrame {
   explicit DepthFrame(const PinholeCamera& level0_camera);
@@ -31,6 +46,7 @@ struct DepthFrame {
   std::array<Image<float>, kPyramidLevels> depth_m;       // bilateral-filtered, then pyramid
   std::array<Image<Eigen::Vector3f>, kPyramidLevels> vertex_cam;  // [m] camera frame
   std::array<Image<Eigen::Vector3f>, kPyramidLevels> normal_cam;  // unit, facing the camera
+  std::array<PackedPoints, kPyramidLevels> points;  // the valid pixels of vertex_cam, normal_cam
 };
 
 struct PreprocessResult {
@@ -96,5 +112,7 @@ void computeVertexMap(ImageView<const float> depth_m, const PinholeCamera& camer
                       ImageView<Eigen::Vector3f> vertex_cam);
 void computeNormalMap(ImageView<const Eigen::Vector3f> vertex_cam,
                       ImageView<Eigen::Vector3f> normal_cam);
+void packPoints(ImageView<const Eigen::Vector3f> vertex_cam,
+                ImageView<const Eigen::Vector3f> normal_cam, PackedPoints* points);
 
 }  // namespace kinfly

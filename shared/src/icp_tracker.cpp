@@ -5,7 +5,6 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
-#include <cstring>
 #include <limits>
 #include <sstream>
 
@@ -73,28 +72,12 @@ IcpTracker::IcpTracker(const Params& params) : params_(params) {}
 
 namespace {
 
-// The system is built four points at a time, one point per lane of an SSE or NEON register,
-// through the GCC/Clang vector extensions. Left to itself the compiler would not vectorise
-// these loops: the gates and weights are selects, and under IEEE trapping semantics it may not
-// compute the side of a select that scalar code would skip.
-typedef float Floats __attribute__((vector_size(16)));
-typedef int Ints __attribute__((vector_size(16)));  // lane masks: -1 true, 0 false
-constexpr int kWidth = 4;
+// The system is built four points at a time (lanes::Floats, see depth_preprocessor.h).
+using lanes::Floats;
+using lanes::Ints;
+using lanes::kWidth;
+using lanes::load;
 static_assert(PackedPoints::kRowPadding % kWidth == 0, "point loads must stay inside a row");
-
-inline Floats load(const float* p) {
-  Floats v;
-  std::memcpy(&v, p, sizeof v);
-  return v;
-}
-inline Floats splat(float s) { return Floats{s, s, s, s}; }
-// Applies a scalar function to each lane; short enough for the compiler to vectorise.
-template <typename F>
-inline Floats lanewise(F f, Floats x) {
-  for (int l = 0; l < kWidth; ++l) x[l] = f(x[l]);
-  return x;
-}
-inline Floats abs(Floats x) { return reinterpret_cast<Floats>(reinterpret_cast<Ints>(x) & 0x7fffffff); }
 
 // Four 3-vectors, one coordinate per register.
 struct Vec3s {
@@ -163,10 +146,10 @@ inline Ints pointToPlane(const Vec3s& v_cur, const Vec3s& n_cur, const Vec3s& q,
   // Noise weight (sigma_1m / sigma)^2, normalised to 1 at 1 m, times the Huber weight k / |r|
   // beyond k sigmas. Using the weight itself, not its square root on both factors, saves a
   // square root; one reciprocal of sigma saves two divisions.
-  const Floats inv_sigma = 1.f / lanewise(kinectNoiseSigmaM, v_cur.z);
+  const Floats inv_sigma = 1.f / lanes::lanewise(kinectNoiseSigmaM, v_cur.z);
   const Floats noise_sqrt = kinectNoiseSigmaM(1.f) * inv_sigma;
-  const Floats noise = a.noise_weighting ? noise_sqrt * noise_sqrt : splat(1.f);
-  const Floats abs_r = abs(e) * inv_sigma;
+  const Floats noise = a.noise_weighting ? noise_sqrt * noise_sqrt : lanes::splat(1.f);
+  const Floats abs_r = lanes::abs(e) * inv_sigma;
   const Floats weight = abs_r > a.huber_k ? noise * (a.huber_k / abs_r) : noise;
   const Floats values[kColumns] = {p.y * nq.z - p.z * nq.y,  // p x nq
                                    p.z * nq.x - p.x * nq.z,
@@ -262,7 +245,7 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
         Ints pixel[kBlockGroups], inside[kBlockGroups];
         for (int g = 0; g < cols.groups; ++g) {
           const int i = b + kWidth * g;
-          pixel[g] = modelPixel({load(vx + i), load(vy + i), load(vz + i)}, assoc, &inside[g]);
+          pixel[g] = modelPixel({load<Floats>(vx + i), load<Floats>(vy + i), load<Floats>(vz + i)}, assoc, &inside[g]);
         }
         for (int g = 0; g < cols.groups; ++g) {
           const int i = b + kWidth * g;
@@ -271,8 +254,8 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
           const Ints found =
               (i + Ints{0, 1, 2, 3} < count) & inside[g] & (q.x == q.x) & (nq.x == nq.x);
           Floats row[kColumns];
-          const Ints inlier = pointToPlane({load(vx + i), load(vy + i), load(vz + i)},
-                                           {load(nx + i), load(ny + i), load(nz + i)}, q, nq,
+          const Ints inlier = pointToPlane({load<Floats>(vx + i), load<Floats>(vy + i), load<Floats>(vz + i)},
+                                           {load<Floats>(nx + i), load<Floats>(ny + i), load<Floats>(nz + i)}, q, nq,
                                            found, assoc, row);
           inliers -= inlier;  // true lanes are -1
           for (int k = 0; k < kColumns; ++k) cols.c[k][g] = row[k];

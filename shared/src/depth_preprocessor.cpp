@@ -12,7 +12,8 @@ namespace kinfly {
 
 namespace {
 int paddedWidth(int width) {
-  return (width + PackedPoints::kRowPadding - 1) / PackedPoints::kRowPadding * PackedPoints::kRowPadding;
+  constexpr int kPad = PackedPoints::kRowPadding;
+  return (width + kPad - 1) / kPad * kPad;
 }
 }  // namespace
 
@@ -116,7 +117,9 @@ void bilateralBand(ImageView<const float> depth_m, int y_begin, int y_end,
   const int w = depth_m.width(), h = depth_m.height();
   const int r = k.radius, side = 2 * r + 1;
   const int forward = r * (side + 1);  // r offsets right of the centre, r full rows below
-  auto forwardIndex = [&](int dx, int dy) { return dy == 0 ? dx - 1 : r + (dy - 1) * side + dx + r; };
+  auto forwardIndex = [&](int dx, int dy) {
+    return dy == 0 ? dx - 1 : r + (dy - 1) * side + dx + r;
+  };
   auto spatial = [&](int dx, int dy) { return k.spatial[(dy + r) * side + dx + r]; };
   // Rows are kept in rings whose sizes are powers of two, so that a row's slot is a mask of its
   // index. The weights kept for r + 1 rows fill a fixed buffer; the tile width follows from it.
@@ -164,7 +167,8 @@ void bilateralBand(ImageView<const float> depth_m, int y_begin, int y_end,
           const float* there = depthRow(y + dy) + r + dx;
           float* weights = ringRow(y, forwardIndex(dx, dy));
           for (int i = 0; i < tile + 2 * r; i += kWidth) {
-            const auto bin = rangeBin(lanes::load<Floats>(there + i), lanes::load<Floats>(here + i), k);
+            const auto bin =
+                rangeBin(lanes::load<Floats>(there + i), lanes::load<Floats>(here + i), k);
             lanes::store(weights + i, spatial(dx, dy) * lanes::lookup(k.range.data(), bin));
           }
         }
@@ -250,9 +254,10 @@ inline void storeLanes(const Vec3<Floats>& v, lanes::Ints valid, int m, Eigen::V
   using lanes::shuffle;
   const Floats x = valid ? v.x : kNaN, y = valid ? v.y : kNaN, z = valid ? v.z : kNaN;
   const Floats xy_lo = shuffle<0, 4, 1, 5>(x, y), xy_hi = shuffle<2, 6, 3, 7>(x, y);
-  const Floats interleaved[3] = {shuffle<0, 1, 4, 2>(xy_lo, z),                          // x0 y0 z0 x1
-                                 shuffle<0, 1, 4, 5>(shuffle<3, 5, 0, 0>(xy_lo, z), xy_hi),  // y1 z1 x2 y2
-                                 shuffle<6, 2, 3, 7>(xy_hi, z)};                          // z2 x3 y3 z3
+  const Floats interleaved[3] = {
+      shuffle<0, 1, 4, 2>(xy_lo, z),                              // x0 y0 z0 x1
+      shuffle<0, 1, 4, 5>(shuffle<3, 5, 0, 0>(xy_lo, z), xy_hi),  // y1 z1 x2 y2
+      shuffle<6, 2, 3, 7>(xy_hi, z)};                             // z2 x3 y3 z3
   float* dst = out->data();  // Eigen::Vector3f is three packed floats
   if (m == kWidth)
     for (int k = 0; k < 3; ++k) lanes::store(dst + kWidth * k, interleaved[k]);

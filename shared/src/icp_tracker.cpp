@@ -110,11 +110,15 @@ struct Association {
   float huber_k;  // Huber threshold in noise sigmas; infinite when the robust weight is off
 };
 
-// Model pixels (row-major index) onto which current points p_cur project; `inside` says which
+// Current points in the reference frame.
+inline Vec3s transform(const Association& a, const Vec3s& v_cur) {
+  const Vec3s r = rotate(a.R, v_cur);
+  return {r.x + a.t.x(), r.y + a.t.y(), r.z + a.t.z()};
+}
+
+// Model pixels (row-major index) onto which points p (reference frame) project; `inside` says which
 // land in the image in front of the camera, and the others get pixel 0 so any lookup is safe.
-inline Ints modelPixel(const Vec3s& p_cur, const Association& a, Ints* inside) {
-  const Vec3s r = rotate(a.R, p_cur);
-  const Vec3s p{r.x + a.t.x(), r.y + a.t.y(), r.z + a.t.z()};
+inline Ints modelPixel(const Vec3s& p, const Association& a, Ints* inside) {
   const Floats inv_z = 1.f / p.z;
   const Floats u = a.fx * p.x * inv_z + a.cx;
   const Floats v = a.fy * p.y * inv_z + a.cy;
@@ -134,19 +138,18 @@ constexpr int kColumns = 8;
 constexpr int kResidual = 6, kWeight = 7;
 constexpr int kSums = 28;  // 21 upper-triangle A, 6 b, 1 squared error
 
-// The rows of current points (v_cur, n_cur) against model points (q, nq) where `found`; rejected
-// pairs give zero rows. Returns the inlier mask.
-inline Ints pointToPlane(const Vec3s& v_cur, const Vec3s& n_cur, const Vec3s& q, const Vec3s& nq,
-                         Ints found, const Association& a, Floats row[kColumns]) {
-  const Vec3s r = rotate(a.R, v_cur);
-  const Vec3s p{r.x + a.t.x(), r.y + a.t.y(), r.z + a.t.z()};
+// The rows of current points (p in the reference frame, depth z_cur, normal n_cur) against model
+// points (q, nq) where `found`; rejected pairs give zero rows. Returns the inlier mask.
+inline Ints pointToPlane(const Vec3s& p, Floats z_cur, const Vec3s& n_cur, const Vec3s& q,
+                         const Vec3s& nq, Ints found, const Association& a, Floats row[kColumns]) {
   const Vec3s d{p.x - q.x, p.y - q.y, p.z - q.z};
-  const Ints inlier = found & ~(dot(d, d) > a.gate_sq) & ~(dot(rotate(a.R, n_cur), nq) < a.cos_gate);
+  const Ints inlier =
+      found & ~(dot(d, d) > a.gate_sq) & ~(dot(rotate(a.R, n_cur), nq) < a.cos_gate);
   const Floats e = dot(nq, d);
   // Noise weight (sigma_1m / sigma)^2, normalised to 1 at 1 m, times the Huber weight k / |r|
   // beyond k sigmas. Using the weight itself, not its square root on both factors, saves a
   // square root; one reciprocal of sigma saves two divisions.
-  const Floats inv_sigma = 1.f / lanes::lanewise(kinectNoiseSigmaM, v_cur.z);
+  const Floats inv_sigma = 1.f / lanes::lanewise(kinectNoiseSigmaM, z_cur);
   const Floats noise_sqrt = kinectNoiseSigmaM(1.f) * inv_sigma;
   const Floats noise = a.noise_weighting ? noise_sqrt * noise_sqrt : lanes::splat(1.f);
   const Floats abs_r = lanes::abs(e) * inv_sigma;
@@ -210,18 +213,10 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
   const Eigen::Vector3f* vmodel = model.vertex_ref[level].data();
   const Eigen::Vector3f* nmodel = model.normal_ref[level].data();
   const PinholeCamera& cam = model.camera[level];
-  const Association assoc{R_ref_cur,
-                          t_ref_cur,
-                          cam.fx,
-                          cam.fy,
-                          cam.cx,
-                          cam.cy,
-                          cam.width,
-                          cam.height,
-                          distance_gate_m * distance_gate_m,
-                          cos_angle_gate,
-                          noise_weighting,
-                          huber_sigmas > 0.f ? huber_sigmas : std::numeric_limits<float>::infinity()};
+  const float huber_k = huber_sigmas > 0.f ? huber_sigmas : std::numeric_limits<float>::infinity();
+  const Association assoc{R_ref_cur, t_ref_cur, cam.fx, cam.fy, cam.cx, cam.cy, cam.width,
+                          cam.height, distance_gate_m * distance_gate_m, cos_angle_gate,
+                          noise_weighting, huber_k};
   const int h = points.vx.height();
   std::array<IcpSystem, kChunks> chunks;
 #pragma omp parallel for schedule(dynamic, 1) if (parallel)
@@ -242,10 +237,13 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
       for (int b = 0; b < count; b += kWidth * kBlockGroups) {
         cols.groups = (std::min(count - b, kWidth * kBlockGroups) + kWidth - 1) / kWidth;
         // All of the block's projections first, so that the lookups do not wait on each one.
+        Vec3s p[kBlockGroups];
         Ints pixel[kBlockGroups], inside[kBlockGroups];
         for (int g = 0; g < cols.groups; ++g) {
           const int i = b + kWidth * g;
-          pixel[g] = modelPixel({load<Floats>(vx + i), load<Floats>(vy + i), load<Floats>(vz + i)}, assoc, &inside[g]);
+          p[g] = transform(assoc,
+                           {load<Floats>(vx + i), load<Floats>(vy + i), load<Floats>(vz + i)});
+          pixel[g] = modelPixel(p[g], assoc, &inside[g]);
         }
         for (int g = 0; g < cols.groups; ++g) {
           const int i = b + kWidth * g;
@@ -254,9 +252,10 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
           const Ints found =
               (i + Ints{0, 1, 2, 3} < count) & inside[g] & (q.x == q.x) & (nq.x == nq.x);
           Floats row[kColumns];
-          const Ints inlier = pointToPlane({load<Floats>(vx + i), load<Floats>(vy + i), load<Floats>(vz + i)},
-                                           {load<Floats>(nx + i), load<Floats>(ny + i), load<Floats>(nz + i)}, q, nq,
-                                           found, assoc, row);
+          const Ints inlier = pointToPlane(
+              p[g], load<Floats>(vz + i),
+              {load<Floats>(nx + i), load<Floats>(ny + i), load<Floats>(nz + i)}, q, nq, found,
+              assoc, row);
           inliers -= inlier;  // true lanes are -1
           for (int k = 0; k < kColumns; ++k) cols.c[k][g] = row[k];
         }
@@ -264,7 +263,8 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
       }
       s.inliers += (inliers[0] + inliers[1]) + (inliers[2] + inliers[3]);
       std::array<float, kSums> row;
-      for (int k = 0; k < kSums; ++k) row[k] = (sums[k][0] + sums[k][1]) + (sums[k][2] + sums[k][3]);
+      for (int k = 0; k < kSums; ++k)
+        row[k] = (sums[k][0] + sums[k][1]) + (sums[k][2] + sums[k][3]);
       // Back from row by row of [J e]'s upper triangle to A and b.
       int k = 0, ata = 0;
       for (int i = 0; i < 6; ++i) {

@@ -455,10 +455,10 @@ PreprocessResult DepthPreprocessor::process(ImageView<const uint16_t> raw, Depth
   for (int l = 1; l < kPyramidLevels; ++l) {
     ImageView<const float> fine = frame->depth_m[l - 1].view();
     ImageView<float> coarse = frame->depth_m[l].view();
-    // Four coarse pixels from x read fine columns 2x - 2 .. 2x + 8.
+    // Four coarse pixels from x use fine columns 2x - 2 .. 2x + 8; their loads touch 2x + 9.
 #pragma omp parallel for schedule(static)
     for (int y = 0; y < coarse.height(); ++y)
-      kernelRow(coarse.width(), 1, (fine.width() - 9) / 2, 2 * y >= 2 && 2 * y + 2 < fine.height(),
+      kernelRow(coarse.width(), 1, (fine.width() - 10) / 2, 2 * y >= 2 && 2 * y + 2 < fine.height(),
                 [&](int x, auto tag) { return pyrDown<decltype(tag)>(fine, x, y, max_diff_m); },
                 coarse.row(y));
   }

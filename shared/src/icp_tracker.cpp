@@ -1,16 +1,14 @@
 #include "kinfly/icp_tracker.h"
 
-#include <Eigen/Geometry>
-
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
-#include <cstdio>
-#include <cstdlib>
+#include <limits>
+#include <sstream>
 
 #include "kinfly/noise_model.h"
-#include "kinfly/numeric.h"
-#include <sstream>
 
 namespace kinfly {
 
@@ -74,28 +72,130 @@ IcpTracker::IcpTracker(const Params& params) : params_(params) {}
 
 namespace {
 
-// Projective association and the point-to-plane row for one current pixel. Returns false when
-// the pixel has no acceptable correspondence.
-inline bool correspondence(const Eigen::Vector3f& v_cur, const Eigen::Vector3f& n_cur,
-                           const Eigen::Matrix3f& R, const Eigen::Vector3f& t,
-                           const PinholeCamera& cam, const ModelMaps& model, int level,
-                           float gate_sq, float cos_gate, Eigen::Matrix<float, 6, 1>* J,
-                           float* e) {
-  const Eigen::Vector3f p = R * v_cur + t;
-  if (p.z() <= 0.f) return false;
-  const int u = roundToInt(cam.fx * p.x() / p.z() + cam.cx);
-  const int v = roundToInt(cam.fy * p.y() / p.z() + cam.cy);
-  if (u < 0 || v < 0 || u >= cam.width || v >= cam.height) return false;
-  const Eigen::Vector3f& q = model.vertex_ref[level](u, v);
-  const Eigen::Vector3f& nq = model.normal_ref[level](u, v);
-  if (!isValid(q) || !isValid(nq)) return false;
-  const Eigen::Vector3f d = p - q;
-  if (d.squaredNorm() > gate_sq) return false;
-  if ((R * n_cur).dot(nq) < cos_gate) return false;
-  J->head<3>() = p.cross(nq);
-  J->tail<3>() = nq;
-  *e = nq.dot(d);
-  return true;
+// The system is built four points at a time (lanes::Floats, see depth_preprocessor.h).
+using lanes::Floats;
+using lanes::Ints;
+using lanes::kWidth;
+using lanes::load;
+static_assert(PackedPoints::kRowPadding % kWidth == 0, "point loads must stay inside a row");
+
+// Four 3-vectors, one coordinate per register.
+struct Vec3s {
+  Floats x, y, z;
+};
+// Sums in Eigen's order for 3-vectors (x + (y + z)), so the gates see the same floats as
+// Eigen's scalar expressions would.
+inline Floats dot(const Vec3s& a, const Vec3s& b) { return a.x * b.x + (a.y * b.y + a.z * b.z); }
+inline Vec3s rotate(const Eigen::Matrix3f& R, const Vec3s& v) {
+  return {R(0, 0) * v.x + (R(0, 1) * v.y + R(0, 2) * v.z),
+          R(1, 0) * v.x + (R(1, 1) * v.y + R(1, 2) * v.z),
+          R(2, 0) * v.x + (R(2, 1) * v.y + R(2, 2) * v.z)};
+}
+inline Vec3s gather(const Eigen::Vector3f* map, Ints pixel) {
+  const Eigen::Vector3f &p0 = map[pixel[0]], &p1 = map[pixel[1]], &p2 = map[pixel[2]],
+                        &p3 = map[pixel[3]];
+  return {Floats{p0.x(), p1.x(), p2.x(), p3.x()}, Floats{p0.y(), p1.y(), p2.y(), p3.y()},
+          Floats{p0.z(), p1.z(), p2.z(), p3.z()}};
+}
+
+// Everything the kernels need that is fixed for one system.
+struct Association {
+  Eigen::Matrix3f R;
+  Eigen::Vector3f t;
+  float fx, fy, cx, cy;
+  int width, height;
+  float gate_sq;  // [m^2]
+  float cos_gate;
+  bool noise_weighting;
+  float huber_k;  // Huber threshold in noise sigmas; infinite when the robust weight is off
+};
+
+// Current points in the reference frame.
+inline Vec3s transform(const Association& a, const Vec3s& v_cur) {
+  const Vec3s r = rotate(a.R, v_cur);
+  return {r.x + a.t.x(), r.y + a.t.y(), r.z + a.t.z()};
+}
+
+// Model pixels (row-major index) onto which points p (reference frame) project; `inside` says which
+// land in the image in front of the camera, and the others get pixel 0 so any lookup is safe.
+inline Ints modelPixel(const Vec3s& p, const Association& a, Ints* inside) {
+  const Floats inv_z = 1.f / p.z;
+  const Floats u = a.fx * p.x * inv_z + a.cx;
+  const Floats v = a.fy * p.y * inv_z + a.cy;
+  // Only (-0.5, size) can round into the image; converting nothing else keeps the cast defined.
+  const Ints near = (p.z > 0.f) & (u > -0.5f) & (v > -0.5f) &
+                    (u < static_cast<float>(a.width)) & (v < static_cast<float>(a.height));
+  // Non-negative after the +0.5, so truncation rounds half away from zero (as roundToInt).
+  const Ints iu = __builtin_convertvector((near ? u : 0.f) + 0.5f, Ints);
+  const Ints iv = __builtin_convertvector((near ? v : 0.f) + 0.5f, Ints);
+  *inside = near & (iu < a.width) & (iv < a.height);
+  return *inside ? iv * a.width + iu : 0;
+}
+
+// Columns of one point-to-plane row: J, the residual e, and the residual's weight (zero for a
+// rejected pair). The system sums w J J^T, w J e and, for the reported error, e^2.
+constexpr int kColumns = 8;
+constexpr int kResidual = 6, kWeight = 7;
+constexpr int kSums = 28;  // 21 upper-triangle A, 6 b, 1 squared error
+
+// The rows of current points (p in the reference frame, depth z_cur, normal n_cur) against model
+// points (q, nq) where `found`; rejected pairs give zero rows. Returns the inlier mask.
+inline Ints pointToPlane(const Vec3s& p, Floats z_cur, const Vec3s& n_cur, const Vec3s& q,
+                         const Vec3s& nq, Ints found, const Association& a, Floats row[kColumns]) {
+  const Vec3s d{p.x - q.x, p.y - q.y, p.z - q.z};
+  const Ints inlier =
+      found & ~(dot(d, d) > a.gate_sq) & ~(dot(rotate(a.R, n_cur), nq) < a.cos_gate);
+  const Floats e = dot(nq, d);
+  // Noise weight (sigma_1m / sigma)^2, normalised to 1 at 1 m, times the Huber weight k / |r|
+  // beyond k sigmas. Using the weight itself, not its square root on both factors, saves a
+  // square root; one reciprocal of sigma saves two divisions.
+  const Floats inv_sigma = 1.f / lanes::lanewise(kinectNoiseSigmaM, z_cur);
+  const Floats noise_sqrt = kinectNoiseSigmaM(1.f) * inv_sigma;
+  const Floats noise = a.noise_weighting ? noise_sqrt * noise_sqrt : lanes::splat(1.f);
+  const Floats abs_r = lanes::abs(e) * inv_sigma;
+  const Floats weight = abs_r > a.huber_k ? noise * (a.huber_k / abs_r) : noise;
+  const Floats values[kColumns] = {p.y * nq.z - p.z * nq.y,  // p x nq
+                                   p.z * nq.x - p.x * nq.z,
+                                   p.x * nq.y - p.y * nq.x,
+                                   nq.x, nq.y, nq.z, e, weight};
+  for (int k = 0; k < kColumns; ++k) row[k] = inlier ? values[k] : 0.f;
+  return inlier;
+}
+
+// Rows are gathered a block at a time into columns, one register of four lanes per entry, and
+// their products summed down the columns with the accumulators in registers; summing each row's
+// 28 products into memory as it comes would make the loop wait on loads and stores.
+constexpr int kBlockGroups = 32;  // groups of four points per block: the columns stay in L1
+struct Columns {
+  Floats c[kColumns][kBlockGroups];
+  int groups;
+};
+
+// Adds the weighted products of the block's rows with row I of [J e]'s upper triangle
+// (w J_I J_b for b >= I, then w J_I e) to sums[0 .. 7 - I). A template so that the short loops
+// unroll and the accumulators live in registers.
+template <int I>
+inline void accumulateRow(const Columns& cols, Floats* sums) {
+  Floats acc[7 - I] = {};
+  for (int g = 0; g < cols.groups; ++g) {
+    const Floats weighted = cols.c[kWeight][g] * cols.c[I][g];
+    for (int j = 0; j < 7 - I; ++j) acc[j] += weighted * cols.c[I + j][g];
+  }
+  for (int j = 0; j < 7 - I; ++j) sums[j] += acc[j];
+}
+
+// Adds the block's rows to `sums`: row by row of [J e]'s weighted upper triangle, then the
+// squared error.
+inline void accumulate(const Columns& cols, Floats sums[kSums]) {
+  accumulateRow<0>(cols, sums);
+  accumulateRow<1>(cols, sums + 7);
+  accumulateRow<2>(cols, sums + 13);
+  accumulateRow<3>(cols, sums + 18);
+  accumulateRow<4>(cols, sums + 22);
+  accumulateRow<5>(cols, sums + 25);
+  Floats acc = {};
+  for (int g = 0; g < cols.groups; ++g) acc += cols.c[kResidual][g] * cols.c[kResidual][g];
+  sums[kSums - 1] += acc;
 }
 
 // Rows are summed in fixed chunks and the chunks added in order, so the result does not depend
@@ -109,12 +209,15 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
                                   const Eigen::Vector3f& t_ref_cur, float distance_gate_m,
                                   float cos_angle_gate, bool noise_weighting, float huber_sigmas,
                                   bool parallel) {
-  const float sigma_1m = kinectNoiseSigmaM(1.f);
-  const ImageView<const Eigen::Vector3f> vmap = current.vertex_cam[level].view();
-  const ImageView<const Eigen::Vector3f> nmap = current.normal_cam[level].view();
+  const PackedPoints& points = current.points[level];
+  const Eigen::Vector3f* vmodel = model.vertex_ref[level].data();
+  const Eigen::Vector3f* nmodel = model.normal_ref[level].data();
   const PinholeCamera& cam = model.camera[level];
-  const int h = vmap.height(), w = vmap.width();
-  const float gate_sq = distance_gate_m * distance_gate_m;
+  const float huber_k = huber_sigmas > 0.f ? huber_sigmas : std::numeric_limits<float>::infinity();
+  const Association assoc{R_ref_cur, t_ref_cur, cam.fx, cam.fy, cam.cx, cam.cy, cam.width,
+                          cam.height, distance_gate_m * distance_gate_m, cos_angle_gate,
+                          noise_weighting, huber_k};
+  const int h = points.vx.height();
   std::array<IcpSystem, kChunks> chunks;
 #pragma omp parallel for schedule(dynamic, 1) if (parallel)
   for (int c = 0; c < kChunks; ++c) {
@@ -122,36 +225,53 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
     s = IcpSystem();
     const int y0 = h * c / kChunks, y1 = h * (c + 1) / kChunks;
     for (int y = y0; y < y1; ++y) {
-      const Eigen::Vector3f* vrow = vmap.row(y);
-      const Eigen::Vector3f* nrow = nmap.row(y);
+      const float *vx = points.vx.view().row(y), *vy = points.vy.view().row(y),
+                  *vz = points.vz.view().row(y), *nx = points.nx.view().row(y),
+                  *ny = points.ny.view().row(y), *nz = points.nz.view().row(y);
+      const int count = points.row_count[y];
+      s.valid_points += count;
       // A row sums in float (at most a few thousand terms of similar size), the chunk in double.
-      std::array<float, 28> row{};  // 21 upper-triangle A, 6 b, 1 squared error
-      for (int x = 0; x < w; ++x) {
-        if (!isValid(vrow[x]) || !isValid(nrow[x])) continue;
-        ++s.valid_points;
-        Eigen::Matrix<float, 6, 1> J;
-        float e;
-        if (!correspondence(vrow[x], nrow[x], R_ref_cur, t_ref_cur, cam, model, level, gate_sq,
-                            cos_angle_gate, &J, &e))
-          continue;
-        row[27] += e * e;  // the reported residual stays in metres, unweighted
-        const float sigma = kinectNoiseSigmaM(vrow[x].z());
-        float weight = noise_weighting ? (sigma_1m * sigma_1m) / (sigma * sigma) : 1.f;
-        const float abs_r = std::fabs(e) / sigma;
-        if (huber_sigmas > 0.f && abs_r > huber_sigmas) weight *= huber_sigmas / abs_r;
-        // The weight enters J^T J and J^T e once each: scale both factors by its square root.
-        const float sqrt_w = std::sqrt(weight);
-        J *= sqrt_w;
-        e *= sqrt_w;
-        int k = 0;
-        for (int i = 0; i < 6; ++i)
-          for (int j = i; j < 6; ++j) row[k++] += J[i] * J[j];
-        for (int i = 0; i < 6; ++i) row[21 + i] -= J[i] * e;
-        ++s.inliers;
+      Floats sums[kSums] = {};
+      Ints inliers = {};
+      Columns cols;
+      for (int b = 0; b < count; b += kWidth * kBlockGroups) {
+        cols.groups = (std::min(count - b, kWidth * kBlockGroups) + kWidth - 1) / kWidth;
+        // All of the block's projections first, so that the lookups do not wait on each one.
+        Vec3s p[kBlockGroups];
+        Ints pixel[kBlockGroups], inside[kBlockGroups];
+        for (int g = 0; g < cols.groups; ++g) {
+          const int i = b + kWidth * g;
+          p[g] = transform(assoc,
+                           {load<Floats>(vx + i), load<Floats>(vy + i), load<Floats>(vz + i)});
+          pixel[g] = modelPixel(p[g], assoc, &inside[g]);
+        }
+        for (int g = 0; g < cols.groups; ++g) {
+          const int i = b + kWidth * g;
+          const Vec3s q = gather(vmodel, pixel[g]), nq = gather(nmodel, pixel[g]);
+          // Padding past the row's last point takes part in nothing; NaN marks no model point.
+          const Ints found =
+              (i + Ints{0, 1, 2, 3} < count) & inside[g] & (q.x == q.x) & (nq.x == nq.x);
+          Floats row[kColumns];
+          const Ints inlier = pointToPlane(
+              p[g], load<Floats>(vz + i),
+              {load<Floats>(nx + i), load<Floats>(ny + i), load<Floats>(nz + i)}, q, nq, found,
+              assoc, row);
+          inliers -= inlier;  // true lanes are -1
+          for (int k = 0; k < kColumns; ++k) cols.c[k][g] = row[k];
+        }
+        accumulate(cols, sums);
       }
-      for (int i = 0; i < 21; ++i) s.ata[i] += row[i];
-      for (int i = 0; i < 6; ++i) s.atb[i] += row[21 + i];
-      s.error_sq += row[27];
+      s.inliers += (inliers[0] + inliers[1]) + (inliers[2] + inliers[3]);
+      std::array<float, kSums> row;
+      for (int k = 0; k < kSums; ++k)
+        row[k] = (sums[k][0] + sums[k][1]) + (sums[k][2] + sums[k][3]);
+      // Back from row by row of [J e]'s upper triangle to A and b.
+      int k = 0, ata = 0;
+      for (int i = 0; i < 6; ++i) {
+        for (int j = i; j < 6; ++j) s.ata[ata++] += row[k++];
+        s.atb[i] -= row[k++];
+      }
+      s.error_sq += row[kSums - 1];
     }
   }
   IcpSystem total;
@@ -201,7 +321,6 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
       const Eigen::Matrix<double, 6, 1> xi = llt.solve(b);
       if (!xi.allFinite()) return fail("non-finite ICP update");
       T = orthonormalized(expTwist(xi) * T);
-      if (getenv("ICPDBG")) fprintf(stderr, "L%d it%d inl %d/%d err %.2fmm ratio %.2e w %.4f %.4f %.4f t %.4f %.4f %.4f\n", level, it, last.inliers, last.valid_points, 1000*sqrt(last.error_sq/last.inliers), min_ev/max_ev, xi[0],xi[1],xi[2],xi[3],xi[4],xi[5]);
       if (xi.norm() < params_.convergence_epsilon) break;
     }
   }

@@ -1,5 +1,6 @@
 // DepthPreprocessor: conversion, bilateral filter, pyramid, vertex and normal maps, each checked
-// against what the analytic scene says the answer must be.
+// against what the analytic scene says the answer must be, and the frame's fast loops against
+// the per-pixel definitions.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -280,6 +281,92 @@ TEST(DepthPreprocessor, ComputeNormalMapOfExactPlane) {
     for (int x = 0; x + 1 < cam.width; x += 3) {
       ASSERT_TRUE(isValid(normal(x, y)));
       ASSERT_LT(test::angleDeg(normal(x, y), n), kExactAngleTolDeg) << x << "," << y;
+    }
+  }
+}
+
+TEST(DepthPreprocessor, PackedPointsAreTheValidPixelsInRowOrder) {
+  const PinholeCamera cam = test::tumCamera();
+  DepthPreprocessor pre(cam, defaultParams());
+  const HoleyPlane plane = makeHoleyPlane(cam, 14);
+  DepthFrame frame(pre.camera());
+  pre.process(plane.raw, &frame);
+  for (int l = 0; l < kPyramidLevels; ++l) {
+    const PackedPoints& points = frame.points[l];
+    int total = 0;
+    for (int y = 0; y < frame.camera[l].height; ++y) {
+      int i = 0;
+      for (int x = 0; x < frame.camera[l].width; ++x) {
+        const Eigen::Vector3f& v = frame.vertex_cam[l](x, y);
+        const Eigen::Vector3f& n = frame.normal_cam[l](x, y);
+        if (!isValid(v) || !isValid(n)) continue;
+        ASSERT_LT(i, points.row_count[y]) << "level " << l << " row " << y;
+        // A copy, so bit for bit.
+        ASSERT_EQ(points.vx(i, y), v.x());
+        ASSERT_EQ(points.vy(i, y), v.y());
+        ASSERT_EQ(points.vz(i, y), v.z());
+        ASSERT_EQ(points.nx(i, y), n.x());
+        ASSERT_EQ(points.ny(i, y), n.y());
+        ASSERT_EQ(points.nz(i, y), n.z());
+        ++i;
+      }
+      ASSERT_EQ(i, points.row_count[y]) << "level " << l << " row " << y;
+      total += i;
+    }
+    EXPECT_GT(total, frame.camera[l].width * frame.camera[l].height / 2) << "level " << l;
+  }
+}
+
+// Same float, or both NaN (invalid vertices and normals).
+bool sameFloat(float a, float b) { return a == b || (std::isnan(a) && std::isnan(b)); }
+bool sameVector(const Eigen::Vector3f& a, const Eigen::Vector3f& b) {
+  return sameFloat(a.x(), b.x()) && sameFloat(a.y(), b.y()) && sameFloat(a.z(), b.z());
+}
+
+TEST(DepthPreprocessor, FrameMatchesPerPixelDefinitionsBitForBit) {
+  // Radii change the filter's tiles and kept rows; an image width that is not a multiple of four
+  // (634, 317, 158 along the pyramid) leaves partial groups for the four-pixel loops; a range
+  // sigma of 1 m puts invalid (0) neighbours inside the range table, where only the validity
+  // test keeps them out.
+  PinholeCamera odd = test::tumCamera();
+  odd.width = 634;
+  odd.height = 474;
+  struct Case {
+    PinholeCamera camera;
+    int downsample;
+  };
+  for (const Case& input : {Case{test::tumCamera(), 1}, Case{test::tumCamera(), 4}, Case{odd, 1}}) {
+    const HoleyPlane plane = makeHoleyPlane(input.camera, 15);
+    for (const int radius : {1, 2, 3, BilateralKernel::kMaxRadius}) {
+      DepthPreprocessor::Params params = defaultParams();
+      params.bilateral_radius_px = radius;
+      params.downsample = input.downsample;
+      if (radius == 3) params.bilateral_sigma_range_m = 1.f;
+      DepthPreprocessor pre(input.camera, params);
+      DepthFrame frame(pre.camera());
+      pre.process(plane.raw, &frame);
+      const BilateralKernel kernel(radius, params.bilateral_sigma_space_px,
+                                   params.bilateral_sigma_range_m);
+      const float max_diff_m = params.pyramid_range_sigmas * params.bilateral_sigma_range_m;
+      for (int l = 0; l < kPyramidLevels; ++l) {
+        const PinholeCamera& c = frame.camera[l];
+        for (int y = 0; y < c.height; ++y) {
+          for (int x = 0; x < c.width; ++x) {
+            const float expected = l == 0 ? bilateralPixel(frame.raw_depth_m, x, y, kernel)
+                                          : pyrDownPixel(frame.depth_m[l - 1], x, y, max_diff_m);
+            ASSERT_EQ(frame.depth_m[l](x, y), expected)
+                << "radius " << radius << " width " << c.width << " level " << l << " "
+                << x << "," << y;
+          }
+        }
+        Image<Eigen::Vector3f> vertex(c.width, c.height), normal(c.width, c.height);
+        computeVertexMap(frame.depth_m[l], c, vertex);
+        computeNormalMap(vertex, normal);
+        for (int i = 0; i < vertex.numPixels(); ++i) {
+          ASSERT_TRUE(sameVector(frame.vertex_cam[l].data()[i], vertex.data()[i])) << "level " << l;
+          ASSERT_TRUE(sameVector(frame.normal_cam[l].data()[i], normal.data()[i])) << "level " << l;
+        }
+      }
     }
   }
 }

@@ -72,7 +72,7 @@ IcpTracker::IcpTracker(const Params& params) : params_(params) {}
 
 namespace {
 
-// The system is built four points at a time (lanes::Floats, see depth_preprocessor.h).
+// The system is built four points at a time (lanes::Floats, see lanes.h).
 using lanes::Floats;
 using lanes::Ints;
 using lanes::kWidth;

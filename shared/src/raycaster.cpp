@@ -45,7 +45,8 @@ class VoxelReader {
       const Voxel* v0 = voxel(gx, gy, gz);
       if (v0 == nullptr) return false;
       constexpr int kDy = kBlockSide, kDz = kBlockSide * kBlockSide;
-      static constexpr int kOffset[8] = {0, 1, kDy, kDy + 1, kDz, kDz + 1, kDz + kDy, kDz + kDy + 1};
+      static constexpr int kOffset[8] = {0,   1,       kDy,       kDy + 1,
+                                         kDz, kDz + 1, kDz + kDy, kDz + kDy + 1};
       // One test for the eight weights instead of eight branches.
       float min_weight = v0[0].weight;
       for (int i = 0; i < 8; ++i) {
@@ -69,7 +70,8 @@ class VoxelReader {
     if (gradient != nullptr) {
       const float dx0 = (c[1] - c[0]) + ((c[3] - c[2]) - (c[1] - c[0])) * ay;
       const float dx1 = (c[5] - c[4]) + ((c[7] - c[6]) - (c[5] - c[4])) * ay;
-      (*gradient) << dx0 + (dx1 - dx0) * az, (c10 - c00) + ((c11 - c01) - (c10 - c00)) * az, c1 - c0;
+      (*gradient) << dx0 + (dx1 - dx0) * az, (c10 - c00) + ((c11 - c01) - (c10 - c00)) * az,
+          c1 - c0;
     }
     return true;
   }
@@ -83,7 +85,7 @@ class VoxelReader {
 
 // The search along one pixel's ray, in voxel units: p(z) = origin_vox + ray_vox * z, where z is
 // the depth in metres and ray_vox the voxels travelled per metre of depth.
-struct RayCaster {
+struct RaySearch {
   Eigen::Vector3f origin_vox;
   float mu_vox;         // truncation band [voxels]
   float step_fraction;  // of the band, for steps through observed space
@@ -155,7 +157,8 @@ struct RayCaster {
       const float f = voxel->tsdf;
       if (known && prev_known && prev_f > 0.f && f <= 0.f)
         return refine(reader, ray_vox, prev_z, prev_f, z, f, z_hit, gradient);
-      if (known && prev_known && prev_f < 0.f && f > 0.f) return false;  // left a surface from behind
+      // Left a surface from behind.
+      if (known && prev_known && prev_f < 0.f && f > 0.f) return false;
       prev_known = known;
       prev_f = f;
       prev_z = z;
@@ -203,7 +206,8 @@ struct RayCaster {
       }
     }
     float f_hit;
-    if (!reader->trilinear(origin_vox + ray_vox * z, &f_hit, gradient) || !(gradient->squaredNorm() > 0.f))
+    if (!reader->trilinear(origin_vox + ray_vox * z, &f_hit, gradient) ||
+        !(gradient->squaredNorm() > 0.f))
       return false;
     *z_hit = z;
     return true;
@@ -247,7 +251,8 @@ void Raycaster::computeRanges(const TsdfVolume& volume, const Pose& T_cam_world)
   for (const VoxelBlock* blk : volume.allocatedBlocks()) {
     // The block's voxel centres span [origin, origin + 7 voxels]; trilinear samples reach one
     // voxel further into the next block, so the box covers a whole block size.
-    const Eigen::Vector3f lo = volume.voxelCentre(blk->index, 0, 0, 0) - Eigen::Vector3f::Constant(0.5f * vs);
+    const Eigen::Vector3f lo =
+        volume.voxelCentre(blk->index, 0, 0, 0) - Eigen::Vector3f::Constant(0.5f * vs);
     float zmin = inf, zmax = -inf, umin = inf, umax = -inf, vmin = inf, vmax = -inf;
     bool behind = false;
     for (int c = 0; c < 8; ++c) {
@@ -292,7 +297,7 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
   const Eigen::Matrix3f R_cw = R_wc.transpose();
   const float inv_vs = 1.f / volume.voxelSizeM();
   const Eigen::Vector3f origin_vox = T_world_cam.translation().cast<float>() * inv_vs;
-  const RayCaster ray{origin_vox, truncation_m * inv_vs, params_.step_fraction};
+  const RaySearch ray{origin_vox, truncation_m * inv_vs, params_.step_fraction};
   const int tile = params_.range_tile_px;
   ImageView<Eigen::Vector3f> vmap = maps->vertex_ref[0].view();
   ImageView<Eigen::Vector3f> nmap = maps->normal_ref[0].view();
@@ -312,7 +317,8 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
       const float z_begin = std::max(range.x(), params_.min_depth_m);
       const float z_end = std::min(range.y(), params_.max_depth_m);
       if (!(z_begin < z_end)) continue;
-      const Eigen::Vector3f ray_cam = camera_.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
+      const Eigen::Vector3f ray_cam =
+          camera_.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
       const Eigen::Vector3f ray_vox = R_wc * ray_cam * inv_vs;  // voxel units per metre of depth
       float z_hit = 0.f;
       Eigen::Vector3f grad;

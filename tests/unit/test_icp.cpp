@@ -3,7 +3,9 @@
 // builders agree, and the vectorised builder matches a per-pixel reference.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <vector>
 
 #include "kinfly/depth_preprocessor.h"
 #include "kinfly/icp_tracker.h"
@@ -44,6 +46,19 @@ struct IcpFixture : public ::testing::Test {
     scene.renderRawDepth(camera, T_ref_cur, test::kRenderMaxDepthM, test::kTumDepthScale, &rng,
                          raw);
     return preprocessor.process(raw, &current);
+  }
+
+  // The corner scene as model, a noisy current frame a small 6-DoF offset away, and the
+  // transform at which its systems are evaluated: away from the solution, so residuals and
+  // gradients are far from zero.
+  void buildOffsetPair(uint32_t seed, Eigen::Matrix3f* R, Eigen::Vector3f* t) {
+    const SyntheticScene scene = test::cornerScene();
+    buildModel(scene);
+    const Pose T_ref_cur_true =
+        test::makePose(Eigen::Vector3d(0.02, 0.01, -0.01), Eigen::Vector3d(0.01, 0.02, -0.01));
+    buildCurrent(scene, T_ref_cur_true, seed);
+    *R = T_ref_cur_true.linear().cast<float>().transpose();
+    *t = Eigen::Vector3f(0.005f, 0.f, 0.f);
   }
 
   PinholeCamera camera;
@@ -135,39 +150,51 @@ TEST_F(IcpFixture, EmptyFrameIsLost) {
   EXPECT_FALSE(std::isnan(result.inlier_fraction));
 }
 
-TEST_F(IcpFixture, SerialAndParallelSystemsAgree) {
-  const SyntheticScene scene = test::cornerScene();
-  buildModel(scene);
-  const Pose T_ref_cur_true =
-      test::makePose(Eigen::Vector3d(0.02, 0.01, -0.01), Eigen::Vector3d(0.01, 0.02, -0.01));
-  buildCurrent(scene, T_ref_cur_true, 9);
-  const float cos_gate = std::cos(IcpTracker::Params().normal_angle_gate_rad);
-  // Evaluate away from the solution so residuals and gradients are far from zero.
-  const Eigen::Matrix3f R = T_ref_cur_true.linear().cast<float>().transpose();
-  const Eigen::Vector3f t(0.005f, 0.f, 0.f);
+// Every pyramid level, with plain least squares and with the default noise-weighted Huber solve.
+struct SystemConfig {
+  int level;
+  bool weighting;
+  float huber_sigmas;
+};
+std::vector<SystemConfig> systemConfigs() {
+  std::vector<SystemConfig> configs;
   for (int config = 0; config < 2 * kPyramidLevels; ++config) {
-    const int level = config % kPyramidLevels;
-    // Plain least squares, then the default noise-weighted Huber solve.
     const bool weighting = config >= kPyramidLevels;
-    const float huber = weighting ? IcpTracker::Params().huber_sigmas : 0.f;
-    const IcpSystem serial = IcpTracker::buildSystem(current, model, level, R, t, 0.1f, cos_gate,
-                                                     weighting, huber, false);
-    const IcpSystem parallel = IcpTracker::buildSystem(current, model, level, R, t, 0.1f,
-                                                       cos_gate, weighting, huber, true);
+    configs.push_back({config % kPyramidLevels, weighting,
+                       weighting ? IcpTracker::Params().huber_sigmas : 0.f});
+  }
+  return configs;
+}
+
+// Every sum of `actual` within `rel_tol` of `expected` (of its largest A entry; of the error
+// itself for the squared error).
+void expectSystemsNear(const IcpSystem& actual, const IcpSystem& expected, double rel_tol,
+                       int level) {
+  double scale = 0.0;
+  for (double a : expected.ata) scale = std::max(scale, std::abs(a));
+  for (size_t i = 0; i < expected.ata.size(); ++i)
+    EXPECT_NEAR(actual.ata[i], expected.ata[i], rel_tol * scale) << "level " << level << " A " << i;
+  for (size_t i = 0; i < expected.atb.size(); ++i)
+    EXPECT_NEAR(actual.atb[i], expected.atb[i], rel_tol * scale) << "level " << level << " b " << i;
+  EXPECT_NEAR(actual.error_sq, expected.error_sq, rel_tol * expected.error_sq) << "level " << level;
+}
+
+TEST_F(IcpFixture, SerialAndParallelSystemsAgree) {
+  Eigen::Matrix3f R;
+  Eigen::Vector3f t;
+  buildOffsetPair(9, &R, &t);
+  const float cos_gate = std::cos(IcpTracker::Params().normal_angle_gate_rad);
+  for (const SystemConfig& c : systemConfigs()) {
+    const IcpSystem serial = IcpTracker::buildSystem(current, model, c.level, R, t, 0.1f, cos_gate,
+                                                     c.weighting, c.huber_sigmas, false);
+    const IcpSystem parallel = IcpTracker::buildSystem(current, model, c.level, R, t, 0.1f,
+                                                       cos_gate, c.weighting, c.huber_sigmas, true);
     ASSERT_GT(serial.inliers, 100);
     EXPECT_EQ(serial.inliers, parallel.inliers);
     // Rows are summed in double; a different summation order over ~3e5 rows could change a sum
     // by at most ~N * 2^-53 relative (3e-11). 1e-9 allows that and nothing else.
     constexpr double kRelSumTol = 1e-9;
-    double scale = 0.0;
-    for (double a : serial.ata) scale = std::max(scale, std::abs(a));
-    for (size_t i = 0; i < serial.ata.size(); ++i) {
-      EXPECT_NEAR(serial.ata[i], parallel.ata[i], kRelSumTol * scale) << "level " << level;
-    }
-    for (size_t i = 0; i < serial.atb.size(); ++i) {
-      EXPECT_NEAR(serial.atb[i], parallel.atb[i], kRelSumTol * scale) << "level " << level;
-    }
-    EXPECT_NEAR(serial.error_sq, parallel.error_sq, kRelSumTol * serial.error_sq);
+    expectSystemsNear(parallel, serial, kRelSumTol, c.level);
   }
 }
 
@@ -216,37 +243,24 @@ IcpSystem referenceSystem(const DepthFrame& current, const ModelMaps& model, int
 }
 
 TEST_F(IcpFixture, SystemMatchesPerPixelReference) {
-  const SyntheticScene scene = test::cornerScene();
-  buildModel(scene);
-  const Pose T_ref_cur_true =
-      test::makePose(Eigen::Vector3d(0.02, 0.01, -0.01), Eigen::Vector3d(0.01, 0.02, -0.01));
-  buildCurrent(scene, T_ref_cur_true, 10);
+  Eigen::Matrix3f R;
+  Eigen::Vector3f t;
+  buildOffsetPair(10, &R, &t);
   const float cos_gate = std::cos(IcpTracker::Params().normal_angle_gate_rad);
-  const Eigen::Matrix3f R = T_ref_cur_true.linear().cast<float>().transpose();
-  const Eigen::Vector3f t(0.005f, 0.f, 0.f);
-  for (int config = 0; config < 2 * kPyramidLevels; ++config) {
-    const int level = config % kPyramidLevels;
-    const bool weighting = config >= kPyramidLevels;
-    const float huber = weighting ? IcpTracker::Params().huber_sigmas : 0.f;
-    const IcpSystem fast = IcpTracker::buildSystem(current, model, level, R, t, 0.1f, cos_gate,
-                                                   weighting, huber, true);
-    const IcpSystem ref =
-        referenceSystem(current, model, level, R, t, 0.1f, cos_gate, weighting, huber);
+  for (const SystemConfig& c : systemConfigs()) {
+    const IcpSystem fast = IcpTracker::buildSystem(current, model, c.level, R, t, 0.1f, cos_gate,
+                                                   c.weighting, c.huber_sigmas, true);
+    const IcpSystem ref = referenceSystem(current, model, c.level, R, t, 0.1f, cos_gate,
+                                          c.weighting, c.huber_sigmas);
     // The same gates on the same float geometry pick the same pairs.
     ASSERT_GT(ref.inliers, 100);
-    EXPECT_EQ(fast.valid_points, ref.valid_points) << "level " << level;
-    EXPECT_EQ(fast.inliers, ref.inliers) << "level " << level;
+    EXPECT_EQ(fast.valid_points, ref.valid_points) << "level " << c.level;
+    EXPECT_EQ(fast.inliers, ref.inliers) << "level " << c.level;
     // The builder sums each image row in float before the double chunk sums: ~2e-9 of the
     // largest entry here. 1e-6 leaves room for other compilers' rounding; a wrong weight or
     // Jacobian on even 1% of the pairs moves the sums by ~1e-2.
     constexpr double kRelSumTol = 1e-6;
-    double scale = 0.0;
-    for (double a : ref.ata) scale = std::max(scale, std::abs(a));
-    for (size_t i = 0; i < ref.ata.size(); ++i)
-      EXPECT_NEAR(fast.ata[i], ref.ata[i], kRelSumTol * scale) << "level " << level << " A " << i;
-    for (size_t i = 0; i < ref.atb.size(); ++i)
-      EXPECT_NEAR(fast.atb[i], ref.atb[i], kRelSumTol * scale) << "level " << level << " b " << i;
-    EXPECT_NEAR(fast.error_sq, ref.error_sq, kRelSumTol * ref.error_sq) << "level " << level;
+    expectSystemsNear(fast, ref, kRelSumTol, c.level);
   }
 }
 

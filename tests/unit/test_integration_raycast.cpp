@@ -119,9 +119,7 @@ TEST_P(IntegrateRaycast, NoisyPlaneRaycastsAtPlaneDepth) {
   Image<uint16_t> raw(cam.width, cam.height);
   Image<float> depth(cam.width, cam.height);
   for (int frame = 0; frame < kNoisyFrames; ++frame) {
-    std::mt19937 rng(500 + frame);
-    scene.renderRawDepth(cam, T_world_cam, test::kRenderMaxDepthM, test::kTumDepthScale, &rng, raw);
-    test::rawToMetres(raw, test::kTumDepthScale, depth);
+    test::renderNoisyMetres(scene, cam, T_world_cam, 500 + frame, raw, depth);
     const IntegrateResult r = integrator.integrate(depth, cam, T_world_cam, volume.get());
     EXPECT_GT(r.blocks_updated, 0);
     EXPECT_EQ(r.blocks_rejected, 0) << "the dense window holds the whole view";
@@ -205,15 +203,11 @@ TEST_P(IntegrateRaycast, HintedRaycastAgreesWithFullMarch) {
   for (int frame = 0; frame < kNoisyFrames; ++frame) {
     const Pose T = test::makePose(Eigen::Vector3d(0.0, 0.01 * frame, 0.0),
                                   Eigen::Vector3d(0.01 * frame, 0.0, 0.0));
-    std::mt19937 rng(700 + frame);
-    scene.renderRawDepth(cam, T, test::kRenderMaxDepthM, test::kTumDepthScale, &rng, raw);
-    test::rawToMetres(raw, test::kTumDepthScale, depth);
+    test::renderNoisyMetres(scene, cam, T, 700 + frame, raw, depth);
     integrator.integrate(depth, cam, T, volume.get());
   }
   // The hint: one more noisy frame from the raycast pose, with a hole in it.
-  std::mt19937 rng(799);
-  scene.renderRawDepth(cam, T_world_cam, test::kRenderMaxDepthM, test::kTumDepthScale, &rng, raw);
-  test::rawToMetres(raw, test::kTumDepthScale, depth);
+  test::renderNoisyMetres(scene, cam, T_world_cam, 799, raw, depth);
   constexpr int kHoleLo = 200, kHoleHi = 260;
   for (int y = kHoleLo; y < kHoleHi; ++y)
     for (int x = kHoleLo; x < kHoleHi; ++x) depth(x, y) = 0.f;
@@ -335,9 +329,7 @@ TEST(TsdfIntegrator, SerialAndParallelGiveIdenticalVoxels) {
   for (int frame = 0; frame < 3; ++frame) {
     const Pose T = test::makePose(Eigen::Vector3d(0.0, 0.02 * frame, 0.0),
                                   Eigen::Vector3d(0.03 * frame, 0.0, 0.0));
-    std::mt19937 rng(40 + frame);
-    scene.renderRawDepth(cam, T, test::kRenderMaxDepthM, test::kTumDepthScale, &rng, raw);
-    test::rawToMetres(raw, test::kTumDepthScale, depth);
+    test::renderNoisyMetres(scene, cam, T, 40 + frame, raw, depth);
     integrator_s.integrate(depth, cam, T, &serial, false);
     integrator_p.integrate(depth, cam, T, &parallel, true);
   }

@@ -88,13 +88,13 @@ inline double orthonormalityError(const Pose& T) {
 // Products of a few hundred exact rotations drift by ~1e-14; anything near 1e-9 is growing.
 constexpr double kOrthonormalityTol = 1e-9;
 
-// Raw uint16 -> metres, 0 stays 0 (the conversion the engine does, without range limits).
 // Noise-free sensor image: metric depth quantised to TUM units (0.2 mm), 0 stays 0.
 inline void metresToRaw(ImageView<const float> depth_m, ImageView<uint16_t> raw) {
   for (int i = 0; i < raw.numPixels(); ++i)
     raw.data()[i] = static_cast<uint16_t>(std::lround(depth_m.data()[i] / kTumDepthScale));
 }
 
+// Raw uint16 -> metres, 0 stays 0 (the conversion the engine does, without range limits).
 inline void rawToMetres(ImageView<const uint16_t> raw, double depth_scale_m,
                         ImageView<float> depth_m) {
   for (int y = 0; y < raw.height(); ++y) {
@@ -102,6 +102,16 @@ inline void rawToMetres(ImageView<const uint16_t> raw, double depth_scale_m,
       depth_m(x, y) = static_cast<float>(raw(x, y) * depth_scale_m);
     }
   }
+}
+
+// One noisy sensor frame in metres: Kinect-noise depth of `scene` drawn with its own seed and
+// quantised to TUM units. `raw` is scratch space of the same size.
+inline void renderNoisyMetres(const SyntheticScene& scene, const PinholeCamera& camera,
+                              const Pose& T_world_cam, uint32_t seed, ImageView<uint16_t> raw,
+                              ImageView<float> depth_m) {
+  std::mt19937 rng(seed);
+  scene.renderRawDepth(camera, T_world_cam, kRenderMaxDepthM, kTumDepthScale, &rng, raw);
+  rawToMetres(raw, kTumDepthScale, depth_m);
 }
 
 // Model maps as a perfect raycast would give them: level 0 from exact depth, then the pyramid.

@@ -18,6 +18,8 @@
 #include <cstdint>
 #include <unordered_map>
 
+#include "kinfly/voxel_reader.h"
+
 namespace kinfly {
 namespace {
 
@@ -235,33 +237,6 @@ const CaseTable& caseTable() {
 }
 
 // ---- Volume access --------------------------------------------------------------------------
-int floorDiv(int a, int b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
-
-// Reads voxels by global index, remembering the last block so neighbouring reads stay cheap.
-class VoxelReader {
- public:
-  explicit VoxelReader(const TsdfVolume& volume) : volume_(volume) {}
-  // nullptr when the voxel's block is not allocated.
-  const Voxel* at(const Eigen::Vector3i& g) {
-    const BlockIndex b(floorDiv(g.x(), kBlockSide), floorDiv(g.y(), kBlockSide),
-                       floorDiv(g.z(), kBlockSide));
-    if (!has_block_ || b != cached_index_) {
-      cached_ = volume_.findBlock(b);
-      cached_index_ = b;
-      has_block_ = true;
-    }
-    if (cached_ == nullptr) return nullptr;
-    const Eigen::Vector3i l = g - b * kBlockSide;
-    return &cached_->voxels[VoxelBlock::linear(l.x(), l.y(), l.z())];
-  }
-
- private:
-  const TsdfVolume& volume_;
-  const VoxelBlock* cached_ = nullptr;
-  BlockIndex cached_index_ = BlockIndex::Zero();
-  bool has_block_ = false;
-};
-
 // TSDF gradient at a voxel by central differences (one-sided next to unobserved voxels), in
 // TSDF units per voxel. Zero where no neighbour along an axis is observed.
 Eigen::Vector3f voxelGradient(VoxelReader* reader, const Eigen::Vector3i& g, float centre) {
@@ -269,8 +244,9 @@ Eigen::Vector3f voxelGradient(VoxelReader* reader, const Eigen::Vector3i& g, flo
   for (int axis = 0; axis < 3; ++axis) {
     Eigen::Vector3i step = Eigen::Vector3i::Zero();
     step[axis] = 1;
-    const Voxel* plus = reader->at(g + step);
-    const Voxel* minus = reader->at(g - step);
+    const Eigen::Vector3i p = g + step, m = g - step;
+    const Voxel* plus = reader->voxel(p.x(), p.y(), p.z());
+    const Voxel* minus = reader->voxel(m.x(), m.y(), m.z());
     const bool has_plus = plus != nullptr && plus->weight > 0.f;
     const bool has_minus = minus != nullptr && minus->weight > 0.f;
     if (has_plus && has_minus) {

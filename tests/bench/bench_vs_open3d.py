@@ -74,13 +74,7 @@ def nearest_rgb(depth_stamps: list[float], rgb: list[tuple[float, str]]) -> list
 
 
 def write_tum(path: Path, stamps: list[float], poses: list[np.ndarray]) -> None:
-    from scipy.spatial.transform import Rotation
-
-    lines = []
-    for t, T in zip(stamps, poses):
-        qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
-        tx, ty, tz = T[:3, 3]
-        lines.append(f"{t:.6f} {tx:.6f} {ty:.6f} {tz:.6f} {qx:.6f} {qy:.6f} {qz:.6f} {qw:.6f}")
+    lines = [kinfly_eval.tum_line(t, T) for t, T in zip(stamps, poses)]
     path.write_text("\n".join(lines) + "\n")
 
 

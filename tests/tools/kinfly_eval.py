@@ -99,7 +99,8 @@ def ate(traj_path: str | Path, gt_path: str | Path) -> dict[str, float | int]:
 
 
 # --- Replica -> TUM layout -----------------------------------------------------------------------
-def _matrix_to_tum_line(t_s: float, T_world_cam: np.ndarray) -> str:
+def tum_line(t_s: float, T_world_cam: np.ndarray) -> str:
+    """One TUM trajectory line `t tx ty tz qx qy qz qw` for a 4x4 camera-to-world matrix."""
     from scipy.spatial.transform import Rotation
 
     qx, qy, qz, qw = Rotation.from_matrix(T_world_cam[:3, :3]).as_quat()  # scipy order: x y z w
@@ -134,7 +135,7 @@ def replica_to_tum(replica_dir: str | Path, out_dir: str | Path,
         link.symlink_to(source)
         t_s = float(i)  # Replica has no capture times; any monotonic clock pairs frames and poses
         depth_lines.append(f"{t_s:.6f} depth/{i:06d}.png")
-        pose_lines.append(_matrix_to_tum_line(t_s, matrices[i]))
+        pose_lines.append(tum_line(t_s, matrices[i]))
     depth_txt, poses = out_dir / "depth.txt", out_dir / "poses.tum"
     depth_txt.write_text("\n".join(depth_lines) + "\n")
     poses.write_text("\n".join(pose_lines) + "\n")

@@ -17,6 +17,7 @@ apt_packages=(
   libeigen3-dev libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev
   libgtest-dev libgmock-dev libbenchmark-dev libcli11-dev
   python3 python3-venv python3-dev
+  liblcm-dev liblcm-bin libsodium-dev libzstd-dev iproute2
 )
 
 log() { echo "[install-deps] $*"; }

@@ -1,0 +1,36 @@
+#include "kinfly/link/counters.h"
+
+namespace kinfly::link {
+
+void RejectCounters::count(Verdict verdict) {
+  switch (verdict) {
+    case Verdict::kAccepted: return;
+    case Verdict::kWrongVehicle: ++wrong_vehicle; return;
+    case Verdict::kWrongKey: ++wrong_key; return;
+    case Verdict::kBadMac: ++bad_mac; return;
+    case Verdict::kStale: ++stale; return;
+    case Verdict::kReplayed: ++replayed; return;
+  }
+}
+
+void RejectCounters::count(DecodeStatus status) {
+  if (status != DecodeStatus::kOk) ++malformed;
+}
+
+int64_t RejectCounters::total() const {
+  return unsigned_messages + wrong_key + bad_mac + stale + replayed + malformed + unknown_channel +
+         wrong_vehicle;
+}
+
+void RejectCounters::writeTo(status_t* status) const {
+  status->rejected_unsigned = unsigned_messages;
+  status->rejected_wrong_key = wrong_key;
+  status->rejected_bad_mac = bad_mac;
+  status->rejected_stale = stale;
+  status->rejected_replayed = replayed;
+  status->rejected_malformed = malformed;
+  status->rejected_unknown_channel = unknown_channel;
+  status->rejected_wrong_vehicle = wrong_vehicle;
+}
+
+}  // namespace kinfly::link

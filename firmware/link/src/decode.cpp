@@ -1,0 +1,203 @@
+#include "kinfly/link/decode.h"
+
+#include <cmath>
+#include <limits>
+#include <type_traits>
+
+#include "kinfly/link/channels.h"
+
+namespace kinfly::link {
+namespace {
+
+int64_t readBigEndian(const uint8_t* p, int bytes) {
+  uint64_t v = 0;
+  for (int i = 0; i < bytes; ++i) v = (v << 8) | p[i];
+  return bytes == 4 ? static_cast<int32_t>(static_cast<uint32_t>(v)) : static_cast<int64_t>(v);
+}
+
+// Types whose last two fields are `int32_t payload_size; byte payload[payload_size];`
+// (a unit test checks the layout against the generated encoder).
+template <class T>
+constexpr bool kHasTrailingPayload =
+    std::is_same_v<T, depth_keyframe_t> || std::is_same_v<T, signed_t>;
+
+template <class T>
+int payloadBound(const DecodeBounds& bounds) {
+  if constexpr (std::is_same_v<T, depth_keyframe_t>) return bounds.max_keyframe_payload_bytes;
+  return bounds.max_signed_payload_bytes;
+}
+
+DecodeResult fail(DecodeStatus status, std::string detail) { return {status, std::move(detail)}; }
+
+bool finite(const double* v, int n) {
+  for (int i = 0; i < n; ++i)
+    if (!std::isfinite(v[i])) return false;
+  return true;
+}
+
+// A pose on the wire: finite, and a quaternion that is unit to well within float rounding of
+// whatever produced it (senders normalise; a far-off norm means a corrupted or foreign message).
+constexpr double kQuaternionNormTolerance = 1e-3;
+
+std::string poseProblem(const double position_m[3], const double orientation_xyzw[4]) {
+  if (!finite(position_m, 3)) return "position_m is not finite";
+  if (!finite(orientation_xyzw, 4)) return "orientation_xyzw is not finite";
+  const double norm = std::sqrt(orientation_xyzw[0] * orientation_xyzw[0] +
+                                orientation_xyzw[1] * orientation_xyzw[1] +
+                                orientation_xyzw[2] * orientation_xyzw[2] +
+                                orientation_xyzw[3] * orientation_xyzw[3]);
+  if (std::abs(norm - 1.0) > kQuaternionNormTolerance)
+    return "orientation_xyzw is not a unit quaternion (norm " + std::to_string(norm) + ")";
+  return {};
+}
+
+bool validTracking(int8_t status) {
+  return status >= odometry_t::TRACKING_NONE && status <= odometry_t::TRACKING_GIVEN;
+}
+
+std::string vehicleProblem(int32_t vehicle_id) {
+  if (vehicle_id < 0 || vehicle_id > kMaxVehicleId)
+    return "vehicle_id " + std::to_string(vehicle_id) + " outside [0, " +
+           std::to_string(kMaxVehicleId) + "]";
+  return {};
+}
+
+std::string fieldProblem(const depth_keyframe_t& m, const DecodeBounds& bounds) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (m.width <= 0 || m.width > bounds.max_width_px || m.height <= 0 ||
+      m.height > bounds.max_height_px)
+    return "image " + std::to_string(m.width) + "x" + std::to_string(m.height) +
+           " outside 1x1.." + std::to_string(bounds.max_width_px) + "x" +
+           std::to_string(bounds.max_height_px);
+  const float k[4] = {m.fx, m.fy, m.cx, m.cy};
+  for (float v : k)
+    if (!std::isfinite(v)) return "intrinsics are not finite";
+  if (!(m.fx > 0.f) || !(m.fy > 0.f)) return "focal lengths must be positive";
+  if (!(m.depth_scale_m > 0.0) || !std::isfinite(m.depth_scale_m))
+    return "depth_scale_m must be positive and finite";
+  if (m.encoding < depth_keyframe_t::ENCODING_RAW16 ||
+      m.encoding > depth_keyframe_t::ENCODING_RVL_ZSTD)
+    return "unknown encoding " + std::to_string(m.encoding);
+  if (!validTracking(m.tracking_status))
+    return "unknown tracking_status " + std::to_string(m.tracking_status);
+  if (m.tracking_status != odometry_t::TRACKING_NONE)
+    return poseProblem(m.position_m, m.orientation_xyzw);
+  return {};
+}
+
+std::string fieldProblem(const odometry_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (!validTracking(m.tracking_status))
+    return "unknown tracking_status " + std::to_string(m.tracking_status);
+  if (!std::isfinite(m.inlier_fraction) || m.inlier_fraction < 0.f || m.inlier_fraction > 1.f)
+    return "inlier_fraction outside [0, 1]";
+  return poseProblem(m.position_m, m.orientation_xyzw);
+}
+
+std::string fieldProblem(const imu_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (!finite(m.angular_velocity_rad_s, 3) || !finite(m.linear_acceleration_m_s2, 3))
+    return "IMU sample is not finite";
+  return {};
+}
+
+std::string fieldProblem(const pose_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  return poseProblem(m.position_m, m.orientation_xyzw);
+}
+
+std::string fieldProblem(const pose_correction_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (m.keyframe_id < 0) return "keyframe_id is negative";
+  if (m.reset_counter < 0) return "reset_counter is negative";
+  return poseProblem(m.position_m, m.orientation_xyzw);
+}
+
+std::string fieldProblem(const status_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (m.source != status_t::SOURCE_DRONE && m.source != status_t::SOURCE_GROUND)
+    return "unknown source " + std::to_string(m.source);
+  return {};
+}
+
+std::string fieldProblem(const signed_t& m, const DecodeBounds&) {
+  return vehicleProblem(m.vehicle_id);
+}
+
+}  // namespace
+
+std::string DecodeBounds::validate() const {
+  if (max_width_px <= 0 || max_width_px > 8192) return "max_width_px must be in (0, 8192]";
+  if (max_height_px <= 0 || max_height_px > 8192) return "max_height_px must be in (0, 8192]";
+  if (max_keyframe_payload_bytes <= 0 || max_keyframe_payload_bytes > (64 << 20))
+    return "max_keyframe_payload_bytes must be in (0, 64 MiB]";
+  if (max_signed_payload_bytes <= 0 || max_signed_payload_bytes > (1 << 20))
+    return "max_signed_payload_bytes must be in (0, 1 MiB]";
+  return {};
+}
+
+const char* toString(DecodeStatus status) {
+  switch (status) {
+    case DecodeStatus::kOk: return "ok";
+    case DecodeStatus::kWrongType: return "wrong type";
+    case DecodeStatus::kTruncated: return "truncated";
+    case DecodeStatus::kTrailingBytes: return "trailing bytes";
+    case DecodeStatus::kOutOfBounds: return "out of bounds";
+    case DecodeStatus::kBadField: return "bad field";
+  }
+  return "?";
+}
+
+template <class T>
+bool hasFingerprint(const void* data, size_t size) {
+  if (data == nullptr || size < 8) return false;
+  return static_cast<uint64_t>(readBigEndian(static_cast<const uint8_t*>(data), 8)) ==
+         static_cast<uint64_t>(T::getHash());
+}
+
+template <class T>
+DecodeResult decodeMessage(const void* data, size_t size, const DecodeBounds& bounds, T* out) {
+  if (size > static_cast<size_t>(std::numeric_limits<int>::max()))
+    return fail(DecodeStatus::kOutOfBounds, std::to_string(size) + " bytes");
+  if (!hasFingerprint<T>(data, size))
+    return fail(size < 8 ? DecodeStatus::kTruncated : DecodeStatus::kWrongType,
+                std::string("not a ") + T::getTypeName());
+  const auto* bytes = static_cast<const uint8_t*>(data);
+  // Encoded size with an empty variable part: the fingerprint and every fixed field.
+  const size_t fixed_size = static_cast<size_t>(T().getEncodedSize());
+  size_t expected = fixed_size;
+  if constexpr (kHasTrailingPayload<T>) {
+    if (size < fixed_size) return fail(DecodeStatus::kTruncated, "header");
+    const int64_t declared = readBigEndian(bytes + fixed_size - 4, 4);
+    if (declared < 0 || declared > payloadBound<T>(bounds))
+      return fail(DecodeStatus::kOutOfBounds,
+                  "payload_size " + std::to_string(declared) + " outside [0, " +
+                      std::to_string(payloadBound<T>(bounds)) + "]");
+    expected += static_cast<size_t>(declared);
+  }
+  if (size < expected)
+    return fail(DecodeStatus::kTruncated,
+                std::to_string(size) + " of " + std::to_string(expected) + " bytes");
+  if (size > expected)
+    return fail(DecodeStatus::kTrailingBytes,
+                std::to_string(size) + " bytes for a " + std::to_string(expected) + "-byte message");
+  if (out->decode(data, 0, static_cast<int>(size)) != static_cast<int>(size))
+    return fail(DecodeStatus::kTruncated, "decoder stopped early");
+  if (std::string why = fieldProblem(*out, bounds); !why.empty())
+    return fail(DecodeStatus::kBadField, std::move(why));
+  return {};
+}
+
+#define KINFLY_INSTANTIATE_DECODE(T)                                               \
+  template bool hasFingerprint<T>(const void*, size_t);                            \
+  template DecodeResult decodeMessage<T>(const void*, size_t, const DecodeBounds&, T*);
+KINFLY_INSTANTIATE_DECODE(depth_keyframe_t)
+KINFLY_INSTANTIATE_DECODE(imu_t)
+KINFLY_INSTANTIATE_DECODE(odometry_t)
+KINFLY_INSTANTIATE_DECODE(pose_t)
+KINFLY_INSTANTIATE_DECODE(pose_correction_t)
+KINFLY_INSTANTIATE_DECODE(signed_t)
+KINFLY_INSTANTIATE_DECODE(status_t)
+#undef KINFLY_INSTANTIATE_DECODE
+
+}  // namespace kinfly::link

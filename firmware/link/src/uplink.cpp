@@ -1,0 +1,40 @@
+#include "kinfly/link/uplink.h"
+
+namespace kinfly::link {
+
+CorrectionReceiver::CorrectionReceiver(const Key& key, int32_t vehicle_id,
+                                       const VerifierParams& verifier, const DecodeBounds& bounds)
+    : vehicle_id_(vehicle_id), verifier_(key, vehicle_id, verifier), bounds_(bounds) {}
+
+std::optional<pose_correction_t> CorrectionReceiver::receive(const void* data, size_t size,
+                                                             int64_t now_utime) {
+  if (hasFingerprint<pose_correction_t>(data, size)) {
+    ++rejects_.unsigned_messages;
+    return std::nullopt;
+  }
+  if (const DecodeResult decoded = decodeMessage(data, size, bounds_, &envelope_); !decoded.ok()) {
+    rejects_.count(decoded.status);
+    return std::nullopt;
+  }
+  if (const Verdict verdict = verifier_.verify(envelope_, now_utime);
+      verdict != Verdict::kAccepted) {
+    rejects_.count(verdict);
+    return std::nullopt;
+  }
+  pose_correction_t correction;
+  if (const DecodeResult inner = decodeMessage(envelope_.payload.data(), envelope_.payload.size(),
+                                               bounds_, &correction);
+      !inner.ok()) {
+    rejects_.count(inner.status);
+    return std::nullopt;
+  }
+  // The envelope's vehicle id is authenticated; the inner one must agree with it.
+  if (correction.vehicle_id != vehicle_id_) {
+    ++rejects_.wrong_vehicle;
+    return std::nullopt;
+  }
+  ++accepted_;
+  return correction;
+}
+
+}  // namespace kinfly::link

@@ -1,0 +1,476 @@
+// The link's contract: channel names, bounded decoding of every message type, signing and
+// verification (each rejection kind), key files, and the drone's correction receiver.
+#include <gtest/gtest.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <random>
+#include <vector>
+
+#include "kinfly/link/channels.h"
+#include "kinfly/link/decode.h"
+#include "kinfly/link/signing.h"
+#include "kinfly/link/uplink.h"
+
+namespace kinfly::link {
+namespace {
+
+constexpr int32_t kVehicle = 7;
+constexpr int64_t kNow = 1'700'000'000'000'000;  // [us] a fixed wall-clock time
+constexpr int64_t kSecond = 1'000'000;           // [us]
+
+template <class T>
+std::vector<uint8_t> encode(const T& message) {
+  std::vector<uint8_t> bytes(static_cast<size_t>(message.getEncodedSize()));
+  EXPECT_EQ(message.encode(bytes.data(), 0, static_cast<int>(bytes.size())),
+            static_cast<int>(bytes.size()));
+  return bytes;
+}
+
+void setIdentityPose(double position_m[3], double orientation_xyzw[4]) {
+  position_m[0] = 0.5;
+  position_m[1] = -0.25;
+  position_m[2] = 1.0;
+  orientation_xyzw[0] = orientation_xyzw[1] = orientation_xyzw[2] = 0.0;
+  orientation_xyzw[3] = 1.0;
+}
+
+depth_keyframe_t sampleKeyframe(int payload_bytes) {
+  depth_keyframe_t m;
+  m.utime = kNow;
+  m.vehicle_id = kVehicle;
+  m.frame_id = 42;
+  m.keyframe_id = 3;
+  m.width = 640;
+  m.height = 480;
+  m.fx = 535.4f;
+  m.fy = 539.2f;
+  m.cx = 320.1f;
+  m.cy = 247.6f;
+  m.depth_scale_m = 1.0 / 5000.0;
+  setIdentityPose(m.position_m, m.orientation_xyzw);
+  m.tracking_status = odometry_t::TRACKING_OK;
+  m.encoding = depth_keyframe_t::ENCODING_RVL;
+  m.payload.resize(static_cast<size_t>(payload_bytes));
+  for (int i = 0; i < payload_bytes; ++i) m.payload[i] = static_cast<uint8_t>(i * 31 + 5);
+  m.payload_size = payload_bytes;
+  return m;
+}
+
+pose_correction_t sampleCorrection(int64_t keyframe_id) {
+  pose_correction_t m;
+  m.utime = kNow - kSecond / 2;
+  m.vehicle_id = kVehicle;
+  m.keyframe_id = keyframe_id;
+  setIdentityPose(m.position_m, m.orientation_xyzw);
+  m.reset_counter = 0;
+  return m;
+}
+
+Key testKey(uint8_t seed) {
+  Key key;
+  for (size_t i = 0; i < key.bytes.size(); ++i) key.bytes[i] = static_cast<uint8_t>(seed + 7 * i);
+  key.id = keyIdOf(key.bytes);
+  return key;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Channels
+
+TEST(Channels, NamesCarryTheVehicleAndParseBack) {
+  for (Channel c : {Channel::kDepth, Channel::kKeyframe, Channel::kOdometry, Channel::kImu,
+                    Channel::kStatus, Channel::kCorrection, Channel::kGroundStatus,
+                    Channel::kGroundTruth}) {
+    for (int vehicle : {0, 7, kMaxVehicleId}) {
+      const std::string name = channelName(c, vehicle);
+      EXPECT_NE(name.find(std::to_string(vehicle)), std::string::npos) << name;
+      const auto parsed = parseChannel(name);
+      ASSERT_TRUE(parsed) << name;
+      EXPECT_EQ(parsed->channel, c);
+      EXPECT_EQ(parsed->vehicle_id, vehicle);
+    }
+  }
+  EXPECT_EQ(channelName(Channel::kKeyframe, 7), "KINFLY_7_KEYFRAME");
+}
+
+TEST(Channels, ForeignOrMalformedNamesDoNotParse) {
+  for (const char* name : {"", "KINFLY_", "KINFLY_7", "KINFLY_7_", "KINFLY_7_NOPE", "KINFLY_x_IMU",
+                           "KINFLY_07_IMU", "KINFLY_65536_IMU", "KINFLY_123456_IMU",
+                           "OTHER_7_IMU", "kinfly_7_imu", "KINFLY_7_IMU_"})
+    EXPECT_FALSE(parseChannel(name)) << name;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Bounded decoding
+
+// decodeMessage bounds a variable array by reading its count just before it, at the end of the
+// fixed part: that is only right if the generated encoder puts them there.
+template <class T>
+void expectTrailingPayloadLayout(T message) {
+  const int fixed = T().getEncodedSize();
+  message.payload.assign(13, 0xAB);
+  message.payload_size = 13;
+  const auto bytes = encode(message);
+  ASSERT_EQ(static_cast<int>(bytes.size()), fixed + 13);
+  EXPECT_EQ(bytes[fixed - 1], 13);
+  EXPECT_EQ(bytes[fixed - 4] | bytes[fixed - 3] | bytes[fixed - 2], 0);
+  EXPECT_EQ(bytes.back(), 0xAB);
+}
+
+TEST(Decode, PayloadSizeIsTheLastFixedField) {
+  expectTrailingPayloadLayout(sampleKeyframe(0));
+  expectTrailingPayloadLayout(signed_t());
+}
+
+TEST(Decode, RoundTripsEveryField) {
+  const depth_keyframe_t sent = sampleKeyframe(1000);
+  const auto bytes = encode(sent);
+  depth_keyframe_t got;
+  const DecodeResult r = decodeMessage(bytes.data(), bytes.size(), DecodeBounds(), &got);
+  ASSERT_TRUE(r.ok()) << r.detail;
+  EXPECT_EQ(encode(got), bytes);
+}
+
+TEST(Decode, EveryTruncationIsRejected) {
+  const auto bytes = encode(sampleKeyframe(300));
+  for (size_t n = 0; n < bytes.size(); ++n) {
+    depth_keyframe_t got;
+    const DecodeResult r = decodeMessage(bytes.data(), n, DecodeBounds(), &got);
+    EXPECT_EQ(r.status, DecodeStatus::kTruncated) << n << " bytes: " << r.detail;
+  }
+}
+
+TEST(Decode, TrailingBytesAreRejected) {
+  auto bytes = encode(sampleCorrection(1));
+  bytes.push_back(0);
+  pose_correction_t got;
+  EXPECT_EQ(decodeMessage(bytes.data(), bytes.size(), DecodeBounds(), &got).status,
+            DecodeStatus::kTrailingBytes);
+}
+
+TEST(Decode, WrongFingerprintIsRejected) {
+  const auto bytes = encode(sampleCorrection(1));
+  odometry_t got;
+  EXPECT_EQ(decodeMessage(bytes.data(), bytes.size(), DecodeBounds(), &got).status,
+            DecodeStatus::kWrongType);
+  EXPECT_TRUE(hasFingerprint<pose_correction_t>(bytes.data(), bytes.size()));
+  EXPECT_FALSE(hasFingerprint<signed_t>(bytes.data(), bytes.size()));
+}
+
+// A forged count must be refused before anything is sized from it: -1 and 2^31-1 would make the
+// generated decoder resize to gigabytes.
+TEST(Decode, ForgedPayloadSizesAreRejectedBeforeAllocating) {
+  auto bytes = encode(sampleKeyframe(16));
+  const size_t count_at = static_cast<size_t>(depth_keyframe_t().getEncodedSize()) - 4;
+  for (uint32_t forged : {0xFFFFFFFFu, 0x7FFFFFFFu, 0x80000000u, uint32_t{8u << 20} + 1}) {
+    for (int i = 0; i < 4; ++i) bytes[count_at + i] = static_cast<uint8_t>(forged >> (24 - 8 * i));
+    depth_keyframe_t got;
+    const DecodeResult r = decodeMessage(bytes.data(), bytes.size(), DecodeBounds(), &got);
+    EXPECT_EQ(r.status, DecodeStatus::kOutOfBounds) << forged;
+    EXPECT_TRUE(got.payload.empty());
+  }
+  // A count within the bounds but longer than the datagram: the payload is longer than sent.
+  const uint32_t longer = 17;
+  for (int i = 0; i < 4; ++i) bytes[count_at + i] = static_cast<uint8_t>(longer >> (24 - 8 * i));
+  depth_keyframe_t got;
+  EXPECT_EQ(decodeMessage(bytes.data(), bytes.size(), DecodeBounds(), &got).status,
+            DecodeStatus::kTruncated);
+}
+
+TEST(Decode, ImpossibleFieldsAreRejected) {
+  const DecodeBounds bounds;
+  const auto expectBad = [&](const depth_keyframe_t& m, const char* what) {
+    const auto bytes = encode(m);
+    depth_keyframe_t got;
+    const DecodeResult r = decodeMessage(bytes.data(), bytes.size(), bounds, &got);
+    EXPECT_EQ(r.status, DecodeStatus::kBadField) << what;
+    EXPECT_FALSE(r.detail.empty()) << what;
+  };
+  auto m = sampleKeyframe(8);
+  m.width = bounds.max_width_px + 1;
+  expectBad(m, "too wide");
+  m = sampleKeyframe(8);
+  m.height = 0;
+  expectBad(m, "no rows");
+  m = sampleKeyframe(8);
+  m.width = -640;
+  expectBad(m, "negative width");
+  m = sampleKeyframe(8);
+  m.encoding = 9;
+  expectBad(m, "unknown encoding");
+  m = sampleKeyframe(8);
+  m.tracking_status = 17;
+  expectBad(m, "unknown tracking status");
+  m = sampleKeyframe(8);
+  m.position_m[1] = std::numeric_limits<double>::quiet_NaN();
+  expectBad(m, "NaN position");
+  m = sampleKeyframe(8);
+  m.orientation_xyzw[3] = 2.0;
+  expectBad(m, "non-unit quaternion");
+  m = sampleKeyframe(8);
+  m.depth_scale_m = 0.0;
+  expectBad(m, "zero depth scale");
+  m = sampleKeyframe(8);
+  m.fx = std::numeric_limits<float>::infinity();
+  expectBad(m, "infinite focal length");
+  m = sampleKeyframe(8);
+  m.vehicle_id = -1;
+  expectBad(m, "negative vehicle");
+
+  // A raw capture has no pose yet: its pose fields are not checked.
+  m = sampleKeyframe(8);
+  m.tracking_status = odometry_t::TRACKING_NONE;
+  m.orientation_xyzw[3] = 0.0;
+  const auto bytes = encode(m);
+  depth_keyframe_t got;
+  EXPECT_TRUE(decodeMessage(bytes.data(), bytes.size(), bounds, &got).ok());
+}
+
+// Seeded random corruption of valid messages of every type: never a crash (ASan runs this too),
+// and whatever is accepted re-encodes to exactly the bytes received.
+template <class T>
+void fuzzDecode(const std::vector<uint8_t>& valid, uint32_t seed) {
+  std::mt19937 rng(seed);
+  for (int trial = 0; trial < 2000; ++trial) {
+    std::vector<uint8_t> bytes = valid;
+    const int flips = 1 + static_cast<int>(rng() % 4);
+    for (int f = 0; f < flips; ++f)
+      bytes[rng() % bytes.size()] ^= static_cast<uint8_t>(1 + rng() % 255);
+    if (rng() % 4 == 0) bytes.resize(rng() % (bytes.size() + 1));
+    T got;
+    if (decodeMessage(bytes.data(), bytes.size(), DecodeBounds(), &got).ok()) {
+      EXPECT_EQ(encode(got), bytes);
+    }
+  }
+}
+
+TEST(Decode, RandomCorruptionNeverCrashes) {
+  fuzzDecode<depth_keyframe_t>(encode(sampleKeyframe(64)), 1);
+  fuzzDecode<pose_correction_t>(encode(sampleCorrection(5)), 2);
+  status_t status;
+  status.vehicle_id = kVehicle;
+  fuzzDecode<status_t>(encode(status), 3);
+  signed_t envelope;
+  Signer signer(testKey(1), kVehicle, 1);
+  const auto inner = encode(sampleCorrection(5));
+  signer.sign(inner.data(), inner.size(), kNow, &envelope);
+  fuzzDecode<signed_t>(encode(envelope), 4);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Signing
+
+class Signing : public ::testing::Test {
+ protected:
+  Key key_ = testKey(1);
+  Signer signer_{key_, kVehicle, 1000};
+  Verifier verifier_{key_, kVehicle, VerifierParams()};
+
+  signed_t signCorrection(int64_t keyframe_id, int64_t utime) {
+    const auto inner = encode(sampleCorrection(keyframe_id));
+    signed_t envelope;
+    signer_.sign(inner.data(), inner.size(), utime, &envelope);
+    return envelope;
+  }
+};
+
+TEST_F(Signing, AcceptsAGoodEnvelope) {
+  const signed_t envelope = signCorrection(1, kNow);
+  EXPECT_EQ(envelope.key_id, static_cast<int32_t>(key_.id));
+  EXPECT_EQ(envelope.sequence, 1000);
+  EXPECT_EQ(verifier_.verify(envelope, kNow), Verdict::kAccepted);
+  EXPECT_EQ(verifier_.verify(signCorrection(2, kNow), kNow + kSecond / 10), Verdict::kAccepted);
+}
+
+TEST_F(Signing, RejectsAnotherVehicle) {
+  Signer other(key_, kVehicle + 1, 1);
+  const auto inner = encode(sampleCorrection(1));
+  signed_t envelope;
+  other.sign(inner.data(), inner.size(), kNow, &envelope);
+  EXPECT_EQ(verifier_.verify(envelope, kNow), Verdict::kWrongVehicle);
+}
+
+TEST_F(Signing, RejectsAnotherKey) {
+  Signer other(testKey(2), kVehicle, 5000);
+  const auto inner = encode(sampleCorrection(1));
+  signed_t envelope;
+  other.sign(inner.data(), inner.size(), kNow, &envelope);
+  EXPECT_EQ(verifier_.verify(envelope, kNow), Verdict::kWrongKey);
+  // Claiming the right key id does not help without the key.
+  envelope.key_id = static_cast<int32_t>(key_.id);
+  EXPECT_EQ(verifier_.verify(envelope, kNow), Verdict::kBadMac);
+}
+
+TEST_F(Signing, EveryAuthenticatedFieldIsCovered) {
+  const signed_t good = signCorrection(1, kNow);
+  std::vector<signed_t> tampered(5, good);
+  tampered[0].payload[20] ^= 1;
+  tampered[1].mac[0] ^= 1;
+  tampered[2].sequence += 1;
+  tampered[3].utime += 1;
+  tampered[4].payload.pop_back();
+  tampered[4].payload_size -= 1;
+  for (size_t i = 0; i < tampered.size(); ++i)
+    EXPECT_EQ(verifier_.verify(tampered[i], kNow), Verdict::kBadMac) << "tampered field " << i;
+  // None of the forgeries moved the replay window.
+  EXPECT_EQ(verifier_.verify(good, kNow), Verdict::kAccepted);
+}
+
+TEST_F(Signing, RejectsStaleAndFutureEnvelopes) {
+  const double window_s = VerifierParams().window_s;
+  const int64_t window_us = static_cast<int64_t>(window_s * 1e6);
+  EXPECT_EQ(verifier_.verify(signCorrection(1, kNow - window_us - 1), kNow), Verdict::kStale);
+  EXPECT_EQ(verifier_.verify(signCorrection(2, kNow + window_us + 1), kNow), Verdict::kStale);
+  EXPECT_EQ(verifier_.verify(signCorrection(3, kNow - window_us + 1), kNow), Verdict::kAccepted);
+}
+
+TEST_F(Signing, RejectsReplayedAndReorderedSequences) {
+  const signed_t first = signCorrection(1, kNow);
+  const signed_t second = signCorrection(2, kNow);
+  EXPECT_EQ(verifier_.verify(second, kNow), Verdict::kAccepted);
+  EXPECT_EQ(verifier_.verify(second, kNow), Verdict::kReplayed);
+  EXPECT_EQ(verifier_.verify(first, kNow), Verdict::kReplayed);
+  EXPECT_EQ(verifier_.verify(signCorrection(3, kNow), kNow), Verdict::kAccepted);
+}
+
+// A fixed vector computed with Python's hmac from the layout in docs/wire.md; the Python signer's
+// test checks the same vector, so both sides compute the same MAC over the same bytes.
+TEST(SigningVector, MacMatchesTheDocumentedLayout) {
+  Key key;
+  for (size_t i = 0; i < key.bytes.size(); ++i) key.bytes[i] = static_cast<uint8_t>(i);
+  key.id = keyIdOf(key.bytes);
+  const uint8_t payload[] = {'k', 'i', 'n', 'f', 'l', 'y'};
+  const auto mac = computeMac(key, 7, 42, 1'700'000'000'000'000, payload, sizeof payload);
+  char hex[65];
+  for (size_t i = 0; i < mac.size(); ++i) std::snprintf(hex + 2 * i, 3, "%02x", mac[i]);
+  EXPECT_EQ(key.id, 0x630dcd29u);
+  EXPECT_STREQ(hex, "1092b8d8ce1e9d43676c5c9ed98aeb77fff29d8a676a849ea16f3d8ee1616561");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Key files
+
+class KeyFiles : public ::testing::Test {
+ protected:
+  std::filesystem::path dir_ = std::filesystem::temp_directory_path() /
+                               ("kinfly_keys_" + std::to_string(::getpid()));
+  void SetUp() override { std::filesystem::create_directories(dir_); }
+  void TearDown() override { std::filesystem::remove_all(dir_); }
+};
+
+TEST_F(KeyFiles, CreatedKeyLoadsBackWithOwnerOnlyMode) {
+  const std::string path = (dir_ / "v7.key").string();
+  std::string why;
+  const auto created = createKeyFile(path, false, &why);
+  ASSERT_TRUE(created) << why;
+  struct stat st {};
+  ASSERT_EQ(::stat(path.c_str(), &st), 0);
+  EXPECT_EQ(st.st_mode & 0777, 0600u);
+  EXPECT_EQ(st.st_size, static_cast<off_t>(kKeyBytes));
+  const auto loaded = loadKeyFile(path, &why);
+  ASSERT_TRUE(loaded) << why;
+  EXPECT_EQ(loaded->bytes, created->bytes);
+  EXPECT_EQ(loaded->id, created->id);
+  // Never overwritten by accident; replaced on request by a different random key.
+  EXPECT_FALSE(createKeyFile(path, false, &why));
+  EXPECT_NE(why.find("exists"), std::string::npos) << why;
+  const auto replaced = createKeyFile(path, true, &why);
+  ASSERT_TRUE(replaced) << why;
+  EXPECT_NE(replaced->bytes, created->bytes);
+}
+
+TEST_F(KeyFiles, RefusesKeysOthersCanRead) {
+  const std::string path = (dir_ / "open.key").string();
+  std::string why;
+  ASSERT_TRUE(createKeyFile(path, false, &why)) << why;
+  for (mode_t mode : {0640, 0604, 0620, 0660, 0644}) {
+    ASSERT_EQ(::chmod(path.c_str(), mode), 0);
+    EXPECT_FALSE(loadKeyFile(path, &why)) << std::oct << mode;
+    EXPECT_NE(why.find("chmod 600"), std::string::npos) << why;
+  }
+  ASSERT_EQ(::chmod(path.c_str(), 0400), 0);
+  EXPECT_TRUE(loadKeyFile(path, &why)) << why;
+}
+
+TEST_F(KeyFiles, RefusesWrongSizesSymlinksAndMissingFiles) {
+  std::string why;
+  const std::string short_path = (dir_ / "short.key").string();
+  std::ofstream(short_path) << "too short";
+  ASSERT_EQ(::chmod(short_path.c_str(), 0600), 0);
+  EXPECT_FALSE(loadKeyFile(short_path, &why));
+  EXPECT_NE(why.find("bytes"), std::string::npos) << why;
+
+  const std::string real = (dir_ / "real.key").string();
+  ASSERT_TRUE(createKeyFile(real, false, &why)) << why;
+  const std::string link = (dir_ / "link.key").string();
+  std::filesystem::create_symlink(real, link);
+  EXPECT_FALSE(loadKeyFile(link, &why));
+
+  EXPECT_FALSE(loadKeyFile((dir_ / "missing.key").string(), &why));
+  EXPECT_NE(why.find("missing.key"), std::string::npos) << why;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The drone's correction receiver: one message of every kind, each counted where it belongs.
+
+TEST(CorrectionReceiver, AcceptsTheGoodAndCountsEachBadKind) {
+  const Key key = testKey(1);
+  CorrectionReceiver receiver(key, kVehicle, VerifierParams(), DecodeBounds());
+  Signer signer(key, kVehicle, 1);
+  const auto send = [&](const std::vector<uint8_t>& bytes, int64_t now) {
+    return receiver.receive(bytes.data(), bytes.size(), now);
+  };
+  const auto envelope = [&](const pose_correction_t& c, int64_t utime) {
+    const auto inner = encode(c);
+    signed_t e;
+    signer.sign(inner.data(), inner.size(), utime, &e);
+    return e;
+  };
+
+  const signed_t good = envelope(sampleCorrection(4), kNow);
+  const auto accepted = send(encode(good), kNow);
+  ASSERT_TRUE(accepted);
+  EXPECT_EQ(accepted->keyframe_id, 4);
+
+  EXPECT_FALSE(send(encode(sampleCorrection(5)), kNow));              // unsigned
+  EXPECT_FALSE(send(encode(good), kNow));                             // replayed
+  EXPECT_FALSE(send(encode(envelope(sampleCorrection(6), kNow - 10 * kSecond)), kNow));  // stale
+  signed_t forged = envelope(sampleCorrection(7), kNow);
+  forged.payload[30] ^= 4;
+  EXPECT_FALSE(send(encode(forged), kNow));                           // bad MAC
+  Signer stranger(testKey(9), kVehicle, 1);
+  signed_t foreign;
+  const auto inner = encode(sampleCorrection(8));
+  stranger.sign(inner.data(), inner.size(), kNow, &foreign);
+  EXPECT_FALSE(send(encode(foreign), kNow));                          // wrong key
+  auto truncated = encode(envelope(sampleCorrection(9), kNow));
+  truncated.resize(truncated.size() - 3);
+  EXPECT_FALSE(send(truncated, kNow));                                // malformed
+  pose_correction_t elsewhere = sampleCorrection(10);
+  elsewhere.vehicle_id = kVehicle + 1;
+  EXPECT_FALSE(send(encode(envelope(elsewhere, kNow)), kNow));        // signed, wrong inner vehicle
+
+  const RejectCounters& r = receiver.rejects();
+  EXPECT_EQ(receiver.accepted(), 1);
+  EXPECT_EQ(r.unsigned_messages, 1);
+  EXPECT_EQ(r.replayed, 1);
+  EXPECT_EQ(r.stale, 1);
+  EXPECT_EQ(r.bad_mac, 1);
+  EXPECT_EQ(r.wrong_key, 1);
+  EXPECT_EQ(r.malformed, 1);
+  EXPECT_EQ(r.wrong_vehicle, 1);
+  EXPECT_EQ(r.total(), 7);
+
+  status_t status;
+  r.writeTo(&status);
+  EXPECT_EQ(status.rejected_bad_mac, 1);
+  EXPECT_EQ(status.rejected_unsigned, 1);
+}
+
+}  // namespace
+}  // namespace kinfly::link

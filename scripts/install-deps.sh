@@ -74,6 +74,24 @@ ensure_venv() {
   echo "$want" >"$stamp"
 }
 
+# The ground package (ground/, built by scikit-build-core: lcm-gen for the Python messages) is
+# reinstalled into .venv whenever a file it is built from changes.
+ensure_ground_package() {
+  local venv="$repo_root/.venv"
+  local stamp="$venv/.ground.sha256"
+  local want
+  want="$(cd "$repo_root" && find ground proto cmake -type f \
+            -not -path '*/__pycache__/*' -not -name '*.pyc' -print0 |
+          sort -z | xargs -0 sha256sum | sha256sum | cut -d' ' -f1)"
+  if [[ -f "$stamp" && "$(cat "$stamp")" == "$want" ]]; then
+    log "kinfly-ground package: up to date"
+    return
+  fi
+  log "installing the kinfly-ground package (ground/) into .venv"
+  "$venv/bin/python" -m pip install --disable-pip-version-check -q --no-deps "$repo_root/ground"
+  echo "$want" >"$stamp"
+}
+
 main() {
   local bench=0
   for arg in "$@"; do
@@ -85,6 +103,7 @@ main() {
   done
   install_apt_packages
   ensure_venv "$repo_root/.venv" "$repo_root/requirements.txt"
+  ensure_ground_package
   if ((bench)); then
     ensure_venv "$repo_root/.venv-bench" "$repo_root/requirements-bench.txt"
   fi

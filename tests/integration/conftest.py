@@ -34,6 +34,14 @@ def fuse_bin() -> Path:
     return path
 
 
+def built(relative: str) -> Path:
+    """A binary of the Release build (build/...). Missing is a failure, not a skip."""
+    path = REPO_ROOT / "build" / relative
+    if not os.access(path, os.X_OK):
+        pytest.fail(f"{path} is not built: run `make build` first", pytrace=False)
+    return path
+
+
 @pytest.fixture(scope="session")
 def sample_dir() -> Path:
     """The 60-frame TUM teddy sample committed in tests/data."""

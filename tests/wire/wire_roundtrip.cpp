@@ -1,0 +1,203 @@
+// Cross-language check of the wire contract (driven by tests/integration/test_wire.py).
+//   wire_roundtrip encode DIR   writes DIR/<type>.bin, one sample message per type, and prints
+//                               "<type> <fingerprint hex>" per type
+//   wire_roundtrip decode DIR   reads DIR/<type>.bin (written by Python from its own copy of the
+//                               same samples), decodes each within bounds and prints
+//                               "<type> ok" or "<type> <what differs>"
+// The sample values are exactly representable in float32, so both languages agree bit for bit.
+#include <cstdio>
+#include <fstream>
+#include <iterator>
+#include <string>
+#include <vector>
+
+#include "kinfly/link/decode.h"
+
+namespace {
+
+using namespace kinfly;
+
+void samplePose(double position_m[3], double orientation_xyzw[4]) {
+  position_m[0] = 1.25;
+  position_m[1] = -2.5;
+  position_m[2] = 0.75;
+  orientation_xyzw[0] = 0.5;
+  orientation_xyzw[1] = -0.5;
+  orientation_xyzw[2] = 0.5;
+  orientation_xyzw[3] = 0.5;
+}
+
+depth_keyframe_t sampleKeyframe() {
+  depth_keyframe_t m;
+  m.utime = 1'700'000'000'123'456;
+  m.vehicle_id = 7;
+  m.frame_id = 1234;
+  m.keyframe_id = 56;
+  m.width = 640;
+  m.height = 480;
+  m.fx = 535.25f;
+  m.fy = 539.125f;
+  m.cx = 320.5f;
+  m.cy = 247.75f;
+  m.depth_scale_m = 0.0002;
+  samplePose(m.position_m, m.orientation_xyzw);
+  m.tracking_status = odometry_t::TRACKING_OK;
+  m.encoding = depth_keyframe_t::ENCODING_RVL_ZSTD;
+  for (int i = 0; i < 1000; ++i) m.payload.push_back(static_cast<uint8_t>((i * 37) % 251));
+  m.payload_size = static_cast<int32_t>(m.payload.size());
+  return m;
+}
+
+odometry_t sampleOdometry() {
+  odometry_t m;
+  m.utime = 1'700'000'000'200'000;
+  m.vehicle_id = 7;
+  m.frame_id = 1240;
+  samplePose(m.position_m, m.orientation_xyzw);
+  m.tracking_status = odometry_t::TRACKING_LOST;
+  m.inlier_fraction = 0.625f;
+  m.residual_m = 0.0078125f;
+  m.reset_counter = 3;
+  return m;
+}
+
+imu_t sampleImu() {
+  imu_t m;
+  m.utime = 1'700'000'000'201'000;
+  m.vehicle_id = 7;
+  const double w[3] = {0.125, -0.25, 0.5}, a[3] = {0.5, -0.25, -9.8125};
+  for (int i = 0; i < 3; ++i) {
+    m.angular_velocity_rad_s[i] = w[i];
+    m.linear_acceleration_m_s2[i] = a[i];
+  }
+  m.temperature_c = 41.5f;
+  return m;
+}
+
+pose_t samplePoseMessage() {
+  pose_t m;
+  m.utime = 1'700'000'000'300'000;
+  m.vehicle_id = 7;
+  samplePose(m.position_m, m.orientation_xyzw);
+  return m;
+}
+
+pose_correction_t sampleCorrection() {
+  pose_correction_t m;
+  m.utime = 1'700'000'000'123'456;
+  m.vehicle_id = 7;
+  m.keyframe_id = 56;
+  samplePose(m.position_m, m.orientation_xyzw);
+  m.reset_counter = 2;
+  return m;
+}
+
+status_t sampleStatus() {
+  status_t m;
+  m.utime = 1'700'000'000'400'000;
+  m.vehicle_id = 7;
+  m.source = status_t::SOURCE_DRONE;
+  m.depth_rate_hz = 30.f;
+  m.odometry_rate_hz = 29.5f;
+  m.keyframe_rate_hz = 5.25f;
+  m.frames_captured = 9000;
+  m.queue_drops = 12;
+  m.keyframes_sent = 1500;
+  m.keyframes_dropped = 4;
+  m.tracking_state = odometry_t::TRACKING_OK;
+  m.link_state = status_t::LINK_UP;
+  m.rejected_unsigned = 1;
+  m.rejected_wrong_key = 2;
+  m.rejected_bad_mac = 3;
+  m.rejected_stale = 4;
+  m.rejected_replayed = 5;
+  m.rejected_malformed = 6;
+  m.rejected_unknown_channel = 7;
+  m.rejected_wrong_vehicle = 8;
+  m.corrections_accepted = 1400;
+  return m;
+}
+
+signed_t sampleSigned() {
+  signed_t m;
+  m.utime = 1'700'000'000'500'000;
+  m.vehicle_id = 7;
+  m.key_id = -123456789;
+  m.sequence = 1'700'000'000'000'001;
+  for (int i = 0; i < 32; ++i) m.mac[i] = static_cast<uint8_t>(255 - i);
+  const pose_correction_t inner = sampleCorrection();
+  m.payload.resize(static_cast<size_t>(inner.getEncodedSize()));
+  inner.encode(m.payload.data(), 0, static_cast<int>(m.payload.size()));
+  m.payload_size = static_cast<int32_t>(m.payload.size());
+  return m;
+}
+
+template <class T>
+std::vector<uint8_t> encode(const T& m) {
+  std::vector<uint8_t> bytes(static_cast<size_t>(m.getEncodedSize()));
+  m.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+  return bytes;
+}
+
+template <class T>
+bool encodeOne(const std::string& dir, const T& m) {
+  const auto bytes = encode(m);
+  std::ofstream out(dir + "/" + T::getTypeName() + ".bin", std::ios::binary);
+  out.write(reinterpret_cast<const char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
+  std::printf("%s %016llx\n", T::getTypeName(), static_cast<unsigned long long>(T::getHash()));
+  return static_cast<bool>(out);
+}
+
+template <class T>
+bool decodeOne(const std::string& dir, const T& expected) {
+  const std::string path = dir + "/" + T::getTypeName() + ".bin";
+  std::ifstream in(path, std::ios::binary);
+  const std::vector<uint8_t> bytes((std::istreambuf_iterator<char>(in)),
+                                   std::istreambuf_iterator<char>());
+  T got;
+  const auto r = link::decodeMessage(bytes.data(), bytes.size(), link::DecodeBounds(), &got);
+  if (!r.ok()) {
+    std::printf("%s rejected: %s (%s)\n", T::getTypeName(), link::toString(r.status),
+                r.detail.c_str());
+    return false;
+  }
+  // Equal encodings of the decoded and the expected message mean every field is equal.
+  if (encode(got) != encode(expected)) {
+    std::printf("%s fields differ from the C++ sample\n", T::getTypeName());
+    return false;
+  }
+  std::printf("%s ok\n", T::getTypeName());
+  return true;
+}
+
+template <template <class> class Op>
+bool forEachSample(const std::string& dir) {
+  bool ok = true;
+  ok &= Op<depth_keyframe_t>::run(dir, sampleKeyframe());
+  ok &= Op<odometry_t>::run(dir, sampleOdometry());
+  ok &= Op<imu_t>::run(dir, sampleImu());
+  ok &= Op<pose_t>::run(dir, samplePoseMessage());
+  ok &= Op<pose_correction_t>::run(dir, sampleCorrection());
+  ok &= Op<status_t>::run(dir, sampleStatus());
+  ok &= Op<signed_t>::run(dir, sampleSigned());
+  return ok;
+}
+
+template <class T>
+struct Encode {
+  static bool run(const std::string& dir, const T& m) { return encodeOne(dir, m); }
+};
+template <class T>
+struct Decode {
+  static bool run(const std::string& dir, const T& m) { return decodeOne(dir, m); }
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const std::string mode = argc == 3 ? argv[1] : "";
+  if (mode == "encode") return forEachSample<Encode>(argv[2]) ? 0 : 1;
+  if (mode == "decode") return forEachSample<Decode>(argv[2]) ? 0 : 1;
+  std::fprintf(stderr, "usage: wire_roundtrip encode|decode DIR\n");
+  return 2;
+}

@@ -119,7 +119,7 @@ def _field_problem(m: object, bounds: DecodeBounds) -> str:
         if not (m.depth_scale_m > 0 and math.isfinite(m.depth_scale_m)):
             return "depth_scale_m must be positive and finite"
         if not (depth_keyframe_t.ENCODING_RAW16 <= m.encoding
-                <= depth_keyframe_t.ENCODING_RVL_ZSTD):
+                <= depth_keyframe_t.ENCODING_PALETTE_RVL_ZSTD):
             return f"unknown encoding {m.encoding}"
         if m.tracking_status == odometry_t.TRACKING_NONE:
             return ""

@@ -2,6 +2,8 @@
 
 #include <cmath>
 #include <sstream>
+#include <stdexcept>
+#include <vector>
 
 namespace kinfly {
 
@@ -21,6 +23,31 @@ PinholeCamera PinholeCamera::scaled(int factor) const {
   // Level pixel x' samples the finer pixel factor * x', so the principal point divides exactly.
   const float f = static_cast<float>(factor);
   return {fx / f, fy / f, cx / f, cy / f, width / factor, height / factor};
+}
+
+bool parseIntrinsics(const std::string& text, PinholeCamera* camera, std::string* why) {
+  std::vector<float> v;
+  std::stringstream in(text);
+  std::string item;
+  while (std::getline(in, item, ',')) {
+    try {
+      size_t used = 0;
+      v.push_back(std::stof(item, &used));
+      if (used != item.size()) throw std::invalid_argument(item);
+    } catch (const std::exception&) {
+      *why = "--intrinsics: \"" + item + "\" is not a number";
+      return false;
+    }
+  }
+  if (v.size() != 4) {
+    *why = "--intrinsics expects 4 comma-separated numbers fx,fy,cx,cy (got \"" + text + "\")";
+    return false;
+  }
+  camera->fx = v[0];
+  camera->fy = v[1];
+  camera->cx = v[2];
+  camera->cy = v[3];
+  return true;
 }
 
 }  // namespace kinfly

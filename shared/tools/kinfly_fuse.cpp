@@ -49,31 +49,6 @@ int fail(const std::string& message) {
   return 1;
 }
 
-bool parseIntrinsics(const std::string& text, kinfly::PinholeCamera* camera, std::string* why) {
-  std::vector<float> v;
-  std::stringstream in(text);
-  std::string item;
-  while (std::getline(in, item, ',')) {
-    try {
-      size_t used = 0;
-      v.push_back(std::stof(item, &used));
-      if (used != item.size()) throw std::invalid_argument(item);
-    } catch (const std::exception&) {
-      *why = "--intrinsics: \"" + item + "\" is not a number";
-      return false;
-    }
-  }
-  if (v.size() != 4) {
-    *why = "--intrinsics expects 4 comma-separated numbers fx,fy,cx,cy (got \"" + text + "\")";
-    return false;
-  }
-  camera->fx = v[0];
-  camera->fy = v[1];
-  camera->cx = v[2];
-  camera->cy = v[3];
-  return true;
-}
-
 double percentile(std::vector<double> values, double q) {
   if (values.empty()) return 0.0;
   std::sort(values.begin(), values.end());
@@ -138,7 +113,7 @@ int main(int argc, char** argv) {
   kinfly::PinholeCamera camera;
   if (!opt.intrinsics.empty()) {
     std::string why;
-    if (!parseIntrinsics(opt.intrinsics, &camera, &why)) return fail(why);
+    if (!kinfly::parseIntrinsics(opt.intrinsics, &camera, &why)) return fail(why);
   }
   camera.width = depth.width();
   camera.height = depth.height();

@@ -17,6 +17,18 @@ void RejectCounters::count(DecodeStatus status) {
   if (status != DecodeStatus::kOk) ++malformed;
 }
 
+RejectCounters& RejectCounters::operator+=(const RejectCounters& other) {
+  unsigned_messages += other.unsigned_messages;
+  wrong_key += other.wrong_key;
+  bad_mac += other.bad_mac;
+  stale += other.stale;
+  replayed += other.replayed;
+  malformed += other.malformed;
+  unknown_channel += other.unknown_channel;
+  wrong_vehicle += other.wrong_vehicle;
+  return *this;
+}
+
 int64_t RejectCounters::total() const {
   return unsigned_messages + wrong_key + bad_mac + stale + replayed + malformed + unknown_channel +
          wrong_vehicle;

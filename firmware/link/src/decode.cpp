@@ -76,7 +76,7 @@ std::string fieldProblem(const depth_keyframe_t& m, const DecodeBounds& bounds) 
   if (!(m.depth_scale_m > 0.0) || !std::isfinite(m.depth_scale_m))
     return "depth_scale_m must be positive and finite";
   if (m.encoding < depth_keyframe_t::ENCODING_RAW16 ||
-      m.encoding > depth_keyframe_t::ENCODING_RVL_ZSTD)
+      m.encoding > depth_keyframe_t::ENCODING_PALETTE_RVL_ZSTD)
     return "unknown encoding " + std::to_string(m.encoding);
   if (!validTracking(m.tracking_status))
     return "unknown tracking_status " + std::to_string(m.tracking_status);

@@ -30,4 +30,7 @@ struct PinholeCamera {
   }
 };
 
+// Parses "fx,fy,cx,cy" (the --intrinsics option of the tools) into camera's intrinsics.
+bool parseIntrinsics(const std::string& text, PinholeCamera* camera, std::string* why);
+
 }  // namespace kinfly

@@ -23,6 +23,7 @@ struct RejectCounters {
   void count(Verdict verdict);
   // Counts a failed decode (kOk counts nothing).
   void count(DecodeStatus status);
+  RejectCounters& operator+=(const RejectCounters& other);
   int64_t total() const;
   void writeTo(status_t* status) const;
 };

@@ -5,7 +5,8 @@
 #   make test-asan  unit tests built with AddressSanitizer + UBSan in build-asan/
 #   make demo       fuse the bundled TUM sample into out/demo (mesh, trajectory, stats)
 #   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
-#   make bench      kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never fails
+#   make bench      depth codec on the TUM sequence; kinfly-fuse vs Open3D dense SLAM (own
+#                   .venv-bench); prints, never fails on timings
 #   make clean      remove build outputs (build/, build-asan/, out/); `make distclean` also venvs
 #
 # The shared data folder is <repo>/../shared/data unless KINFLY_DATA says otherwise.
@@ -23,6 +24,8 @@ export MPLBACKEND := Agg
 BUILD_DIR := $(REPO_ROOT)/build
 ASAN_DIR := $(REPO_ROOT)/build-asan
 FUSE := $(BUILD_DIR)/bin/kinfly-fuse
+CODEC_BENCH := $(BUILD_DIR)/bin/kinfly-codec-bench
+TUM_SEQUENCE := $(KINFLY_DATA)/tum_rgbd_freiburg3_teddy_first200/rgbd_dataset_freiburg3_teddy
 PY := $(REPO_ROOT)/.venv/bin/python
 BENCH_PY := $(REPO_ROOT)/.venv-bench/bin/python
 SAMPLE := $(REPO_ROOT)/tests/data/tum_teddy_sample
@@ -76,8 +79,11 @@ eval: deps build
 	$(PY) $(REPO_ROOT)/tests/tools/kinfly_eval.py all --fuse $(FUSE) --data $(KINFLY_DATA) \
 	  --out $(REPO_ROOT)/out/eval
 
-# Open3D lives only in .venv-bench, never in the product environment (.venv).
+# Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
+# runs on one thread and fails only if a frame does not come back bit for bit.
 bench: build
+	mkdir -p $(REPO_ROOT)/out/bench
+	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	@$(REPO_ROOT)/scripts/install-deps.sh --bench
 	OMP_NUM_THREADS=2 $(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_vs_open3d.py --fuse $(FUSE) \
 	  --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

@@ -3,10 +3,14 @@
 #   make build      Release build with Ninja; binaries in build/bin/
 #   make test       deps + build + C++ unit tests (ctest) + Python integration tests (pytest)
 #   make test-asan  unit tests built with AddressSanitizer + UBSan in build-asan/
+#   make fuzz       the depth decoder under libFuzzer + ASan/UBSan (clang, build-fuzz/) for
+#                   FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
 #   make demo       fuse the bundled TUM sample into out/demo (mesh, trajectory, stats)
 #   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
-#   make bench      kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never fails
-#   make clean      remove build outputs (build/, build-asan/, out/); `make distclean` also venvs
+#   make bench      depth codec on the TUM sequence; kinfly-fuse vs Open3D dense SLAM (own
+#                   .venv-bench); prints, never fails on timings
+#   make clean      remove build outputs (build/, build-asan/, build-fuzz/, out/); `make distclean`
+#                   also venvs
 #
 # The shared data folder is <repo>/../shared/data unless KINFLY_DATA says otherwise.
 
@@ -22,7 +26,12 @@ export MPLBACKEND := Agg
 
 BUILD_DIR := $(REPO_ROOT)/build
 ASAN_DIR := $(REPO_ROOT)/build-asan
+FUZZ_DIR := $(REPO_ROOT)/build-fuzz
+FUZZ_SECONDS ?= 60
+FUZZ_SEEDS := $(REPO_ROOT)/tests/fuzz/corpus/depth_decode
 FUSE := $(BUILD_DIR)/bin/kinfly-fuse
+CODEC_BENCH := $(BUILD_DIR)/bin/kinfly-codec-bench
+TUM_SEQUENCE := $(KINFLY_DATA)/tum_rgbd_freiburg3_teddy_first200/rgbd_dataset_freiburg3_teddy
 PY := $(REPO_ROOT)/.venv/bin/python
 BENCH_PY := $(REPO_ROOT)/.venv-bench/bin/python
 SAMPLE := $(REPO_ROOT)/tests/data/tum_teddy_sample
@@ -32,7 +41,8 @@ JOBS ?= $(shell nproc)
 # Steps run in the order written; ninja and ctest do the parallel work.
 .NOTPARALLEL:
 
-.PHONY: deps build test unit-test integration-test test-asan demo eval bench clean distclean
+.PHONY: deps build test unit-test integration-test test-asan fuzz fuzz-corpus demo eval bench clean \
+        distclean
 
 deps:
 	@$(REPO_ROOT)/scripts/install-deps.sh
@@ -58,6 +68,21 @@ test-asan: deps
 	ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1 \
 	  ctest --test-dir $(ASAN_DIR) --output-on-failure -j $(JOBS)
 
+# The committed seeds stay read-only: what libFuzzer finds goes to build-fuzz/corpus, and a crash
+# to build-fuzz/crash-*. Only the codec library is compiled for this build.
+fuzz: deps
+	CC=clang CXX=clang++ cmake -S $(REPO_ROOT) -B $(FUZZ_DIR) -G Ninja \
+	  -DCMAKE_BUILD_TYPE=RelWithDebInfo -DKINFLY_FUZZ=ON -DKINFLY_SANITIZE=ON -DKINFLY_BUILD_BENCH=OFF
+	cmake --build $(FUZZ_DIR) --target fuzz_depth_decode
+	mkdir -p $(FUZZ_DIR)/corpus
+	$(FUZZ_DIR)/tests/fuzz_depth_decode -max_total_time=$(FUZZ_SECONDS) -print_final_stats=1 \
+	  -artifact_prefix=$(FUZZ_DIR)/ $(FUZZ_DIR)/corpus $(FUZZ_SEEDS)
+
+fuzz-corpus: build
+	rm -rf $(FUZZ_SEEDS)
+	mkdir -p $(FUZZ_SEEDS)
+	$(BUILD_DIR)/tests/make_depth_decode_corpus $(FUZZ_SEEDS)
+
 demo: deps build
 	rm -rf $(DEMO_OUT)
 	mkdir -p $(DEMO_OUT)
@@ -76,14 +101,17 @@ eval: deps build
 	$(PY) $(REPO_ROOT)/tests/tools/kinfly_eval.py all --fuse $(FUSE) --data $(KINFLY_DATA) \
 	  --out $(REPO_ROOT)/out/eval
 
-# Open3D lives only in .venv-bench, never in the product environment (.venv).
+# Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
+# runs on one thread and fails only if a frame does not come back bit for bit.
 bench: build
+	mkdir -p $(REPO_ROOT)/out/bench
+	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	@$(REPO_ROOT)/scripts/install-deps.sh --bench
 	OMP_NUM_THREADS=2 $(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_vs_open3d.py --fuse $(FUSE) \
 	  --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 
 clean:
-	rm -rf $(BUILD_DIR) $(ASAN_DIR) $(REPO_ROOT)/out
+	rm -rf $(BUILD_DIR) $(ASAN_DIR) $(FUZZ_DIR) $(REPO_ROOT)/out
 
 distclean: clean
 	rm -rf $(REPO_ROOT)/.venv $(REPO_ROOT)/.venv-bench

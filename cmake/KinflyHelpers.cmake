@@ -13,6 +13,11 @@ function(kinfly_target_defaults target)
                                              -fno-sanitize-recover=undefined)
     target_link_options(${target} PRIVATE -fsanitize=address,undefined)
   endif()
+  # Coverage feedback for libFuzzer in every library a fuzz target links; the target itself adds
+  # -fsanitize=fuzzer, which brings libFuzzer's main.
+  if(KINFLY_FUZZ)
+    target_compile_options(${target} PRIVATE -fsanitize=fuzzer-no-link)
+  endif()
 endfunction()
 
 # kinfly_add_test(NAME name SOURCES a.cpp ... [LIBS lib ...])

@@ -15,7 +15,9 @@ repo_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 apt_packages=(
   build-essential cmake ninja-build pkg-config
   libeigen3-dev libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev
-  libgtest-dev libgmock-dev libbenchmark-dev libcli11-dev
+  libgtest-dev libgmock-dev libbenchmark-dev libcli11-dev libzstd-dev
+  # make fuzz: clang with libFuzzer, and clang's OpenMP runtime (the project configures whole)
+  clang libclang-rt-14-dev libomp-14-dev
   python3 python3-venv python3-dev
   liblcm-dev liblcm-bin libsodium-dev libzstd-dev iproute2
 )

@@ -25,10 +25,12 @@
 #include "kinfly/mesh.h"
 #include "kinfly/tsdf_volume.h"
 #include "kinfly/tum_dataset.h"
+#include "percentile.h"
 
 namespace {
 
 using kinfly::FrameResult;
+using kinfly::tools::percentile;
 using kinfly::TrackingStatus;
 
 struct Options {
@@ -47,15 +49,6 @@ struct Options {
 int fail(const std::string& message) {
   std::cerr << "kinfly-fuse: error: " << message << "\n";
   return 1;
-}
-
-double percentile(std::vector<double> values, double q) {
-  if (values.empty()) return 0.0;
-  std::sort(values.begin(), values.end());
-  const double pos = q * static_cast<double>(values.size() - 1);
-  const size_t i = static_cast<size_t>(pos);
-  const double frac = pos - static_cast<double>(i);
-  return i + 1 < values.size() ? values[i] * (1 - frac) + values[i + 1] * frac : values[i];
 }
 
 double peakRssMb() {

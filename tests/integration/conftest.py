@@ -1,4 +1,4 @@
-"""Fixtures shared by the integration tests: where the repository, the kinfly-fuse binary and the
+"""Fixtures shared by the integration tests: where the repository, the built binaries and the
 shared real data are.
 
 The shared data (`<repo>/../shared/data`, or $KINFLY_DATA) is not part of the repository. Without
@@ -23,13 +23,12 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
-@pytest.fixture(scope="session")
-def fuse_bin() -> Path:
-    """build/bin/kinfly-fuse, or $KINFLY_FUSE. A missing binary is a failure, not a skip: these
-    tests exist to exercise it."""
-    path = Path(os.environ.get("KINFLY_FUSE", REPO_ROOT / "build" / "bin" / "kinfly-fuse"))
+def _built_binary(name: str, env_var: str) -> Path:
+    """build/bin/NAME, or $ENV_VAR. A missing binary is a failure, not a skip: the tests that ask
+    for it exist to exercise it."""
+    path = Path(os.environ.get(env_var, REPO_ROOT / "build" / "bin" / name))
     if not os.access(path, os.X_OK):
-        pytest.fail(f"{path} is not built: run `make build` first (or set KINFLY_FUSE)",
+        pytest.fail(f"{path} is not built: run `make build` first (or set {env_var})",
                     pytrace=False)
     return path
 
@@ -40,6 +39,16 @@ def built(relative: str) -> Path:
     if not os.access(path, os.X_OK):
         pytest.fail(f"{path} is not built: run `make build` first", pytrace=False)
     return path
+
+
+@pytest.fixture(scope="session")
+def fuse_bin() -> Path:
+    return _built_binary("kinfly-fuse", "KINFLY_FUSE")
+
+
+@pytest.fixture(scope="session")
+def codec_bench_bin() -> Path:
+    return _built_binary("kinfly-codec-bench", "KINFLY_CODEC_BENCH")
 
 
 @pytest.fixture(scope="session")

@@ -29,11 +29,6 @@ STATS_TOP_KEYS = ("frames", "frame_ms", "stage_ms", "tracking", "peak_rss_mb",
 TRACKING_STATUSES = ("first", "ok", "lost", "given")  # toString(TrackingStatus) in icp_tracker.h
 
 
-def _depth_frame_count(tum_dir: Path) -> int:
-    lines = (tum_dir / "depth.txt").read_text().splitlines()
-    return sum(1 for line in lines if line.strip() and not line.startswith("#"))
-
-
 def _trajectory_rows(path: Path) -> np.ndarray:
     rows = [line.split() for line in path.read_text().splitlines()
             if line.strip() and not line.startswith("#")]
@@ -73,7 +68,7 @@ def test_ate_within_target(request: pytest.FixtureRequest, tum_sequence: Path, r
 def test_trajectory_has_one_line_per_frame_starting_at_identity(
         request: pytest.FixtureRequest, tum_sequence: Path, run_name: str) -> None:
     rows = _trajectory_rows(request.getfixturevalue(run_name)["out"] / "trajectory.tum")
-    assert len(rows) == _depth_frame_count(tum_sequence)
+    assert len(rows) == kinfly_eval.depth_frame_count(tum_sequence)
     first = rows[0]
     np.testing.assert_allclose(first[1:4], 0.0, atol=IDENTITY_TOL)  # translation
     # q and -q are the same rotation; identity is (0, 0, 0, +-1) in TUM's qx qy qz qw order.
@@ -87,7 +82,7 @@ def test_stats_json_has_documented_keys(request: pytest.FixtureRequest, tum_sequ
     stats = request.getfixturevalue(run_name)["stats"]
     for key in STATS_TOP_KEYS:
         assert key in stats, f"stats.json lacks '{key}': {sorted(stats)}"
-    assert stats["frames"] == _depth_frame_count(tum_sequence)
+    assert stats["frames"] == kinfly_eval.depth_frame_count(tum_sequence)
     assert {"median", "p90"} <= set(stats["frame_ms"]), stats["frame_ms"]
     assert stats["frame_ms"]["median"] > 0
     assert stats["stage_ms"], "stage_ms names no stage"

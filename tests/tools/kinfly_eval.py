@@ -98,6 +98,12 @@ def ate(traj_path: str | Path, gt_path: str | Path) -> dict[str, float | int]:
     }
 
 
+def depth_frame_count(tum_dir: str | Path) -> int:
+    """Frames listed in a TUM folder's depth.txt (comment lines start with '#')."""
+    lines = (Path(tum_dir) / "depth.txt").read_text().splitlines()
+    return sum(1 for line in lines if line.strip() and not line.startswith("#"))
+
+
 # --- Replica -> TUM layout -----------------------------------------------------------------------
 def tum_line(t_s: float, T_world_cam: np.ndarray) -> str:
     """One TUM trajectory line `t tx ty tz qx qy qz qw` for a 4x4 camera-to-world matrix."""

@@ -15,6 +15,8 @@
 #include "kinfly/depth_codec.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
+#include "kinfly/odometry_t.hpp"
+#include "kinfly/pose_t.hpp"
 #include "kinfly/tum_dataset.h"
 
 namespace {

@@ -7,7 +7,8 @@
 #                   FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
 #   make demo       fuse the bundled TUM sample into out/demo (mesh, trajectory, stats)
 #   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
-#   make bench      depth codec on the TUM sequence; kinfly-fuse vs Open3D dense SLAM (own
+#   make bench      depth codec and keyframe delivery over LCM on the TUM sequence; kinfly-fuse
+#                   vs Open3D dense SLAM (own
 #                   .venv-bench); prints, never fails on timings
 #   make clean      remove build outputs (build/, build-asan/, build-fuzz/, out/); `make distclean`
 #                   also venvs
@@ -102,10 +103,12 @@ eval: deps build
 	  --out $(REPO_ROOT)/out/eval
 
 # Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
-# runs on one thread and fails only if a frame does not come back bit for bit.
-bench: build
+# runs on one thread and fails only if a frame does not come back bit for bit. The link bench
+# needs root (or sudo) for its network namespace.
+bench: deps build
 	mkdir -p $(REPO_ROOT)/out/bench
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
+	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	@$(REPO_ROOT)/scripts/install-deps.sh --bench
 	OMP_NUM_THREADS=2 $(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_vs_open3d.py --fuse $(FUSE) \
 	  --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

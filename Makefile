@@ -8,8 +8,7 @@
 #   make demo       fuse the bundled TUM sample into out/demo (mesh, trajectory, stats)
 #   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      depth codec and keyframe delivery over LCM on the TUM sequence; kinfly-fuse
-#                   vs Open3D dense SLAM (own
-#                   .venv-bench); prints, never fails on timings
+#                   vs Open3D dense SLAM (own .venv-bench); prints, never fails on timings
 #   make clean      remove build outputs (build/, build-asan/, build-fuzz/, out/); `make distclean`
 #                   also venvs
 #

@@ -62,7 +62,9 @@ class ByteSink {
 class NibbleWriter {
  public:
   explicit NibbleWriter(ByteSink* sink) : sink_(sink) {}
-  void reserveCodes(size_t codes) { sink_->reserve(codes * kMaxCodeBytes + 4); }
+  // Room for `codes` more codes, the word in progress (up to 7 nibbles of earlier codes) and
+  // the padded last word: ceil((7 + 10 codes) / 8) words <= 5 codes + 8 bytes.
+  void reserveCodes(size_t codes) { sink_->reserve(codes * kMaxCodeBytes + 8); }
   void putCode(uint32_t value) {
     do {
       uint32_t nibble = value & 7u;

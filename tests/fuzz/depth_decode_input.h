@@ -1,6 +1,9 @@
 // How fuzz_depth_decode reads its input, shared with the corpus generator: three bytes standing
 // for the keyframe message's fields, then the payload.
-//   byte 0: encoding, any value (4..255 must be rejected as kBadEncoding)
+//   byte 0: bits 0-6 the encoding, any value (4..127 must be rejected as kBadEncoding);
+//           bit 7 (kWrapInZstd) set: bytes 3.. are the stream inside the zstd frame, and the
+//           target compresses them before decoding, so that mutations reach the palette and RVL
+//           codes of the zstd encodings instead of dying in zstd's own checks
 //   byte 1: width in pixels, byte 2: height in pixels (0 and above kMaxSidePx must be rejected)
 //   bytes 3..: the payload
 #pragma once
@@ -15,6 +18,8 @@
 namespace kinfly::fuzz {
 
 constexpr size_t kHeaderBytes = 3;
+constexpr uint8_t kWrapInZstd = 0x80;
+constexpr uint8_t kEncodingMask = 0x7f;
 // Small images keep each run fast, so the fuzzer spends its time on the payload's structure;
 // widths and heights of 65..255 exercise the size bound.
 constexpr int kMaxSidePx = 64;

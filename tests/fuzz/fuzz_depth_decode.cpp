@@ -4,6 +4,8 @@
 // Besides never reading or writing out of bounds, what decodes must survive its own round trip:
 // encoded again in the same encoding it decodes to the same pixels. Codecs persist across inputs,
 // as they do on a link, so leftovers from one payload that leak into the next are caught too.
+#include <zstd.h>
+
 #include <array>
 #include <cstdlib>
 #include <cstring>
@@ -26,17 +28,22 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     return all;
   }();
   static kinfly::Image<uint16_t> decoded, again;
-  static std::vector<uint8_t> payload;
+  static std::vector<uint8_t> payload, wrapped;
 
-  const uint8_t encoding_byte = data[0];
+  const uint8_t encoding_byte = data[0] & kinfly::fuzz::kEncodingMask;
   const auto encoding = static_cast<DepthEncoding>(encoding_byte);
   const int width = data[1];
   const int height = data[2];
+  const uint8_t* bytes = data + kinfly::fuzz::kHeaderBytes;
+  size_t count = size - kinfly::fuzz::kHeaderBytes;
+  if (data[0] & kinfly::fuzz::kWrapInZstd) {
+    wrapped.resize(ZSTD_compressBound(count));
+    count = ZSTD_compress(wrapped.data(), wrapped.size(), bytes, count, 1);
+    if (ZSTD_isError(count)) std::abort();
+    bytes = wrapped.data();
+  }
   DepthCodec& codec = *codecs[encoding_byte % kinfly::kDepthEncodingCount];
-  const kinfly::CodecResult result =
-      codec.decode(data + kinfly::fuzz::kHeaderBytes, size - kinfly::fuzz::kHeaderBytes, encoding,
-                   width, height, &decoded);
-  if (!result.ok()) return 0;
+  if (!codec.decode(bytes, count, encoding, width, height, &decoded).ok()) return 0;
 
   if (decoded.width() != width || decoded.height() != height) std::abort();
   if (!codec.encode(decoded.view(), &payload).ok()) std::abort();

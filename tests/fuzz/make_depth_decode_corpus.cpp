@@ -1,7 +1,10 @@
 // Writes the seed corpus of fuzz_depth_decode (tests/fuzz/corpus/depth_decode): small valid
-// payloads of every encoding and a few malformed ones, each a file named after what it holds.
+// payloads of every encoding, the streams inside the zstd ones (kWrapInZstd) and a few malformed
+// ones, each a file named after what it holds.
 // Deterministic (fixed seeds), so rerunning it reproduces the committed files:
 //   build/tests/make_depth_decode_corpus tests/fuzz/corpus/depth_decode
+#include <zstd.h>
+
 #include <cstdio>
 #include <fstream>
 #include <random>
@@ -93,6 +96,13 @@ int main(int argc, char** argv) {
       ok &= writeFile(stem + "_flipped", kinfly::fuzz::makeInput(static_cast<uint8_t>(e), w, h, flipped));
       ok &= writeFile(stem + "_short_size", kinfly::fuzz::makeInput(static_cast<uint8_t>(e), w, h - 1, payload));
       written += 4;
+      if (encoding == DepthEncoding::kRvlZstd || encoding == DepthEncoding::kPaletteRvlZstd) {
+        std::vector<uint8_t> inner(ZSTD_getFrameContentSize(payload.data(), payload.size()));
+        if (ZSTD_decompress(inner.data(), inner.size(), payload.data(), payload.size()) != inner.size())
+          return 1;
+        ok &= writeFile(stem + "_inner", kinfly::fuzz::makeInput(static_cast<uint8_t>(e) | kinfly::fuzz::kWrapInZstd, w, h, inner));
+        ++written;
+      }
     }
   }
   ok &= writeFile(dir + "/bad_encoding", kinfly::fuzz::makeInput(200, 4, 4, std::vector<uint8_t>(32, 0)));

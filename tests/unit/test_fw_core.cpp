@@ -1,0 +1,170 @@
+// The firmware's logic: the drop-oldest capture queue, keyframe selection and re-anchoring of the
+// odometry by ground corrections.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <chrono>
+#include <thread>
+#include <vector>
+
+#include "kinfly/fw/bounded_queue.h"
+#include "kinfly/fw/correction_anchor.h"
+#include "kinfly/fw/keyframe_selector.h"
+#include "kinfly/image.h"
+#include "test_util.h"
+
+namespace kinfly::fw {
+namespace {
+
+using namespace std::chrono_literals;
+
+constexpr double kPoseTolerance = 1e-9;  // double-precision composition of a few transforms
+
+Pose poseAt(double x_m, double yaw_deg = 0.0) {
+  Pose T = Pose::Identity();
+  T.translation() = Eigen::Vector3d(x_m, 0.0, 0.0);
+  T.linear() = Eigen::AngleAxisd(test::degToRad(yaw_deg), Eigen::Vector3d::UnitY()).matrix();
+  return T;
+}
+
+double poseError(const Pose& a, const Pose& b) {
+  return (a.matrix() - b.matrix()).cwiseAbs().maxCoeff();
+}
+
+// ---- BoundedQueue -----------------------------------------------------------------------------
+
+TEST(BoundedQueue, DropsTheOldestWhenFullAndCountsIt) {
+  BoundedQueue<int> queue(3);
+  for (int i = 0; i < 3; ++i) {
+    int item = i;
+    EXPECT_TRUE(queue.push(item));
+  }
+  int item = 3;
+  EXPECT_FALSE(queue.push(item));
+  item = 4;
+  EXPECT_FALSE(queue.push(item));
+  EXPECT_EQ(queue.dropped(), 2);
+  std::vector<int> got;
+  while (queue.pop(&item, 0ms)) got.push_back(item);
+  EXPECT_EQ(got, (std::vector<int>{2, 3, 4}));
+}
+
+TEST(BoundedQueue, PopWaitsAndCloseWakesIt) {
+  BoundedQueue<int> queue(2);
+  int item = 0;
+  EXPECT_FALSE(queue.pop(&item, 10ms));
+  std::thread producer([&] {
+    std::this_thread::sleep_for(20ms);
+    int value = 7;
+    queue.push(value);
+  });
+  EXPECT_TRUE(queue.pop(&item, 5s));
+  EXPECT_EQ(item, 7);
+  producer.join();
+  std::thread closer([&] {
+    std::this_thread::sleep_for(20ms);
+    queue.close();
+  });
+  const auto start = std::chrono::steady_clock::now();
+  EXPECT_FALSE(queue.pop(&item, 5s));
+  EXPECT_LT(std::chrono::steady_clock::now() - start, 4s);  // woken by close, not the timeout
+  closer.join();
+}
+
+// Frames swap through the slots, so once every slot has held an image the producer gets a
+// buffer of the right size back with every push: no allocation in steady state.
+TEST(BoundedQueue, ImagesKeepTheirBuffersThroughTheSlots) {
+  BoundedQueue<Image<uint16_t>> queue(2);
+  std::vector<const uint16_t*> buffers;
+  Image<uint16_t> frame(4, 3), out;
+  for (int i = 0; i < 6; ++i) {
+    if (frame.width() != 4) frame = Image<uint16_t>(4, 3);
+    frame(0, 0) = static_cast<uint16_t>(i);
+    buffers.push_back(frame.data());
+    queue.push(frame);
+  }
+  ASSERT_TRUE(queue.pop(&out, 0ms));
+  EXPECT_EQ(out(0, 0), 4);
+  // Six pushes through two slots and the producer's own image: three buffers, reused.
+  std::sort(buffers.begin(), buffers.end());
+  EXPECT_LE(std::unique(buffers.begin(), buffers.end()) - buffers.begin(), 3);
+}
+
+// ---- KeyframeSelector -------------------------------------------------------------------------
+
+constexpr int64_t kSecond = 1'000'000;
+
+TEST(KeyframeSelector, MotionOrTimeMakesAKeyframeButNotFasterThanTheMinimum) {
+  KeyframeSelector::Params p;
+  ASSERT_EQ(p.validate(), "");
+  KeyframeSelector selector(p);
+  int64_t t = 0;
+  EXPECT_TRUE(selector.select(poseAt(0.0), t, TrackingStatus::kFirstFrame, 1.f));
+  t += kSecond / 5;
+  EXPECT_FALSE(selector.select(poseAt(0.05), t, TrackingStatus::kOk, 0.9f));  // too little
+  t += kSecond / 5;
+  EXPECT_TRUE(selector.select(poseAt(0.12), t, TrackingStatus::kOk, 0.9f));   // 12 cm
+  t += kSecond / 20;
+  EXPECT_FALSE(selector.select(poseAt(0.5), t, TrackingStatus::kOk, 0.9f));   // within 0.1 s
+  t += kSecond / 5;
+  EXPECT_TRUE(selector.select(poseAt(0.12, 11.0), t, TrackingStatus::kOk, 0.9f));  // 11 degrees
+  t += kSecond;
+  EXPECT_TRUE(selector.select(poseAt(0.12, 11.0), t, TrackingStatus::kOk, 0.9f));  // 1 s, still
+}
+
+TEST(KeyframeSelector, PoorlyTrackedFramesAreNeverKeyframes) {
+  KeyframeSelector selector(KeyframeSelector::Params{});
+  EXPECT_FALSE(selector.select(poseAt(0.0), 0, TrackingStatus::kLost, 0.f));
+  EXPECT_FALSE(selector.select(poseAt(0.0), 0, TrackingStatus::kOk, 0.3f));
+  EXPECT_TRUE(selector.select(poseAt(0.0), 0, TrackingStatus::kOk, 0.8f));
+  EXPECT_FALSE(selector.select(poseAt(1.0), 5 * kSecond, TrackingStatus::kLost, 0.f));
+}
+
+TEST(KeyframeSelector, TimeRunningBackwardsRestartsTheReference) {
+  KeyframeSelector selector(KeyframeSelector::Params{});
+  EXPECT_TRUE(selector.select(poseAt(0.0), 10 * kSecond, TrackingStatus::kFirstFrame, 1.f));
+  EXPECT_TRUE(selector.select(poseAt(0.0), 1 * kSecond, TrackingStatus::kFirstFrame, 1.f));
+}
+
+TEST(KeyframeSelector, ValidateNamesTheBadValue) {
+  KeyframeSelector::Params p;
+  p.min_interval_s = 2.0;
+  EXPECT_NE(p.validate().find("min_interval_s"), std::string::npos);
+  p = KeyframeSelector::Params{};
+  p.min_translation_m = -1.0;
+  EXPECT_NE(p.validate().find("min_translation_m"), std::string::npos);
+}
+
+// ---- CorrectionAnchor -------------------------------------------------------------------------
+
+TEST(CorrectionAnchor, MovesThePublishedPoseByTheKeyframesCorrection) {
+  CorrectionAnchor anchor(CorrectionAnchor::Params{});
+  const Pose kf_odom = poseAt(1.0, 20.0);
+  anchor.rememberKeyframe(5, kf_odom);
+  // The ground says keyframe 5 was really 3 cm further and rotated 1 degree more.
+  const Pose kf_world = poseAt(1.03, 21.0);
+  ASSERT_EQ(anchor.apply(5, kf_world, 0), CorrectionAnchor::Outcome::kApplied);
+  // The keyframe itself maps exactly onto its correction ...
+  EXPECT_LT(poseError(anchor.toWorld(kf_odom), kf_world), kPoseTolerance);
+  // ... and a later frame keeps its odometry motion relative to the keyframe.
+  const Pose later_odom = kf_odom * poseAt(0.2, 5.0);
+  EXPECT_LT(poseError(anchor.toWorld(later_odom), kf_world * poseAt(0.2, 5.0)), kPoseTolerance);
+}
+
+TEST(CorrectionAnchor, UnknownAndOutOfOrderCorrectionsAreRefused) {
+  CorrectionAnchor::Params p;
+  p.history_keyframes = 4;
+  CorrectionAnchor anchor(p);
+  for (int64_t id = 0; id < 6; ++id) anchor.rememberKeyframe(id, poseAt(0.1 * static_cast<double>(id)));
+  EXPECT_EQ(anchor.apply(1, poseAt(0.1), 0), CorrectionAnchor::Outcome::kUnknownKeyframe);  // evicted
+  EXPECT_EQ(anchor.apply(9, poseAt(0.1), 0), CorrectionAnchor::Outcome::kUnknownKeyframe);  // future
+  EXPECT_EQ(anchor.apply(-1, poseAt(0.1), 0), CorrectionAnchor::Outcome::kUnknownKeyframe);
+  EXPECT_EQ(anchor.apply(5, poseAt(0.52), 1), CorrectionAnchor::Outcome::kApplied);
+  const Pose before = anchor.T_world_odom();
+  EXPECT_EQ(anchor.apply(4, poseAt(0.9), 2), CorrectionAnchor::Outcome::kOutOfOrder);
+  EXPECT_LT(poseError(anchor.T_world_odom(), before), kPoseTolerance);
+  EXPECT_EQ(anchor.resetCounter(), 1);
+}
+
+}  // namespace
+}  // namespace kinfly::fw

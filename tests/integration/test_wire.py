@@ -66,7 +66,7 @@ def samples() -> dict[type, object]:
     (st.rejected_unsigned, st.rejected_wrong_key, st.rejected_bad_mac, st.rejected_stale,
      st.rejected_replayed, st.rejected_malformed, st.rejected_unknown_channel,
      st.rejected_wrong_vehicle) = range(1, 9)
-    st.corrections_accepted = 1400
+    st.corrections_accepted, st.corrections_unknown_keyframe = 1400, 9
 
     env = signed_t()
     env.utime, env.vehicle_id, env.key_id = 1_700_000_000_500_000, 7, -123456789

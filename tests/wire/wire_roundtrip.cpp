@@ -115,6 +115,7 @@ status_t sampleStatus() {
   m.rejected_unknown_channel = 7;
   m.rejected_wrong_vehicle = 8;
   m.corrections_accepted = 1400;
+  m.corrections_unknown_keyframe = 9;
   return m;
 }
 

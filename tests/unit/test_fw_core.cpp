@@ -113,10 +113,11 @@ TEST(KeyframeSelector, MotionOrTimeMakesAKeyframeButNotFasterThanTheMinimum) {
 }
 
 TEST(KeyframeSelector, PoorlyTrackedFramesAreNeverKeyframes) {
-  KeyframeSelector selector(KeyframeSelector::Params{});
+  const KeyframeSelector::Params p;
+  KeyframeSelector selector(p);
   EXPECT_FALSE(selector.select(poseAt(0.0), 0, TrackingStatus::kLost, 0.f));
-  EXPECT_FALSE(selector.select(poseAt(0.0), 0, TrackingStatus::kOk, 0.3f));
-  EXPECT_TRUE(selector.select(poseAt(0.0), 0, TrackingStatus::kOk, 0.8f));
+  EXPECT_FALSE(selector.select(poseAt(0.0), 0, TrackingStatus::kOk, p.min_inlier_fraction * 0.9f));
+  EXPECT_TRUE(selector.select(poseAt(0.0), 0, TrackingStatus::kOk, p.min_inlier_fraction));
   EXPECT_FALSE(selector.select(poseAt(1.0), 5 * kSecond, TrackingStatus::kLost, 0.f));
 }
 

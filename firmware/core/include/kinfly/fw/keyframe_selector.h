@@ -19,7 +19,9 @@ class KeyframeSelector {
     double min_rotation_rad = 0.1745;  // [rad] (0, pi]: 10 degrees of rotation since it
     double max_interval_s = 1.0;       // [s] (0, 60]: a keyframe at least this often, moving or not
     double min_interval_s = 0.1;       // [s] [0, max_interval_s): never faster (10 Hz link budget)
-    float min_inlier_fraction = 0.5f;  // [0, 1]: tracking quality a keyframe's pose needs
+    // [0, 1]: tracking quality a keyframe's pose needs. Pixels beyond the dense volume have no
+    // model to match, so well-tracked real frames sit near 0.5 (ICP calls < 0.1 lost).
+    float min_inlier_fraction = 0.25f;
     std::string validate() const;      // empty when valid, else which value and its range
   };
 

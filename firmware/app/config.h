@@ -1,0 +1,52 @@
+// kinfly-fw's configuration: one struct, read from a config file (INI/TOML sections, CLI11) with
+// command-line overrides of the same names (`[source] path = ...` is `--source.path ...`).
+// Defaults ship in firmware/config/kinfly-fw.toml; validate() names any wrong value and its range.
+#pragma once
+
+#include <CLI/CLI.hpp>
+
+#include <string>
+
+#include "kinfly/fw/correction_anchor.h"
+#include "kinfly/fw/keyframe_selector.h"
+
+namespace kinfly::fw {
+
+struct FirmwareConfig {
+  // [vehicle]
+  int vehicle_id = 1;                              // [0, 65535], in every channel name
+  std::string key_file = "/etc/kinfly/vehicle.key";  // kinfly-keygen; mode 0600
+  // [source]
+  std::string source_kind = "log";      // log | dataset
+  std::string source_path;              // LCM log (log) or TUM folder (dataset); required
+  bool source_realtime = true;          // replay at capture rate; false: as fast as possible
+  std::string source_intrinsics;        // dataset: "fx,fy,cx,cy" (empty: TUM freiburg3)
+  double source_depth_units_per_m = 5000.0;  // dataset: raw units per metre (TUM 5000)
+  int source_max_frames = 0;            // stop after this many frames (0: never)
+  // [odometry]
+  int odometry_downsample = 2;          // {1, 2, 4}: 640x480 sensors run at 320x240
+  int odometry_volume_vox = 128;        // dense volume edge [16, 512], multiple of 8
+  double odometry_voxel_m = 0.03;       // [m] (0, 0.2]
+  int odometry_threads = 1;             // [1, 64]
+  int capture_queue = 4;                // [1, 64] frames between capture and odometry
+  // [keyframe]
+  KeyframeSelector::Params keyframe;
+  // [link]
+  std::string lcm_url;                  // empty: LCM_DEFAULT_URL or LCM's default
+  double signing_window_s = 2.0;        // [s] (0, 3600] accepted age of a signed correction
+  int keyframe_queue = 4;               // [1, 64] keyframes waiting for the link
+  double status_rate_hz = 10.0;         // [Hz] [1, 100]
+  double link_timeout_s = 2.0;          // [s] (0, 60] ground unheard this long: link stale
+  CorrectionAnchor::Params corrections;
+  // [output]
+  std::string trajectory_out;           // TUM file of the published poses, written at exit
+  std::string log_level = "info";       // trace | debug | info | warn | error
+
+  // Empty when valid, else the first wrong value, its name in the config, and the allowed range.
+  std::string validate() const;
+};
+
+// Registers every field as an option (and config key) of `app`.
+void addConfigOptions(CLI::App* app, FirmwareConfig* config);
+
+}  // namespace kinfly::fw

@@ -1,0 +1,108 @@
+#include <lcm/lcm-cpp.hpp>
+
+#include <filesystem>
+#include <memory>
+
+#include "depth_source.h"
+#include "kinfly/depth_codec.h"
+#include "kinfly/link/channels.h"
+#include "kinfly/link/conversions.h"
+#include "kinfly/link/decode.h"
+
+namespace kinfly::fw {
+namespace {
+
+class LogSource : public DepthSource {
+ public:
+  LogSource(const LogSourceParams& params, std::unique_ptr<lcm::LogFile> log)
+      : path_(params.path),
+        channel_(link::channelName(link::Channel::kDepth, params.vehicle_id)),
+        log_(std::move(log)),
+        codec_(DepthCodec::Params()) {}
+
+  // Reads up to the first decodable frame to learn the camera, then starts over.
+  bool open(std::string* why) {
+    DepthCapture probe;
+    for (;;) {
+      const SourceStatus status = next(&probe, why);
+      if (status == SourceStatus::kFrame) break;
+      if (status == SourceStatus::kEnd) {
+        *why = path_ + " holds no decodable frame on " + channel_ +
+               (why->empty() ? "" : " (last problem: " + *why + ")");
+        return false;
+      }
+    }
+    frames_ = 0;
+    return rewind(why);
+  }
+
+  const PinholeCamera& camera() const override { return camera_; }
+  double depthScaleM() const override { return depth_scale_m_; }
+  std::string describe() const override { return "LCM log " + path_ + " (" + channel_ + ")"; }
+
+  SourceStatus next(DepthCapture* out, std::string* why) override {
+    for (const lcm::LogEvent* event = log_->readNextEvent(); event != nullptr;
+         event = log_->readNextEvent()) {
+      if (event->channel != channel_) continue;
+      const link::DecodeResult decoded = link::decodeMessage(
+          event->data, static_cast<size_t>(event->datalen), link::DecodeBounds(), &message_);
+      if (!decoded.ok()) {
+        *why = "event " + std::to_string(event->eventnum) + ": " + toString(decoded.status) +
+               " (" + decoded.detail + ")";
+        return SourceStatus::kSkipped;
+      }
+      const PinholeCamera camera = link::cameraOf(message_);
+      if (frames_ == 0) {
+        camera_ = camera;
+        depth_scale_m_ = message_.depth_scale_m;
+      } else if (camera.width != camera_.width || camera.height != camera_.height) {
+        *why = "event " + std::to_string(event->eventnum) + ": image size changed";
+        return SourceStatus::kSkipped;
+      }
+      const CodecResult r = link::decodeDepth(codec_, message_, &out->depth);
+      if (!r.ok()) {
+        *why = "event " + std::to_string(event->eventnum) + ": depth does not decode: " +
+               toString(r.status);
+        return SourceStatus::kSkipped;
+      }
+      out->utime = message_.utime;
+      ++frames_;
+      return SourceStatus::kFrame;
+    }
+    return SourceStatus::kEnd;
+  }
+
+ private:
+  bool rewind(std::string* why) {
+    log_ = std::make_unique<lcm::LogFile>(path_, "r");
+    if (!log_->good()) *why = "cannot reopen " + path_;
+    return log_->good();
+  }
+
+  std::string path_, channel_;
+  std::unique_ptr<lcm::LogFile> log_;
+  DepthCodec codec_;
+  depth_keyframe_t message_;
+  PinholeCamera camera_;
+  double depth_scale_m_ = 0.0;
+  int64_t frames_ = 0;
+};
+
+}  // namespace
+
+std::unique_ptr<DepthSource> openLogSource(const LogSourceParams& params, std::string* why) {
+  if (!std::filesystem::is_regular_file(params.path)) {
+    *why = "source.path: " + params.path + " is not a file";
+    return nullptr;
+  }
+  auto log = std::make_unique<lcm::LogFile>(params.path, "r");
+  if (!log->good()) {
+    *why = "cannot open LCM log " + params.path;
+    return nullptr;
+  }
+  auto source = std::make_unique<LogSource>(params, std::move(log));
+  if (!source->open(why)) return nullptr;
+  return source;
+}
+
+}  // namespace kinfly::fw

@@ -8,6 +8,7 @@
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
 #include <omp.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include <atomic>
@@ -316,6 +317,9 @@ int main(int argc, char** argv) {
       "ground station over LCM, signed pose corrections back. Every option can also be set in "
       "the config file ([section] key = value)."};
   FirmwareConfig config;
+  // A value given twice (config file, then command line, or twice on the command line): the
+  // last one wins.
+  app.option_defaults()->multi_option_policy(CLI::MultiOptionPolicy::TakeLast);
   app.set_config("--config", "", "config file (TOML/INI; firmware/config/kinfly-fw.toml)");
   addConfigOptions(&app, &config);
   bool print_config = false;
@@ -327,11 +331,13 @@ int main(int argc, char** argv) {
     std::fputs(app.config_to_str(true, false).c_str(), stdout);
     return 0;
   }
-  spdlog::set_level(spdlog::level::from_str(config.log_level));
+  // Logs go to stderr; stdout carries only the summary line (and --print-config).
+  spdlog::set_default_logger(spdlog::stderr_color_mt("kinfly-fw"));
   if (std::string why = config.validate(); !why.empty()) {
     spdlog::critical("invalid configuration: {}", why);
     return 2;
   }
+  spdlog::set_level(spdlog::level::from_str(config.log_level));
 
   std::string why;
   std::optional<link::Key> key;

@@ -14,6 +14,7 @@ namespace kinfly::fw {
 struct DepthCapture {
   Image<uint16_t> depth;  // raw sensor units
   int64_t utime = 0;      // [us] capture time
+  int64_t frame_id = 0;   // capture counter since start (set by the capture thread)
 };
 
 enum class SourceStatus {

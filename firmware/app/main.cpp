@@ -125,7 +125,7 @@ void captureLoop(const FirmwareConfig& config, DepthSource* source,
       while (!g_stop && Clock::now() < due)
         std::this_thread::sleep_for(std::min<Clock::duration>(kPollPeriod, due - Clock::now()));
     }
-    ++counters->frames_captured;
+    capture.frame_id = counters->frames_captured++;
     if (!queue->push(capture)) spdlog::debug("capture: queue full, oldest frame dropped");
     // Without pacing the odometry sets the rate: wait for room rather than drop what a
     // replay can simply deliver later.
@@ -283,7 +283,7 @@ class Link {
                               ? status_t::LINK_UP
                               : status_t::LINK_STALE);
     rejects().writeTo(&s);
-    s.corrections_accepted = accepted();
+    s.corrections_accepted = accepted() - counters_->corrections_unknown;
     s.corrections_unknown_keyframe = counters_->corrections_unknown;
     std::lock_guard<std::mutex> lock(publish_mutex_);
     lcm_->publish(link::channelName(link::Channel::kStatus, config_.vehicle_id), &s);
@@ -414,7 +414,8 @@ int main(int argc, char** argv) {
       continue;
     }
     const FrameResult r = pipeline.processFrame(capture.depth.view(), capture.utime);
-    const int64_t frame_id = counters.frames_processed++;
+    const int64_t frame_id = capture.frame_id;
+    ++counters.frames_processed;
     counters.tracking = trackingCode(r.status);
     if (r.status == TrackingStatus::kLost) {
       ++counters.frames_lost;

@@ -7,7 +7,9 @@ a skip would hide that the accuracy checks never ran."""
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -16,6 +18,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "tests" / "tools"))
 
 import kinfly_eval  # noqa: E402  (needs the sys.path entry above)
+from netns import NetnsUnavailable, network_namespace  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -51,6 +54,15 @@ def codec_bench_bin() -> Path:
     return _built_binary("kinfly-codec-bench", "KINFLY_CODEC_BENCH")
 
 
+def wait_for_line(process: subprocess.Popen, text: str) -> None:
+    """Reads the process's stderr until a line contains text (a readiness message)."""
+    assert process.stderr is not None
+    for line in process.stderr:
+        if text in line:
+            return
+    pytest.fail(f"process exited before printing {text!r}")
+
+
 @pytest.fixture(scope="session")
 def sample_dir() -> Path:
     """The 60-frame TUM teddy sample committed in tests/data."""
@@ -82,3 +94,16 @@ def tum_sequence(shared_data: Path) -> Path:
 def replica_dir(shared_data: Path) -> Path:
     """The Replica office0 sample (4 frames, trajectory, GT mesh)."""
     return _require_shared(shared_data / kinfly_eval.REPLICA_SUBDIR)
+
+
+@pytest.fixture
+def netns() -> Iterator[list[str]]:
+    """A private network namespace (tests/tools/netns.py) for LCM between processes; yields the
+    command prefix that runs a program in it. Unavailable: a skip here, a failure under CI."""
+    try:
+        with network_namespace("test") as prefix:
+            yield prefix
+    except NetnsUnavailable as err:
+        if os.environ.get("CI"):
+            pytest.fail(f"CI must run the multi-process LCM tests: {err}", pytrace=False)
+        pytest.skip(str(err))

@@ -3,16 +3,19 @@ offline engine; configuration errors and unsafe key files refuse to start with a
 the value; SIGTERM stops it within a second with a summary."""
 from __future__ import annotations
 
+import json
 import os
+import re
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import REPO_ROOT, built
+from conftest import REPO_ROOT, built, wait_for_line
 
 CONFIG = REPO_ROOT / "firmware" / "config" / "kinfly-fw.toml"
 # Same engine, same parameters, same frames in the same order: only float summation order could
@@ -96,3 +99,51 @@ def test_sigterm_stops_within_a_second_with_a_summary(sample_log: Path) -> None:
     assert time.monotonic() - sent < 1.0
     assert process.returncode == 0
     assert out.startswith("kinfly-fw: stopped:")
+
+
+def test_flight_over_lcm_keyframes_bit_exact_and_corrections_checked(
+        netns: list[str], tum_sequence: Path, tmp_path: Path) -> None:
+    """The real sequence replayed in real time by kinfly-fw in a network namespace: keyframes
+    reach a ground end bit for bit, and signed corrections from Python are applied while each
+    bad kind (and a correction of a keyframe never sent) is refused and counted."""
+    log = tmp_path / "teddy.lcmlog"
+    subprocess.run([built("bin/kinfly-tum-to-log"), "--tum", tum_sequence, "--out", log,
+                    "--vehicle", "7"], check=True, capture_output=True, timeout=120)
+    key, other = tmp_path / "v7.key", tmp_path / "other.key"
+    for path in (key, other):
+        subprocess.run([built("bin/kinfly-keygen"), "--out", path], check=True,
+                       capture_output=True)
+    good = 5
+    ground = subprocess.Popen(
+        [*netns, built("bin/kinfly-link-bench"), "ground", "--vehicle", "7", "--tum",
+         tum_sequence, "--seconds", "60"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for_line(ground, "listening")
+        drone = subprocess.Popen(
+            [*netns, built("bin/kinfly-fw"), "--config", CONFIG, "--vehicle.id", "7",
+             "--vehicle.key_file", key, "--source.path", log],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        probe = subprocess.run(
+            [*netns, sys.executable, REPO_ROOT / "tests" / "tools" / "uplink_probe.py",
+             "--key", key, "--other-key", other, "--vehicle", "7", "--good", str(good),
+             "--min-keyframes", str(good), "--unknown-keyframe", "--timeout", "20"],
+            capture_output=True, text=True, timeout=60)
+        drone_out, drone_err = drone.communicate(timeout=60)
+        ground.send_signal(signal.SIGTERM)
+        ground_out, _ = ground.communicate(timeout=30)
+    finally:
+        ground.kill()
+    assert probe.returncode == 0, probe.stderr + drone_err
+    assert drone.returncode == 0, drone_err
+    status = json.loads(probe.stdout)
+    assert status["corrections_accepted"] == good, status
+    assert status["corrections_unknown_keyframe"] == 1, status
+    for kind in ("unsigned", "bad_mac", "wrong_key", "stale", "replayed", "malformed",
+                 "wrong_vehicle", "unknown_channel"):
+        assert status[f"rejected_{kind}"] == 1, (kind, status)
+    assert "200 frames captured" in drone_out, drone_out
+    sent = int(re.search(r"(\d+) keyframes sent", drone_out).group(1))
+    received = json.loads(ground_out)
+    assert received["received"] == sent > 0
+    assert received["bit_exact"] is True

@@ -5,37 +5,15 @@ and counted, as its status_t reports."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO_ROOT, built
-from netns import NetnsUnavailable, network_namespace
+from conftest import REPO_ROOT, built, wait_for_line
 
 VEHICLE = 7
-
-
-@pytest.fixture
-def netns() -> Iterator[list[str]]:
-    try:
-        with network_namespace("link") as prefix:
-            yield prefix
-    except NetnsUnavailable as err:
-        if os.environ.get("CI"):
-            pytest.fail(f"CI must run the two-process link tests: {err}", pytrace=False)
-        pytest.skip(str(err))
-
-
-def wait_for_line(process: subprocess.Popen, text: str) -> None:
-    assert process.stderr is not None
-    for line in process.stderr:
-        if text in line:
-            return
-    pytest.fail(f"process exited before printing {text!r}")
 
 
 def test_keyframes_arrive_complete_and_bit_exact(netns: list[str], sample_dir: Path) -> None:

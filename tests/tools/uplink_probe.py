@@ -33,6 +33,11 @@ def main() -> int:
     parser.add_argument("--other-key", required=True, help="a key the drone does not hold")
     parser.add_argument("--vehicle", type=int, default=7)
     parser.add_argument("--good", type=int, default=5, help="authentic corrections to send")
+    parser.add_argument("--min-keyframes", type=int, default=0,
+                        help="wait until the drone has sent this many keyframes (the good "
+                             "corrections refer to keyframes 0..good-1)")
+    parser.add_argument("--unknown-keyframe", action="store_true",
+                        help="also send an authentic correction of a keyframe never sent")
     parser.add_argument("--timeout", type=float, default=10.0)
     args = parser.parse_args()
 
@@ -49,8 +54,9 @@ def main() -> int:
                 lc.handle()
         return done()
 
-    if not pump_until(lambda: statuses, args.timeout):
-        print("uplink_probe: no status from the drone", file=sys.stderr)
+    if not pump_until(lambda: statuses and statuses[-1].keyframes_sent >= args.min_keyframes,
+                      args.timeout):
+        print("uplink_probe: no status from the drone, or too few keyframes", file=sys.stderr)
         return 1
 
     key = signing.load_key_file(args.key)
@@ -80,13 +86,16 @@ def main() -> int:
         lc.publish(channel, message)
         time.sleep(0.01)
     lc.publish(f"KINFLY_{args.vehicle}_NO_SUCH_CHANNEL", correction(args.vehicle, 106))
+    if args.unknown_keyframe:
+        lc.publish(channel, signer.sign(correction(args.vehicle, 10**9)).encode())
 
-    expected_total = args.good + len(bad) + 1
+    expected_total = args.good + len(bad) + 1 + int(args.unknown_keyframe)
 
     def counted(s: status_t) -> int:
         return (s.corrections_accepted + s.rejected_unsigned + s.rejected_wrong_key
                 + s.rejected_bad_mac + s.rejected_stale + s.rejected_replayed
-                + s.rejected_malformed + s.rejected_unknown_channel + s.rejected_wrong_vehicle)
+                + s.rejected_malformed + s.rejected_unknown_channel + s.rejected_wrong_vehicle
+                + s.corrections_unknown_keyframe)
 
     pump_until(lambda: counted(statuses[-1]) >= expected_total, args.timeout)
     last = statuses[-1]

@@ -14,6 +14,15 @@ namespace kinfly {
 
 namespace {
 
+// How Newton's method from a measured depth ended.
+enum class Newton {
+  kHit,
+  // The trilinear cell at the measurement has an unobserved corner: the measurement lies on the
+  // edge of what the map has seen (a silhouette, the frustum's or the dense window's border).
+  kUnobservedStart,
+  kGaveUp,  // elsewhere: a truncated, flat or back-facing field, or the iterate left the range
+};
+
 // The search along one pixel's ray, in voxel units: p(z) = origin_vox + ray_vox * z, where z is
 // the depth in metres and ray_vox the voxels travelled per metre of depth.
 struct RaySearch {
@@ -23,10 +32,10 @@ struct RaySearch {
 
   // Newton's method on the trilinear TSDF, started at the depth just measured (which the TSDF
   // has just fused, so the surface is usually within a voxel of it): mostly one sample, instead
-  // of a march. Gives up (false) when the field there is unobserved, truncated or not a front
-  // face, or when the iterate leaves [z_min, z_max]; the caller then marches.
-  bool newton(VoxelReader* reader, const Eigen::Vector3f& ray_vox, float z_start, float z_min,
-              float z_max, float* z_hit, Eigen::Vector3f* gradient) const {
+  // of a march. Gives up when the field there is unobserved, truncated or not a front face, or
+  // when the iterate leaves [z_min, z_max].
+  Newton newton(VoxelReader* reader, const Eigen::Vector3f& ray_vox, float z_start, float z_min,
+                float z_max, float* z_hit, Eigen::Vector3f* gradient) const {
     constexpr int kMaxIterations = 4;
     // An update shorter than this is taken without sampling again: along a ray the trilinear
     // field is a cubic that is nearly linear over a voxel, so the step's own error is second
@@ -38,20 +47,21 @@ struct RaySearch {
     float z = z_start;
     for (int it = 0; it < kMaxIterations; ++it) {
       float f;
-      if (!reader->trilinear(origin_vox + ray_vox * z, &f, gradient)) return false;
+      if (!reader->trilinear(origin_vox + ray_vox * z, &f, gradient))
+        return it == 0 ? Newton::kUnobservedStart : Newton::kGaveUp;
       // Inside the band |f| < 1; at the clamp the field is flat and says nothing about distance.
-      if (std::fabs(f) >= 1.f) return false;
+      if (std::fabs(f) >= 1.f) return Newton::kGaveUp;
       const float slope = gradient->dot(ray_vox);  // dTSDF/dz; negative through a front face
-      if (!(slope < 0.f)) return false;
+      if (!(slope < 0.f)) return Newton::kGaveUp;
       const float dz = -f / slope;
       z += dz;
-      if (!(z >= z_min && z <= z_max)) return false;
+      if (!(z >= z_min && z <= z_max)) return Newton::kGaveUp;
       if (std::fabs(dz) < tolerance_z) {
         *z_hit = z;
-        return gradient->squaredNorm() > 0.f;
+        return gradient->squaredNorm() > 0.f ? Newton::kHit : Newton::kGaveUp;
       }
     }
-    return false;
+    return Newton::kGaveUp;
   }
 
   // Narrows [*z_begin, *z_end] to the part of the ray inside `box` (voxel units); false when
@@ -279,10 +289,15 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
       const Eigen::Vector3f ray_vox = R_wc * ray_cam * inv_vs;  // voxel units per metre of depth
       float z_hit = 0.f;
       Eigen::Vector3f grad;
-      const bool hit =
-          (hint > 0.f && ray.newton(&reader, ray_vox, hint, z_begin, z_end, &z_hit, &grad)) ||
-          (ray.clip(reach, ray_vox, &z_begin, &z_end) &&
-           ray.march(&reader, ray_vox, z_begin, z_end, &z_hit, &grad));
+      // A measurement on the edge of the observed field is not marched from: the march rarely
+      // finds a surface there (one ray in fifteen onboard), and then not where the frame
+      // measured, which is where the next frame's measurements will associate.
+      const Newton newton = use_hint
+                                ? ray.newton(&reader, ray_vox, hint, z_begin, z_end, &z_hit, &grad)
+                                : Newton::kGaveUp;
+      const bool hit = newton == Newton::kHit ||
+                       (newton == Newton::kGaveUp && ray.clip(reach, ray_vox, &z_begin, &z_end) &&
+                        ray.march(&reader, ray_vox, z_begin, z_end, &z_hit, &grad));
       if (hit) {
         vmap(x, y) = ray_cam * z_hit;
         nmap(x, y) = (R_cw * grad).normalized();

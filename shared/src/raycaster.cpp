@@ -64,24 +64,6 @@ struct RaySearch {
     return Newton::kGaveUp;
   }
 
-  // Narrows [*z_begin, *z_end] to the part of the ray inside `box` (voxel units); false when
-  // none is. Outside a bounded volume there is nothing to find, and a measurement beyond the
-  // dense window would otherwise march through the blocks it lacks.
-  bool clip(const Eigen::AlignedBox3f& box, const Eigen::Vector3f& ray_vox, float* z_begin,
-            float* z_end) const {
-    for (int a = 0; a < 3; ++a) {
-      if (ray_vox[a] == 0.f) {
-        if (origin_vox[a] < box.min()[a] || origin_vox[a] > box.max()[a]) return false;
-        continue;
-      }
-      const float z0 = (box.min()[a] - origin_vox[a]) / ray_vox[a];
-      const float z1 = (box.max()[a] - origin_vox[a]) / ray_vox[a];
-      *z_begin = std::max(*z_begin, std::min(z0, z1));
-      *z_end = std::min(*z_end, std::max(z0, z1));
-    }
-    return *z_begin <= *z_end;
-  }
-
   // KinectFusion's march: steps bounded by the TSDF through observed space, whole unallocated
   // blocks skipped, the sign change found on nearest voxels, then bracketed on the trilinear
   // field and refined by regula falsi.
@@ -257,14 +239,6 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
   const float inv_vs = 1.f / volume.voxelSizeM();
   const Eigen::Vector3f origin_vox = T_world_cam.translation().cast<float>() * inv_vs;
   const RaySearch ray{origin_vox, truncation_m * inv_vs, params_.step_fraction};
-  // Where the march can find anything: the voxels whose nearest-voxel regions lie in the
-  // volume's blocks, or everywhere.
-  const float inf = std::numeric_limits<float>::infinity();
-  Eigen::AlignedBox3f reach(Eigen::Vector3f::Constant(-inf), Eigen::Vector3f::Constant(inf));
-  BlockIndex lo, hi;
-  if (volume.blockBounds(&lo, &hi))
-    reach = Eigen::AlignedBox3f((lo * kBlockSide).cast<float>().array() - 0.5f,
-                                (hi * kBlockSide).cast<float>().array() - 0.5f);
   const int tile = params_.range_tile_px;
   ImageView<Eigen::Vector3f> vmap = maps->vertex_ref[0].view();
   ImageView<Eigen::Vector3f> nmap = maps->normal_ref[0].view();
@@ -281,22 +255,22 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
       const Eigen::Vector2f range = use_hint ? Eigen::Vector2f(hint - params_.hint_margin_m,
                                                                hint + params_.hint_margin_m)
                                              : tile_range_(x / tile, y / tile);
-      float z_begin = std::max(range.x(), params_.min_depth_m);
-      float z_end = std::min(range.y(), params_.max_depth_m);
+      const float z_begin = std::max(range.x(), params_.min_depth_m);
+      const float z_end = std::min(range.y(), params_.max_depth_m);
       if (!(z_begin < z_end)) continue;
       const Eigen::Vector3f ray_cam =
           camera_.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
       const Eigen::Vector3f ray_vox = R_wc * ray_cam * inv_vs;  // voxel units per metre of depth
       float z_hit = 0.f;
       Eigen::Vector3f grad;
-      // A measurement on the edge of the observed field is not marched from: the march rarely
-      // finds a surface there (one ray in fifteen onboard), and then not where the frame
-      // measured, which is where the next frame's measurements will associate.
+      // A measurement on the edge of the observed field is not marched from: the march seldom
+      // finds a surface there, and then mostly centimetres from where the frame measured, which
+      // is where the next frame's measurements associate (docs/engine.md, departure 4).
       const Newton newton = use_hint
                                 ? ray.newton(&reader, ray_vox, hint, z_begin, z_end, &z_hit, &grad)
                                 : Newton::kGaveUp;
       const bool hit = newton == Newton::kHit ||
-                       (newton == Newton::kGaveUp && ray.clip(reach, ray_vox, &z_begin, &z_end) &&
+                       (newton == Newton::kGaveUp &&
                         ray.march(&reader, ray_vox, z_begin, z_end, &z_hit, &grad));
       if (hit) {
         vmap(x, y) = ray_cam * z_hit;

@@ -88,12 +88,6 @@ void DenseVolume::followCamera(const Pose& T_world_cam) {
   if ((wanted - origin_).cwiseAbs().maxCoeff() >= params_.shift_threshold_blocks) shiftTo(wanted);
 }
 
-bool DenseVolume::blockBounds(BlockIndex* lo, BlockIndex* hi) const {
-  *lo = origin_;
-  *hi = origin_ + BlockIndex::Constant(blocks_per_side_);
-  return true;
-}
-
 void DenseVolume::clear() {
   std::fill(slot_observed_.begin(), slot_observed_.end(), 0);
   observed_.clear();

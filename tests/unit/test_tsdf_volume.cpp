@@ -39,8 +39,6 @@ TEST(HashedVolume, AllocateThenFind) {
   EXPECT_EQ(volume.allocateBlock(a), pa) << "allocating twice must return the same block";
   EXPECT_EQ(volume.findBlock(b), nullptr);
   EXPECT_EQ(volume.numAllocatedBlocks(), 1u);
-  BlockIndex lo, hi;
-  EXPECT_FALSE(volume.blockBounds(&lo, &hi)) << "a hashed volume is unbounded";
   // A fresh block is unobserved free space.
   for (const Voxel& v : pa->voxels) {
     ASSERT_EQ(v.weight, 0.f);
@@ -142,11 +140,6 @@ TEST(DenseVolume, HoldsOnlyItsWindow) {
   EXPECT_EQ(volume.allocateBlock(below), nullptr);
   EXPECT_EQ(volume.findBlock(outside), nullptr);
   EXPECT_EQ(volume.numAllocatedBlocks(), 1u);
-  // The bounds the raycaster clips its marches to are exactly the window.
-  BlockIndex lo, hi;
-  ASSERT_TRUE(volume.blockBounds(&lo, &hi));
-  EXPECT_EQ(lo, o);
-  EXPECT_EQ(hi, o + BlockIndex::Constant(8));
   // Fixed memory: all 512 blocks are reserved up front.
   EXPECT_GE(volume.memoryBytes(), 512 * sizeof(VoxelBlock));
   const size_t memory = volume.memoryBytes();

@@ -74,9 +74,6 @@ class TsdfVolume {
   // Volumes of bounded extent move so the space in front of the camera stays inside; an
   // unbounded volume ignores this.
   virtual void followCamera(const Pose& /*T_world_cam*/) {}
-  // Volumes of bounded extent give the blocks they can hold, [*lo, *hi) per axis, and true; an
-  // unbounded volume gives false.
-  virtual bool blockBounds(BlockIndex* /*lo*/, BlockIndex* /*hi*/) const { return false; }
   virtual void clear() = 0;
 
   BlockIndex blockOf(const Eigen::Vector3f& p_world) const {
@@ -114,7 +111,6 @@ class DenseVolume final : public TsdfVolume {
   const std::vector<VoxelBlock*>& allocatedBlocks() const override { return observed_; }
   size_t memoryBytes() const override;
   void followCamera(const Pose& T_world_cam) override;
-  bool blockBounds(BlockIndex* lo, BlockIndex* hi) const override;
   void clear() override;
 
   // The block range [origin, origin + blocks_per_side) currently held.

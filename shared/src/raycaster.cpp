@@ -178,7 +178,14 @@ Raycaster::Raycaster(const PinholeCamera& camera, const Params& params)
       params_(params),
       tile_range_((camera.width + params.range_tile_px - 1) / params.range_tile_px,
                   (camera.height + params.range_tile_px - 1) / params.range_tile_px,
-                  Eigen::Vector2f::Zero()) {}
+                  Eigen::Vector2f::Zero()),
+      column_vox_(static_cast<size_t>(camera.width)),
+      row_vox_(static_cast<size_t>(camera.height)) {
+  for (int x = 0; x < camera.width; ++x)
+    ray_x_.push_back(camera.backProject(static_cast<float>(x), 0.f, 1.f).x());
+  for (int y = 0; y < camera.height; ++y)
+    ray_y_.push_back(camera.backProject(0.f, static_cast<float>(y), 1.f).y());
+}
 
 void Raycaster::computeRanges(const TsdfVolume& volume, const Pose& T_cam_world) {
   const float inf = std::numeric_limits<float>::infinity();
@@ -239,6 +246,9 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
   const float inv_vs = 1.f / volume.voxelSizeM();
   const Eigen::Vector3f origin_vox = T_world_cam.translation().cast<float>() * inv_vs;
   const RaySearch ray{origin_vox, truncation_m * inv_vs, params_.step_fraction};
+  for (int x = 0; x < camera_.width; ++x) column_vox_[x] = R_wc.col(0) * (ray_x_[x] * inv_vs);
+  for (int y = 0; y < camera_.height; ++y)
+    row_vox_[y] = (R_wc.col(1) * ray_y_[y] + R_wc.col(2)) * inv_vs;
   const int tile = params_.range_tile_px;
   ImageView<Eigen::Vector3f> vmap = maps->vertex_ref[0].view();
   ImageView<Eigen::Vector3f> nmap = maps->normal_ref[0].view();
@@ -258,9 +268,8 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
       const float z_begin = std::max(range.x(), params_.min_depth_m);
       const float z_end = std::min(range.y(), params_.max_depth_m);
       if (!(z_begin < z_end)) continue;
-      const Eigen::Vector3f ray_cam =
-          camera_.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
-      const Eigen::Vector3f ray_vox = R_wc * ray_cam * inv_vs;  // voxel units per metre of depth
+      const Eigen::Vector3f ray_cam(ray_x_[x], ray_y_[y], 1.f);
+      const Eigen::Vector3f ray_vox = column_vox_[x] + row_vox_[y];  // voxels per metre of depth
       float z_hit = 0.f;
       Eigen::Vector3f grad;
       // A measurement on the edge of the observed field is not marched from: the march seldom

@@ -36,6 +36,11 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
   // direct-mapped cache: neighbouring pixels share their blocks); the short candidate lists are
   // then allocated serially, in chunk order, so the block order does not depend on the threads.
   const float sample_step_m = 0.5f * volume->blockSizeM();
+  // Samples are placed in block units (block b spans [b, b + 1) per axis): along a pixel's ray
+  // that is one multiply-add per sample, without the rotation and division of
+  // TsdfVolume::blockOf.
+  const float blocks_per_m = 1.f / volume->blockSizeM();
+  const Eigen::Vector3f origin_blk = t_wc * blocks_per_m;
   const int stride = params_.allocation_stride_px;
   const int rows = (depth_m.height() + stride - 1) / stride;
 #pragma omp parallel for schedule(dynamic, 1) if (parallel)
@@ -54,9 +59,11 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
         const float ray_len = ray.norm();
         const float z0 = std::max(d - mu / ray_len, 1e-3f), z1 = d + mu / ray_len;
         const int samples = 1 + static_cast<int>(std::ceil((z1 - z0) * ray_len / sample_step_m));
+        const Eigen::Vector3f ray_blk = R_wc * ray * blocks_per_m;  // blocks per metre of depth
+        const float dz = (z1 - z0) / static_cast<float>(samples);
         for (int i = 0; i <= samples; ++i) {
-          const float z = z0 + (z1 - z0) * static_cast<float>(i) / static_cast<float>(samples);
-          const BlockIndex b = volume->blockOf(R_wc * (ray * z) + t_wc);
+          const Eigen::Vector3f p_blk = origin_blk + ray_blk * (z0 + dz * static_cast<float>(i));
+          const BlockIndex b(floorToInt(p_blk.x()), floorToInt(p_blk.y()), floorToInt(p_blk.z()));
           BlockIndex& slot = recent[hashBlockIndex(b) % kRecentBlocks];
           if (slot == b) continue;
           slot = b;

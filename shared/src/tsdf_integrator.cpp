@@ -46,6 +46,10 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
   // TsdfVolume::blockOf.
   const float blocks_per_m = 1.f / volume->blockSizeM();
   const Eigen::Vector3f origin_blk = t_wc * blocks_per_m;
+  // Every band gets the same number of samples, enough for the full band (2 mu along the ray);
+  // one cut short by the near limit is only sampled more densely. A count fixed per frame also
+  // keeps the sample loop's branch predictable.
+  const int samples = 1 + static_cast<int>(std::ceil(2.f * mu / sample_step_m));
   const int stride = params_.allocation_stride_px;
   const int rows = (depth_m.height() + stride - 1) / stride;
 #pragma omp parallel for schedule(dynamic, 1) if (parallel)
@@ -63,7 +67,6 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
         const Eigen::Vector3f ray = camera.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
         const float ray_len = ray.norm();
         const float z0 = std::max(d - mu / ray_len, 1e-3f), z1 = d + mu / ray_len;
-        const int samples = 1 + static_cast<int>(std::ceil((z1 - z0) * ray_len / sample_step_m));
         const Eigen::Vector3f ray_blk = R_wc * ray * blocks_per_m;  // blocks per metre of depth
         const float dz = (z1 - z0) / static_cast<float>(samples);
         for (int i = 0; i <= samples; ++i) {

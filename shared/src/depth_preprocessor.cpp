@@ -4,8 +4,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstring>
-#include <limits>
 #include <sstream>
 
 namespace kinfly {
@@ -31,8 +29,6 @@ DepthFrame::DepthFrame(const PinholeCamera& level0_camera)
   for (int l = 0; l < kPyramidLevels; ++l) {
     camera[l] = level0_camera.scaled(1 << l);
     depth_m[l] = Image<float>(camera[l].width, camera[l].height, 0.f);
-    vertex_cam[l] = Image<Eigen::Vector3f>(camera[l].width, camera[l].height, invalidVector());
-    normal_cam[l] = Image<Eigen::Vector3f>(camera[l].width, camera[l].height, invalidVector());
     points[l] = PackedPoints(camera[l].width, camera[l].height);
   }
 }
@@ -247,24 +243,6 @@ Vec3<T> normal(const Vec3<T>& v, const Vec3<T>& right, const Vec3<T>& below, Mas
   return {away ? -n.x : n.x, away ? -n.y : n.y, away ? -n.z : n.z};
 }
 
-constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
-
-// Writes the first m of four vectors, NaN where not `valid`.
-inline void storeLanes(const Vec3<Floats>& v, lanes::Ints valid, int m, Eigen::Vector3f* out) {
-  using lanes::shuffle;
-  const Floats x = valid ? v.x : kNaN, y = valid ? v.y : kNaN, z = valid ? v.z : kNaN;
-  const Floats xy_lo = shuffle<0, 4, 1, 5>(x, y), xy_hi = shuffle<2, 6, 3, 7>(x, y);
-  const Floats interleaved[3] = {
-      shuffle<0, 1, 4, 2>(xy_lo, z),                              // x0 y0 z0 x1
-      shuffle<0, 1, 4, 5>(shuffle<3, 5, 0, 0>(xy_lo, z), xy_hi),  // y1 z1 x2 y2
-      shuffle<6, 2, 3, 7>(xy_hi, z)};                             // z2 x3 y3 z3
-  float* dst = out->data();  // Eigen::Vector3f is three packed floats
-  if (m == kWidth)
-    for (int k = 0; k < 3; ++k) lanes::store(dst + kWidth * k, interleaved[k]);
-  else
-    std::memcpy(dst, interleaved, sizeof(float) * 3 * static_cast<size_t>(m));
-}
-
 // One row of an image from a per-pixel kernel, called with a float tag for one pixel and a Floats
 // tag for four: four at a time where the kernel's windows lie inside the image (rows where
 // `interior_row`, and groups starting at columns lo .. hi), one at a time elsewhere.
@@ -342,9 +320,8 @@ void computeNormalMap(ImageView<const Eigen::Vector3f> vertex_cam,
   }
 }
 
-void computeVertexNormalMaps(ImageView<const float> depth_m, const PinholeCamera& camera,
-                             ImageView<Eigen::Vector3f> vertex_cam,
-                             ImageView<Eigen::Vector3f> normal_cam, PackedPoints* points) {
+void computePackedPoints(ImageView<const float> depth_m, const PinholeCamera& camera,
+                         PackedPoints* points) {
   const int w = depth_m.width(), h = depth_m.height();
   // A band of rows is done a tile of columns at a time, top to bottom, so that each row's
   // vertices are computed once and serve as the lower neighbours of the row above. A tile's
@@ -391,11 +368,9 @@ void computeVertexNormalMaps(ImageView<const float> depth_m, const PinholeCamera
           const Vec3<Floats> v = here.at(i), right = here.at(i + 1), down = below.at(i);
           lanes::Ints defined;
           const Vec3<Floats> c = normal(v, right, down, &defined);
-          const lanes::Ints valid = v.z > 0.f;
-          const lanes::Ints has_normal = valid & (right.z > 0.f) & (down.z > 0.f) & defined;
+          const lanes::Ints has_normal =
+              (v.z > 0.f) & (right.z > 0.f) & (down.z > 0.f) & defined;
           const int m = std::min(kWidth, n - i);
-          storeLanes(v, valid, m, vertex_cam.row(y) + x0 + i);
-          storeLanes(c, has_normal, m, normal_cam.row(y) + x0 + i);
           // Points with a normal go to the front of the row: all four at once where they can.
           const Floats values[6] = {v.x, v.y, v.z, c.x, c.y, c.z};
           const int packs = lanes::bits(has_normal) & ((1 << m) - 1);
@@ -463,9 +438,7 @@ PreprocessResult DepthPreprocessor::process(ImageView<const uint16_t> raw, Depth
                 coarse.row(y));
   }
   for (int l = 0; l < kPyramidLevels; ++l)
-    computeVertexNormalMaps(frame->depth_m[l].view(), frame->camera[l],
-                            frame->vertex_cam[l].view(), frame->normal_cam[l].view(),
-                            &frame->points[l]);
+    computePackedPoints(frame->depth_m[l].view(), frame->camera[l], &frame->points[l]);
   return {valid, static_cast<float>(valid) / static_cast<float>(w * h)};
 }
 

@@ -14,6 +14,15 @@ namespace kinfly {
 
 namespace {
 
+// How Newton's method from a measured depth ended.
+enum class Newton {
+  kHit,
+  // The trilinear cell at the measurement has an unobserved corner: the measurement lies on the
+  // edge of what the map has seen (a silhouette, the frustum's or the dense window's border).
+  kUnobservedStart,
+  kGaveUp,  // elsewhere: a truncated, flat or back-facing field, or the iterate left the range
+};
+
 // The search along one pixel's ray, in voxel units: p(z) = origin_vox + ray_vox * z, where z is
 // the depth in metres and ray_vox the voxels travelled per metre of depth.
 struct RaySearch {
@@ -23,10 +32,10 @@ struct RaySearch {
 
   // Newton's method on the trilinear TSDF, started at the depth just measured (which the TSDF
   // has just fused, so the surface is usually within a voxel of it): mostly one sample, instead
-  // of a march. Gives up (false) when the field there is unobserved, truncated or not a front
-  // face, or when the iterate leaves [z_min, z_max]; the caller then marches.
-  bool newton(VoxelReader* reader, const Eigen::Vector3f& ray_vox, float z_start, float z_min,
-              float z_max, float* z_hit, Eigen::Vector3f* gradient) const {
+  // of a march. Gives up when the field there is unobserved, truncated or not a front face, or
+  // when the iterate leaves [z_min, z_max].
+  Newton newton(VoxelReader* reader, const Eigen::Vector3f& ray_vox, float z_start, float z_min,
+                float z_max, float* z_hit, Eigen::Vector3f* gradient) const {
     constexpr int kMaxIterations = 4;
     // An update shorter than this is taken without sampling again: along a ray the trilinear
     // field is a cubic that is nearly linear over a voxel, so the step's own error is second
@@ -38,20 +47,21 @@ struct RaySearch {
     float z = z_start;
     for (int it = 0; it < kMaxIterations; ++it) {
       float f;
-      if (!reader->trilinear(origin_vox + ray_vox * z, &f, gradient)) return false;
+      if (!reader->trilinear(origin_vox + ray_vox * z, &f, gradient))
+        return it == 0 ? Newton::kUnobservedStart : Newton::kGaveUp;
       // Inside the band |f| < 1; at the clamp the field is flat and says nothing about distance.
-      if (std::fabs(f) >= 1.f) return false;
+      if (std::fabs(f) >= 1.f) return Newton::kGaveUp;
       const float slope = gradient->dot(ray_vox);  // dTSDF/dz; negative through a front face
-      if (!(slope < 0.f)) return false;
+      if (!(slope < 0.f)) return Newton::kGaveUp;
       const float dz = -f / slope;
       z += dz;
-      if (!(z >= z_min && z <= z_max)) return false;
+      if (!(z >= z_min && z <= z_max)) return Newton::kGaveUp;
       if (std::fabs(dz) < tolerance_z) {
         *z_hit = z;
-        return gradient->squaredNorm() > 0.f;
+        return gradient->squaredNorm() > 0.f ? Newton::kHit : Newton::kGaveUp;
       }
     }
-    return false;
+    return Newton::kGaveUp;
   }
 
   // KinectFusion's march: steps bounded by the TSDF through observed space, whole unallocated
@@ -168,7 +178,14 @@ Raycaster::Raycaster(const PinholeCamera& camera, const Params& params)
       params_(params),
       tile_range_((camera.width + params.range_tile_px - 1) / params.range_tile_px,
                   (camera.height + params.range_tile_px - 1) / params.range_tile_px,
-                  Eigen::Vector2f::Zero()) {}
+                  Eigen::Vector2f::Zero()),
+      column_vox_(static_cast<size_t>(camera.width)),
+      row_vox_(static_cast<size_t>(camera.height)) {
+  for (int x = 0; x < camera.width; ++x)
+    ray_x_.push_back(camera.backProject(static_cast<float>(x), 0.f, 1.f).x());
+  for (int y = 0; y < camera.height; ++y)
+    ray_y_.push_back(camera.backProject(0.f, static_cast<float>(y), 1.f).y());
+}
 
 void Raycaster::computeRanges(const TsdfVolume& volume, const Pose& T_cam_world) {
   const float inf = std::numeric_limits<float>::infinity();
@@ -229,6 +246,9 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
   const float inv_vs = 1.f / volume.voxelSizeM();
   const Eigen::Vector3f origin_vox = T_world_cam.translation().cast<float>() * inv_vs;
   const RaySearch ray{origin_vox, truncation_m * inv_vs, params_.step_fraction};
+  for (int x = 0; x < camera_.width; ++x) column_vox_[x] = R_wc.col(0) * (ray_x_[x] * inv_vs);
+  for (int y = 0; y < camera_.height; ++y)
+    row_vox_[y] = (R_wc.col(1) * ray_y_[y] + R_wc.col(2)) * inv_vs;
   const int tile = params_.range_tile_px;
   ImageView<Eigen::Vector3f> vmap = maps->vertex_ref[0].view();
   ImageView<Eigen::Vector3f> nmap = maps->normal_ref[0].view();
@@ -248,14 +268,19 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
       const float z_begin = std::max(range.x(), params_.min_depth_m);
       const float z_end = std::min(range.y(), params_.max_depth_m);
       if (!(z_begin < z_end)) continue;
-      const Eigen::Vector3f ray_cam =
-          camera_.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
-      const Eigen::Vector3f ray_vox = R_wc * ray_cam * inv_vs;  // voxel units per metre of depth
+      const Eigen::Vector3f ray_cam(ray_x_[x], ray_y_[y], 1.f);
+      const Eigen::Vector3f ray_vox = column_vox_[x] + row_vox_[y];  // voxels per metre of depth
       float z_hit = 0.f;
       Eigen::Vector3f grad;
-      const bool hit =
-          (hint > 0.f && ray.newton(&reader, ray_vox, hint, z_begin, z_end, &z_hit, &grad)) ||
-          ray.march(&reader, ray_vox, z_begin, z_end, &z_hit, &grad);
+      // A measurement on the edge of the observed field is not marched from: the march seldom
+      // finds a surface there, and then mostly centimetres from where the frame measured, which
+      // is where the next frame's measurements associate (docs/engine.md, departure 4).
+      const Newton newton = use_hint
+                                ? ray.newton(&reader, ray_vox, hint, z_begin, z_end, &z_hit, &grad)
+                                : Newton::kGaveUp;
+      const bool hit = newton == Newton::kHit ||
+                       (newton == Newton::kGaveUp &&
+                        ray.march(&reader, ray_vox, z_begin, z_end, &z_hit, &grad));
       if (hit) {
         vmap(x, y) = ray_cam * z_hit;
         nmap(x, y) = (R_cw * grad).normalized();

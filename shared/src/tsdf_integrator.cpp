@@ -4,10 +4,15 @@
 #include <cmath>
 #include <cstdint>
 
+#include "kinfly/lanes.h"
 #include "kinfly/numeric.h"
 #include <sstream>
 
 namespace kinfly {
+
+using lanes::Floats;
+using lanes::Ints;
+using lanes::kWidth;
 
 std::string TsdfIntegrator::Params::validate(float voxel_size_m) const {
   std::ostringstream why;
@@ -36,6 +41,15 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
   // direct-mapped cache: neighbouring pixels share their blocks); the short candidate lists are
   // then allocated serially, in chunk order, so the block order does not depend on the threads.
   const float sample_step_m = 0.5f * volume->blockSizeM();
+  // Samples are placed in block units (block b spans [b, b + 1) per axis): along a pixel's ray
+  // that is one multiply-add per sample, without the rotation and division of
+  // TsdfVolume::blockOf.
+  const float blocks_per_m = 1.f / volume->blockSizeM();
+  const Eigen::Vector3f origin_blk = t_wc * blocks_per_m;
+  // Every band gets the same number of samples, enough for the full band (2 mu along the ray);
+  // one cut short by the near limit is only sampled more densely. A count fixed per frame also
+  // keeps the sample loop's branch predictable.
+  const int samples = 1 + static_cast<int>(std::ceil(2.f * mu / sample_step_m));
   const int stride = params_.allocation_stride_px;
   const int rows = (depth_m.height() + stride - 1) / stride;
 #pragma omp parallel for schedule(dynamic, 1) if (parallel)
@@ -53,10 +67,11 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
         const Eigen::Vector3f ray = camera.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
         const float ray_len = ray.norm();
         const float z0 = std::max(d - mu / ray_len, 1e-3f), z1 = d + mu / ray_len;
-        const int samples = 1 + static_cast<int>(std::ceil((z1 - z0) * ray_len / sample_step_m));
+        const Eigen::Vector3f ray_blk = R_wc * ray * blocks_per_m;  // blocks per metre of depth
+        const float dz = (z1 - z0) / static_cast<float>(samples);
         for (int i = 0; i <= samples; ++i) {
-          const float z = z0 + (z1 - z0) * static_cast<float>(i) / static_cast<float>(samples);
-          const BlockIndex b = volume->blockOf(R_wc * (ray * z) + t_wc);
+          const Eigen::Vector3f p_blk = origin_blk + ray_blk * (z0 + dz * static_cast<float>(i));
+          const BlockIndex b(floorToInt(p_blk.x()), floorToInt(p_blk.y()), floorToInt(p_blk.z()));
           BlockIndex& slot = recent[hashBlockIndex(b) % kRecentBlocks];
           if (slot == b) continue;
           slot = b;
@@ -86,6 +101,8 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
   const float vs = volume->voxelSizeM();
   const Eigen::Matrix3f R_step = R * vs;  // camera-frame offset of one voxel along x, y, z
   const float max_weight = params_.max_weight;
+  const float width = static_cast<float>(depth_m.width());
+  const float height = static_cast<float>(depth_m.height());
   const int n = static_cast<int>(touched_.size());
 #pragma omp parallel for schedule(dynamic, 16) if (parallel)
   for (int i = 0; i < n; ++i) {
@@ -96,19 +113,33 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
         const Eigen::Vector3f row_cam = origin_cam + R_step.col(1) * static_cast<float>(y) +
                                         R_step.col(2) * static_cast<float>(z);
         Voxel* voxel = &blk->voxels[VoxelBlock::linear(0, y, z)];
-        for (int x = 0; x < kBlockSide; ++x) {
-          const Eigen::Vector3f p = row_cam + R_step.col(0) * static_cast<float>(x);
-          if (p.z() <= 0.f) continue;
-          const float inv_z = 1.f / p.z();
-          const float xn = p.x() * inv_z, yn = p.y() * inv_z;
-          const int u = roundToInt(camera.fx * xn + camera.cx);
-          const int v = roundToInt(camera.fy * yn + camera.cy);
-          if (u < 0 || v < 0 || u >= depth_m.width() || v >= depth_m.height()) continue;
-          const float d = depth_m(u, v);
-          if (d <= 0.f) continue;
-          // Signed distance along the pixel ray, as KinFu computes it (depth scaled by lambda minus range).
-          const float sdf_m = (d - p.z()) * std::sqrt(1.f + xn * xn + yn * yn);
-          updateVoxel(&voxel[x], sdf_m, mu, max_weight);
+        // Four voxels of the row at a time up to their pixel and ray scale: the division and
+        // square root of each voxel cost as much for four lanes as for one.
+        static_assert(kBlockSide % kWidth == 0, "block rows split into groups of four");
+        for (int x0 = 0; x0 < kBlockSide; x0 += kWidth) {
+          const Floats xs = lanes::coordinate<Floats>(x0);
+          const Floats px = row_cam.x() + R_step(0, 0) * xs;
+          const Floats py = row_cam.y() + R_step(1, 0) * xs;
+          const Floats pz = row_cam.z() + R_step(2, 0) * xs;
+          const Floats inv_z = 1.f / pz;
+          const Floats xn = px * inv_z, yn = py * inv_z;
+          const Floats uf = camera.fx * xn + camera.cx, vf = camera.fy * yn + camera.cy;
+          // Pixel coordinates round half away from zero (as roundToInt); only (-0.5, size) can
+          // round into the image, and converting nothing else keeps the conversion defined.
+          const Ints near = (pz > 0.f) & (uf > -0.5f) & (vf > -0.5f) & (uf < width) &
+                            (vf < height);
+          const Ints u = lanes::truncate((near ? uf : 0.f) + 0.5f);
+          const Ints v = lanes::truncate((near ? vf : 0.f) + 0.5f);
+          const Ints inside = near & (u < depth_m.width()) & (v < depth_m.height());
+          // Signed distance along the pixel ray, as KinFu computes it (depth scaled by lambda
+          // minus range): the ray's scale here, the depth per voxel below.
+          const Floats ray_scale = lanes::sqrt(1.f + xn * xn + yn * yn);
+          for (int l = 0; l < kWidth; ++l) {
+            if (!inside[l]) continue;
+            const float d = depth_m(u[l], v[l]);
+            if (d <= 0.f) continue;
+            updateVoxel(&voxel[x0 + l], (d - pz[l]) * ray_scale[l], mu, max_weight);
+          }
         }
       }
   }

@@ -18,6 +18,52 @@ constexpr float kConversionTolM = 1e-6f;
 
 DepthPreprocessor::Params defaultParams() { return DepthPreprocessor::Params(); }
 
+// Calls f(vertex, normal, row) for each of the frame's packed points of one level.
+template <typename F>
+void forEachPoint(const PackedPoints& points, F f) {
+  for (int y = 0; y < static_cast<int>(points.row_count.size()); ++y)
+    for (int i = 0; i < points.row_count[y]; ++i)
+      f(Eigen::Vector3f(points.vx(i, y), points.vy(i, y), points.vz(i, y)),
+        Eigen::Vector3f(points.nx(i, y), points.ny(i, y), points.nz(i, y)), y);
+}
+
+// A level's maps by the per-pixel definitions, from the frame's depth at that level.
+struct Maps {
+  Image<Eigen::Vector3f> vertex, normal;
+};
+Maps definitionMaps(const DepthFrame& frame, int l) {
+  const PinholeCamera& c = frame.camera[l];
+  Maps maps{Image<Eigen::Vector3f>(c.width, c.height), Image<Eigen::Vector3f>(c.width, c.height)};
+  computeVertexMap(frame.depth_m[l], c, maps.vertex);
+  computeNormalMap(maps.vertex, maps.normal);
+  return maps;
+}
+
+// The packed points are exactly the pixels of `maps` with a vertex and a normal, row by row in
+// column order, bit for bit (a copy). Returns how many there are.
+int expectPackedAreValidPixels(const PackedPoints& points, const Maps& maps, int level) {
+  int total = 0;
+  for (int y = 0; y < maps.vertex.height(); ++y) {
+    int i = 0;
+    for (int x = 0; x < maps.vertex.width(); ++x) {
+      const Eigen::Vector3f& v = maps.vertex(x, y);
+      const Eigen::Vector3f& n = maps.normal(x, y);
+      if (!isValid(v) || !isValid(n)) continue;
+      EXPECT_LT(i, points.row_count[y]) << "level " << level << " row " << y;
+      if (i >= points.row_count[y]) return total;
+      const bool same = points.vx(i, y) == v.x() && points.vy(i, y) == v.y() &&
+                        points.vz(i, y) == v.z() && points.nx(i, y) == n.x() &&
+                        points.ny(i, y) == n.y() && points.nz(i, y) == n.z();
+      EXPECT_TRUE(same) << "level " << level << " pixel " << x << "," << y;
+      if (!same) return total;
+      ++i;
+    }
+    EXPECT_EQ(i, points.row_count[y]) << "level " << level << " row " << y;
+    total += i;
+  }
+  return total;
+}
+
 TEST(DepthPreprocessor, ConvertsWithScaleAndClampsRange) {
   const PinholeCamera cam = test::tumCamera();
   DepthPreprocessor::Params params = defaultParams();
@@ -62,9 +108,8 @@ TEST(DepthPreprocessor, AllZeroFrameHasNoValidPixels) {
   for (int l = 0; l < kPyramidLevels; ++l) {
     for (int i = 0; i < frame.depth_m[l].numPixels(); ++i) {
       ASSERT_EQ(frame.depth_m[l].data()[i], 0.f);
-      ASSERT_FALSE(isValid(frame.vertex_cam[l].data()[i]));
-      ASSERT_FALSE(isValid(frame.normal_cam[l].data()[i]));
     }
+    for (const int count : frame.points[l].row_count) ASSERT_EQ(count, 0);
   }
 }
 
@@ -168,8 +213,8 @@ TEST(DepthPreprocessor, PyramidSizesAndCameras) {
     EXPECT_EQ(frame.camera[l].cy, expected.cy);
     EXPECT_EQ(frame.depth_m[l].width(), cam.width >> l);
     EXPECT_EQ(frame.depth_m[l].height(), cam.height >> l);
-    EXPECT_EQ(frame.vertex_cam[l].width(), cam.width >> l);
-    EXPECT_EQ(frame.normal_cam[l].height(), cam.height >> l);
+    EXPECT_GE(frame.points[l].vx.width(), cam.width >> l);
+    EXPECT_EQ(frame.points[l].row_count.size(), static_cast<size_t>(cam.height >> l));
   }
 }
 
@@ -211,10 +256,11 @@ TEST(DepthPreprocessor, VertexMapIsBackProjection) {
   pre.process(plane.raw, &frame);
   for (int l = 0; l < kPyramidLevels; ++l) {
     const PinholeCamera& c = frame.camera[l];
+    const Maps maps = definitionMaps(frame, l);
     for (int y = 0; y < c.height; ++y) {
       for (int x = 0; x < c.width; ++x) {
         const float d = frame.depth_m[l](x, y);
-        const Eigen::Vector3f& v = frame.vertex_cam[l](x, y);
+        const Eigen::Vector3f& v = maps.vertex(x, y);
         if (d == 0.f) {
           ASSERT_FALSE(isValid(v));
           continue;
@@ -250,16 +296,14 @@ TEST(DepthPreprocessor, NormalMapOfPlaneIsPlaneNormal) {
   for (int l = 0; l < kPyramidLevels; ++l) {
     int valid = 0, within = 0;
     Eigen::Vector3f sum = Eigen::Vector3f::Zero();
-    for (int i = 0; i < frame.normal_cam[l].numPixels(); ++i) {
-      const Eigen::Vector3f& nm = frame.normal_cam[l].data()[i];
-      if (!isValid(nm)) continue;
+    forEachPoint(frame.points[l], [&](const Eigen::Vector3f& v, const Eigen::Vector3f& nm, int) {
       ++valid;
-      ASSERT_NEAR(nm.norm(), 1.f, 1e-5f);
-      ASSERT_LT(nm.dot(frame.vertex_cam[l].data()[i]), 0.f) << "normal must face the camera";
+      EXPECT_NEAR(nm.norm(), 1.f, 1e-5f);
+      EXPECT_LT(nm.dot(v), 0.f) << "normal must face the camera";
       within += test::angleDeg(nm, n) < kPixelAngleTolDeg;
       sum += nm;
-    }
-    ASSERT_GT(valid, frame.normal_cam[l].numPixels() / 2);
+    });
+    ASSERT_GT(valid, frame.camera[l].width * frame.camera[l].height / 2);
     EXPECT_GT(static_cast<double>(within) / valid, kMinFractionWithin) << "level " << l;
     EXPECT_LT(test::angleDeg(sum, n), kMeanAngleTolDeg) << "level " << l;
   }
@@ -292,35 +336,9 @@ TEST(DepthPreprocessor, PackedPointsAreTheValidPixelsInRowOrder) {
   DepthFrame frame(pre.camera());
   pre.process(plane.raw, &frame);
   for (int l = 0; l < kPyramidLevels; ++l) {
-    const PackedPoints& points = frame.points[l];
-    int total = 0;
-    for (int y = 0; y < frame.camera[l].height; ++y) {
-      int i = 0;
-      for (int x = 0; x < frame.camera[l].width; ++x) {
-        const Eigen::Vector3f& v = frame.vertex_cam[l](x, y);
-        const Eigen::Vector3f& n = frame.normal_cam[l](x, y);
-        if (!isValid(v) || !isValid(n)) continue;
-        ASSERT_LT(i, points.row_count[y]) << "level " << l << " row " << y;
-        // A copy, so bit for bit.
-        ASSERT_EQ(points.vx(i, y), v.x());
-        ASSERT_EQ(points.vy(i, y), v.y());
-        ASSERT_EQ(points.vz(i, y), v.z());
-        ASSERT_EQ(points.nx(i, y), n.x());
-        ASSERT_EQ(points.ny(i, y), n.y());
-        ASSERT_EQ(points.nz(i, y), n.z());
-        ++i;
-      }
-      ASSERT_EQ(i, points.row_count[y]) << "level " << l << " row " << y;
-      total += i;
-    }
+    const int total = expectPackedAreValidPixels(frame.points[l], definitionMaps(frame, l), l);
     EXPECT_GT(total, frame.camera[l].width * frame.camera[l].height / 2) << "level " << l;
   }
-}
-
-// Same float, or both NaN (invalid vertices and normals).
-bool sameFloat(float a, float b) { return a == b || (std::isnan(a) && std::isnan(b)); }
-bool sameVector(const Eigen::Vector3f& a, const Eigen::Vector3f& b) {
-  return sameFloat(a.x(), b.x()) && sameFloat(a.y(), b.y()) && sameFloat(a.z(), b.z());
 }
 
 TEST(DepthPreprocessor, FrameMatchesPerPixelDefinitionsBitForBit) {
@@ -359,13 +377,8 @@ TEST(DepthPreprocessor, FrameMatchesPerPixelDefinitionsBitForBit) {
                 << x << "," << y;
           }
         }
-        Image<Eigen::Vector3f> vertex(c.width, c.height), normal(c.width, c.height);
-        computeVertexMap(frame.depth_m[l], c, vertex);
-        computeNormalMap(vertex, normal);
-        for (int i = 0; i < vertex.numPixels(); ++i) {
-          ASSERT_TRUE(sameVector(frame.vertex_cam[l].data()[i], vertex.data()[i])) << "level " << l;
-          ASSERT_TRUE(sameVector(frame.normal_cam[l].data()[i], normal.data()[i])) << "level " << l;
-        }
+        expectPackedAreValidPixels(frame.points[l], definitionMaps(frame, l), l);
+        ASSERT_FALSE(HasFailure()) << "radius " << radius << " width " << c.width;
       }
     }
   }
@@ -401,10 +414,12 @@ TEST(DepthPreprocessor, DownsampleTwoGivesQvgaWithScaledIntrinsics) {
   // principal point off by half a (level-1) pixel puts points ~1.3 mm off this slope at 1.5 m.
   constexpr float kOnPlaneTolM = 1e-3f;
   for (int l = 0; l < kPyramidLevels; ++l) {
-    EXPECT_EQ(frame.vertex_cam[l].width(), 320 >> l);
+    EXPECT_EQ(frame.camera[l].width, 320 >> l);
+    // The vertices the frame's points are made of (the bit-for-bit test above ties them).
+    const Maps maps = definitionMaps(frame, l);
     for (int y = 4; y < frame.camera[l].height - 4; y += 2) {
       for (int x = 4; x < frame.camera[l].width - 4; x += 2) {
-        const Eigen::Vector3f& v = frame.vertex_cam[l](x, y);
+        const Eigen::Vector3f& v = maps.vertex(x, y);
         ASSERT_TRUE(isValid(v));
         ASSERT_NEAR(n.dot(v), offset, kOnPlaneTolM) << "level " << l << " " << x << "," << y;
       }

@@ -198,7 +198,7 @@ TEST_F(IcpFixture, SerialAndParallelSystemsAgree) {
   }
 }
 
-// The system as the seed's equations say, one pixel at a time from the vertex and normal maps,
+// The system as the seed's equations say, one point at a time from the frame's points,
 // summed in double: what the vectorised builder must reproduce.
 IcpSystem referenceSystem(const DepthFrame& current, const ModelMaps& model, int level,
                           const Eigen::Matrix3f& R, const Eigen::Vector3f& t, float gate_m,
@@ -206,11 +206,11 @@ IcpSystem referenceSystem(const DepthFrame& current, const ModelMaps& model, int
   const PinholeCamera& cam = model.camera[level];
   const float sigma_1m = kinectNoiseSigmaM(1.f);
   IcpSystem s;
-  for (int y = 0; y < current.vertex_cam[level].height(); ++y) {
-    for (int x = 0; x < current.vertex_cam[level].width(); ++x) {
-      const Eigen::Vector3f& v = current.vertex_cam[level](x, y);
-      const Eigen::Vector3f& n = current.normal_cam[level](x, y);
-      if (!isValid(v) || !isValid(n)) continue;
+  const PackedPoints& points = current.points[level];
+  for (int y = 0; y < static_cast<int>(points.row_count.size()); ++y) {
+    for (int pt = 0; pt < points.row_count[y]; ++pt) {
+      const Eigen::Vector3f v(points.vx(pt, y), points.vy(pt, y), points.vz(pt, y));
+      const Eigen::Vector3f n(points.nx(pt, y), points.ny(pt, y), points.nz(pt, y));
       ++s.valid_points;
       const Eigen::Vector3f p = R * v + t;
       if (p.z() <= 0.f) continue;

@@ -1,5 +1,5 @@
 // Stage 1-4 of the seed: raw depth -> metres with a validity mask, bilateral filter, 3-level
-// discontinuity-aware pyramid, vertex and normal maps per level.
+// discontinuity-aware pyramid, vertices and normals per level (packed for the tracker).
 #pragma once
 
 #include <Eigen/Core>
@@ -45,9 +45,9 @@ struct DepthFrame {
   std::array<PinholeCamera, kPyramidLevels> camera;
   Image<float> raw_depth_m;                               // level 0, unfiltered: integrated into the TSDF
   std::array<Image<float>, kPyramidLevels> depth_m;       // bilateral-filtered, then pyramid
-  std::array<Image<Eigen::Vector3f>, kPyramidLevels> vertex_cam;  // [m] camera frame
-  std::array<Image<Eigen::Vector3f>, kPyramidLevels> normal_cam;  // unit, facing the camera
-  std::array<PackedPoints, kPyramidLevels> points;  // the valid pixels of vertex_cam, normal_cam
+  // The pixels of depth_m with a vertex and a normal (computeVertexMap, computeNormalMap), packed;
+  // no per-pixel maps are kept, since nothing reads them.
+  std::array<PackedPoints, kPyramidLevels> points;
 };
 
 struct PreprocessResult {
@@ -116,10 +116,9 @@ void computeVertexMap(ImageView<const float> depth_m, const PinholeCamera& camer
                       ImageView<Eigen::Vector3f> vertex_cam);
 void computeNormalMap(ImageView<const Eigen::Vector3f> vertex_cam,
                       ImageView<Eigen::Vector3f> normal_cam);
-// Both maps of one level in one pass over its depth image, exactly as the two functions above
-// give them, and the valid points packed for the tracker.
-void computeVertexNormalMaps(ImageView<const float> depth_m, const PinholeCamera& camera,
-                             ImageView<Eigen::Vector3f> vertex_cam,
-                             ImageView<Eigen::Vector3f> normal_cam, PackedPoints* points);
+// The pixels of one level where both maps above are valid, packed for the tracker, in one pass
+// over its depth image: vertices and normals exactly as the two functions give them.
+void computePackedPoints(ImageView<const float> depth_m, const PinholeCamera& camera,
+                         PackedPoints* points);
 
 }  // namespace kinfly

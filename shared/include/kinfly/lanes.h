@@ -1,4 +1,5 @@
-// Four-lane helpers for the per-pixel kernels of preprocessing and tracking.
+// Four-lane helpers for the per-pixel and per-voxel kernels of preprocessing, tracking and
+// integration.
 #pragma once
 
 #include <cmath>

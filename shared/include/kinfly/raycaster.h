@@ -66,6 +66,12 @@ class Raycaster {
   PinholeCamera camera_;
   Params params_;
   Image<Eigen::Vector2f> tile_range_;  // per tile: [near, far] depth of allocated blocks
+  // Pixel (x, y)'s ray at unit depth is (ray_x_[x], ray_y_[y], 1) in the camera frame: tabulated,
+  // because the divisions of a back-projection would start every ray's chain of dependent steps.
+  std::vector<float> ray_x_, ray_y_;
+  // Per raycast, the same ray in voxel units in the world frame, split into a column and a row
+  // term: R (ray_x, 0, 0) / voxel and R (0, ray_y, 1) / voxel.
+  std::vector<Eigen::Vector3f> column_vox_, row_vox_;
 };
 
 }  // namespace kinfly

@@ -48,12 +48,6 @@ constexpr auto kPollPeriod = 50ms;  // longest any thread sleeps before looking 
 std::atomic<bool> g_stop{false};
 void onSignal(int) { g_stop = true; }
 
-int64_t wallUtime() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
-
 int8_t trackingCode(TrackingStatus status) {
   switch (status) {
     case TrackingStatus::kFirstFrame: return odometry_t::TRACKING_FIRST;
@@ -181,7 +175,7 @@ class Link {
   // Ends run() after it has sent the keyframes still queued; called by the odometry thread.
   void stop() { stop_ = true; }
 
-  const link::RejectCounters rejects() const {
+  link::RejectCounters rejects() const {
     link::RejectCounters all = rejects_;
     if (corrections_) all += corrections_->rejects();
     return all;
@@ -207,14 +201,11 @@ class Link {
       spdlog::warn("link: correction ignored: no key loaded (vehicle.key_file)");
       return;
     }
-    const int64_t accepted_before = corrections_->accepted();
-    const link::RejectCounters before = corrections_->rejects();
-    const auto correction = corrections_->receive(rbuf->data, rbuf->data_size, wallUtime());
-    if (!correction) {
-      if (corrections_->rejects().total() > before.total())
-        spdlog::warn("link: correction rejected (rejections so far: {})",
-                     corrections_->rejects().total());
-      (void)accepted_before;
+    const auto correction =
+        corrections_->receive(rbuf->data, rbuf->data_size, link::wallClockUtime());
+    if (!correction) {  // every refusal is counted by the receiver
+      spdlog::warn("link: correction rejected (rejections so far: {})",
+                   corrections_->rejects().total());
       return;
     }
     std::lock_guard<std::mutex> lock(anchor_->mutex);
@@ -251,7 +242,7 @@ class Link {
 
   void publishStatus() {
     status_t s;
-    s.utime = wallUtime();
+    s.utime = link::wallClockUtime();
     s.vehicle_id = config_.vehicle_id;
     s.source = status_t::SOURCE_DRONE;
     const double elapsed_s =
@@ -441,7 +432,9 @@ int main(int argc, char** argv) {
     odometry.residual_m = r.rmse_m;
     odometry.reset_counter = reset_counter;
     link.publishOdometry(odometry);
-    trajectory.push_back({static_cast<double>(r.utime) * 1e-6, T_world_cam});
+    // Kept only when asked for (replays and tests): in flight it would grow without bound.
+    if (!config.trajectory_out.empty())
+      trajectory.push_back({static_cast<double>(r.utime) * 1e-6, T_world_cam});
     if (keyframe) {
       // The job's previous buffer comes back from the queue on the next push: no allocation.
       if (job.depth.width() != capture.depth.width() ||

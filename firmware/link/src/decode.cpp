@@ -180,7 +180,8 @@ DecodeResult decodeMessage(const void* data, size_t size, const DecodeBounds& bo
                 std::to_string(size) + " of " + std::to_string(expected) + " bytes");
   if (size > expected)
     return fail(DecodeStatus::kTrailingBytes,
-                std::to_string(size) + " bytes for a " + std::to_string(expected) + "-byte message");
+                std::to_string(size) + " bytes for a " + std::to_string(expected) +
+                    "-byte message");
   if (out->decode(data, 0, static_cast<int>(size)) != static_cast<int>(size))
     return fail(DecodeStatus::kTruncated, "decoder stopped early");
   if (std::string why = fieldProblem(*out, bounds); !why.empty())

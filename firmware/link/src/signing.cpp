@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -46,6 +47,12 @@ struct FileDescriptor {
 };
 
 }  // namespace
+
+int64_t wallClockUtime() {
+  return std::chrono::duration_cast<std::chrono::microseconds>(
+             std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
 
 uint32_t keyIdOf(const std::array<uint8_t, kKeyBytes>& bytes) {
   ensureSodium();

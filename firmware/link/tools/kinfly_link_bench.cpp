@@ -46,12 +46,6 @@ constexpr auto kStatusPeriod = std::chrono::milliseconds(100);  // status_t at 1
 std::atomic<bool> g_stop{false};
 void onSignal(int) { g_stop = true; }
 
-int64_t wallUtime() {
-  return std::chrono::duration_cast<std::chrono::microseconds>(
-             std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
-
 int fail(const std::string& message) {
   std::cerr << "kinfly-link-bench: error: " << message << "\n";
   return 1;
@@ -112,7 +106,8 @@ class DroneEnd {
     if (!parsed) {
       ++rejects_.unknown_channel;
     } else if (parsed->channel == link::Channel::kCorrection) {
-      if (corrections_) corrections_->receive(rbuf->data, rbuf->data_size, wallUtime());
+      if (corrections_)
+        corrections_->receive(rbuf->data, rbuf->data_size, link::wallClockUtime());
       else ++rejects_.unsigned_messages;  // without a key nothing can be authenticated
     }
     // Everything else on our channels is our own traffic looping back, or the ground's status.
@@ -158,7 +153,8 @@ int runDrone(const Options& options) {
   PinholeCamera camera;
   depth_keyframe_t keyframe;
   std::vector<double> payload_bytes;
-  const std::string keyframe_channel = link::channelName(link::Channel::kKeyframe, options.vehicle_id);
+  const std::string keyframe_channel =
+      link::channelName(link::Channel::kKeyframe, options.vehicle_id);
   const std::string status_channel = link::channelName(link::Channel::kStatus, options.vehicle_id);
   const auto frame_period = std::chrono::duration_cast<Clock::duration>(
       std::chrono::duration<double>(1.0 / options.rate_hz));
@@ -180,7 +176,8 @@ int runDrone(const Options& options) {
       const CodecResult r =
           link::encodeDepth(codec, raw, camera, 1.0 / kTumDepthUnitsPerMetre, &keyframe);
       if (!r.ok()) return fail(std::string("cannot encode frame: ") + toString(r.status));
-      keyframe.utime = wallUtime();  // stamped after encoding: the latency is the link's alone
+      // Stamped after encoding: the latency measured is the link's alone.
+      keyframe.utime = link::wallClockUtime();
       lcm.publish(keyframe_channel, &keyframe);
       payload_bytes.push_back(static_cast<double>(keyframe.payload_size));
       ++sent;
@@ -188,7 +185,7 @@ int runDrone(const Options& options) {
     }
     if (Clock::now() >= next_status) {
       status_t status;
-      status.utime = wallUtime();
+      status.utime = link::wallClockUtime();
       status.vehicle_id = options.vehicle_id;
       status.source = status_t::SOURCE_DRONE;
       status.keyframe_rate_hz = static_cast<float>(options.rate_hz);
@@ -218,7 +215,7 @@ class GroundEnd {
       : codec_(DepthCodec::Params()), reference_(std::move(reference)) {}
 
   void onMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
-    const int64_t now = wallUtime();
+    const int64_t now = link::wallClockUtime();
     const auto parsed = link::parseChannel(channel);
     if (!parsed) {
       ++rejects_.unknown_channel;

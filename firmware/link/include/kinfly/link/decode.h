@@ -21,7 +21,8 @@ namespace kinfly::link {
 struct DecodeBounds {
   int max_width_px = 1280;               // [px] (0, 8192]
   int max_height_px = 1024;              // [px] (0, 8192]
-  int max_keyframe_payload_bytes = 8 << 20;  // [bytes] (0, 64 MiB]; a raw 1280x1024 frame is 2.5 MiB
+  // [bytes] (0, 64 MiB]; a raw 1280x1024 frame is 2.5 MiB
+  int max_keyframe_payload_bytes = 8 << 20;
   int max_signed_payload_bytes = 4096;   // [bytes] (0, 1 MiB]; corrections are ~100 bytes
   std::string validate() const;          // empty when valid, else what is wrong
 };

@@ -78,6 +78,10 @@ class Verifier {
   std::optional<int64_t> last_sequence_;
 };
 
+// [us] since the Unix epoch: the clock signing times are stamped with and checked against (both
+// ends must keep it synchronised, e.g. with chrony).
+int64_t wallClockUtime();
+
 // HMAC-SHA256 over the envelope's fields and the payload, as the layout in docs/wire.md.
 std::array<uint8_t, 32> computeMac(const Key& key, int32_t vehicle_id, int64_t sequence,
                                    int64_t utime, const uint8_t* payload, size_t size);

@@ -61,7 +61,7 @@ int8_t trackingCode(TrackingStatus status) {
 // Counters shared by the threads; each is written by one thread and read by the link's status.
 struct Counters {
   std::atomic<int64_t> frames_captured{0}, frames_skipped{0}, frames_processed{0},
-      frames_lost{0}, keyframes_selected{0}, keyframes_sent{0}, keyframes_dropped{0},
+      frames_lost{0}, keyframes_sent{0}, keyframes_dropped{0},
       corrections_unknown{0};
   std::atomic<int8_t> tracking{odometry_t::TRACKING_NONE};
   std::atomic<bool> capture_done{false};
@@ -446,7 +446,6 @@ int main(int argc, char** argv) {
       job.keyframe_id = next_keyframe_id++;
       job.T_world_cam = T_world_cam;
       job.tracking = trackingCode(r.status);
-      ++counters.keyframes_selected;
       if (!keyframe_queue.push(job)) spdlog::warn("link busy: oldest keyframe dropped");
     }
   }

@@ -50,6 +50,12 @@ std::unique_ptr<TsdfVolume> makeVolume(bool dense, const Pose& T_world_cam) {
 
 float truncationFor(bool dense) { return dense ? kDenseTruncationM : kHashedTruncationM; }
 
+TsdfIntegrator integratorFor(bool dense) {
+  TsdfIntegrator::Params params;
+  params.truncation_m = truncationFor(dense);
+  return TsdfIntegrator(params);
+}
+
 struct Stats {
   int hits = 0;
   std::vector<double> depth_err_m;
@@ -113,9 +119,7 @@ TEST_P(IntegrateRaycast, NoisyPlaneRaycastsAtPlaneDepth) {
   const PinholeCamera cam = test::tumCamera();
   const Pose T_world_cam = Pose::Identity();
   auto volume = makeVolume(dense, T_world_cam);
-  TsdfIntegrator::Params ip;
-  ip.truncation_m = truncationFor(dense);
-  TsdfIntegrator integrator(ip);
+  TsdfIntegrator integrator = integratorFor(dense);
   Image<uint16_t> raw(cam.width, cam.height);
   Image<float> depth(cam.width, cam.height);
   for (int frame = 0; frame < kNoisyFrames; ++frame) {
@@ -129,7 +133,7 @@ TEST_P(IntegrateRaycast, NoisyPlaneRaycastsAtPlaneDepth) {
 
   Raycaster raycaster(cam, Raycaster::Params());
   ModelMaps maps(cam);
-  const RaycastResult rr = raycaster.raycast(*volume, ip.truncation_m, T_world_cam, &maps);
+  const RaycastResult rr = raycaster.raycast(*volume, truncationFor(dense), T_world_cam, &maps);
   const Stats s = compare(maps, truth, plane.n);
   EXPECT_GE(rr.hits, s.hits);
   // Border pixels may lack an observed 8-voxel neighbourhood; everything else must hit.
@@ -157,16 +161,14 @@ TEST_P(IntegrateRaycast, ExactPlaneGivesExactSurfaceAndNormals) {
   const Pose T_world_cam =
       test::makePose(Eigen::Vector3d(0.02, -0.03, 0.01), Eigen::Vector3d(0.05, -0.02, 0.1));
   auto volume = makeVolume(dense, T_world_cam);
-  TsdfIntegrator::Params ip;
-  ip.truncation_m = truncationFor(dense);
-  TsdfIntegrator integrator(ip);
+  TsdfIntegrator integrator = integratorFor(dense);
   Image<float> depth(cam.width, cam.height);
   scene.renderDepth(cam, T_world_cam, test::kRenderMaxDepthM, depth);
   integrator.integrate(depth, cam, T_world_cam, volume.get());
 
   Raycaster raycaster(cam, Raycaster::Params());
   ModelMaps maps(cam);
-  const RaycastResult rr = raycaster.raycast(*volume, ip.truncation_m, T_world_cam, &maps);
+  const RaycastResult rr = raycaster.raycast(*volume, truncationFor(dense), T_world_cam, &maps);
   EXPECT_GT(rr.hit_fraction, 0.9f);
   const Eigen::Vector3f n_cam = T_world_cam.linear().cast<float>().transpose() * plane.n;
   const Stats s = compare(maps, depth, n_cam);
@@ -195,9 +197,7 @@ TEST_P(IntegrateRaycast, HintedRaycastAgreesWithFullMarch) {
   const PinholeCamera cam = test::tumCamera();
   const Pose T_world_cam = Pose::Identity();
   auto volume = makeVolume(dense, T_world_cam);
-  TsdfIntegrator::Params ip;
-  ip.truncation_m = truncationFor(dense);
-  TsdfIntegrator integrator(ip);
+  TsdfIntegrator integrator = integratorFor(dense);
   Image<uint16_t> raw(cam.width, cam.height);
   Image<float> depth(cam.width, cam.height);
   for (int frame = 0; frame < kNoisyFrames; ++frame) {
@@ -214,8 +214,8 @@ TEST_P(IntegrateRaycast, HintedRaycastAgreesWithFullMarch) {
 
   Raycaster raycaster(cam, Raycaster::Params());
   ModelMaps full(cam), hinted(cam);
-  raycaster.raycast(*volume, ip.truncation_m, T_world_cam, &full);
-  raycaster.raycast(*volume, ip.truncation_m, T_world_cam, &hinted, depth);
+  raycaster.raycast(*volume, truncationFor(dense), T_world_cam, &full);
+  raycaster.raycast(*volume, truncationFor(dense), T_world_cam, &hinted, depth);
 
   // Ground truth: exact depth, and normals from it (exact on the planes, away from edges).
   Image<float> truth(cam.width, cam.height);
@@ -280,11 +280,9 @@ TEST(TsdfIntegrator, VoxelsHoldSignedDistanceOverTruncation) {
   Image<float> depth(cam.width, cam.height);
   scene.renderDepth(cam, Pose::Identity(), test::kRenderMaxDepthM, depth);
   HashedVolume volume(HashedVolume::Params{});
-  TsdfIntegrator::Params ip;
-  ip.truncation_m = kHashedTruncationM;
-  TsdfIntegrator integrator(ip);
+  TsdfIntegrator integrator = integratorFor(/*dense=*/false);
   integrator.integrate(depth, cam, Pose::Identity(), &volume);
-  const float mu = ip.truncation_m;
+  const float mu = kHashedTruncationM;
   for (int gx = -5; gx <= 5; ++gx) {
     for (int gy = -5; gy <= 5; ++gy) {
       for (int gz = 140; gz <= 160; ++gz) {

@@ -11,11 +11,10 @@ set -euo pipefail
 
 repo_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
-# libopencv-dev (the metapackage) is deliberately absent: it pulls in GTK and Qt.
 apt_packages=(
   build-essential cmake ninja-build pkg-config
-  libeigen3-dev libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev
-  libgtest-dev libgmock-dev libbenchmark-dev libcli11-dev libzstd-dev
+  libeigen3-dev libpng-dev
+  libgtest-dev libgmock-dev libbenchmark-dev libcli11-dev libspdlog-dev libzstd-dev
   # make fuzz: clang with libFuzzer, and clang's OpenMP runtime (the project configures whole)
   clang libclang-rt-14-dev libomp-14-dev
   python3 python3-venv python3-dev

@@ -2,6 +2,7 @@
 #include <vector>
 
 #include "depth_source.h"
+#include "kinfly/png_io.h"
 #include "kinfly/tum_dataset.h"
 
 namespace kinfly::fw {

@@ -10,9 +10,6 @@
 #include <sstream>
 #include <sys/stat.h>
 
-#include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
-
 namespace kinfly {
 
 namespace {
@@ -53,21 +50,6 @@ std::string readTumDepthList(const std::string& dir, std::vector<TumDepthEntry>*
     entries->push_back(std::move(e));
   }
   if (entries->empty()) return list + ": lists no depth images";
-  return {};
-}
-
-std::string loadDepthPng(const std::string& path, Image<uint16_t>* out) {
-  const cv::Mat img = cv::imread(path, cv::IMREAD_UNCHANGED);
-  if (img.empty()) return path + ": cannot read image (missing or not a PNG)";
-  if (img.depth() != CV_16U || img.channels() != 1) {
-    std::ostringstream why;
-    why << path << ": depth must be a 16-bit single-channel PNG (got " << img.elemSize1() * 8
-        << "-bit, " << img.channels() << " channel(s))";
-    return why.str();
-  }
-  if (out->width() != img.cols || out->height() != img.rows) *out = Image<uint16_t>(img.cols, img.rows);
-  for (int y = 0; y < img.rows; ++y)
-    std::memcpy(out->view().row(y), img.ptr<uint16_t>(y), static_cast<size_t>(img.cols) * sizeof(uint16_t));
   return {};
 }
 

@@ -14,6 +14,7 @@
 
 #include "kinfly/depth_codec.h"
 #include "kinfly/image.h"
+#include "kinfly/png_io.h"
 #include "kinfly/tum_dataset.h"
 #include "percentile.h"
 

@@ -1,8 +1,6 @@
 // kinfly-fuse: offline KinectFusion over a recorded TUM RGB-D sequence. Writes the camera
 // trajectory, a mesh of the fused map and per-stage timing statistics.
 #include <CLI/CLI.hpp>
-#include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <omp.h>
 #include <sys/resource.h>
 
@@ -24,6 +22,7 @@
 #include "kinfly/marching_cubes.h"
 #include "kinfly/mesh.h"
 #include "kinfly/tsdf_volume.h"
+#include "kinfly/png_io.h"
 #include "kinfly/tum_dataset.h"
 #include "percentile.h"
 
@@ -193,8 +192,8 @@ int main(int argc, char** argv) {
   const std::string render_path = opt.out_dir + "/render.png";
   kinfly::Image<uint8_t> render(pipeline.camera().width, pipeline.camera().height, 0);
   pipeline.renderShaded(render.view());
-  if (!cv::imwrite(render_path, cv::Mat(render.height(), render.width(), CV_8UC1, render.data())))
-    return fail("cannot write " + render_path);
+  if (std::string why = kinfly::writeGrayPng(render_path, render.view()); !why.empty())
+    return fail(why);
 
   std::fprintf(stderr, "meshing %zu blocks...\n", volume->numAllocatedBlocks());
   const kinfly::TriangleMesh mesh = kinfly::MarchingCubes(kinfly::MarchingCubes::Params()).extract(*volume);

@@ -32,6 +32,7 @@
 #include "kinfly/link/decode.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
+#include "kinfly/png_io.h"
 #include "kinfly/tum_dataset.h"
 #include "percentile.h"
 

@@ -17,6 +17,7 @@
 #include "kinfly/link/conversions.h"
 #include "kinfly/odometry_t.hpp"
 #include "kinfly/pose_t.hpp"
+#include "kinfly/png_io.h"
 #include "kinfly/tum_dataset.h"
 
 namespace {

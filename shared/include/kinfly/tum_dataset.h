@@ -7,7 +7,6 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/image.h"
 #include "kinfly/se3.h"
 
 namespace kinfly {
@@ -24,9 +23,6 @@ struct StampedPose {
 
 // Reads DIR/depth.txt ("timestamp filename" per line, '#' comments). Empty string on success.
 std::string readTumDepthList(const std::string& dir, std::vector<TumDepthEntry>* entries);
-
-// Loads a 16-bit single-channel PNG into `out` (reallocated only when the size changes).
-std::string loadDepthPng(const std::string& path, Image<uint16_t>* out);
 
 // TUM trajectory: "t tx ty tz qx qy qz qw" per line, camera-to-world.
 std::string readTumTrajectory(const std::string& path, std::vector<StampedPose>* poses);

@@ -19,6 +19,8 @@ apt_packages=(
   clang libclang-rt-14-dev libomp-14-dev
   python3 python3-venv python3-dev
   liblcm-dev liblcm-bin libsodium-dev libzstd-dev iproute2
+  # kinfly-fw's depth sensors: OpenNI2 (with its PS1080 and file drivers) and libusb for hot-plug
+  libopenni2-dev libusb-1.0-0-dev
 )
 
 log() { echo "[install-deps] $*"; }

@@ -10,16 +10,38 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--vehicle.id", c->vehicle_id, "vehicle id [0, 65535]")->capture_default_str();
   app->add_option("--vehicle.key_file", c->key_file, "signing key (kinfly-keygen), mode 0600")
       ->capture_default_str();
-  app->add_option("--source.kind", c->source_kind, "log | dataset")->capture_default_str();
-  app->add_option("--source.path", c->source_path, "LCM log (log) or TUM folder (dataset)");
+  app->add_option("--source.kind", c->source_kind, "log | dataset | openni | synthetic")
+      ->capture_default_str();
+  app->add_option("--source.path", c->source_path,
+                  "LCM log (log), TUM folder (dataset), device URI or .oni file (openni; empty: "
+                  "the first sensor found)");
   app->add_option("--source.realtime", c->source_realtime,
                   "replay at the recorded rate (false: as fast as possible)")
       ->capture_default_str();
-  app->add_option("--source.intrinsics", c->source_intrinsics, "dataset: fx,fy,cx,cy");
+  app->add_option("--source.speed", c->source_speed, "replay rate factor when realtime")
+      ->capture_default_str();
+  app->add_option("--source.intrinsics", c->source_intrinsics,
+                  "fx,fy,cx,cy (empty: the source's own)");
   app->add_option("--source.depth_units_per_m", c->source_depth_units_per_m,
                   "dataset: raw depth units per metre")
       ->capture_default_str();
+  app->add_option("--source.width", c->source_width_px, "openni, synthetic: image width [px]")
+      ->capture_default_str();
+  app->add_option("--source.height", c->source_height_px, "openni, synthetic: image height [px]")
+      ->capture_default_str();
+  app->add_option("--source.rate_hz", c->source_rate_hz, "synthetic: frame rate [Hz]")
+      ->capture_default_str();
+  app->add_option("--source.seed", c->source_seed, "synthetic: noise seed")->capture_default_str();
   app->add_option("--source.max_frames", c->source_max_frames, "stop after N frames (0: never)")
+      ->capture_default_str();
+  app->add_option("--source.reconnect_min_s", c->source_reconnect_min_s,
+                  "openni: first retry after losing the sensor [s]; doubles up to the max")
+      ->capture_default_str();
+  app->add_option("--source.reconnect_max_s", c->source_reconnect_max_s,
+                  "openni: longest interval between retries [s]")
+      ->capture_default_str();
+  app->add_option("--source.stall_timeout_s", c->sensor.stall_timeout_s,
+                  "no frame this long: the sensor counts as stalled [s]")
       ->capture_default_str();
   app->add_option("--odometry.downsample", c->odometry_downsample, "1, 2 or 4")
       ->capture_default_str();
@@ -46,6 +68,8 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "keyframes whose onboard pose is kept for corrections")
       ->capture_default_str();
   app->add_option("--output.trajectory", c->trajectory_out, "TUM trajectory written at exit");
+  app->add_option("--output.ground_truth", c->ground_truth_out,
+                  "TUM file of the source's true poses, written at exit (synthetic)");
   app->add_option("--output.log_level", c->log_level)->capture_default_str();
 }
 
@@ -58,12 +82,25 @@ std::string FirmwareConfig::validate() const {
           << value << ")";
   };
   range("vehicle.id", vehicle_id, 0, link::kMaxVehicleId, false);
-  if (why.tellp() == 0 && source_kind != "log" && source_kind != "dataset")
-    why << "source.kind must be log or dataset (got \"" << source_kind << "\")";
-  if (why.tellp() == 0 && source_path.empty())
+  if (why.tellp() == 0 && source_kind != "log" && source_kind != "dataset" &&
+      source_kind != "openni" && source_kind != "synthetic")
+    why << "source.kind must be log, dataset, openni or synthetic (got \"" << source_kind
+        << "\")";
+  if (why.tellp() == 0 && source_path.empty() &&
+      (source_kind == "log" || source_kind == "dataset"))
     why << "source.path is required for source.kind = " << source_kind;
+  range("source.speed", source_speed, 0, 100, true);
   range("source.depth_units_per_m", source_depth_units_per_m, 0, 1e6, true);
+  range("source.width", source_width_px, 16, 4096, false);
+  range("source.height", source_height_px, 16, 4096, false);
+  range("source.rate_hz", source_rate_hz, 0, 1000, true);
+  range("source.seed", source_seed, 0, 2147483647, false);
   range("source.max_frames", source_max_frames, 0, 1e9, false);
+  range("source.reconnect_min_s", source_reconnect_min_s, 0.01, 60, false);
+  range("source.reconnect_max_s", source_reconnect_max_s, source_reconnect_min_s, 600, false);
+  if (why.tellp() == 0) {
+    if (std::string w = sensor.validate(); !w.empty()) why << w;
+  }
   if (why.tellp() == 0 && odometry_downsample != 1 && odometry_downsample != 2 &&
       odometry_downsample != 4)
     why << "odometry.downsample must be 1, 2 or 4 (got " << odometry_downsample << ")";

@@ -62,6 +62,28 @@ float intersectBox(const Eigen::Vector3f& lo, const Eigen::Vector3f& hi,
 
 }  // namespace
 
+SyntheticScene SyntheticScene::cornerRoom() {
+  SyntheticScene scene;
+  scene.addPlane(Eigen::Vector3f(0.f, -1.f, 0.f), -0.9f);  // floor y = 0.9 (free side: y < 0.9)
+  scene.addPlane(Eigen::Vector3f(0.f, 0.f, -1.f), -3.0f);  // back wall z = 3.0
+  scene.addPlane(Eigen::Vector3f(1.f, 0.f, 0.f), -1.4f);   // left wall x = -1.4
+  scene.addBox(Eigen::Vector3f(0.45f, 0.55f, 2.1f), Eigen::Vector3f(0.25f, 0.35f, 0.25f));
+  scene.addSphere(Eigen::Vector3f(-0.45f, 0.25f, 1.9f), 0.3f);
+  return scene;
+}
+
+Pose lookAtPose(const Eigen::Vector3d& eye, const Eigen::Vector3d& target) {
+  const Eigen::Vector3d z = (target - eye).normalized();
+  const Eigen::Vector3d x = Eigen::Vector3d::UnitY().cross(z).normalized();
+  const Eigen::Vector3d y = z.cross(x);
+  Pose T = Pose::Identity();
+  T.linear().col(0) = x;
+  T.linear().col(1) = y;
+  T.linear().col(2) = z;
+  T.translation() = eye;
+  return T;
+}
+
 void SyntheticScene::addPlane(const Eigen::Vector3f& normal, float offset_m) {
   const float norm = normal.norm();
   planes_.push_back({normal / norm, offset_m / norm});

@@ -61,7 +61,7 @@ def test_log_replay_matches_the_offline_engine(sample_log: Path, sample_dir: Pat
     (["--vehicle.id", "70000"], "vehicle.id must be in [0, 65535]"),
     (["--odometry.downsample", "3"], "odometry.downsample must be 1, 2 or 4"),
     (["--keyframe.min_interval_s", "5"], "keyframe.min_interval_s"),
-    (["--source.kind", "camera"], "source.kind must be log or dataset"),
+    (["--source.kind", "camera"], "source.kind must be log, dataset, openni or synthetic"),
     (["--link.status_rate_hz", "0"], "link.status_rate_hz"),
     (["--output.log_level", "loud"], "output.log_level"),
 ])

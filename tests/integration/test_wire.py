@@ -63,6 +63,8 @@ def samples() -> dict[type, object]:
     st.depth_rate_hz, st.odometry_rate_hz, st.keyframe_rate_hz = 30.0, 29.5, 5.25
     st.frames_captured, st.queue_drops, st.keyframes_sent, st.keyframes_dropped = 9000, 12, 1500, 4
     st.tracking_state, st.link_state = odometry_t.TRACKING_OK, status_t.LINK_UP
+    st.sensor_state, st.sensor_connects, st.sensor_stalls = status_t.SENSOR_STALLED, 2, 3
+    st.frames_skipped, st.frames_lost = 11, 13
     (st.rejected_unsigned, st.rejected_wrong_key, st.rejected_bad_mac, st.rejected_stale,
      st.rejected_replayed, st.rejected_malformed, st.rejected_unknown_channel,
      st.rejected_wrong_vehicle) = range(1, 9)

@@ -1,5 +1,5 @@
-// The firmware's logic: the drop-oldest capture queue, keyframe selection and re-anchoring of the
-// odometry by ground corrections.
+// The firmware's logic: the drop-oldest capture queue, keyframe selection, re-anchoring of the
+// odometry by ground corrections, the sensor watch and log throttling.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -7,9 +7,12 @@
 #include <thread>
 #include <vector>
 
+#include "kinfly/fw/backoff.h"
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/fw/keyframe_selector.h"
+#include "kinfly/fw/log_throttle.h"
+#include "kinfly/fw/sensor_watch.h"
 #include "kinfly/image.h"
 #include "test_util.h"
 
@@ -165,6 +168,69 @@ TEST(CorrectionAnchor, UnknownAndOutOfOrderCorrectionsAreRefused) {
   EXPECT_EQ(anchor.apply(4, poseAt(0.9), 2), CorrectionAnchor::Outcome::kOutOfOrder);
   EXPECT_LT(poseError(anchor.T_world_odom(), before), kPoseTolerance);
   EXPECT_EQ(anchor.resetCounter(), 1);
+}
+
+TEST(SensorWatch, AStallIsCountedOnceAndItsLengthReportedWhenFramesResume) {
+  SensorWatch::Params p;
+  p.stall_timeout_s = 1.0;
+  SensorWatch watch(p);
+  EXPECT_EQ(watch.update(0.0, -1.0, false, false), SensorWatch::Change::kNone);
+  EXPECT_EQ(watch.update(0.5, 0.4, false, false), SensorWatch::Change::kNone);
+  EXPECT_EQ(watch.update(1.3, 0.4, false, false), SensorWatch::Change::kNone);  // 0.9 s: not yet
+  EXPECT_EQ(watch.update(1.5, 0.4, false, false), SensorWatch::Change::kStalled);
+  EXPECT_EQ(watch.state(), SensorWatch::State::kStalled);
+  EXPECT_EQ(watch.update(3.0, 0.4, false, false), SensorWatch::Change::kNone);  // same stall
+  EXPECT_EQ(watch.update(3.2, 3.1, false, false), SensorWatch::Change::kResumed);
+  EXPECT_NEAR(watch.lastStallS(), 2.7, 1e-9);
+  EXPECT_EQ(watch.stalls(), 1);
+  EXPECT_EQ(watch.update(5.0, 3.1, false, false), SensorWatch::Change::kStalled);
+  EXPECT_EQ(watch.stalls(), 2);
+}
+
+TEST(SensorWatch, NoFirstFrameWithinTheTimeoutIsAStall) {
+  SensorWatch watch(SensorWatch::Params{});
+  EXPECT_EQ(watch.update(10.0, -1.0, false, false), SensorWatch::Change::kNone);
+  EXPECT_EQ(watch.update(11.5, -1.0, false, false), SensorWatch::Change::kStalled);
+}
+
+TEST(SensorWatch, WaitingForTheDeviceAndTheEndAreNotStalls) {
+  SensorWatch watch(SensorWatch::Params{});
+  EXPECT_EQ(watch.update(0.0, -1.0, true, false), SensorWatch::Change::kWaiting);
+  EXPECT_EQ(watch.update(30.0, -1.0, true, false), SensorWatch::Change::kNone);
+  EXPECT_EQ(watch.state(), SensorWatch::State::kWaiting);
+  EXPECT_EQ(watch.update(30.1, 30.05, false, false), SensorWatch::Change::kNone);
+  EXPECT_EQ(watch.state(), SensorWatch::State::kStreaming);
+  EXPECT_EQ(watch.update(40.0, 30.05, false, true), SensorWatch::Change::kEnded);
+  EXPECT_EQ(watch.update(41.0, 30.05, false, true), SensorWatch::Change::kNone);
+  EXPECT_EQ(watch.stalls(), 0);
+}
+
+TEST(SensorWatch, ValidateNamesTheBadValue) {
+  SensorWatch::Params p;
+  p.stall_timeout_s = 0.0;
+  EXPECT_NE(p.validate().find("source.stall_timeout_s"), std::string::npos);
+}
+
+TEST(LogThrottle, FirstThenAtMostOncePerPeriodWithTheCountLeftOut) {
+  LogThrottle throttle(1.0);
+  EXPECT_TRUE(throttle.allow(0.0));
+  EXPECT_EQ(throttle.suppressed(), 0);
+  for (int i = 1; i <= 9; ++i) EXPECT_FALSE(throttle.allow(0.1 * i));
+  EXPECT_TRUE(throttle.allow(1.0));
+  EXPECT_EQ(throttle.suppressed(), 9);
+  EXPECT_TRUE(throttle.allow(5.0));
+  EXPECT_EQ(throttle.suppressed(), 0);
+}
+
+TEST(Backoff, DoublesUpToTheCeilingAndStartsOverAfterAReset) {
+  Backoff backoff(0.5, 3.0);
+  EXPECT_DOUBLE_EQ(backoff.next(), 0.5);
+  EXPECT_DOUBLE_EQ(backoff.next(), 1.0);
+  EXPECT_DOUBLE_EQ(backoff.next(), 2.0);
+  EXPECT_DOUBLE_EQ(backoff.next(), 3.0);
+  EXPECT_DOUBLE_EQ(backoff.next(), 3.0);
+  backoff.reset();
+  EXPECT_DOUBLE_EQ(backoff.next(), 0.5);
 }
 
 }  // namespace

@@ -28,18 +28,9 @@ inline double radToDeg(double rad) { return rad * 180.0 / kPi; }
 // The TUM freiburg3 camera of PinholeCamera's defaults, 640x480.
 inline PinholeCamera tumCamera() { return PinholeCamera(); }
 
-// A room corner in front of the first camera (camera at the origin looking along +z, y down):
-// floor, back wall and left wall, with a box standing on the floor and a sphere in front.
-// Three non-parallel planes fix translation; box and sphere add structure for rotation.
-inline SyntheticScene cornerScene() {
-  SyntheticScene scene;
-  scene.addPlane(Eigen::Vector3f(0.f, -1.f, 0.f), -0.9f);  // floor y = 0.9 (free side: y < 0.9)
-  scene.addPlane(Eigen::Vector3f(0.f, 0.f, -1.f), -3.0f);  // back wall z = 3.0
-  scene.addPlane(Eigen::Vector3f(1.f, 0.f, 0.f), -1.4f);   // left wall x = -1.4
-  scene.addBox(Eigen::Vector3f(0.45f, 0.55f, 2.1f), Eigen::Vector3f(0.25f, 0.35f, 0.25f));
-  scene.addSphere(Eigen::Vector3f(-0.45f, 0.25f, 1.9f), 0.3f);
-  return scene;
-}
+// The corner room of shared/ (SyntheticScene::cornerRoom), also what kinfly-fw's synthetic source
+// flies in.
+inline SyntheticScene cornerScene() { return SyntheticScene::cornerRoom(); }
 
 // Pose from a rotation vector (axis * angle, radians) and a translation.
 inline Pose makePose(const Eigen::Vector3d& rotation_vector, const Eigen::Vector3d& t) {
@@ -50,17 +41,8 @@ inline Pose makePose(const Eigen::Vector3d& rotation_vector, const Eigen::Vector
   return T;
 }
 
-// Camera at `eye` looking at `target`, image y as close to world +y (down) as possible.
 inline Pose lookAt(const Eigen::Vector3d& eye, const Eigen::Vector3d& target) {
-  const Eigen::Vector3d z = (target - eye).normalized();
-  const Eigen::Vector3d x = Eigen::Vector3d::UnitY().cross(z).normalized();
-  const Eigen::Vector3d y = z.cross(x);
-  Pose T = Pose::Identity();
-  T.linear().col(0) = x;
-  T.linear().col(1) = y;
-  T.linear().col(2) = z;
-  T.translation() = eye;
-  return T;
+  return lookAtPose(eye, target);
 }
 
 // A random rigid motion with exactly the given translation length and rotation angle.

@@ -106,6 +106,11 @@ status_t sampleStatus() {
   m.keyframes_dropped = 4;
   m.tracking_state = odometry_t::TRACKING_OK;
   m.link_state = status_t::LINK_UP;
+  m.sensor_state = status_t::SENSOR_STALLED;
+  m.sensor_connects = 2;
+  m.sensor_stalls = 3;
+  m.frames_skipped = 11;
+  m.frames_lost = 13;
   m.rejected_unsigned = 1;
   m.rejected_wrong_key = 2;
   m.rejected_bad_mac = 3;

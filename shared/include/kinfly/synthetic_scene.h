@@ -16,6 +16,11 @@ namespace kinfly {
 
 class SyntheticScene {
  public:
+  // A room corner in front of a camera at the origin looking along +z (y down): floor, back wall
+  // and left wall, with a box standing on the floor and a sphere in front. Three non-parallel
+  // planes fix translation; box and sphere add structure for rotation.
+  static SyntheticScene cornerRoom();
+
   // Plane {p : n.p = offset}; the side n points to is free space.
   void addPlane(const Eigen::Vector3f& normal, float offset_m);
   void addSphere(const Eigen::Vector3f& centre_m, float radius_m);
@@ -44,5 +49,8 @@ class SyntheticScene {
   std::vector<Sphere> spheres_;
   std::vector<Box> boxes_;
 };
+
+// Camera at `eye` looking at `target`, image y as close to world +y (down) as possible.
+Pose lookAtPose(const Eigen::Vector3d& eye, const Eigen::Vector3d& target);
 
 }  // namespace kinfly

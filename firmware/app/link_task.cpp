@@ -1,0 +1,186 @@
+#include "link_task.h"
+
+#include <spdlog/spdlog.h>
+
+#include "kinfly/link/channels.h"
+#include "kinfly/link/conversions.h"
+
+namespace kinfly::fw {
+
+LinkTask::LinkTask(const FirmwareConfig& config, Publisher* publisher,
+                   std::optional<link::Key> key, SharedAnchor* anchor, Counters* counters,
+                   BoundedQueue<KeyframeJob>* keyframes,
+                   const BoundedQueue<DepthCapture>* capture_queue, const PinholeCamera& camera,
+                   double depth_scale_m)
+    : config_(config), publisher_(publisher), anchor_(anchor), counters_(counters),
+      keyframes_(keyframes), capture_queue_(capture_queue), camera_(camera),
+      depth_scale_m_(depth_scale_m), codec_(DepthCodec::Params()), watch_(config.sensor) {
+  if (key) {
+    link::VerifierParams verifier;
+    verifier.window_s = config.signing_window_s;
+    corrections_.emplace(*key, config.vehicle_id, verifier, link::DecodeBounds());
+  }
+  status_.vehicle_id = config.vehicle_id;
+  status_.source = status_t::SOURCE_DRONE;
+  publisher_->lcm().subscribe(link::vehicleChannelsRegex(config.vehicle_id),
+                              &LinkTask::onMessage, this);
+}
+
+void LinkTask::run() {
+  const auto status_period = std::chrono::duration_cast<Clock::duration>(
+      std::chrono::duration<double>(1.0 / config_.status_rate_hz));
+  Clock::time_point next_status = Clock::now();
+  KeyframeJob job;
+  while (!stop_) {
+    publisher_->lcm().handleTimeout(10);
+    while (keyframes_->pop(&job, std::chrono::milliseconds(0))) send(job);
+    if (Clock::now() >= next_status) {
+      watchSensor();
+      publishStatus();
+      next_status += status_period;
+    }
+  }
+  // What the odometry selected before it stopped still goes out (at most a queue's worth).
+  while (keyframes_->pop(&job, std::chrono::milliseconds(0))) send(job);
+  watchSensor();
+  publishStatus();
+}
+
+link::RejectCounters LinkTask::rejects() const {
+  link::RejectCounters all = rejects_;
+  if (corrections_) all += corrections_->rejects();
+  return all;
+}
+
+void LinkTask::onMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+  const double now_s = secondsSince(began_);
+  const auto parsed = link::parseChannel(channel);
+  if (!parsed) {
+    ++rejects_.unknown_channel;
+    if (reject_log_.allow(now_s)) spdlog::warn("link: message on unknown channel {}", channel);
+    return;
+  }
+  if (parsed->channel == link::Channel::kGroundStatus) {
+    last_ground_heard_ = Clock::now();
+    return;
+  }
+  if (parsed->channel != link::Channel::kCorrection) return;  // our own traffic, looped back
+  last_ground_heard_ = Clock::now();
+  if (!corrections_) {
+    ++rejects_.unsigned_messages;
+    if (reject_log_.allow(now_s))
+      spdlog::warn("link: correction ignored: no key loaded (vehicle.key_file)");
+    return;
+  }
+  const int64_t rejected_before = corrections_->rejects().total();
+  const auto correction =
+      corrections_->receive(rbuf->data, rbuf->data_size, link::wallClockUtime());
+  if (!correction) {  // the receiver counts every refusal by its reason
+    if (reject_log_.allow(now_s))
+      spdlog::warn("link: correction rejected ({} rejected in all, by reason in the status)",
+                   rejected_before + 1);
+    return;
+  }
+  std::lock_guard<std::mutex> lock(anchor_->mutex);
+  const Pose corrected = link::readPose(correction->position_m, correction->orientation_xyzw);
+  const auto outcome =
+      anchor_->anchor.apply(correction->keyframe_id, corrected, correction->reset_counter);
+  if (outcome != CorrectionAnchor::Outcome::kApplied) {
+    ++counters_->corrections_unknown;
+    spdlog::warn("link: correction of keyframe {} not applied: {}", correction->keyframe_id,
+                 outcome == CorrectionAnchor::Outcome::kUnknownKeyframe
+                     ? "unknown keyframe"
+                     : "older than one already applied");
+  }
+}
+
+void LinkTask::send(const KeyframeJob& job) {
+  depth_keyframe_t& m = message_;
+  m.utime = job.utime;
+  m.vehicle_id = config_.vehicle_id;
+  m.frame_id = job.frame_id;
+  m.keyframe_id = job.keyframe_id;
+  link::writePose(job.T_world_cam, m.position_m, m.orientation_xyzw);
+  m.tracking_status = job.tracking;
+  const CodecResult r = link::encodeDepth(codec_, job.depth, camera_, depth_scale_m_, &m);
+  if (!r.ok()) {
+    ++counters_->keyframes_failed;
+    spdlog::error("link: keyframe {} not encoded: {}", job.keyframe_id, toString(r.status));
+    return;
+  }
+  if (!publisher_->publish(link::Channel::kKeyframe, m)) {
+    ++counters_->keyframes_failed;
+    if (send_log_.allow(secondsSince(began_)))
+      spdlog::warn("link: keyframe {} not sent: LCM could not send it (network down?); {} "
+                   "more since the last report",
+                   job.keyframe_id, send_log_.suppressed());
+    return;
+  }
+  ++counters_->keyframes_sent;
+}
+
+void LinkTask::watchSensor() {
+  // Both on the steady clock's own epoch, as the capture thread stamps frames.
+  const int64_t last_ns = counters_->last_frame_ns;
+  const double now_s = std::chrono::duration<double>(Clock::now().time_since_epoch()).count();
+  const double last_s = last_ns < 0 ? -1.0 : static_cast<double>(last_ns) * 1e-9;
+  switch (watch_.update(now_s, last_s, counters_->sensor_waiting, counters_->capture_done)) {
+    case SensorWatch::Change::kStalled:
+      spdlog::warn("sensor: no depth frame for {:.1f} s (stall {})",
+                   config_.sensor.stall_timeout_s, watch_.stalls());
+      break;
+    case SensorWatch::Change::kResumed:
+      spdlog::info("sensor: frames again after a {:.1f} s stall", watch_.lastStallS());
+      break;
+    default: break;
+  }
+}
+
+void LinkTask::publishStatus() {
+  status_t& s = status_;
+  s.utime = link::wallClockUtime();
+  const double elapsed_s = secondsSince(rate_window_start_);
+  if (elapsed_s >= 1.0) {
+    const auto rate = [elapsed_s](int64_t now, int64_t before) {
+      return static_cast<float>(static_cast<double>(now - before) / elapsed_s);
+    };
+    depth_rate_hz_ = rate(counters_->frames_captured, captured_at_window_);
+    odometry_rate_hz_ = rate(counters_->frames_processed, processed_at_window_);
+    keyframe_rate_hz_ = rate(counters_->keyframes_sent, sent_at_window_);
+    captured_at_window_ = counters_->frames_captured;
+    processed_at_window_ = counters_->frames_processed;
+    sent_at_window_ = counters_->keyframes_sent;
+    rate_window_start_ = Clock::now();
+  }
+  s.depth_rate_hz = depth_rate_hz_;
+  s.odometry_rate_hz = odometry_rate_hz_;
+  s.keyframe_rate_hz = keyframe_rate_hz_;
+  s.frames_captured = counters_->frames_captured;
+  s.queue_drops = capture_queue_->dropped();
+  s.keyframes_sent = counters_->keyframes_sent;
+  s.keyframes_dropped = counters_->keyframes_failed + keyframes_->dropped();
+  s.tracking_state = counters_->tracking;
+  const auto since = Clock::now() - last_ground_heard_;
+  s.link_state = last_ground_heard_ == Clock::time_point()
+                     ? status_t::LINK_UNKNOWN
+                     : (since <= std::chrono::duration<double>(config_.link_timeout_s)
+                            ? status_t::LINK_UP
+                            : status_t::LINK_STALE);
+  switch (watch_.state()) {
+    case SensorWatch::State::kStreaming: s.sensor_state = status_t::SENSOR_STREAMING; break;
+    case SensorWatch::State::kWaiting: s.sensor_state = status_t::SENSOR_WAITING; break;
+    case SensorWatch::State::kStalled: s.sensor_state = status_t::SENSOR_STALLED; break;
+    case SensorWatch::State::kEnded: s.sensor_state = status_t::SENSOR_ENDED; break;
+  }
+  s.sensor_connects = counters_->sensor_connects;
+  s.sensor_stalls = watch_.stalls();
+  s.frames_skipped = counters_->frames_skipped;
+  s.frames_lost = counters_->frames_lost;
+  rejects().writeTo(&s);
+  s.corrections_accepted = accepted() - counters_->corrections_unknown;
+  s.corrections_unknown_keyframe = counters_->corrections_unknown;
+  if (!publisher_->publish(link::Channel::kStatus, s) && send_log_.allow(secondsSince(began_)))
+    spdlog::warn("link: status not sent: LCM could not send it (network down?)");
+}
+
+}  // namespace kinfly::fw

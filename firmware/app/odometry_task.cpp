@@ -1,0 +1,118 @@
+#include "odometry_task.h"
+
+#include <omp.h>
+#include <spdlog/spdlog.h>
+
+#include "kinfly/link/conversions.h"
+
+namespace kinfly::fw {
+
+int8_t trackingCode(TrackingStatus status) {
+  switch (status) {
+    case TrackingStatus::kFirstFrame: return odometry_t::TRACKING_FIRST;
+    case TrackingStatus::kOk: return odometry_t::TRACKING_OK;
+    case TrackingStatus::kLost: return odometry_t::TRACKING_LOST;
+    case TrackingStatus::kGivenPose: return odometry_t::TRACKING_GIVEN;
+  }
+  return odometry_t::TRACKING_NONE;
+}
+
+std::string OdometryTask::engineParams(const FirmwareConfig& config, const PinholeCamera& camera,
+                                       double depth_scale_m, DenseVolume::Params* volume,
+                                       FusionPipeline::Params* pipeline) {
+  if (camera.width % config.odometry_downsample != 0 ||
+      camera.height % config.odometry_downsample != 0)
+    return "odometry.downsample " + std::to_string(config.odometry_downsample) +
+           " does not divide the " + std::to_string(camera.width) + "x" +
+           std::to_string(camera.height) + " image";
+  volume->resolution_vox = config.odometry_volume_vox;
+  volume->voxel_size_m = static_cast<float>(config.odometry_voxel_m);
+  pipeline->preprocess.depth_scale_m = depth_scale_m;
+  pipeline->preprocess.downsample = config.odometry_downsample;
+  pipeline->integrate.truncation_m = 4.f * volume->voxel_size_m;
+  if (std::string why = volume->validate(); !why.empty()) return why;
+  return pipeline->validate(volume->voxel_size_m);
+}
+
+OdometryTask::OdometryTask(const FirmwareConfig& config, const PinholeCamera& camera,
+                           const DenseVolume::Params& volume,
+                           const FusionPipeline::Params& pipeline, Publisher* publisher,
+                           SharedAnchor* anchor, Counters* counters,
+                           BoundedQueue<DepthCapture>* frames,
+                           BoundedQueue<KeyframeJob>* keyframes)
+    : config_(config), volume_(volume), pipeline_(camera, pipeline, &volume_),
+      selector_(config.keyframe), publisher_(publisher), anchor_(anchor), counters_(counters),
+      frames_(frames), keyframes_(keyframes), job_{Image<uint16_t>(camera.width, camera.height)} {
+  odometry_.vehicle_id = config.vehicle_id;
+  truth_.vehicle_id = config.vehicle_id;
+}
+
+void OdometryTask::run() {
+  // OpenMP's thread count is a per-thread setting: a new thread starts from OMP_NUM_THREADS or
+  // the core count, not from what main() set.
+  omp_set_num_threads(config_.odometry_threads);
+  DepthCapture capture;
+  while (!g_stop) {
+    if (!frames_->pop(&capture, kPollPeriod)) {
+      if (counters_->capture_done && frames_->size() == 0) break;
+      continue;
+    }
+    process(capture);
+  }
+}
+
+void OdometryTask::process(const DepthCapture& capture) {
+  const FrameResult r = pipeline_.processFrame(capture.depth.view(), capture.utime);
+  ++counters_->frames_processed;
+  counters_->tracking = trackingCode(r.status);
+  if (r.status == TrackingStatus::kLost) {
+    ++counters_->frames_lost;
+    if (lost_log_.allow(secondsSince(began_)))
+      spdlog::warn("odometry: frame {} lost: {} ({} more lost since the last report)",
+                   capture.frame_id, r.lost_reason, lost_log_.suppressed());
+  }
+  const bool keyframe = selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction);
+  Pose T_world_cam;
+  {
+    std::lock_guard<std::mutex> lock(anchor_->mutex);
+    if (keyframe) anchor_->anchor.rememberKeyframe(next_keyframe_id_, r.T_world_cam);
+    T_world_cam = anchor_->anchor.toWorld(r.T_world_cam);
+    odometry_.reset_counter = anchor_->anchor.resetCounter();
+  }
+  odometry_.utime = r.utime;
+  odometry_.frame_id = capture.frame_id;
+  link::writePose(T_world_cam, odometry_.position_m, odometry_.orientation_xyzw);
+  odometry_.tracking_status = trackingCode(r.status);
+  odometry_.inlier_fraction = r.inlier_fraction;
+  odometry_.residual_m = r.rmse_m;
+  bool published = publisher_->publish(link::Channel::kOdometry, odometry_);
+  if (capture.has_ground_truth) {
+    truth_.utime = capture.utime;
+    link::writePose(capture.T_world_cam_truth, truth_.position_m, truth_.orientation_xyzw);
+    published = publisher_->publish(link::Channel::kGroundTruth, truth_) && published;
+    if (!config_.ground_truth_out.empty())
+      ground_truth_.push_back({static_cast<double>(r.utime) * 1e-6, capture.T_world_cam_truth});
+  }
+  if (!published && publish_log_.allow(secondsSince(began_)))
+    spdlog::warn("odometry: LCM could not send the pose ({} more since the last report)",
+                 publish_log_.suppressed());
+  if (!config_.trajectory_out.empty())
+    trajectory_.push_back({static_cast<double>(r.utime) * 1e-6, T_world_cam});
+  if (!keyframe) return;
+  ++counters_->keyframes_selected;
+  // The job's previous buffer comes back from the queue on the push: no allocation once every
+  // slot has held a keyframe of this size.
+  if (job_.depth.width() != capture.depth.width() || job_.depth.height() != capture.depth.height())
+    job_.depth = Image<uint16_t>(capture.depth.width(), capture.depth.height());
+  job_.depth.copyFrom(capture.depth.view());
+  job_.utime = r.utime;
+  job_.frame_id = capture.frame_id;
+  job_.keyframe_id = next_keyframe_id_++;
+  job_.T_world_cam = T_world_cam;
+  job_.tracking = trackingCode(r.status);
+  if (!keyframes_->push(job_) && keyframe_drop_log_.allow(secondsSince(began_)))
+    spdlog::warn("odometry: link busy, oldest keyframe dropped ({} dropped in all)",
+                 keyframes_->dropped());
+}
+
+}  // namespace kinfly::fw

@@ -1,0 +1,68 @@
+// The odometry thread: the engine at QVGA in a dense volume that follows the drone, one pose
+// published per frame, keyframe selection, keyframes handed to the link. It never waits for the
+// link: a full keyframe queue drops its oldest keyframe.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "config.h"
+#include "depth_source.h"
+#include "kinfly/fusion_pipeline.h"
+#include "kinfly/fw/bounded_queue.h"
+#include "kinfly/fw/keyframe_selector.h"
+#include "kinfly/fw/log_throttle.h"
+#include "kinfly/pose_t.hpp"
+#include "kinfly/tsdf_volume.h"
+#include "kinfly/tum_dataset.h"
+#include "publisher.h"
+#include "runtime.h"
+
+namespace kinfly::fw {
+
+class OdometryTask {
+ public:
+  // The engine's parameters for this configuration and source; empty when valid, else which
+  // value is wrong.
+  static std::string engineParams(const FirmwareConfig& config, const PinholeCamera& camera,
+                                  double depth_scale_m, DenseVolume::Params* volume,
+                                  FusionPipeline::Params* pipeline);
+
+  // Every buffer is allocated here, none per frame.
+  OdometryTask(const FirmwareConfig& config, const PinholeCamera& camera,
+               const DenseVolume::Params& volume, const FusionPipeline::Params& pipeline,
+               Publisher* publisher, SharedAnchor* anchor, Counters* counters,
+               BoundedQueue<DepthCapture>* frames, BoundedQueue<KeyframeJob>* keyframes);
+
+  // Until g_stop, or the frame queue is closed and empty.
+  void run();
+
+  // Kept only when the configuration asks for them (in flight they would grow without bound).
+  const std::vector<StampedPose>& trajectory() const { return trajectory_; }
+  const std::vector<StampedPose>& groundTruth() const { return ground_truth_; }
+
+ private:
+  void process(const DepthCapture& capture);
+
+  const FirmwareConfig& config_;
+  DenseVolume volume_;
+  FusionPipeline pipeline_;
+  KeyframeSelector selector_;
+  Publisher* publisher_;
+  SharedAnchor* anchor_;
+  Counters* counters_;
+  BoundedQueue<DepthCapture>* frames_;
+  BoundedQueue<KeyframeJob>* keyframes_;
+  odometry_t odometry_{};
+  pose_t truth_{};
+  KeyframeJob job_;
+  int64_t next_keyframe_id_ = 0;
+  Clock::time_point began_ = Clock::now();
+  LogThrottle lost_log_, publish_log_, keyframe_drop_log_;
+  std::vector<StampedPose> trajectory_, ground_truth_;
+};
+
+int8_t trackingCode(TrackingStatus status);
+
+}  // namespace kinfly::fw

@@ -1,0 +1,55 @@
+// What kinfly-fw's threads share: counters (each written by one thread, read by the link for the
+// status), the keyframe hand-over, the re-anchoring, and the stop flag.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <mutex>
+
+#include "kinfly/fw/correction_anchor.h"
+#include "kinfly/image.h"
+#include "kinfly/odometry_t.hpp"
+#include "kinfly/se3.h"
+
+namespace kinfly::fw {
+
+using Clock = std::chrono::steady_clock;
+// The longest any thread waits before looking at the stop flag again.
+constexpr std::chrono::milliseconds kPollPeriod{50};
+
+struct Counters {
+  // capture thread
+  std::atomic<int64_t> frames_captured{0}, frames_skipped{0}, sensor_connects{0};
+  std::atomic<bool> sensor_waiting{false}, capture_done{false};
+  std::atomic<int64_t> last_frame_ns{-1};  // [ns] Clock time of the last frame, -1 before one
+  // odometry thread
+  std::atomic<int64_t> frames_processed{0}, frames_lost{0}, keyframes_selected{0};
+  std::atomic<int8_t> tracking{odometry_t::TRACKING_NONE};
+  // link thread
+  std::atomic<int64_t> keyframes_sent{0}, keyframes_failed{0}, corrections_unknown{0};
+};
+
+struct KeyframeJob {
+  Image<uint16_t> depth;  // raw, full resolution: the ground fuses at full resolution
+  int64_t utime = 0, frame_id = 0, keyframe_id = 0;
+  Pose T_world_cam = Pose::Identity();
+  int8_t tracking = odometry_t::TRACKING_NONE;
+};
+
+// The re-anchoring shared by the odometry (remembers keyframes, publishes anchored poses) and
+// the link (applies corrections).
+struct SharedAnchor {
+  std::mutex mutex;
+  CorrectionAnchor anchor;
+  explicit SharedAnchor(const CorrectionAnchor::Params& p) : anchor(p) {}
+};
+
+// Set by SIGINT/SIGTERM (and by main when the source ends); every loop checks it.
+extern std::atomic<bool> g_stop;
+
+inline double secondsSince(Clock::time_point start) {
+  return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+}  // namespace kinfly::fw

@@ -251,8 +251,9 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
     if (file_) {
       openni::PlaybackControl* playback = device_.getPlaybackControl();
       playback->setRepeatEnabled(false);
-      // The capture thread paces replays itself; the file driver just hands frames over.
-      playback->setSpeed(0.0f);
+      // Manual: one frame each time the reader asks, every frame exactly once (0, "fastest",
+      // overwrites frames the reader has not taken yet). The capture thread does the pacing.
+      playback->setSpeed(-1.0f);
     }
     const openni::SensorInfo* info = device_.getSensorInfo(openni::SENSOR_DEPTH);
     if (info == nullptr) return "has no depth sensor";

@@ -8,6 +8,10 @@ function(kinfly_target_defaults target)
   # Release keeps IEEE semantics (the pipeline relies on isfinite checks), but drops errno
   # bookkeeping from sqrt and lets the vectoriser reassociate nothing it should not.
   target_compile_options(${target} PRIVATE $<$<CONFIG:Release>:-O3 -fno-math-errno>)
+  # GCC fuses a*b+c into one FMA wherever the target has it (always on aarch64, never on baseline
+  # x86-64), and where it fuses depends on the shape of the loop: the four-lane kernels would
+  # then differ from their per-pixel definitions, and the drone's trajectory from the laptop's.
+  target_compile_options(${target} PRIVATE -ffp-contract=off)
   if(KINFLY_SANITIZE)
     target_compile_options(${target} PRIVATE -fsanitize=address,undefined -fno-omit-frame-pointer
                                              -fno-sanitize-recover=undefined)

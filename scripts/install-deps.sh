@@ -21,6 +21,11 @@ apt_packages=(
   liblcm-dev liblcm-bin libsodium-dev libzstd-dev iproute2
   # kinfly-fw's depth sensors: OpenNI2 (with its PS1080 and file drivers) and libusb for hot-plug
   libopenni2-dev libusb-1.0-0-dev
+  # make firmware-aarch64 / image: the cross compiler, qemu-user for the arm64 tests, the sysroot
+  # and image builder, qemu-user-static with binfmt-support for the image's maintainer scripts,
+  # and the tools that assemble the disk image from files (no mounts)
+  g++-aarch64-linux-gnu qemu-user mmdebstrap arch-test debian-archive-keyring
+  qemu-user-static binfmt-support dosfstools mtools fdisk e2fsprogs grub-common
 )
 
 log() { echo "[install-deps] $*"; }

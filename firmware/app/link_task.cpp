@@ -14,7 +14,8 @@ LinkTask::LinkTask(const FirmwareConfig& config, Publisher* publisher,
                    double depth_scale_m)
     : config_(config), publisher_(publisher), anchor_(anchor), counters_(counters),
       keyframes_(keyframes), capture_queue_(capture_queue), camera_(camera),
-      depth_scale_m_(depth_scale_m), codec_(DepthCodec::Params()), watch_(config.sensor) {
+      depth_scale_m_(depth_scale_m), codec_(DepthCodec::Params()),
+      job_{Image<uint16_t>(camera.width, camera.height)}, watch_(config.sensor) {
   if (key) {
     link::VerifierParams verifier;
     verifier.window_s = config.signing_window_s;
@@ -22,18 +23,18 @@ LinkTask::LinkTask(const FirmwareConfig& config, Publisher* publisher,
   }
   status_.vehicle_id = config.vehicle_id;
   status_.source = status_t::SOURCE_DRONE;
-  publisher_->lcm().subscribe(link::vehicleChannelsRegex(config.vehicle_id),
-                              &LinkTask::onMessage, this);
+  lcm_subscribe(publisher_->lcm().getUnderlyingLCM(),
+                link::vehicleChannelsRegex(config.vehicle_id).c_str(), &LinkTask::onMessage,
+                this);
 }
 
 void LinkTask::run() {
   const auto status_period = std::chrono::duration_cast<Clock::duration>(
       std::chrono::duration<double>(1.0 / config_.status_rate_hz));
   Clock::time_point next_status = Clock::now();
-  KeyframeJob job;
   while (!stop_) {
     publisher_->lcm().handleTimeout(10);
-    while (keyframes_->pop(&job, std::chrono::milliseconds(0))) send(job);
+    while (keyframes_->pop(&job_, std::chrono::milliseconds(0))) send(job_);
     if (Clock::now() >= next_status) {
       watchSensor();
       publishStatus();
@@ -41,7 +42,7 @@ void LinkTask::run() {
     }
   }
   // What the odometry selected before it stopped still goes out (at most a queue's worth).
-  while (keyframes_->pop(&job, std::chrono::milliseconds(0))) send(job);
+  while (keyframes_->pop(&job_, std::chrono::milliseconds(0))) send(job_);
   watchSensor();
   publishStatus();
 }
@@ -52,7 +53,16 @@ link::RejectCounters LinkTask::rejects() const {
   return all;
 }
 
-void LinkTask::onMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel) {
+void LinkTask::onMessage(const lcm_recv_buf_t* rbuf, const char* channel, void* self) {
+  static_cast<LinkTask*>(self)->handle(rbuf, channel);
+}
+
+void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
+  // The drone's own traffic, looped back by multicast.
+  for (link::Channel own : {link::Channel::kOdometry, link::Channel::kKeyframe,
+                            link::Channel::kStatus, link::Channel::kGroundTruth,
+                            link::Channel::kImu, link::Channel::kDepth})
+    if (publisher_->channel(own) == channel) return;
   const double now_s = secondsSince(began_);
   const auto parsed = link::parseChannel(channel);
   if (!parsed) {
@@ -64,7 +74,7 @@ void LinkTask::onMessage(const lcm::ReceiveBuffer* rbuf, const std::string& chan
     last_ground_heard_ = Clock::now();
     return;
   }
-  if (parsed->channel != link::Channel::kCorrection) return;  // our own traffic, looped back
+  if (parsed->channel != link::Channel::kCorrection) return;  // another drone's traffic
   last_ground_heard_ = Clock::now();
   if (!corrections_) {
     ++rejects_.unsigned_messages;

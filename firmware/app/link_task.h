@@ -37,7 +37,10 @@ class LinkTask {
   int64_t sensorStalls() const { return watch_.stalls(); }
 
  private:
-  void onMessage(const lcm::ReceiveBuffer* rbuf, const std::string& channel);
+  // LCM's C callback: the C++ wrapper would copy every channel name into a std::string, an
+  // allocation per message, and the drone hears each of its own messages looped back.
+  static void onMessage(const lcm_recv_buf_t* rbuf, const char* channel, void* self);
+  void handle(const lcm_recv_buf_t* rbuf, const char* channel);
   void send(const KeyframeJob& job);
   void watchSensor();
   void publishStatus();
@@ -51,6 +54,7 @@ class LinkTask {
   PinholeCamera camera_;
   double depth_scale_m_;
   DepthCodec codec_;
+  KeyframeJob job_;  // swapped with the queue's slots: its image circulates, never reallocated
   depth_keyframe_t message_{};
   status_t status_{};
   std::optional<link::CorrectionReceiver> corrections_;

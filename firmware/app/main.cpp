@@ -155,8 +155,17 @@ int run(int argc, char** argv) {
 
   SharedAnchor anchor(config.corrections);
   Counters counters;
-  BoundedQueue<DepthCapture> capture_queue(static_cast<size_t>(config.capture_queue));
-  BoundedQueue<KeyframeJob> keyframe_queue(static_cast<size_t>(config.keyframe_queue));
+  // Every image the threads pass around is allocated here, none while flying.
+  BoundedQueue<DepthCapture> capture_queue(static_cast<size_t>(config.capture_queue), [&] {
+    DepthCapture capture;
+    capture.depth = Image<uint16_t>(camera.width, camera.height);
+    return capture;
+  });
+  BoundedQueue<KeyframeJob> keyframe_queue(static_cast<size_t>(config.keyframe_queue), [&] {
+    KeyframeJob job;
+    job.depth = Image<uint16_t>(camera.width, camera.height);
+    return job;
+  });
   OdometryTask odometry(config, camera, volume_params, pipeline_params, odometry_out.get(),
                         &anchor, &counters, &capture_queue, &keyframe_queue);
   LinkTask link(config, link_out.get(), key, &anchor, &counters, &keyframe_queue,

@@ -52,6 +52,7 @@ void OdometryTask::run() {
   // the core count, not from what main() set.
   omp_set_num_threads(config_.odometry_threads);
   DepthCapture capture;
+  capture.depth = Image<uint16_t>(job_.depth.width(), job_.depth.height());
   while (!g_stop) {
     if (!frames_->pop(&capture, kPollPeriod)) {
       if (counters_->capture_done && frames_->size() == 0) break;

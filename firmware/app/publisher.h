@@ -34,6 +34,9 @@ class Publisher {
   }
 
   lcm::LCM& lcm() { return lcm_; }
+  const std::string& channel(link::Channel channel) const {
+    return channels_[static_cast<size_t>(channel)];
+  }
 
  private:
   Publisher(const std::string& url, int vehicle_id);

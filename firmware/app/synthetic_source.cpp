@@ -28,7 +28,7 @@ class SyntheticSource : public DepthSource {
   double depthScaleM() const override { return kDepthScaleM; }
   std::string describe() const override {
     return "synthetic corner room, " + std::to_string(camera_.width) + "x" +
-           std::to_string(camera_.height) + " at " + std::to_string(params_.rate_hz) +
+           std::to_string(camera_.height) + " at " + std::to_string(static_cast<int>(std::lround(params_.rate_hz))) +
            " Hz, seed " + std::to_string(params_.seed);
   }
 

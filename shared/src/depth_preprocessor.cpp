@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <sstream>
+#include "parallel.h"
 
 namespace kinfly {
 
@@ -288,22 +289,20 @@ float pyrDownPixel(ImageView<const float> fine_m, int x, int y, float max_diff_m
 
 void computeVertexMap(ImageView<const float> depth_m, const PinholeCamera& camera,
                       ImageView<Eigen::Vector3f> vertex_cam) {
-#pragma omp parallel for schedule(static)
-  for (int y = 0; y < depth_m.height(); ++y) {
+  forEachStatic(depth_m.height(), [&](int y) {
     const float* d = depth_m.row(y);
     Eigen::Vector3f* v = vertex_cam.row(y);
     for (int x = 0; x < depth_m.width(); ++x) {
       const Vec3<float> p = backProject(camera, static_cast<float>(x), static_cast<float>(y), d[x]);
       v[x] = d[x] > 0.f ? Eigen::Vector3f(p.x, p.y, p.z) : invalidVector();
     }
-  }
+  });
 }
 
 void computeNormalMap(ImageView<const Eigen::Vector3f> vertex_cam,
                       ImageView<Eigen::Vector3f> normal_cam) {
   const int w = vertex_cam.width(), h = vertex_cam.height();
-#pragma omp parallel for schedule(static)
-  for (int y = 0; y < h; ++y) {
+  forEachStatic(h, [&](int y) {
     Eigen::Vector3f* n = normal_cam.row(y);
     for (int x = 0; x < w; ++x) {
       n[x] = invalidVector();
@@ -317,7 +316,7 @@ void computeNormalMap(ImageView<const Eigen::Vector3f> vertex_cam,
                                           {vy.x(), vy.y(), vy.z()}, &defined);
       if (defined) n[x] = {c.x, c.y, c.z};
     }
-  }
+  });
 }
 
 void computePackedPoints(ImageView<const float> depth_m, const PinholeCamera& camera,
@@ -348,9 +347,8 @@ void computePackedPoints(ImageView<const float> depth_m, const PinholeCamera& ca
       lanes::store(row->x + i, p.x), lanes::store(row->y + i, p.y), lanes::store(row->z + i, p.z);
     }
   };
-#pragma omp parallel for schedule(static)
-  for (int y0 = 0; y0 < h; y0 += kBandRows) {
-    const int y1 = std::min(y0 + kBandRows, h);
+  forEachStatic((h + kBandRows - 1) / kBandRows, [&](int band) {
+    const int y0 = band * kBandRows, y1 = std::min(y0 + kBandRows, h);
     std::fill(points->row_count.begin() + y0, points->row_count.begin() + y1, 0);
     for (int x0 = 0; x0 < w; x0 += kTile) {
       const int n = std::min(kTile, w - x0);
@@ -387,7 +385,7 @@ void computePackedPoints(ImageView<const float> depth_m, const PinholeCamera& ca
         }
       }
     }
-  }
+  });
 }
 
 DepthPreprocessor::DepthPreprocessor(const PinholeCamera& input_camera, const Params& params)
@@ -402,28 +400,29 @@ PreprocessResult DepthPreprocessor::process(ImageView<const uint16_t> raw, Depth
   const int w = camera_.width, h = camera_.height;
   const float scale = static_cast<float>(params_.depth_scale_m);
   const float lo = params_.min_depth_m, hi = params_.max_depth_m;
-  int valid = 0;
   ImageView<float> raw_m = frame->raw_depth_m.view();
-#pragma omp parallel for schedule(static) reduction(+ : valid)
-  for (int y = 0; y < h; ++y) {
+  const int valid = sumStatic(h, [&](int y) {
     const uint16_t* in = raw.row(y * ds);
     float* out = raw_m.row(y);
+    int row_valid = 0;
     for (int x = 0; x < w; ++x) {
       const float d = static_cast<float>(in[x * ds]) * scale;
       const bool ok = (d >= lo) & (d <= hi) & (d > 0.f);
       out[x] = ok ? d : 0.f;
-      valid += ok;
+      row_valid += ok;
     }
-  }
+    return row_valid;
+  });
 
   ImageView<float> filtered = frame->depth_m[0].view();
   if (kernel_.radius == 0) {
     frame->depth_m[0].copyFrom(raw_m);
   } else {
     constexpr int kBandRows = 32;  // each band also weighs the radius' rows above it
-#pragma omp parallel for schedule(static)
-    for (int y = 0; y < h; y += kBandRows)
+    forEachStatic((h + kBandRows - 1) / kBandRows, [&](int band) {
+      const int y = band * kBandRows;
       bilateralBand(raw_m, y, std::min(y + kBandRows, h), kernel_, filtered);
+    });
   }
 
   const float max_diff_m = params_.pyramid_range_sigmas * params_.bilateral_sigma_range_m;
@@ -431,11 +430,11 @@ PreprocessResult DepthPreprocessor::process(ImageView<const uint16_t> raw, Depth
     ImageView<const float> fine = frame->depth_m[l - 1].view();
     ImageView<float> coarse = frame->depth_m[l].view();
     // Four coarse pixels from x use fine columns 2x - 2 .. 2x + 8; their loads touch 2x + 9.
-#pragma omp parallel for schedule(static)
-    for (int y = 0; y < coarse.height(); ++y)
+    forEachStatic(coarse.height(), [&](int y) {
       kernelRow(coarse.width(), 1, (fine.width() - 10) / 2, 2 * y >= 2 && 2 * y + 2 < fine.height(),
                 [&](int x, auto tag) { return pyrDown<decltype(tag)>(fine, x, y, max_diff_m); },
                 coarse.row(y));
+    });
   }
   for (int l = 0; l < kPyramidLevels; ++l)
     computePackedPoints(frame->depth_m[l].view(), frame->camera[l], &frame->points[l]);

@@ -29,7 +29,9 @@ FusionPipeline::FusionPipeline(const PinholeCamera& input_camera, const Params& 
       integrator_(params.integrate),
       raycaster_(preprocessor_.camera(), params.raycast),
       frame_(preprocessor_.camera()),
-      model_(preprocessor_.camera()) {}
+      model_(preprocessor_.camera()) {
+  integrator_.reserve(preprocessor_.camera().width, preprocessor_.camera().height, *volume);
+}
 
 FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, int64_t utime) {
   const auto start = std::chrono::steady_clock::now();

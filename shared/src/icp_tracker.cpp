@@ -9,6 +9,7 @@
 #include <sstream>
 
 #include "kinfly/noise_model.h"
+#include "parallel.h"
 
 namespace kinfly {
 
@@ -33,12 +34,12 @@ ModelMaps::ModelMaps(const PinholeCamera& level0_camera) {
 void ModelMaps::buildPyramid() {
   for (int l = 1; l < kPyramidLevels; ++l) {
     const int w = camera[l].width, h = camera[l].height;
-#pragma omp parallel for schedule(static)
-    for (int y = 0; y < h; ++y)
+    forEachStatic(h, [&](int y) {
       for (int x = 0; x < w; ++x) {
         vertex_ref[l](x, y) = vertex_ref[l - 1](2 * x, 2 * y);
         normal_ref[l](x, y) = normal_ref[l - 1](2 * x, 2 * y);
       }
+    });
   }
 }
 
@@ -219,8 +220,7 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
                           noise_weighting, huber_k};
   const int h = points.vx.height();
   std::array<IcpSystem, kChunks> chunks;
-#pragma omp parallel for schedule(dynamic, 1) if (parallel)
-  for (int c = 0; c < kChunks; ++c) {
+  forEachDynamic(kChunks, 1, parallel, [&](int c) {
     IcpSystem& s = chunks[c];
     s = IcpSystem();
     const int y0 = h * c / kChunks, y1 = h * (c + 1) / kChunks;
@@ -273,7 +273,7 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
       }
       s.error_sq += row[kSums - 1];
     }
-  }
+  });
   IcpSystem total;
   for (const IcpSystem& s : chunks) total.add(s);
   return total;

@@ -9,6 +9,7 @@
 
 #include "kinfly/numeric.h"
 #include "kinfly/voxel_reader.h"
+#include "parallel.h"
 
 namespace kinfly {
 
@@ -252,11 +253,9 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
   const int tile = params_.range_tile_px;
   ImageView<Eigen::Vector3f> vmap = maps->vertex_ref[0].view();
   ImageView<Eigen::Vector3f> nmap = maps->normal_ref[0].view();
-  int hits = 0;
-
-#pragma omp parallel for schedule(dynamic, 4) reduction(+ : hits)
-  for (int y = 0; y < camera_.height; ++y) {
+  const int hits = sumDynamic(camera_.height, 4, [&](int y) {
     VoxelReader reader(volume);
+    int row_hits = 0;
     for (int x = 0; x < camera_.width; ++x) {
       vmap(x, y) = invalidVector();
       nmap(x, y) = invalidVector();
@@ -284,18 +283,18 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
       if (hit) {
         vmap(x, y) = ray_cam * z_hit;
         nmap(x, y) = (R_cw * grad).normalized();
-        ++hits;
+        ++row_hits;
       }
     }
-  }
+    return row_hits;
+  });
   return {hits, static_cast<float>(hits) / static_cast<float>(camera_.width * camera_.height)};
 }
 
 void Raycaster::shade(ImageView<const Eigen::Vector3f> vertex_cam,
                       ImageView<const Eigen::Vector3f> normal_cam, ImageView<uint8_t> out) {
   constexpr float kAmbient = 0.15f;  // keeps surfaces seen edge-on distinguishable from holes
-#pragma omp parallel for schedule(static)
-  for (int y = 0; y < out.height(); ++y)
+  forEachStatic(out.height(), [&](int y) {
     for (int x = 0; x < out.width(); ++x) {
       const Eigen::Vector3f& v = vertex_cam(x, y);
       const Eigen::Vector3f& n = normal_cam(x, y);
@@ -306,6 +305,7 @@ void Raycaster::shade(ImageView<const Eigen::Vector3f> vertex_cam,
       const float lambert = std::max(0.f, -n.dot(v.normalized()));
       out(x, y) = static_cast<uint8_t>(255.f * (kAmbient + (1.f - kAmbient) * lambert));
     }
+  });
 }
 
 }  // namespace kinfly

@@ -7,6 +7,7 @@
 #include "kinfly/lanes.h"
 #include "kinfly/numeric.h"
 #include <sstream>
+#include "parallel.h"
 
 namespace kinfly {
 
@@ -25,6 +26,25 @@ std::string TsdfIntegrator::Params::validate(float voxel_size_m) const {
 
 TsdfIntegrator::TsdfIntegrator(const Params& params) : params_(params) {}
 
+int TsdfIntegrator::samplesPerBand(const TsdfVolume& volume) const {
+  const float sample_step_m = 0.5f * volume.blockSizeM();
+  return 1 + static_cast<int>(std::ceil(2.f * params_.truncation_m / sample_step_m));
+}
+
+void TsdfIntegrator::reserve(int width_px, int height_px, const TsdfVolume& volume) {
+  const int stride = params_.allocation_stride_px;
+  const int rows = (height_px + stride - 1) / stride;
+  const int columns = (width_px + stride - 1) / stride;
+  const size_t per_pixel = static_cast<size_t>(samplesPerBand(volume)) + 1;
+  size_t total = 0;
+  for (int c = 0; c < kAllocationChunks; ++c) {
+    const int chunk_rows = rows * (c + 1) / kAllocationChunks - rows * c / kAllocationChunks;
+    candidates_[c].reserve(static_cast<size_t>(chunk_rows) * columns * per_pixel);
+    total += candidates_[c].capacity();
+  }
+  touched_.reserve(total);
+}
+
 IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const PinholeCamera& camera,
                                           const Pose& T_world_cam, TsdfVolume* volume,
                                           bool parallel) {
@@ -40,20 +60,17 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
   // parallel, in fixed chunks, each dropping the blocks it has just listed (a small
   // direct-mapped cache: neighbouring pixels share their blocks); the short candidate lists are
   // then allocated serially, in chunk order, so the block order does not depend on the threads.
-  const float sample_step_m = 0.5f * volume->blockSizeM();
   // Samples are placed in block units (block b spans [b, b + 1) per axis): along a pixel's ray
   // that is one multiply-add per sample, without the rotation and division of
   // TsdfVolume::blockOf.
   const float blocks_per_m = 1.f / volume->blockSizeM();
   const Eigen::Vector3f origin_blk = t_wc * blocks_per_m;
-  // Every band gets the same number of samples, enough for the full band (2 mu along the ray);
-  // one cut short by the near limit is only sampled more densely. A count fixed per frame also
-  // keeps the sample loop's branch predictable.
-  const int samples = 1 + static_cast<int>(std::ceil(2.f * mu / sample_step_m));
+  // Every band gets the same number of samples; one cut short by the near limit is only sampled
+  // more densely. A count fixed per frame also keeps the sample loop's branch predictable.
+  const int samples = samplesPerBand(*volume);
   const int stride = params_.allocation_stride_px;
   const int rows = (depth_m.height() + stride - 1) / stride;
-#pragma omp parallel for schedule(dynamic, 1) if (parallel)
-  for (int c = 0; c < kAllocationChunks; ++c) {
+  forEachDynamic(kAllocationChunks, 1, parallel, [&](int c) {
     std::vector<BlockIndex>& candidates = candidates_[c];
     candidates.clear();
     std::array<BlockIndex, kRecentBlocks> recent;
@@ -79,7 +96,7 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
         }
       }
     }
-  }
+  });
   for (const std::vector<BlockIndex>& candidates : candidates_)
     for (const BlockIndex& b : candidates) {
       VoxelBlock* blk = volume->allocateBlock(b);
@@ -104,8 +121,7 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
   const float width = static_cast<float>(depth_m.width());
   const float height = static_cast<float>(depth_m.height());
   const int n = static_cast<int>(touched_.size());
-#pragma omp parallel for schedule(dynamic, 16) if (parallel)
-  for (int i = 0; i < n; ++i) {
+  forEachDynamic(n, 16, parallel, [&](int i) {
     VoxelBlock* blk = touched_[i];
     const Eigen::Vector3f origin_cam = R * volume->voxelCentre(blk->index, 0, 0, 0) + t;
     for (int z = 0; z < kBlockSide; ++z)
@@ -142,7 +158,7 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
           }
         }
       }
-  }
+  });
   return result;
 }
 

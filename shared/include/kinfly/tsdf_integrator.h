@@ -34,6 +34,11 @@ class TsdfIntegrator {
   explicit TsdfIntegrator(const Params& params);
   const Params& params() const { return params_; }
 
+  // Makes room for the largest frame of width x height pixels into `volume`, so that integrate()
+  // never allocates (the drone's odometry must not, frame after frame): every sampled pixel's
+  // band in the candidate lists, and as many touched blocks.
+  void reserve(int width_px, int height_px, const TsdfVolume& volume);
+
   // Integrates metric depth (0 = invalid) seen from T_world_cam into `volume`.
   IntegrateResult integrate(ImageView<const float> depth_m, const PinholeCamera& camera,
                             const Pose& T_world_cam, TsdfVolume* volume, bool parallel = true);
@@ -42,9 +47,13 @@ class TsdfIntegrator {
   static constexpr int kAllocationChunks = 32;
   static constexpr int kRecentBlocks = 64;
 
+  // Samples along each pixel's band: enough for the full band (2 mu along the ray) at half a
+  // block apart.
+  int samplesPerBand(const TsdfVolume& volume) const;
+
   Params params_;
   uint32_t stamp_ = 0;
-  // Reused every frame; capacities grow with the surface in view, not per frame.
+  // Reused every frame; reserve() sizes them for the largest frame.
   std::array<std::vector<BlockIndex>, kAllocationChunks> candidates_;
   std::vector<VoxelBlock*> touched_;
 };

@@ -17,6 +17,11 @@ template <class T>
 class BoundedQueue {
  public:
   explicit BoundedQueue(size_t capacity) : slots_(capacity == 0 ? 1 : capacity) {}
+  // Every slot starts as make(): items whose buffers are allocated here never allocate later.
+  template <class Make>
+  BoundedQueue(size_t capacity, Make make) : BoundedQueue(capacity) {
+    for (T& slot : slots_) slot = make();
+  }
 
   // Swaps `item` into the queue; `item` comes back holding a stale slot's contents (reuse its
   // buffers). Returns false when the queue was full and its oldest item was dropped.

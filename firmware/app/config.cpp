@@ -5,8 +5,33 @@
 #include "kinfly/link/channels.h"
 
 namespace kinfly::fw {
+namespace {
+
+// CLI11 (2.1) reads `[source] max_frames = 5` as option max_frames of a subcommand "source" and,
+// finding no such subcommand, drops it without a word. kinfly-fw's options are flat, named
+// section.key (--source.max_frames), so every item is flattened back to that name.
+class SectionedConfig : public CLI::ConfigTOML {
+ public:
+  std::vector<CLI::ConfigItem> from_config(std::istream& input) const override {
+    std::vector<CLI::ConfigItem> flat;
+    for (CLI::ConfigItem& item : CLI::ConfigTOML::from_config(input)) {
+      if (item.name == "++" || item.name == "--") continue;  // section open and close marks
+      std::string name;
+      for (const std::string& parent : item.parents) name += parent + ".";
+      item.name = name + item.name;
+      item.parents.clear();
+      flat.push_back(std::move(item));
+    }
+    return flat;
+  }
+};
+
+}  // namespace
 
 void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
+  app->config_formatter(std::make_shared<SectionedConfig>());
+  // A misspelt key would otherwise leave its default in force unnoticed.
+  app->allow_config_extras(CLI::config_extras_mode::error);
   app->add_option("--vehicle.id", c->vehicle_id, "vehicle id [0, 65535]")->capture_default_str();
   app->add_option("--vehicle.key_file", c->key_file, "signing key (kinfly-keygen), mode 0600")
       ->capture_default_str();

@@ -58,7 +58,8 @@ struct FirmwareConfig {
   std::string validate() const;
 };
 
-// Registers every field as an option (and config key) of `app`.
+// Registers every field as an option (and config key) of `app`, and makes `app` read config
+// files section by section into those options, refusing keys it does not know.
 void addConfigOptions(CLI::App* app, FirmwareConfig* config);
 
 }  // namespace kinfly::fw

@@ -118,11 +118,11 @@ void LinkTask::send(const KeyframeJob& job) {
     spdlog::error("link: keyframe {} not encoded: {}", job.keyframe_id, toString(r.status));
     return;
   }
-  if (!publisher_->publish(link::Channel::kKeyframe, m)) {
+  if (!publisher_->publish(link::Channel::kKeyframe, m) || !network_up_) {
     ++counters_->keyframes_failed;
     if (send_log_.allow(secondsSince(began_)))
-      spdlog::warn("link: keyframe {} not sent: LCM could not send it (network down?); {} "
-                   "more since the last report",
+      spdlog::warn("link: keyframe {} not sent: the network is down ({} more since the last "
+                   "report)",
                    job.keyframe_id, send_log_.suppressed());
     return;
   }
@@ -189,8 +189,13 @@ void LinkTask::publishStatus() {
   rejects().writeTo(&s);
   s.corrections_accepted = accepted() - counters_->corrections_unknown;
   s.corrections_unknown_keyframe = counters_->corrections_unknown;
-  if (!publisher_->publish(link::Channel::kStatus, s) && send_log_.allow(secondsSince(began_)))
-    spdlog::warn("link: status not sent: LCM could not send it (network down?)");
+  const bool was_up = network_up_;
+  network_up_ = publisher_->publish(link::Channel::kStatus, s);
+  if (was_up && !network_up_)
+    spdlog::warn("link: the network is down (LCM cannot send): keyframes are dropped until it "
+                 "is back");
+  else if (!was_up && network_up_)
+    spdlog::info("link: the network is back");
 }
 
 }  // namespace kinfly::fw

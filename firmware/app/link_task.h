@@ -63,6 +63,10 @@ class LinkTask {
   std::atomic<bool> stop_{false};
   Clock::time_point began_ = Clock::now();
   Clock::time_point last_ground_heard_{};
+  // Whether the last status went out. LCM reports send errors only for single-datagram messages:
+  // a fragmented one (a keyframe) returns success even when its datagrams could not be sent
+  // (lcm_udpm.c), so a keyframe sent while the status could not be is counted as dropped.
+  bool network_up_ = true;
   LogThrottle reject_log_, send_log_;
   Clock::time_point rate_window_start_ = Clock::now();
   int64_t captured_at_window_ = 0, processed_at_window_ = 0, sent_at_window_ = 0;

@@ -95,7 +95,8 @@ void OdometryTask::process(const DepthCapture& capture) {
       ground_truth_.push_back({static_cast<double>(r.utime) * 1e-6, capture.T_world_cam_truth});
   }
   if (!published && publish_log_.allow(secondsSince(began_)))
-    spdlog::warn("odometry: LCM could not send the pose ({} more since the last report)",
+    spdlog::warn("odometry: LCM could not send the pose: the network is down ({} more since "
+                 "the last report)",
                  publish_log_.suppressed());
   if (!config_.trajectory_out.empty())
     trajectory_.push_back({static_cast<double>(r.utime) * 1e-6, T_world_cam});

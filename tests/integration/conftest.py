@@ -21,6 +21,23 @@ import kinfly_eval  # noqa: E402  (needs the sys.path entry above)
 from netns import NetnsUnavailable, network_namespace  # noqa: E402
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers", "aarch64: needs the cross build and the image (make test-aarch64); "
+                   "`make integration-test` leaves these out")
+
+
+def require_built(path: Path, make_target: str) -> Path:
+    """PATH, made by MAKE_TARGET. Missing: skipped on a developer's machine, a failure under CI,
+    where a skip would hide that the checks never ran."""
+    if path.exists():
+        return path
+    message = f"{path} is not built: run `make {make_target}` first"
+    if os.environ.get("CI"):
+        pytest.fail(message + "; CI must run the aarch64 checks", pytrace=False)
+    pytest.skip(message)
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
@@ -107,3 +124,12 @@ def netns() -> Iterator[list[str]]:
         if os.environ.get("CI"):
             pytest.fail(f"CI must run the multi-process LCM tests: {err}", pytrace=False)
         pytest.skip(str(err))
+
+
+@pytest.fixture(scope="session")
+def sample_log(sample_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The committed TUM sample as an LCM flight log (kinfly-tum-to-log, vehicle 1)."""
+    out = tmp_path_factory.mktemp("log") / "sample.lcmlog"
+    subprocess.run([built("bin/kinfly-tum-to-log"), "--tum", sample_dir, "--out", out],
+                   check=True, capture_output=True)
+    return out

@@ -1,6 +1,7 @@
 """kinfly-fw, the real binary: a replayed flight log gives exactly the onboard trajectory of the
-offline engine; configuration errors and unsafe key files refuse to start with a message naming
-the value; SIGTERM stops it within a second with a summary."""
+offline engine, a synthetic flight follows its ground truth; configuration errors and unsafe key
+files refuse to start with a message naming the value; SIGTERM stops it within a second with a
+summary. Faults in flight: test_firmware_faults.py."""
 from __future__ import annotations
 
 import json
@@ -16,28 +17,14 @@ import numpy as np
 import pytest
 
 from conftest import REPO_ROOT, built, wait_for_line
+from firmware_run import CONFIG, firmware, read_tum, summary
 
-CONFIG = REPO_ROOT / "firmware" / "config" / "kinfly-fw.toml"
 # Same engine, same parameters, same frames in the same order: only float summation order could
 # differ, and it does not (the engine's reductions are fixed-order), so agreement is to rounding.
 SAME_ENGINE_TOLERANCE_M = 1e-6
-
-
-@pytest.fixture(scope="module")
-def sample_log(sample_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("fw") / "sample.lcmlog"
-    subprocess.run([built("bin/kinfly-tum-to-log"), "--tum", sample_dir, "--out", out],
-                   check=True, capture_output=True)
-    return out
-
-
-def firmware(*args: object) -> list[str]:
-    return [str(built("bin/kinfly-fw")), "--config", str(CONFIG), "--vehicle.key_file", "",
-            "--link.lcm_url", "memq://", *map(str, args)]
-
-
-def read_tum(path: Path) -> np.ndarray:
-    return np.loadtxt(path, comments="#").reshape(-1, 8)
+# The synthetic flight against its own ground truth: a 3 cm voxel volume and one full swing of
+# the flight; drift well under a voxel.
+SYNTHETIC_MAX_ERROR_M = 0.02
 
 
 def test_log_replay_matches_the_offline_engine(sample_log: Path, sample_dir: Path,
@@ -64,6 +51,12 @@ def test_log_replay_matches_the_offline_engine(sample_log: Path, sample_dir: Pat
     (["--source.kind", "camera"], "source.kind must be log, dataset, openni or synthetic"),
     (["--link.status_rate_hz", "0"], "link.status_rate_hz"),
     (["--output.log_level", "loud"], "output.log_level"),
+    (["--source.speed", "0"], "source.speed must be in (0, 100]"),
+    (["--source.stall_timeout_s", "0"], "source.stall_timeout_s must be in (0, 60]"),
+    (["--source.reconnect_min_s", "2", "--source.reconnect_max_s", "1"],
+     "source.reconnect_max_s must be in [2, 600]"),
+    (["--source.kind", "synthetic", "--source.width", "8"], "source.width must be in [16, 4096]"),
+    (["--odometry.volume_vox", "100"], "odometry.volume_vox must be a multiple of 8"),
 ])
 def test_bad_configuration_refuses_to_start(sample_log: Path, args: list[str],
                                             message: str) -> None:
@@ -71,6 +64,56 @@ def test_bad_configuration_refuses_to_start(sample_log: Path, args: list[str],
                          text=True, timeout=30)
     assert run.returncode == 2
     assert message in run.stdout + run.stderr
+
+
+def test_config_file_with_a_wrong_type_names_the_key(sample_log: Path, tmp_path: Path) -> None:
+    config = tmp_path / "bad.toml"
+    config.write_text(CONFIG.read_text().replace("stall_timeout_s = 1.0", 'stall_timeout_s = "soon"'))
+    run = subprocess.run(firmware("--source.path", sample_log) + ["--config", str(config)],
+                         capture_output=True, text=True, timeout=30)
+    assert run.returncode != 0
+    assert "stall_timeout_s" in run.stdout + run.stderr, run.stdout + run.stderr
+
+
+def test_config_file_sections_apply_and_unknown_keys_are_refused(sample_log: Path,
+                                                                tmp_path: Path) -> None:
+    config = tmp_path / "seven.toml"
+    config.write_text(CONFIG.read_text().replace("max_frames = 0 ", "max_frames = 7 "))
+    run = subprocess.run(firmware("--source.path", sample_log, "--source.realtime", "false")
+                         + ["--config", str(config)], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    assert summary(run.stdout).captured == 7
+    # --print-config writes what --config reads back.
+    printed = subprocess.run(firmware("--print-config") + ["--config", str(config)],
+                             capture_output=True, text=True, check=True).stdout
+    assert "source.max_frames=7" in printed
+    (tmp_path / "printed.toml").write_text(printed)
+    again = subprocess.run(firmware("--print-config") + ["--config", str(tmp_path / "printed.toml")],
+                           capture_output=True, text=True, check=True).stdout
+    assert again == printed
+    config.write_text(CONFIG.read_text().replace("max_frames = 0 ", "max_frame = 7 "))
+    run = subprocess.run(firmware("--source.path", sample_log) + ["--config", str(config)],
+                         capture_output=True, text=True, timeout=30)
+    assert run.returncode != 0 and "source.max_frame" in run.stdout + run.stderr
+
+
+def test_synthetic_flight_tracks_its_ground_truth(tmp_path: Path) -> None:
+    """The simulated flight in the corner room of shared/, rendered with the Kinect noise model:
+    the onboard trajectory stays on the true one, both in the first camera's frame."""
+    trajectory, truth = tmp_path / "fw.tum", tmp_path / "truth.tum"
+    run = subprocess.run(firmware("--source.kind", "synthetic", "--source.realtime", "false",
+                                  "--source.max_frames", "240", "--output.trajectory", trajectory,
+                                  "--output.ground_truth", truth),
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    counts = summary(run.stdout)
+    assert counts.captured == counts.processed == 240 and counts.lost == 0
+    fw, gt = read_tum(trajectory), read_tum(truth)
+    assert np.array_equal(fw[:, 0], gt[:, 0])
+    error_m = np.linalg.norm(fw[:, 1:4] - gt[:, 1:4], axis=1)
+    assert error_m.max() < SYNTHETIC_MAX_ERROR_M, error_m.max()
+    # The flight really moves: half a metre of swing, not a camera standing still.
+    assert np.ptp(gt[:, 1]) > 0.5
 
 
 def test_wrong_types_and_unsafe_keys_refuse_to_start(sample_log: Path, tmp_path: Path) -> None:

@@ -1,0 +1,61 @@
+"""Running the real kinfly-fw in tests: its command line with the shipped configuration, and its
+summary line read back into numbers."""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+CONFIG = REPO_ROOT / "firmware" / "config" / "kinfly-fw.toml"
+BINARY = REPO_ROOT / "build" / "bin" / "kinfly-fw"
+
+_SUMMARY = re.compile(
+    r"kinfly-fw: (?P<how>stopped|source ended): (?P<captured>\d+) frames captured, "
+    r"(?P<processed>\d+) processed \((?P<lost>\d+) lost\), (?P<queue_drops>\d+) dropped by the "
+    r"queue, (?P<skipped>\d+) skipped; sensor opened (?P<connects>\d+) times, stalled "
+    r"(?P<stalls>\d+) times; (?P<keyframes_sent>\d+) keyframes sent, (?P<keyframes_dropped>\d+) "
+    r"dropped; (?P<applied>\d+) corrections applied, (?P<rejected>\d+) rejected, "
+    r"(?P<unknown>\d+) for unknown keyframes")
+
+
+def firmware(*args: object, binary: Path = BINARY, key_file: str = "",
+             lcm_url: str | None = "memq://") -> list[str]:
+    """kinfly-fw with the shipped defaults, no key, LCM in memory unless told otherwise; later
+    arguments override earlier ones."""
+    command = [str(binary), "--config", str(CONFIG), "--vehicle.key_file", key_file]
+    if lcm_url is not None:
+        command += ["--link.lcm_url", lcm_url]
+    return command + [str(a) for a in args]
+
+
+@dataclass
+class Summary:
+    how: str
+    captured: int
+    processed: int
+    lost: int
+    queue_drops: int
+    skipped: int
+    connects: int
+    stalls: int
+    keyframes_sent: int
+    keyframes_dropped: int
+    applied: int
+    rejected: int
+    unknown: int
+
+
+def summary(stdout: str) -> Summary:
+    """The counts of kinfly-fw's last line; fails the test if there is none."""
+    match = _SUMMARY.search(stdout)
+    assert match, f"no summary line in {stdout!r}"
+    values = match.groupdict()
+    how = values.pop("how")
+    return Summary(how, **{k: int(v) for k, v in values.items()})
+
+
+def read_tum(path: Path) -> np.ndarray:
+    return np.loadtxt(path, comments="#").reshape(-1, 8)

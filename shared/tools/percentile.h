@@ -1,4 +1,4 @@
-// Summary statistics the command-line tools print (timings as median and p90).
+// Summary statistics the command-line tools print (timings as median, p90 and p99).
 #pragma once
 
 #include <algorithm>

@@ -74,28 +74,46 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
       ->capture_default_str();
   app->add_option("--odometry.voxel_m", c->odometry_voxel_m, "voxel size [m]")
       ->capture_default_str();
-  app->add_option("--odometry.threads", c->odometry_threads, "OpenMP threads")
+  app->add_option("--odometry.threads", c->odometry_threads,
+                  "engine threads (1: no OpenMP region at all, no allocation per frame)")
       ->capture_default_str();
   app->add_option("--odometry.capture_queue", c->capture_queue, "frames queued before odometry")
       ->capture_default_str();
   KeyframeSelector::Params& k = c->keyframe;
-  app->add_option("--keyframe.min_translation_m", k.min_translation_m)->capture_default_str();
-  app->add_option("--keyframe.min_rotation_rad", k.min_rotation_rad)->capture_default_str();
-  app->add_option("--keyframe.max_interval_s", k.max_interval_s)->capture_default_str();
-  app->add_option("--keyframe.min_interval_s", k.min_interval_s)->capture_default_str();
-  app->add_option("--keyframe.min_inlier_fraction", k.min_inlier_fraction)->capture_default_str();
+  app->add_option("--keyframe.min_translation_m", k.min_translation_m,
+                  "a keyframe after this much travel [m]")
+      ->capture_default_str();
+  app->add_option("--keyframe.min_rotation_rad", k.min_rotation_rad,
+                  "... or this much rotation [rad]")
+      ->capture_default_str();
+  app->add_option("--keyframe.max_interval_s", k.max_interval_s,
+                  "... or at least this often, moving or not [s]")
+      ->capture_default_str();
+  app->add_option("--keyframe.min_interval_s", k.min_interval_s, "never more often [s]")
+      ->capture_default_str();
+  app->add_option("--keyframe.min_inlier_fraction", k.min_inlier_fraction,
+                  "only from frames tracked at least this well (ICP inlier fraction)")
+      ->capture_default_str();
   app->add_option("--link.lcm_url", c->lcm_url, "LCM URL (empty: LCM_DEFAULT_URL or default)");
-  app->add_option("--link.signing_window_s", c->signing_window_s)->capture_default_str();
-  app->add_option("--link.keyframe_queue", c->keyframe_queue)->capture_default_str();
-  app->add_option("--link.status_rate_hz", c->status_rate_hz)->capture_default_str();
-  app->add_option("--link.timeout_s", c->link_timeout_s)->capture_default_str();
+  app->add_option("--link.signing_window_s", c->signing_window_s,
+                  "accepted age of a signed correction [s]; both clocks must agree this well")
+      ->capture_default_str();
+  app->add_option("--link.keyframe_queue", c->keyframe_queue,
+                  "keyframes waiting for the link (oldest dropped when full)")
+      ->capture_default_str();
+  app->add_option("--link.status_rate_hz", c->status_rate_hz, "status_t rate [Hz]")
+      ->capture_default_str();
+  app->add_option("--link.timeout_s", c->link_timeout_s,
+                  "ground station unheard this long: link stale [s]")
+      ->capture_default_str();
   app->add_option("--corrections.history_keyframes", c->corrections.history_keyframes,
                   "keyframes whose onboard pose is kept for corrections")
       ->capture_default_str();
   app->add_option("--output.trajectory", c->trajectory_out, "TUM trajectory written at exit");
   app->add_option("--output.ground_truth", c->ground_truth_out,
                   "TUM file of the source's true poses, written at exit (synthetic)");
-  app->add_option("--output.log_level", c->log_level)->capture_default_str();
+  app->add_option("--output.log_level", c->log_level, "trace | debug | info | warn | error")
+      ->capture_default_str();
 }
 
 std::string FirmwareConfig::validate() const {

@@ -44,6 +44,22 @@ def test_log_replay_matches_the_offline_engine(sample_log: Path, sample_dir: Pat
     assert np.abs(fw[:, 1:4] - fuse[:, 1:4]).max() < SAME_ENGINE_TOLERANCE_M
 
 
+def test_dataset_replay_matches_the_log_replay(sample_log: Path, sample_dir: Path,
+                                               tmp_path: Path) -> None:
+    """The TUM folder read directly and the same frames through a flight log: one flight."""
+    trajectories = []
+    for kind, path in (("log", sample_log), ("dataset", sample_dir)):
+        out = tmp_path / f"{kind}.tum"
+        run = subprocess.run(firmware("--source.kind", kind, "--source.path", path,
+                                      "--source.realtime", "false", "--output.trajectory", out),
+                             capture_output=True, text=True, timeout=120)
+        assert run.returncode == 0, run.stderr
+        trajectories.append(read_tum(out))
+    log, dataset = trajectories
+    assert log.shape == dataset.shape == (60, 8)
+    assert np.abs(log - dataset).max() < SAME_ENGINE_TOLERANCE_M
+
+
 @pytest.mark.parametrize("args,message", [
     (["--vehicle.id", "70000"], "vehicle.id must be in [0, 65535]"),
     (["--odometry.downsample", "3"], "odometry.downsample must be 1, 2 or 4"),

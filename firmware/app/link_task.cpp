@@ -21,6 +21,7 @@ LinkTask::LinkTask(const FirmwareConfig& config, Publisher* publisher,
     verifier.window_s = config.signing_window_s;
     corrections_.emplace(*key, config.vehicle_id, verifier, link::DecodeBounds());
   }
+  codec_.reserve(camera.width, camera.height, &message_.payload);
   status_.vehicle_id = config.vehicle_id;
   status_.source = status_t::SOURCE_DRONE;
   lcm_subscribe(publisher_->lcm().getUnderlyingLCM(),

@@ -317,6 +317,12 @@ CodecResult DepthCodec::encode(ImageView<const uint16_t> depth, std::vector<uint
   return {CodecStatus::kBadEncoding, "encoding is not a DepthEncoding"};
 }
 
+void DepthCodec::reserve(int width_px, int height_px, std::vector<uint8_t>* payload) {
+  const size_t raw_bytes = 2 * static_cast<size_t>(width_px) * static_cast<size_t>(height_px);
+  inner_.reserve(raw_bytes);
+  payload->reserve(std::max(raw_bytes, ZSTD_compressBound(raw_bytes)));
+}
+
 CodecResult DepthCodec::compressInner(size_t inner_size, std::vector<uint8_t>* payload) {
   payload->resize(ZSTD_compressBound(inner_size));
   const size_t written = ZSTD_compressCCtx(cctx_.get(), payload->data(), payload->size(),

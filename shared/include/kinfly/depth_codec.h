@@ -84,6 +84,12 @@ class DepthCodec {
   // payload reused across frames stops allocating once it has grown to the largest frame.
   CodecResult encode(ImageView<const uint16_t> depth, std::vector<uint8_t>* payload);
 
+  // Makes room, here and in *payload, for encoding width x height images whose streams are up to
+  // the raw image's size (real depth needs ~0.4 bytes a pixel, a fifth of that), so that a sender
+  // encoding frame after frame never allocates. A frame needing more still encodes, growing the
+  // buffers once.
+  void reserve(int width_px, int height_px, std::vector<uint8_t>* payload);
+
   // Decodes `size` bytes at `data` into *depth, which is resized to width x height only when its
   // size differs. On failure *depth holds unspecified pixels (still width x height when the size
   // was accepted).

@@ -1,0 +1,47 @@
+# Run by cpack (CPACK_PROJECT_CONFIG_FILE) for the cross build: sets CPACK_DEBIAN_PACKAGE_DEPENDS
+# from the packaged binaries' DT_NEEDED entries, looked up in the sysroot packages' shlibs
+# ("name version dependency" lines, as dpkg-shlibdeps reads them).
+if(NOT CPACK_GENERATOR STREQUAL "DEB")
+  return()
+endif()
+if(NOT EXISTS "${CPACK_KINFLY_SHLIBS}")
+  message(FATAL_ERROR "${CPACK_KINFLY_SHLIBS} is missing: rebuild the sysroot "
+                      "(rm -rf it; make firmware-aarch64)")
+endif()
+
+file(STRINGS "${CPACK_KINFLY_SHLIBS}" shlibs_lines)
+set(depends)
+foreach(binary IN LISTS CPACK_KINFLY_BINARIES)
+  execute_process(COMMAND ${CPACK_KINFLY_READELF} -d ${binary} OUTPUT_VARIABLE dynamic
+                  COMMAND_ERROR_IS_FATAL ANY)
+  string(REGEX MATCHALL "\\(NEEDED\\)[^[]*\\[[^]]+\\]" needed_lines "${dynamic}")
+  foreach(line IN LISTS needed_lines)
+    string(REGEX REPLACE ".*\\[([^]]+)\\]" "\\1" soname "${line}")
+    # libfoo.so.1.2 is "libfoo 1.2" in shlibs, libfoo-1.2.so is "libfoo-1.2" with version "".
+    if(soname MATCHES "^(.+)\\.so\\.(.+)$")
+      set(key "${CMAKE_MATCH_1} ${CMAKE_MATCH_2} ")
+    elseif(soname MATCHES "^(.+)-([0-9.]+)\\.so$")
+      set(key "${CMAKE_MATCH_1} ${CMAKE_MATCH_2} ")
+    else()
+      message(FATAL_ERROR "${binary}: cannot map ${soname} to a package")
+    endif()
+    set(found "")
+    foreach(entry IN LISTS shlibs_lines)
+      string(FIND "${entry}" "${key}" at)
+      if(at EQUAL 0)
+        string(LENGTH "${key}" key_length)
+        string(SUBSTRING "${entry}" ${key_length} -1 found)
+        break()
+      endif()
+    endforeach()
+    if(found STREQUAL "")
+      message(FATAL_ERROR "${binary} needs ${soname}, which no package of the sysroot provides "
+                          "(add its package to scripts/aarch64-sysroot.sh)")
+    endif()
+    list(APPEND depends "${found}")
+  endforeach()
+endforeach()
+list(REMOVE_DUPLICATES depends)
+list(SORT depends)
+list(JOIN depends ", " CPACK_DEBIAN_PACKAGE_DEPENDS)
+message(STATUS "kinfly-fw Depends: ${CPACK_DEBIAN_PACKAGE_DEPENDS}")

@@ -9,8 +9,16 @@
 #   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      depth codec and keyframe delivery over LCM on the TUM sequence; kinfly-fuse
 #                   vs Open3D dense SLAM (own .venv-bench); prints, never fails on timings
-#   make clean      remove build outputs (build/, build-asan/, build-fuzz/, out/); `make distclean`
-#                   also venvs
+#   make firmware-aarch64  kinfly-fw, the link tools and the unit tests for aarch64 (cross
+#                   compiler + Debian arm64 sysroot, build-aarch64/)
+#   make test-aarch64  the above + the image; unit tests and a replay under qemu-aarch64, the
+#                   image test
+#   make package-aarch64  the kinfly-fw .deb (arm64) in build-aarch64/pkg/
+#   make image      flashable arm64 disk image build-aarch64/kinfly-arm64.img (needs root)
+#   make flash IMAGE=... DEVICE=/dev/sdX CONFIRM=yes  write the image to an SD card (checked)
+#   make deploy HOST=user@drone  install the .deb on a running drone over ssh
+#   make clean      remove build outputs (build/, build-asan/, build-fuzz/, build-aarch64/, out/);
+#                   `make distclean` also venvs
 #
 # The shared data folder is <repo>/../shared/data unless KINFLY_DATA says otherwise.
 
@@ -37,12 +45,19 @@ BENCH_PY := $(REPO_ROOT)/.venv-bench/bin/python
 SAMPLE := $(REPO_ROOT)/tests/data/tum_teddy_sample
 DEMO_OUT := $(REPO_ROOT)/out/demo
 JOBS ?= $(shell nproc)
+AARCH64_DIR := $(REPO_ROOT)/build-aarch64
+AARCH64_SYSROOT := $(AARCH64_DIR)/sysroot
+AARCH64_BUILD := $(AARCH64_DIR)/build
+AARCH64_PKG := $(AARCH64_DIR)/pkg
+# Whatever version CMakeLists.txt gives (a shell glob: package-aarch64 leaves exactly one).
+AARCH64_DEB := $(AARCH64_PKG)/kinfly-fw_*_arm64.deb
+IMAGE ?= $(AARCH64_DIR)/kinfly-arm64.img
 
 # Steps run in the order written; ninja and ctest do the parallel work.
 .NOTPARALLEL:
 
 .PHONY: deps build test unit-test integration-test test-asan fuzz fuzz-corpus demo eval bench clean \
-        distclean
+        distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
 	@$(REPO_ROOT)/scripts/install-deps.sh
@@ -56,8 +71,9 @@ test: deps build unit-test integration-test
 unit-test:
 	ctest --test-dir $(BUILD_DIR) --output-on-failure -j $(JOBS)
 
+# The aarch64 tests (marker aarch64) need the cross build and the image: make test-aarch64.
 integration-test:
-	$(PY) -m pytest $(REPO_ROOT)/tests/integration -v
+	$(PY) -m pytest $(REPO_ROOT)/tests/integration -v -m "not aarch64"
 
 # Sanitizers slow everything down, so only the unit tests (synthetic, small) run here; the
 # micro-benchmarks are left out of this build.
@@ -112,8 +128,39 @@ bench: deps build
 	OMP_NUM_THREADS=2 $(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_vs_open3d.py --fuse $(FUSE) \
 	  --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 
+# The sysroot is rebuilt only when scripts/aarch64-sysroot.sh (its package list) changes; test
+# discovery and ctest run the arm64 binaries through qemu-aarch64 (the toolchain file's emulator).
+firmware-aarch64: deps
+	$(REPO_ROOT)/scripts/aarch64-sysroot.sh $(AARCH64_SYSROOT)
+	cmake -S $(REPO_ROOT) -B $(AARCH64_BUILD) -G Ninja -DCMAKE_BUILD_TYPE=Release \
+	  -DCMAKE_TOOLCHAIN_FILE=$(REPO_ROOT)/cmake/aarch64-linux-gnu.cmake \
+	  -DKINFLY_SYSROOT=$(AARCH64_SYSROOT) -DKINFLY_BUILD_BENCH=OFF
+	cmake --build $(AARCH64_BUILD) -j $(JOBS)
+
+package-aarch64: firmware-aarch64
+	rm -rf $(AARCH64_PKG)
+	cd $(AARCH64_BUILD) && cpack -G DEB -B $(AARCH64_PKG)
+	rm -rf $(AARCH64_PKG)/_CPack_Packages
+
+image: package-aarch64
+	$(REPO_ROOT)/scripts/build-image.sh --deb $(AARCH64_DEB) --out $(IMAGE)
+
+# The native build makes the replay's flight log and the trajectory the emulated one must match.
+test-aarch64: build image
+	ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS)
+	$(PY) -m pytest $(REPO_ROOT)/tests/integration -v -m aarch64
+
+flash:
+	@test -n "$(DEVICE)" || { echo "make flash IMAGE=... DEVICE=/dev/sdX CONFIRM=yes"; exit 2; }
+	$(REPO_ROOT)/scripts/flash.sh --image $(IMAGE) --device $(DEVICE) \
+	  $(if $(filter yes,$(CONFIRM)),--yes)
+
+deploy:
+	@test -n "$(HOST)" || { echo "make deploy HOST=user@drone"; exit 2; }
+	$(REPO_ROOT)/scripts/deploy.sh --host $(HOST)
+
 clean:
-	rm -rf $(BUILD_DIR) $(ASAN_DIR) $(FUZZ_DIR) $(REPO_ROOT)/out
+	rm -rf $(BUILD_DIR) $(ASAN_DIR) $(FUZZ_DIR) $(AARCH64_DIR) $(REPO_ROOT)/out
 
 distclean: clean
 	rm -rf $(REPO_ROOT)/.venv $(REPO_ROOT)/.venv-bench

@@ -1,0 +1,220 @@
+#!/usr/bin/env bash
+# Builds the flashable arm64 disk image of a kinfly drone: Debian 12 minbase (mmdebstrap) with a
+# kernel, GRUB for UEFI, Wi-Fi, ssh and chrony, the kinfly-fw package installed and enabled, and a
+# first-boot unit that applies kinfly.conf from the FAT partition (Wi-Fi, vehicle id and key).
+#
+# Layout (MBR, so that Raspberry Pi firmware can read it too):
+#   p1  FAT32 "KINFLYBOOT", 256 MiB, /boot/firmware: EFI/BOOT/BOOTAA64.EFI + grub.cfg,
+#       kinfly.conf (provisioning, deleted once applied), kinfly.conf.example
+#   p2  ext4 "kinfly-root", /: sized to its contents plus headroom, grown to the card at first boot
+#
+# The image is assembled from files (sfdisk on an image file, mkfs.vfat + mcopy, mkfs.ext4 -d, dd
+# into place): nothing is mounted. mmdebstrap runs the packages' maintainer scripts (kernel
+# initramfs, users, the kinfly-fw postinst) inside the arm64 tree, which needs qemu-user-static
+# registered with binfmt_misc; this script registers it when it is not (root only).
+#
+# Usage: scripts/build-image.sh --deb kinfly-fw_VERSION_arm64.deb --out IMAGE [--work DIR]
+set -euo pipefail
+
+repo_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/aarch64-common.sh
+source "$repo_root/scripts/aarch64-common.sh"
+
+# Beyond minbase: boot (kernel, initramfs, GRUB's arm64 modules, udev), the network (Wi-Fi,
+# systemd-networkd, ssh for `make deploy`), time (the uplink's 2 s signing window needs NTP), and
+# what the first boot uses to grow the root partition.
+image_packages=(
+  systemd-sysv udev kmod linux-image-arm64 grub-efi-arm64-bin
+  wpasupplicant iproute2 openssh-server chrony
+  fdisk dosfstools zstd
+)
+boot_mib=256
+# Free space left in the root file system before the first boot grows it.
+root_headroom_mib=256
+
+log() { echo "[build-image] $*"; }
+die() { echo "build-image: error: $*" >&2; exit 1; }
+
+# mmdebstrap's own check: can this machine execute arm64 programs (through binfmt_misc)?
+ensure_arm64_exec() {
+  arch-test arm64 >/dev/null 2>&1 && return
+  log "arm64 programs do not run here yet: registering qemu-aarch64 with binfmt_misc"
+  [[ "$(id -u)" == 0 ]] || die "needs root to register qemu-user-static with binfmt_misc"
+  update-binfmts --enable qemu-aarch64 >/dev/null 2>&1 || true
+  arch-test arm64 >/dev/null 2>&1 ||
+    die "arm64 programs cannot run on this machine (no binfmt_misc?): install qemu-user-static " \
+        "and binfmt-support and check /proc/sys/fs/binfmt_misc/qemu-aarch64"
+}
+
+# Shell run by mmdebstrap once the essential packages are in, before the rest (the kernel) install.
+essential_hook() {
+  local image_dir="$repo_root/firmware/image"
+  cat <<EOF
+set -e
+chroot "\$1" dpkg-divert --quiet --local --rename --divert /usr/sbin/update-initramfs.kinfly \
+  --add /usr/sbin/update-initramfs
+printf '#!/bin/sh\nexit 0\n' >"\$1/usr/sbin/update-initramfs"
+chmod 755 "\$1/usr/sbin/update-initramfs"
+install -D -m 644 "$image_dir/initramfs-kinfly.conf" "\$1/etc/initramfs-tools/conf.d/kinfly.conf"
+install -D -m 755 "$image_dir/initramfs-kinfly-storage" \
+  "\$1/etc/initramfs-tools/hooks/kinfly-storage"
+EOF
+}
+
+# Files that make the tree a kinfly drone rather than a plain Debian.
+customize_root() {
+  local root="$1" root_uuid="$2" boot_uuid="$3"
+  echo kinfly >"$root/etc/hostname"
+  printf '127.0.0.1\tlocalhost\n127.0.1.1\tkinfly\n::1\t\tlocalhost ip6-localhost ip6-loopback\n' \
+    >"$root/etc/hosts"
+  cat >"$root/etc/fstab" <<EOF
+# <file system>	<mount point>	<type>	<options>	<dump>	<pass>
+UUID=$root_uuid	/	ext4	defaults,noatime	0	1
+UUID=$boot_uuid	/boot/firmware	vfat	defaults,umask=0077,nofail	0	2
+EOF
+  mkdir -p "$root/boot/firmware"
+
+  # DHCP on every wired and wireless interface; net.ifnames=0 on the kernel command line keeps the
+  # Wi-Fi called wlan0, which is what kinfly.conf configures.
+  mkdir -p "$root/etc/systemd/network"
+  printf '[Match]\nName=eth* wlan*\n\n[Network]\nDHCP=yes\nMulticastDNS=no\n' \
+    >"$root/etc/systemd/network/20-kinfly-dhcp.network"
+  mkdir -p "$root/etc/systemd/system/wpa_supplicant@.service.d"
+  printf '[Unit]\nConditionPathExists=/etc/wpa_supplicant/wpa_supplicant-%%i.conf\n' \
+    >"$root/etc/systemd/system/wpa_supplicant@.service.d/kinfly.conf"
+  printf '# kinfly-fw environment (kinfly-firstboot rewrites it from kinfly.conf).\n%s\n%s\n' \
+    'LCM_DEFAULT_URL=udpm://239.255.76.67:7667?ttl=1' 'KINFLY_MULTICAST_DEV=wlan0' \
+    >"$root/etc/default/kinfly-fw"
+
+  install -D -m 755 "$repo_root/firmware/image/kinfly-firstboot" \
+    "$root/usr/libexec/kinfly/kinfly-firstboot"
+  install -m 644 "$repo_root/firmware/image/kinfly-firstboot.service" "$root/etc/systemd/system/"
+  # Every drone flashed from one image would otherwise share the image's ssh host keys; the first
+  # boot makes its own (kinfly-firstboot: ssh-keygen -A).
+  rm -f "$root"/etc/ssh/ssh_host_*
+
+  # `systemctl enable` inside the tree (arm64, through qemu) writes the same links as on a board.
+  chroot "$root" systemctl enable kinfly-firstboot.service systemd-networkd.service \
+    wpa_supplicant@wlan0.service >/dev/null 2>&1
+  [[ -L "$root/etc/systemd/system/multi-user.target.wants/kinfly-fw.service" ]] ||
+    die "the kinfly-fw postinst did not enable kinfly-fw.service"
+}
+
+# The FAT partition's files: GRUB as the removable-media EFI loader (what UEFI firmware and U-Boot's
+# EFI boot look for), its menu, and the provisioning file.
+stage_boot_partition() {
+  local root="$1" root_uuid="$2" dir="$3"
+  rm -rf "$dir"
+  mkdir -p "$dir/EFI/BOOT"
+  # grub-mkimage is the build host's, the modules are the image's (same GRUB release): no arm64
+  # code runs to make the loader.
+  grub-mkimage --format=arm64-efi --directory="$root/usr/lib/grub/arm64-efi" \
+    --prefix=/EFI/BOOT --output="$dir/EFI/BOOT/BOOTAA64.EFI" \
+    part_msdos fat ext2 normal linux search search_fs_uuid configfile echo gzio efi_gop
+  # /vmlinuz and /initrd.img are the kernel package's symlinks to the current kernel, so a kernel
+  # upgrade on the drone needs no change here.
+  cat >"$dir/EFI/BOOT/grub.cfg" <<EOF
+set timeout=2
+search --no-floppy --fs-uuid --set=root $root_uuid
+menuentry "kinfly (Debian 12 arm64)" {
+  linux /vmlinuz root=UUID=$root_uuid rw rootwait net.ifnames=0 console=ttyAMA0,115200 console=tty1
+  initrd /initrd.img
+}
+EOF
+  install -m 644 "$repo_root/firmware/image/kinfly.conf" \
+    "$repo_root/firmware/image/kinfly.conf.example" "$dir/"
+}
+
+main() {
+  local deb="" out="" work=""
+  while (($#)); do
+    case "$1" in
+      --deb) deb="$2"; shift 2 ;;
+      --out) out="$2"; shift 2 ;;
+      --work) work="$2"; shift 2 ;;
+      -h | --help) sed -n '2,17p' "${BASH_SOURCE[0]}"; exit 0 ;;
+      *) die "unknown argument '$1'" ;;
+    esac
+  done
+  [[ -f "$deb" && -n "$out" ]] || die "usage: build-image.sh --deb DEB --out IMAGE [--work DIR]"
+  deb="$(realpath "$deb")"
+  work="${work:-$(dirname "$(realpath -m "$out")")/image}"
+  [[ "$(id -u)" == 0 ]] || die "run as root (mmdebstrap's root mode keeps file owners)"
+  ensure_arm64_exec
+
+  local root="$work/root" bootfs="$work/bootfs"
+  local root_uuid boot_id boot_uuid disk_id
+  root_uuid="$(cat /proc/sys/kernel/random/uuid)"
+  boot_id="$(od -An -N4 -tx4 /dev/urandom | tr -d ' ')"
+  boot_uuid="$(echo "${boot_id^^}" | sed 's/^\(....\)\(....\)$/\1-\2/')"
+  disk_id="$(od -An -N4 -tx4 /dev/urandom | tr -d ' ')"
+
+  rm -rf "$root"
+  mkdir -p "$work"
+  # file-mirror-automount recreates the .deb's host path inside the tree; a unique folder under
+  # /tmp is one that can be removed from the tree afterwards without touching anything else.
+  deb_dir="$(mktemp -d /tmp/kinfly-image-deb.XXXXXX)"  # global: the EXIT trap runs after main
+  trap 'rm -rf "$deb_dir"' EXIT
+  cp "$deb" "$deb_dir/"
+  deb="$deb_dir/$(basename "$deb")"
+  log "Debian $KINFLY_DEBIAN_SUITE arm64: minbase + ${image_packages[*]} + $(basename "$deb")"
+  local packages
+  packages="$(IFS=,; echo "${image_packages[*]}"),$deb"
+  # Manual pages, translations and most documentation are dropped: nobody reads them on a drone.
+  # file-mirror-automount makes the .deb (a host path) visible to dpkg inside the tree.
+  # The kernel's postinst and a later trigger would each build the initramfs, minutes apiece under
+  # emulation: update-initramfs is diverted to a no-op while packages install and run once at the
+  # end, with the initramfs settings of firmware/image/ in place before the kernel arrives.
+  mmdebstrap --quiet --variant=minbase --architectures=arm64 \
+    --hook-dir=/usr/share/mmdebstrap/hooks/merged-usr \
+    --hook-dir=/usr/share/mmdebstrap/hooks/file-mirror-automount \
+    --essential-hook="$(essential_hook)" \
+    --customize-hook='rm "$1/usr/sbin/update-initramfs"' \
+    --customize-hook='chroot "$1" dpkg-divert --quiet --local --rename \
+                        --remove /usr/sbin/update-initramfs' \
+    --customize-hook='chroot "$1" update-initramfs -c -k all' \
+    --dpkgopt='path-exclude=/usr/share/man/*' \
+    --dpkgopt='path-exclude=/usr/share/locale/*' \
+    --dpkgopt='path-include=/usr/share/locale/locale.alias' \
+    --dpkgopt='path-exclude=/usr/share/doc/*' \
+    --dpkgopt='path-include=/usr/share/doc/*/copyright' \
+    --dpkgopt='path-include=/usr/share/doc/kinfly-fw/*' \
+    --include="$packages" \
+    "$KINFLY_DEBIAN_SUITE" "$root" "${KINFLY_DEBIAN_MIRRORS[@]}"
+
+  rm -rf "${root:?}$deb_dir"
+  log "configuring the tree"
+  customize_root "$root" "$root_uuid" "$boot_uuid"
+  stage_boot_partition "$root" "$root_uuid" "$bootfs"
+
+  log "making the file systems"
+  local root_mib
+  root_mib=$(( $(du -s --block-size=1M "$root" | cut -f1) * 11 / 10 + root_headroom_mib ))
+  rm -f "$work/boot.vfat" "$work/root.ext4"
+  mkfs.vfat -F 32 -n KINFLYBOOT -i "$boot_id" -C "$work/boot.vfat" $((boot_mib * 1024)) >/dev/null
+  MTOOLS_SKIP_CHECK=1 mcopy -s -i "$work/boot.vfat" "$bootfs"/* ::/
+  mkfs.ext4 -q -F -L kinfly-root -U "$root_uuid" -d "$root" "$work/root.ext4" "${root_mib}M"
+
+  log "assembling $out"
+  local boot_start=2048 sectors_per_mib=2048
+  local root_start=$((boot_start + boot_mib * sectors_per_mib))
+  local total=$((root_start + root_mib * sectors_per_mib))
+  rm -f "$out.tmp"
+  truncate -s $((total * 512)) "$out.tmp"
+  sfdisk --quiet "$out.tmp" <<EOF
+label: dos
+label-id: 0x$disk_id
+unit: sectors
+start=$boot_start, size=$((boot_mib * sectors_per_mib)), type=c, bootable
+start=$root_start, size=$((root_mib * sectors_per_mib)), type=83
+EOF
+  dd if="$work/boot.vfat" of="$out.tmp" bs=1M seek=$((boot_start / sectors_per_mib)) \
+    conv=notrunc,sparse status=none
+  dd if="$work/root.ext4" of="$out.tmp" bs=1M seek=$((root_start / sectors_per_mib)) \
+    conv=notrunc,sparse status=none
+  rm -f "$work/boot.vfat" "$work/root.ext4"
+  mv "$out.tmp" "$out"
+  log "done: $out ($((total / sectors_per_mib)) MiB, $(du -h "$out" | cut -f1) allocated)"
+}
+
+main "$@"

@@ -7,8 +7,10 @@
 #                   FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
 #   make demo       fuse the bundled TUM sample into out/demo (mesh, trajectory, stats)
 #   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
-#   make bench      depth codec and keyframe delivery over LCM on the TUM sequence; kinfly-fuse
-#                   vs Open3D dense SLAM (own .venv-bench); prints, never fails on timings
+#   make bench      depth codec and keyframe delivery over LCM on the TUM sequence; the drone's
+#                   figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions per
+#                   frame); kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never
+#                   fails on timings
 #   make firmware-aarch64  kinfly-fw, the link tools and the unit tests for aarch64 (cross
 #                   compiler + Debian arm64 sysroot, build-aarch64/)
 #   make test-aarch64  the above + the image; unit tests and a replay under qemu-aarch64, the
@@ -124,6 +126,7 @@ bench: deps build
 	mkdir -p $(REPO_ROOT)/out/bench
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
+	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	@$(REPO_ROOT)/scripts/install-deps.sh --bench
 	OMP_NUM_THREADS=2 $(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_vs_open3d.py --fuse $(FUSE) \
 	  --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

@@ -1,12 +1,14 @@
 // Depth sensors through OpenNI2 (the PS1080 driver: Kinect-class PrimeSense, Xtion, Orbbec), and
 // .oni recordings through OpenNI2's own file driver. libusb adds what OpenNI2 does not give: which
 // supported sensors are on the bus (so "none attached" and "attached but cannot be opened" read
-// differently in the log) and a hot-plug notice, so a replugged sensor is retried at once
-// instead of at the next backoff step.
+// differently in the log) and a USB hot-plug notice. That notice, or OpenNI2's own "device
+// connected" event (which comes once its driver has taken the sensor on), has a replugged sensor
+// retried at once instead of at the next backoff step.
 #include <OpenNI.h>
 #include <libusb.h>
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -14,6 +16,7 @@
 #include <filesystem>
 #include <mutex>
 #include <sstream>
+#include <system_error>
 #include <thread>
 
 #include "depth_source.h"
@@ -49,12 +52,30 @@ std::string hex4(uint16_t v) {
   return text;
 }
 
+// OpenNI2's last error on one line: it comes indented with a tab and ends in a newline, which
+// would split the log line.
+std::string openniError() {
+  std::string text = openni::OpenNI::getExtendedError();
+  std::replace(text.begin(), text.end(), '\n', ' ');
+  std::replace(text.begin(), text.end(), '\t', ' ');
+  const size_t first = text.find_first_not_of(' ');
+  if (first == std::string::npos) return "no detail from OpenNI2";
+  return text.substr(first, text.find_last_not_of(' ') - first + 1);
+}
+
 // OpenNI2's state is per process: initialised by the first source, never shut down before exit
 // (its drivers' threads may still run while a stream is torn down).
 bool initialiseOpenni(std::string* why) {
-  static const openni::Status status = openni::OpenNI::initialize();
+  static const openni::Status status = [] {
+    const openni::Status s = openni::OpenNI::initialize();
+    const openni::Version v = openni::OpenNI::getVersion();
+    if (s == openni::STATUS_OK)
+      spdlog::info("openni: OpenNI2 {}.{}.{}.{} initialised", v.major, v.minor, v.maintenance,
+                   v.build);
+    return s;
+  }();
   if (status == openni::STATUS_OK) return true;
-  *why = std::string("OpenNI2 did not initialise: ") + openni::OpenNI::getExtendedError();
+  *why = "OpenNI2 did not initialise: " + openniError();
   return false;
 }
 
@@ -122,19 +143,25 @@ class UsbWatch {
   std::atomic<bool> arrived_{false};
 };
 
-class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListener {
+class OpenniSource : public DepthSource,
+                     openni::OpenNI::DeviceConnectedListener,
+                     openni::OpenNI::DeviceDisconnectedListener {
  public:
   OpenniSource(const OpenniSourceParams& params, const PinholeCamera& camera, bool file)
       : params_(params), camera_(camera), file_(file),
         backoff_(params.reconnect_min_s, params.reconnect_max_s) {
     if (!file_) {
       usb_ = std::make_unique<UsbWatch>();
+      openni::OpenNI::addDeviceConnectedListener(this);
       openni::OpenNI::addDeviceDisconnectedListener(this);
     }
   }
   ~OpenniSource() override {
     close();
-    if (!file_) openni::OpenNI::removeDeviceDisconnectedListener(this);
+    if (!file_) {
+      openni::OpenNI::removeDeviceConnectedListener(this);
+      openni::OpenNI::removeDeviceDisconnectedListener(this);
+    }
   }
 
   // Recordings must open at start; a sensor may come later.
@@ -152,7 +179,15 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
   SourceStatus next(DepthCapture* out, std::string* why) override {
     if (!connected_) {
       if (file_) return SourceStatus::kEnd;
-      const bool arrived = usb_->waitForArrival(kReadTimeoutMs);
+      // A hot-plug notice cuts the wait short; otherwise the next attempt is made when due, and
+      // the wait never outlasts the read timeout.
+      const auto due_ms = std::chrono::ceil<std::chrono::milliseconds>(next_attempt_ -
+                                                                       Clock::now()).count();
+      bool arrived = appeared_.exchange(false);
+      if (!arrived)
+        arrived = usb_->waitForArrival(
+                      static_cast<int>(std::clamp<int64_t>(due_ms, 0, kReadTimeoutMs))) ||
+                  appeared_.exchange(false);
       if (!arrived && Clock::now() < next_attempt_) {
         *why = waiting_why_;
         return SourceStatus::kWaiting;
@@ -162,29 +197,41 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
         const double wait_s = backoff_.next();
         next_attempt_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                            std::chrono::duration<double>(wait_s));
+        // The attempt number makes every retry its own log line: the log shows it goes on.
         std::ostringstream text;
-        text << problem << "; retrying in " << wait_s << " s";
+        text << problem << "; attempt " << ++failed_attempts_ << " failed, retrying in "
+             << wait_s << " s";
         waiting_why_ = *why = text.str();
         return SourceStatus::kWaiting;
       }
       backoff_.reset();
+      failed_attempts_ = 0;
+    }
+    // Manual playback hands out the next frame on every read, so the last one is known.
+    if (file_ && frames_in_file_ > 0 && last_index_ >= frames_in_file_) {
+      spdlog::info("openni: recording {}: all {} frames read", params_.uri, frames_in_file_);
+      close();
+      return SourceStatus::kEnd;
     }
     openni::VideoStream* streams[] = {&stream_};
     int ready = -1;
     if (lost_ || openni::OpenNI::waitForAnyStream(streams, 1, &ready, kReadTimeoutMs) !=
                      openni::STATUS_OK) {
-      if (file_ && frames_read_ >= frames_in_file_) {
+      if (file_ && secondsFrom(last_frame_) > kSilentLostS) {
+        // The capture thread does not log an end; an early one needs saying.
+        if (frames_in_file_ > 0)
+          spdlog::warn("openni: recording {} stopped delivering after {} of its {} frames: it "
+                       "ends here",
+                       params_.uri, frames_read_, frames_in_file_);
+        else
+          spdlog::warn("openni: recording {} ended after {} frames; it holds no frame count "
+                       "(a recorder that never finished it?)",
+                       params_.uri, frames_read_);
         close();
         return SourceStatus::kEnd;
       }
-      if (lost_ || secondsFrom(last_frame_) > kSilentLostS) {
+      if (!file_ && (lost_ || secondsFrom(last_frame_) > kSilentLostS)) {
         *why = lost_ ? "depth sensor unplugged" : "depth sensor silent for 2 s";
-        if (file_) {
-          *why = "recording stopped delivering after " + std::to_string(frames_read_) + " of " +
-                 std::to_string(frames_in_file_) + " frames";
-          close();
-          return SourceStatus::kEnd;
-        }
         close();
         waiting_why_ = *why + ": closed, reconnecting";
         *why = waiting_why_;
@@ -194,18 +241,23 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
       return SourceStatus::kWaiting;
     }
     if (stream_.readFrame(&frame_) != openni::STATUS_OK) {
-      *why = std::string("OpenNI2 could not read a frame: ") +
-             openni::OpenNI::getExtendedError();
+      *why = "OpenNI2 could not read a frame: " + openniError();
       return SourceStatus::kSkipped;
     }
     ++frames_read_;
+    last_index_ = frame_.getFrameIndex();
     last_frame_ = Clock::now();
     return copyFrame(out, why);
   }
 
  private:
+  // Both called on OpenNI2's own threads (its drivers').
+  void onDeviceConnected(const openni::DeviceInfo* info) override {
+    if (!connected_ && (params_.uri.empty() || params_.uri == info->getUri())) appeared_ = true;
+  }
   void onDeviceDisconnected(const openni::DeviceInfo* info) override {
-    if (connected_ && std::strcmp(info->getUri(), uri_.c_str()) == 0) lost_ = true;
+    const std::lock_guard<std::mutex> lock(uri_mutex_);
+    if (connected_ && uri_ == info->getUri()) lost_ = true;
   }
 
   bool connect(std::string* why) {
@@ -221,7 +273,8 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
       uri = devices[0].getUri();
     }
     if (device_.open(uri.c_str()) != openni::STATUS_OK) {
-      *why = "cannot open depth sensor " + uri + ": " + openni::OpenNI::getExtendedError();
+      *why = (file_ ? "cannot open recording " : "cannot open depth sensor ") + uri + ": " +
+             openniError();
       if (usb_) *why += " (supported sensors on USB: " + usb_->attached() + ")";
       return false;
     }
@@ -233,10 +286,13 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
     }
     if (file_) {
       frames_in_file_ = device_.getPlaybackControl()->getNumberOfFrames(stream_);
-      frames_read_ = 0;
+      frames_read_ = last_index_ = 0;
     }
-    uri_ = uri;
-    connected_ = true;
+    {
+      const std::lock_guard<std::mutex> lock(uri_mutex_);
+      uri_ = uri;
+      connected_ = true;
+    }
     lost_ = false;
     have_time_origin_ = false;
     last_frame_ = Clock::now();
@@ -275,8 +331,7 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
              std::to_string(camera_.height) + " millimetre depth mode (source.width, " +
              "source.height); it offers " + offered.str();
     if (stream_.create(device_, openni::SENSOR_DEPTH) != openni::STATUS_OK)
-      return std::string("cannot create the depth stream: ") +
-             openni::OpenNI::getExtendedError();
+      return "cannot create the depth stream: " + openniError();
     // Recordings replay the mode they were made with; drivers without the properties (OpenNI2's
     // test device) refuse these calls, which changes nothing.
     if (!file_) {
@@ -284,8 +339,7 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
       stream_.setMirroringEnabled(false);  // the optical frame has x to the right
     }
     if (stream_.start() != openni::STATUS_OK) {
-      std::string problem =
-          std::string("cannot start the depth stream: ") + openni::OpenNI::getExtendedError();
+      std::string problem = "cannot start the depth stream: " + openniError();
       stream_.destroy();
       return problem;
     }
@@ -302,14 +356,17 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
 
   void close() {
     if (!connected_) return;
+    {
+      const std::lock_guard<std::mutex> lock(uri_mutex_);
+      connected_ = false;
+    }
+    frame_.release();  // the frame belongs to the stream's driver: hand it back first
     stream_.stop();
     // Some drivers (OpenNI2's test device) stop their frame thread without joining it; give it
     // a frame period to finish before the stream goes away.
     std::this_thread::sleep_for(100ms);
     stream_.destroy();
-    frame_.release();
     device_.close();
-    connected_ = false;
   }
 
   SourceStatus copyFrame(DepthCapture* out, std::string* why) {
@@ -350,15 +407,22 @@ class OpenniSource : public DepthSource, openni::OpenNI::DeviceDisconnectedListe
   std::unique_ptr<UsbWatch> usb_;  // sensors only
   Backoff backoff_;
   Clock::time_point next_attempt_{};
-  std::string waiting_why_, uri_;
+  int64_t failed_attempts_ = 0;  // since the last connection
+  std::string waiting_why_;
   openni::Device device_;
   openni::VideoStream stream_;
   openni::VideoFrameRef frame_;
-  bool connected_ = false;
-  std::atomic<bool> lost_{false};  // set by OpenNI2's hot-plug thread
+  // The device's URI and whether it is open, read by OpenNI2's hot-plug thread.
+  std::mutex uri_mutex_;
+  std::string uri_;
+  std::atomic<bool> connected_{false};
+  std::atomic<bool> lost_{false};      // set by OpenNI2's hot-plug thread
+  std::atomic<bool> appeared_{false};  // so is this: the sensor (or, for "", any) came back
   Clock::time_point last_frame_{};
   int64_t connects_ = 0;
-  int frames_in_file_ = 0, frames_read_ = 0;
+  // Recordings: frames in the file (0 when it does not say), read so far, last frame number
+  // (1 to frames_in_file_).
+  int frames_in_file_ = 0, frames_read_ = 0, last_index_ = 0;
   bool have_time_origin_ = false;
   int64_t time_offset_us_ = 0, last_device_us_ = 0;
 };
@@ -378,9 +442,14 @@ std::unique_ptr<DepthSource> openOpenniSource(const OpenniSourceParams& params,
   camera.height = params.height_px;
   if (*why = camera.validate(); !why->empty()) return nullptr;
   if (!initialiseOpenni(why)) return nullptr;
-  const bool file = std::filesystem::is_regular_file(params.uri);
+  std::error_code error;  // the non-throwing overloads: a bad path is a message, not an abort
+  const bool file = std::filesystem::is_regular_file(params.uri, error);
   if (!file && params.uri.size() > 4 && params.uri.compare(params.uri.size() - 4, 4, ".oni") == 0) {
     *why = "source.path: recording " + params.uri + " does not exist";
+    return nullptr;
+  }
+  if (std::filesystem::is_directory(params.uri, error)) {
+    *why = "source.path: " + params.uri + " is a folder, not a device URI or an .oni recording";
     return nullptr;
   }
   auto source = std::make_unique<OpenniSource>(params, camera, file);

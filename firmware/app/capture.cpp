@@ -28,7 +28,11 @@ void runCapture(const FirmwareConfig& config, DepthSource* source,
     const SourceStatus status = source->next(&capture, &why);
     counters->sensor_connects = source->connects();
     counters->sensor_waiting = source->waiting();
-    if (status == SourceStatus::kEnd) break;
+    if (status == SourceStatus::kEnd) {
+      spdlog::info("capture: {} ended after {} frames", source->describe(),
+                   counters->frames_captured.load());
+      break;
+    }
     if (status == SourceStatus::kWaiting) {
       if (!waiting || why != last_waiting_why) spdlog::warn("capture: {}", why);
       waiting = true;

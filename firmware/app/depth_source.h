@@ -82,7 +82,6 @@ struct OpenniSourceParams {
   std::string uri;
   std::string intrinsics;      // "fx,fy,cx,cy"; empty: a PrimeSense sensor's 58 x 45 deg view
   int width_px = 640, height_px = 480;  // the depth mode asked of the sensor
-  bool realtime = true;        // recordings: at the recorded rate, else as fast as possible
   double reconnect_min_s = 0.5;  // [s] first retry after losing the sensor; doubles ...
   double reconnect_max_s = 8.0;  // [s] ... up to this
 };

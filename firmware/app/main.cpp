@@ -59,7 +59,6 @@ std::unique_ptr<DepthSource> openSource(const FirmwareConfig& config, std::strin
     p.intrinsics = config.source_intrinsics;
     p.width_px = config.source_width_px;
     p.height_px = config.source_height_px;
-    p.realtime = config.source_realtime;
     p.reconnect_min_s = config.source_reconnect_min_s;
     p.reconnect_max_s = config.source_reconnect_max_s;
     return openOpenniSource(p, why);
@@ -155,6 +154,10 @@ int run(int argc, char** argv) {
 
   SharedAnchor anchor(config.corrections);
   Counters counters;
+  // What the source says of itself before its first read: the first status must not claim a
+  // sensor that is not there.
+  counters.sensor_waiting = source->waiting();
+  counters.sensor_connects = source->connects();
   // Every image the threads pass around is allocated here, none while flying.
   BoundedQueue<DepthCapture> capture_queue(static_cast<size_t>(config.capture_queue), [&] {
     DepthCapture capture;
@@ -205,6 +208,10 @@ int run(int argc, char** argv) {
       n(counters.keyframes_sent), n(counters.keyframes_failed + keyframe_queue.dropped()),
       n(link.accepted() - counters.corrections_unknown), n(rejects.total()),
       n(counters.corrections_unknown));
+  if (!interrupted && counters.frames_captured == 0) {
+    spdlog::error("source: {} ended without delivering a frame", source->describe());
+    return 1;
+  }
   return written ? 0 : 1;
 }
 

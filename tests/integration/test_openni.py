@@ -344,7 +344,7 @@ def test_unusable_recording_refuses_to_start(tmp_path: Path, name: str, content:
 def test_recording_the_file_driver_will_not_replay_is_reported(tmp_path: Path) -> None:
     """Recordings of a stream without the cropping property (OpenNI2's Dummy device has none)
     lose every frame in Debian's file driver: the recorder's check says so, and kinfly-fw ends the
-    replay saying how many frames it got."""
+    replay saying how many frames it got, and fails: a replay of nothing is not a flight."""
     recording = tmp_path / "dummy.oni"
     run = subprocess.run([built("tests/oni/kinfly-oni-record"), "--uri", "Dummy", "--out",
                           recording, "--frames", "10"],
@@ -358,7 +358,8 @@ def test_recording_the_file_driver_will_not_replay_is_reported(tmp_path: Path) -
     replay = subprocess.run(firmware("--source.path", recording, "--source.width", 320,
                                      "--source.height", 240, "--source.realtime", "false"),
                             capture_output=True, text=True, timeout=60)
-    assert replay.returncode == 0, replay.stderr
+    assert replay.returncode == 1, replay.stderr
     assert replay.stdout.startswith("kinfly-fw: source ended: 0 frames captured"), replay.stdout
+    assert "ended without delivering a frame" in replay.stderr, replay.stderr
     assert (f"recording {recording} stopped delivering after 0 of its {report['recorded']} "
             "frames") in replay.stderr, replay.stderr

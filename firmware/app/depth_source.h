@@ -48,6 +48,12 @@ class DepthSource {
   virtual bool waiting() const { return false; }
 };
 
+// The camera of a source that knows its image size but maybe not its lens: focal length
+// `fx_at_640_px` scaled to the width, principal point at the centre, unless `intrinsics`
+// ("fx,fy,cx,cy") says otherwise. False and *why when the result is not a valid camera.
+bool sourceCamera(float fx_at_640_px, int width_px, int height_px, const std::string& intrinsics,
+                  PinholeCamera* camera, std::string* why);
+
 struct DatasetSourceParams {
   std::string tum_dir;
   std::string intrinsics;            // "fx,fy,cx,cy"; empty: TUM freiburg3

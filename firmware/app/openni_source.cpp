@@ -432,15 +432,9 @@ class OpenniSource : public DepthSource,
 std::unique_ptr<DepthSource> openOpenniSource(const OpenniSourceParams& params,
                                               std::string* why) {
   PinholeCamera camera;
-  const float scale = static_cast<float>(params.width_px) / 640.f;
-  camera.fx = camera.fy = kPrimeSenseFxAt640 * scale;
-  camera.cx = 0.5f * static_cast<float>(params.width_px - 1);
-  camera.cy = 0.5f * static_cast<float>(params.height_px - 1);
-  if (!params.intrinsics.empty() && !parseIntrinsics(params.intrinsics, &camera, why))
+  if (!sourceCamera(kPrimeSenseFxAt640, params.width_px, params.height_px, params.intrinsics,
+                    &camera, why))
     return nullptr;
-  camera.width = params.width_px;
-  camera.height = params.height_px;
-  if (*why = camera.validate(); !why->empty()) return nullptr;
   if (!initialiseOpenni(why)) return nullptr;
   std::error_code error;  // the non-throwing overloads: a bad path is a message, not an abort
   const bool file = std::filesystem::is_regular_file(params.uri, error);

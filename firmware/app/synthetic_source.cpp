@@ -13,6 +13,7 @@ namespace {
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kDepthScaleM = 0.001;  // OpenNI's millimetres, as a real sensor would give
 constexpr float kMaxDepthM = 5.0f;      // a Kinect sees nothing further
+constexpr float kKinectFxAt640 = 525.f; // [px] the usual Kinect focal length at 640x480
 // The swing: yaw around the objects (amplitude and period), and a slower vertical bob. Peak
 // speed ~0.55 m/s and ~15 deg/s: a gentle indoor flight, ~2 cm a frame at 30 Hz.
 constexpr double kSwingRad = 0.35, kSwingPeriodS = 8.0;
@@ -70,16 +71,9 @@ class SyntheticSource : public DepthSource {
 std::unique_ptr<DepthSource> openSyntheticSource(const SyntheticSourceParams& params,
                                                  std::string* why) {
   PinholeCamera camera;
-  // A Kinect's 525 px focal length at 640x480, scaled to the requested size.
-  const float scale = static_cast<float>(params.width_px) / 640.f;
-  camera.fx = camera.fy = 525.f * scale;
-  camera.cx = 0.5f * static_cast<float>(params.width_px - 1);
-  camera.cy = 0.5f * static_cast<float>(params.height_px - 1);
-  if (!params.intrinsics.empty() && !parseIntrinsics(params.intrinsics, &camera, why))
+  if (!sourceCamera(kKinectFxAt640, params.width_px, params.height_px, params.intrinsics,
+                    &camera, why))
     return nullptr;
-  camera.width = params.width_px;
-  camera.height = params.height_px;
-  if (*why = camera.validate(); !why->empty()) return nullptr;
   if (!(params.rate_hz > 0.0 && params.rate_hz <= 1000.0)) {
     *why = "source.rate_hz must be in (0, 1000] (got " + std::to_string(params.rate_hz) + ")";
     return nullptr;

@@ -1,0 +1,17 @@
+#include "depth_source.h"
+
+namespace kinfly::fw {
+
+bool sourceCamera(float fx_at_640_px, int width_px, int height_px, const std::string& intrinsics,
+                  PinholeCamera* camera, std::string* why) {
+  camera->fx = camera->fy = fx_at_640_px * static_cast<float>(width_px) / 640.f;
+  camera->cx = 0.5f * static_cast<float>(width_px - 1);
+  camera->cy = 0.5f * static_cast<float>(height_px - 1);
+  if (!intrinsics.empty() && !parseIntrinsics(intrinsics, camera, why)) return false;
+  camera->width = width_px;
+  camera->height = height_px;
+  *why = camera->validate();
+  return why->empty();
+}
+
+}  // namespace kinfly::fw

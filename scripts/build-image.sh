@@ -86,6 +86,11 @@ EOF
     'LCM_DEFAULT_URL=udpm://239.255.76.67:7667?ttl=1' 'KINFLY_MULTICAST_DEV=wlan0' \
     >"$root/etc/default/kinfly-fw"
 
+  # A drone's source is its depth sensor; the package's default (a log replay) suits a laptop.
+  sed -i '/^\[source\]/,/^\[/ s/^kind = "log"/kind = "openni"/' "$root/etc/kinfly/kinfly-fw.toml"
+  grep -q '^kind = "openni"' "$root/etc/kinfly/kinfly-fw.toml" ||
+    die "could not set [source] kind = \"openni\" in /etc/kinfly/kinfly-fw.toml"
+
   install -D -m 755 "$repo_root/firmware/image/kinfly-firstboot" \
     "$root/usr/libexec/kinfly/kinfly-firstboot"
   install -m 644 "$repo_root/firmware/image/kinfly-firstboot.service" "$root/etc/systemd/system/"

@@ -145,6 +145,8 @@ def test_root_has_firmware_config_units_and_first_boot(root_fs: Path) -> None:
     unit = debugfs(root_fs, "cat /usr/lib/systemd/system/kinfly-fw.service")
     assert "ExecStart=/usr/bin/kinfly-fw --config /etc/kinfly/kinfly-fw.toml\n" in unit
     assert "Restart=on-failure" in unit and "User=kinfly" in unit
+    config = debugfs(root_fs, "cat /etc/kinfly/kinfly-fw.toml")
+    assert re.search(r'^\[source\]\nkind = "openni"', config, re.M), "the drone reads its sensor"
     # The postinst ran inside the image: the service user exists.
     assert re.search(r"^kinfly:", debugfs(root_fs, "cat /etc/passwd"), re.M)
     # No ssh host keys shared by every drone flashed from this image.

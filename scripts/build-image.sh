@@ -101,6 +101,9 @@ EOF
   # `systemctl enable` inside the tree (arm64, through qemu) writes the same links as on a board.
   chroot "$root" systemctl enable kinfly-firstboot.service systemd-networkd.service \
     wpa_supplicant@wlan0.service >/dev/null 2>&1
+  # The package's own wpa_supplicant.service is NetworkManager's D-Bus one: without D-Bus it only
+  # fails; the per-interface instance above is the one that connects.
+  chroot "$root" systemctl disable wpa_supplicant.service >/dev/null 2>&1
   [[ -L "$root/etc/systemd/system/multi-user.target.wants/kinfly-fw.service" ]] ||
     die "the kinfly-fw postinst did not enable kinfly-fw.service"
 }

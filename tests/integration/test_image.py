@@ -142,6 +142,8 @@ def test_root_has_firmware_config_units_and_first_boot(root_fs: Path) -> None:
                           "/etc/systemd/system/kinfly-firstboot.service")):
         link = stat(root_fs, f"{wants}/{unit}")
         assert "Type: symlink" in link and target in link, link
+    # Without D-Bus the package's wpa_supplicant.service can only fail (a degraded boot).
+    assert "Inode:" not in debugfs(root_fs, f'stat "{wants}/wpa_supplicant.service"')
     unit = debugfs(root_fs, "cat /usr/lib/systemd/system/kinfly-fw.service")
     assert "ExecStart=/usr/bin/kinfly-fw --config /etc/kinfly/kinfly-fw.toml\n" in unit
     assert "Restart=on-failure" in unit and "User=kinfly" in unit

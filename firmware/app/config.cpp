@@ -74,6 +74,12 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
       ->capture_default_str();
   app->add_option("--odometry.voxel_m", c->odometry_voxel_m, "voxel size [m]")
       ->capture_default_str();
+  app->add_option("--odometry.lookahead_m", c->odometry_lookahead_m,
+                  "the volume follows the drone, centred this far ahead of the camera [m]")
+      ->capture_default_str();
+  app->add_option("--odometry.shift_blocks", c->odometry_shift_blocks,
+                  "it shifts when its wanted centre has moved this many 8-voxel blocks")
+      ->capture_default_str();
   app->add_option("--odometry.threads", c->odometry_threads,
                   "engine threads (1: no OpenMP region at all, no allocation per frame)")
       ->capture_default_str();
@@ -151,6 +157,8 @@ std::string FirmwareConfig::validate() const {
     why << "odometry.volume_vox must be a multiple of 8 (got " << odometry_volume_vox << ")";
   range("odometry.volume_vox", odometry_volume_vox, 16, 512, false);
   range("odometry.voxel_m", odometry_voxel_m, 0, 0.2, true);
+  range("odometry.lookahead_m", odometry_lookahead_m, 0, 10, false);
+  range("odometry.shift_blocks", odometry_shift_blocks, 1, 64, false);
   range("odometry.threads", odometry_threads, 1, 64, false);
   range("odometry.capture_queue", capture_queue, 1, 64, false);
   range("link.signing_window_s", signing_window_s, 0, 3600, true);

@@ -38,6 +38,8 @@ struct FirmwareConfig {
   int odometry_downsample = 2;          // {1, 2, 4}: 640x480 sensors run at 320x240
   int odometry_volume_vox = 128;        // dense volume edge [16, 512], multiple of 8
   double odometry_voxel_m = 0.03;       // [m] (0, 0.2]
+  double odometry_lookahead_m = 1.5;    // [m] [0, 10] volume centred this far ahead of the camera
+  int odometry_shift_blocks = 2;        // [1, 64] re-centre when the centre moved this many blocks
   int odometry_threads = 1;             // [1, 64]
   int capture_queue = 4;                // [1, 64] frames between capture and odometry
   // [keyframe]

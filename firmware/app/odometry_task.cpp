@@ -27,6 +27,8 @@ std::string OdometryTask::engineParams(const FirmwareConfig& config, const Pinho
            std::to_string(camera.height) + " image";
   volume->resolution_vox = config.odometry_volume_vox;
   volume->voxel_size_m = static_cast<float>(config.odometry_voxel_m);
+  volume->lookahead_m = static_cast<float>(config.odometry_lookahead_m);
+  volume->shift_threshold_blocks = config.odometry_shift_blocks;
   pipeline->preprocess.depth_scale_m = depth_scale_m;
   pipeline->preprocess.downsample = config.odometry_downsample;
   pipeline->integrate.truncation_m = 4.f * volume->voxel_size_m;

@@ -13,8 +13,7 @@ namespace kinfly::fw {
 void runCapture(const FirmwareConfig& config, DepthSource* source,
                 BoundedQueue<DepthCapture>* queue, Counters* counters) {
   using namespace std::chrono_literals;
-  DepthCapture capture;
-  capture.depth = Image<uint16_t>(source->camera().width, source->camera().height);
+  DepthCapture capture = withDepthImage<DepthCapture>(source->camera());
   // Pacing: the first frame's capture time and the wall time it was due, re-anchored whenever
   // the recording's clock goes backwards or the sensor comes back after a loss.
   std::optional<std::pair<int64_t, Clock::time_point>> start;

@@ -15,7 +15,7 @@ LinkTask::LinkTask(const FirmwareConfig& config, Publisher* publisher,
     : config_(config), publisher_(publisher), anchor_(anchor), counters_(counters),
       keyframes_(keyframes), capture_queue_(capture_queue), camera_(camera),
       depth_scale_m_(depth_scale_m), codec_(DepthCodec::Params()),
-      job_{Image<uint16_t>(camera.width, camera.height)}, watch_(config.sensor) {
+      job_(withDepthImage<KeyframeJob>(camera)), watch_(config.sensor) {
   if (key) {
     link::VerifierParams verifier;
     verifier.window_s = config.signing_window_s;

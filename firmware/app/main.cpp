@@ -158,17 +158,10 @@ int run(int argc, char** argv) {
   // sensor that is not there.
   counters.sensor_waiting = source->waiting();
   counters.sensor_connects = source->connects();
-  // Every image the threads pass around is allocated here, none while flying.
-  BoundedQueue<DepthCapture> capture_queue(static_cast<size_t>(config.capture_queue), [&] {
-    DepthCapture capture;
-    capture.depth = Image<uint16_t>(camera.width, camera.height);
-    return capture;
-  });
-  BoundedQueue<KeyframeJob> keyframe_queue(static_cast<size_t>(config.keyframe_queue), [&] {
-    KeyframeJob job;
-    job.depth = Image<uint16_t>(camera.width, camera.height);
-    return job;
-  });
+  BoundedQueue<DepthCapture> capture_queue(static_cast<size_t>(config.capture_queue),
+                                           [&] { return withDepthImage<DepthCapture>(camera); });
+  BoundedQueue<KeyframeJob> keyframe_queue(static_cast<size_t>(config.keyframe_queue),
+                                           [&] { return withDepthImage<KeyframeJob>(camera); });
   OdometryTask odometry(config, camera, volume_params, pipeline_params, odometry_out.get(),
                         &anchor, &counters, &capture_queue, &keyframe_queue);
   LinkTask link(config, link_out.get(), key, &anchor, &counters, &keyframe_queue,

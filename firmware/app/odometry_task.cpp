@@ -44,7 +44,7 @@ OdometryTask::OdometryTask(const FirmwareConfig& config, const PinholeCamera& ca
                            BoundedQueue<KeyframeJob>* keyframes)
     : config_(config), volume_(volume), pipeline_(camera, pipeline, &volume_),
       selector_(config.keyframe), publisher_(publisher), anchor_(anchor), counters_(counters),
-      frames_(frames), keyframes_(keyframes), job_{Image<uint16_t>(camera.width, camera.height)} {
+      frames_(frames), keyframes_(keyframes), job_(withDepthImage<KeyframeJob>(camera)) {
   odometry_.vehicle_id = config.vehicle_id;
   truth_.vehicle_id = config.vehicle_id;
 }
@@ -53,8 +53,7 @@ void OdometryTask::run() {
   // OpenMP's thread count is a per-thread setting: a new thread starts from OMP_NUM_THREADS or
   // the core count, not from what main() set.
   omp_set_num_threads(config_.odometry_threads);
-  DepthCapture capture;
-  capture.depth = Image<uint16_t>(job_.depth.width(), job_.depth.height());
+  DepthCapture capture = withDepthImage<DepthCapture>(pipeline_.inputCamera());
   while (!g_stop) {
     if (!frames_->pop(&capture, kPollPeriod)) {
       if (counters_->capture_done && frames_->size() == 0) break;
@@ -103,11 +102,7 @@ void OdometryTask::process(const DepthCapture& capture) {
   if (!config_.trajectory_out.empty())
     trajectory_.push_back({static_cast<double>(r.utime) * 1e-6, T_world_cam});
   if (!keyframe) return;
-  ++counters_->keyframes_selected;
-  // The job's previous buffer comes back from the queue on the push: no allocation once every
-  // slot has held a keyframe of this size.
-  if (job_.depth.width() != capture.depth.width() || job_.depth.height() != capture.depth.height())
-    job_.depth = Image<uint16_t>(capture.depth.width(), capture.depth.height());
+  // Sources deliver every frame at their camera's size, the size every image was made with.
   job_.depth.copyFrom(capture.depth.view());
   job_.utime = r.utime;
   job_.frame_id = capture.frame_id;

@@ -8,6 +8,7 @@
 #include <mutex>
 
 #include "kinfly/fw/correction_anchor.h"
+#include "kinfly/camera.h"
 #include "kinfly/image.h"
 #include "kinfly/odometry_t.hpp"
 #include "kinfly/se3.h"
@@ -24,7 +25,7 @@ struct Counters {
   std::atomic<bool> sensor_waiting{false}, capture_done{false};
   std::atomic<int64_t> last_frame_ns{-1};  // [ns] Clock time of the last frame, -1 before one
   // odometry thread
-  std::atomic<int64_t> frames_processed{0}, frames_lost{0}, keyframes_selected{0};
+  std::atomic<int64_t> frames_processed{0}, frames_lost{0};
   std::atomic<int8_t> tracking{odometry_t::TRACKING_NONE};
   // link thread
   std::atomic<int64_t> keyframes_sent{0}, keyframes_failed{0}, corrections_unknown{0};
@@ -44,6 +45,15 @@ struct SharedAnchor {
   CorrectionAnchor anchor;
   explicit SharedAnchor(const CorrectionAnchor::Params& p) : anchor(p) {}
 };
+
+// A queue item (DepthCapture, KeyframeJob) with its depth image allocated for `camera`: every
+// image the threads pass around is made at start, and swapping items never reallocates.
+template <class Item>
+Item withDepthImage(const PinholeCamera& camera) {
+  Item item;
+  item.depth = Image<uint16_t>(camera.width, camera.height);
+  return item;
+}
 
 // Set by SIGINT/SIGTERM (and by main when the source ends); every loop checks it.
 extern std::atomic<bool> g_stop;

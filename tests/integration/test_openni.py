@@ -28,9 +28,9 @@ import numpy as np
 import pytest
 
 from conftest import REPO_ROOT, built
-
-CONFIG = REPO_ROOT / "firmware" / "config" / "kinfly-fw.toml"
-STATUS_PROBE = REPO_ROOT / "tests" / "tools" / "status_probe.py"
+from firmware_run import firmware as firmware_command
+from firmware_run import read_tum
+GROUND_PROBE = REPO_ROOT / "tests" / "tools" / "ground_probe.py"
 VEHICLE = 1
 # status_t.SENSOR_* (proto/kinfly/status_t.lcm)
 SENSOR_STREAMING, SENSOR_WAITING = 0, 1
@@ -70,10 +70,9 @@ LOG_LINE = re.compile(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3})\] \[kinfly-fw
 
 
 def firmware(*args: object, lcm_url: str | None = "memq://") -> list[str]:
-    """kinfly-fw with the shipped configuration, no key file, and the given overrides."""
-    link = ["--link.lcm_url", lcm_url] if lcm_url is not None else []
-    return [str(built("bin/kinfly-fw")), "--config", str(CONFIG), "--vehicle.key_file", "",
-            *link, "--source.kind", "openni", *map(str, args)]
+    """kinfly-fw on the OpenNI2 source, with the shipped configuration and the given overrides."""
+    return firmware_command("--source.kind", "openni", *args, binary=built("bin/kinfly-fw"),
+                            lcm_url=lcm_url)
 
 
 def read_until(process: subprocess.Popen, text: str, lines: list[str]) -> None:
@@ -93,11 +92,11 @@ def read_until(process: subprocess.Popen, text: str, lines: list[str]) -> None:
 
 
 def statuses(netns: list[str], seconds: float) -> list[dict]:
-    probe = subprocess.run([*netns, sys.executable, STATUS_PROBE, "--vehicle", str(VEHICLE),
-                            "--seconds", str(seconds)],
+    probe = subprocess.run([*netns, sys.executable, GROUND_PROBE, "watch", "--vehicle",
+                            str(VEHICLE), "--seconds", str(seconds)],
                            capture_output=True, text=True, timeout=seconds + 30)
     assert probe.returncode == 0, "no status_t from kinfly-fw: " + probe.stderr
-    return [json.loads(line) for line in probe.stdout.splitlines()]
+    return json.loads(probe.stdout)
 
 
 def stop(process: subprocess.Popen, lines: list[str]) -> tuple[str, float]:
@@ -108,10 +107,6 @@ def stop(process: subprocess.Popen, lines: list[str]) -> tuple[str, float]:
     elapsed = time.monotonic() - sent
     lines.extend(err.splitlines())
     return out, elapsed
-
-
-def read_tum(path: Path) -> np.ndarray:
-    return np.loadtxt(path, comments="#").reshape(-1, 8)
 
 
 def rotation_between_rad(q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
@@ -227,8 +222,8 @@ def test_unplugged_sensor_is_reconnected_and_counted(netns: list[str], sample_di
     try:
         read_until(process, "streaming 640x480 depth (connection 1)", lines)
         # Listens across the unplug: it comes 1 s after the first frame, the replug 1.2 s later.
-        probe = subprocess.Popen([*netns, sys.executable, STATUS_PROBE, "--vehicle", str(VEHICLE),
-                                  "--seconds", "3.0"],
+        probe = subprocess.Popen([*netns, sys.executable, GROUND_PROBE, "watch", "--vehicle",
+                                  str(VEHICLE), "--seconds", "3.0"],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         read_until(process, "streaming 640x480 depth (connection 2)", lines)
         read_until(process, "delivering again", lines)
@@ -257,7 +252,7 @@ def test_unplugged_sensor_is_reconnected_and_counted(netns: list[str], sample_di
     assert AWAY_S - READ_TIMEOUT_S - LOG_STAMP_S <= away_s <= AWAY_S + RETRY_LATE_S, log
 
     assert probe.returncode == 0, probe_err
-    heard = [json.loads(line) for line in probe_out.splitlines()]
+    heard = json.loads(probe_out)
     # streaming on the first connection, waiting while unplugged, streaming on the second
     phases = [(s["sensor_state"], s["sensor_connects"]) for s in heard]
     collapsed = [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]]
@@ -293,7 +288,7 @@ def test_recorder_writes_every_sample_frame_bit_exact(sample_recording: tuple[Pa
 
 
 def test_recording_replays_every_frame_like_the_log_replay(
-        sample_recording: tuple[Path, dict], sample_dir: Path, tmp_path: Path) -> None:
+        sample_recording: tuple[Path, dict], sample_log: Path, tmp_path: Path) -> None:
     recording, _ = sample_recording
     from_oni, from_log = tmp_path / "oni.tum", tmp_path / "log.tum"
     run = subprocess.run(firmware("--source.path", recording, "--source.realtime", "false",
@@ -306,13 +301,9 @@ def test_recording_replays_every_frame_like_the_log_replay(
                                  "times"), run.stdout
     assert "all 60 frames read" in run.stderr, run.stderr
 
-    log = tmp_path / "sample.lcmlog"
-    subprocess.run([built("bin/kinfly-tum-to-log"), "--tum", sample_dir, "--out", log],
-                   check=True, capture_output=True, timeout=120)
     replay = subprocess.run(
-        [built("bin/kinfly-fw"), "--config", CONFIG, "--vehicle.key_file", "", "--link.lcm_url",
-         "memq://", "--source.kind", "log", "--source.path", log, "--source.realtime", "false",
-         "--output.trajectory", from_log],
+        firmware_command("--source.path", sample_log, "--source.realtime", "false",
+                         "--output.trajectory", from_log, binary=built("bin/kinfly-fw")),
         capture_output=True, text=True, timeout=120)
     assert replay.returncode == 0, replay.stderr
 

@@ -1,13 +1,14 @@
-"""A stand-in ground station for the firmware's fault tests (tests/integration/
-test_firmware_faults.py), run inside the test's network namespace. Two roles:
+"""A stand-in ground station for the firmware tests that run kinfly-fw in a network namespace
+(tests/integration/test_firmware_faults.py, test_openni.py), run inside the same namespace. Two
+roles:
 
     ground_probe.py beacon --seconds S [--key KEY --correct KEYFRAME]
         sends the ground station's status at 10 Hz for S seconds, as a ground station that is
         up; with --key, first one signed correction of KEYFRAME (a fresh Signer, as a
         restarted ground station has).
     ground_probe.py watch --seconds S
-        records the drone's status_t for S seconds and prints one JSON list of
-        {t_s, link_state, keyframes_sent, keyframes_dropped, corrections_accepted, ...}.
+        records the drone's status_t for S seconds and prints one JSON list, each status with
+        every field and t_s, the seconds since the watch began; exit 1 if none was heard.
 """
 from __future__ import annotations
 
@@ -19,25 +20,20 @@ import time
 
 import lcm
 
-from kinfly import pose_correction_t, status_t
+from kinfly import status_t
 from kinfly_ground import signing
 from kinfly_ground.channels import Channel, channel_name
 from kinfly_ground.conversions import decode
+from uplink_probe import correction
 
 STATUS_PERIOD_S = 0.1
-WATCHED = ("link_state", "sensor_state", "frames_captured", "keyframes_sent", "keyframes_dropped",
-           "corrections_accepted", "corrections_unknown_keyframe", "rejected_replayed",
-           "rejected_stale", "sensor_stalls")
 
 
 def beacon(lc: lcm.LCM, vehicle: int, seconds: float, key: str | None, keyframe: int) -> None:
     if key is not None:
-        m = pose_correction_t()
-        m.utime = time.time_ns() // 1000
-        m.vehicle_id, m.keyframe_id, m.reset_counter = vehicle, keyframe, 1
-        m.position_m, m.orientation_xyzw = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]
         signer = signing.Signer(signing.load_key_file(key), vehicle)
-        lc.publish(channel_name(Channel.CORRECTION, vehicle), signer.sign(m.encode()).encode())
+        lc.publish(channel_name(Channel.CORRECTION, vehicle),
+                   signer.sign(correction(vehicle, keyframe)).encode())
     status = status_t()
     status.vehicle_id, status.source = vehicle, status_t.SOURCE_GROUND
     end = time.monotonic() + seconds
@@ -54,7 +50,7 @@ def watch(lc: lcm.LCM, vehicle: int, seconds: float) -> list[dict[str, float]]:
     def on_status(_channel: str, data: bytes) -> None:
         s = decode(status_t, data)
         timeline.append({"t_s": round(time.monotonic() - start, 3),
-                         **{field: getattr(s, field) for field in WATCHED}})
+                         **{field: getattr(s, field) for field in status_t.__slots__}})
 
     lc.subscribe(channel_name(Channel.STATUS, vehicle), on_status)
     while time.monotonic() - start < seconds:
@@ -77,8 +73,9 @@ def main() -> int:
     if args.role == "beacon":
         beacon(lc, args.vehicle, args.seconds, args.key, args.correct)
         return 0
-    print(json.dumps(watch(lc, args.vehicle, args.seconds)))
-    return 0
+    timeline = watch(lc, args.vehicle, args.seconds)
+    print(json.dumps(timeline))
+    return 0 if timeline else 1
 
 
 if __name__ == "__main__":

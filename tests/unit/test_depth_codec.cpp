@@ -44,7 +44,7 @@ Image<uint16_t> sceneFrame(int width, int height, uint32_t seed) {
   camera.height = height;
   Image<uint16_t> raw(width, height);
   std::mt19937 rng(seed);
-  test::cornerScene().renderRawDepth(camera, Pose::Identity(), test::kRenderMaxDepthM,
+  SyntheticScene::cornerRoom().renderRawDepth(camera, Pose::Identity(), test::kRenderMaxDepthM,
                                      test::kTumDepthScale, &rng, raw.view());
   return raw;
 }

@@ -34,7 +34,7 @@ Pose groundTruth(int k) {
 struct PipelineFixture : public ::testing::Test {
   PipelineFixture()
       : camera(test::tumCamera()),
-        scene(test::cornerScene()),
+        scene(SyntheticScene::cornerRoom()),
         volume(HashedVolume::Params{}),
         pipeline(camera, FusionPipeline::Params(), &volume),
         raw(camera.width, camera.height) {}

@@ -86,7 +86,7 @@ TEST(FusionPipelineAllocation, NoHeapAllocationPerFrameAfterWarmUp) {
   constexpr int kMeasuredFrames = 10;
   constexpr int kPoses = 3;
   const PinholeCamera camera = test::tumCamera();
-  const SyntheticScene scene = test::cornerScene();
+  const SyntheticScene scene = SyntheticScene::cornerRoom();
   // The camera cycles through three poses a centimetre and half a degree apart, each always
   // seen through the same (noise-free) image: after one cycle every block the frames touch
   // exists, so steady state means no growth of the map either.

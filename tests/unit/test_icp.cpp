@@ -52,7 +52,7 @@ struct IcpFixture : public ::testing::Test {
   // transform at which its systems are evaluated: away from the solution, so residuals and
   // gradients are far from zero.
   void buildOffsetPair(uint32_t seed, Eigen::Matrix3f* R, Eigen::Vector3f* t) {
-    const SyntheticScene scene = test::cornerScene();
+    const SyntheticScene scene = SyntheticScene::cornerRoom();
     buildModel(scene);
     const Pose T_ref_cur_true =
         test::makePose(Eigen::Vector3d(0.02, 0.01, -0.01), Eigen::Vector3d(0.01, 0.02, -0.01));
@@ -70,7 +70,7 @@ struct IcpFixture : public ::testing::Test {
 };
 
 TEST_F(IcpFixture, RecoversRandomSixDofOffsets) {
-  const SyntheticScene scene = test::cornerScene();
+  const SyntheticScene scene = SyntheticScene::cornerRoom();
   buildModel(scene);
   const IcpTracker tracker{IcpTracker::Params()};
   std::mt19937 offsets(2024);
@@ -100,7 +100,7 @@ TEST_F(IcpFixture, RecoversRandomSixDofOffsets) {
 
 TEST_F(IcpFixture, StartsFromTheGuess) {
   // The same offset, with the guess already close: the answer must not depend on the start.
-  const SyntheticScene scene = test::cornerScene();
+  const SyntheticScene scene = SyntheticScene::cornerRoom();
   buildModel(scene);
   const Pose T_ref_cur_true =
       test::makePose(Eigen::Vector3d(0.01, -0.02, 0.015), Eigen::Vector3d(0.02, -0.01, 0.015));
@@ -135,7 +135,7 @@ TEST_F(IcpFixture, SinglePlaneIsDegenerateAndKeepsGuess) {
 }
 
 TEST_F(IcpFixture, EmptyFrameIsLost) {
-  buildModel(test::cornerScene());
+  buildModel(SyntheticScene::cornerRoom());
   raw.fill(0);
   const PreprocessResult pre = preprocessor.process(raw, &current);
   ASSERT_EQ(pre.valid_pixels, 0);

@@ -193,7 +193,7 @@ TEST_P(IntegrateRaycast, ExactPlaneGivesExactSurfaceAndNormals) {
 // average of views, as in a real sequence.
 TEST_P(IntegrateRaycast, HintedRaycastAgreesWithFullMarch) {
   const bool dense = GetParam();
-  const SyntheticScene scene = test::cornerScene();
+  const SyntheticScene scene = SyntheticScene::cornerRoom();
   const PinholeCamera cam = test::tumCamera();
   const Pose T_world_cam = Pose::Identity();
   auto volume = makeVolume(dense, T_world_cam);
@@ -319,7 +319,7 @@ TEST(TsdfIntegrator, VoxelsHoldSignedDistanceOverTruncation) {
 }
 
 TEST(TsdfIntegrator, SerialAndParallelGiveIdenticalVoxels) {
-  const SyntheticScene scene = test::cornerScene();
+  const SyntheticScene scene = SyntheticScene::cornerRoom();
   const PinholeCamera cam = test::tumCamera();
   HashedVolume serial(HashedVolume::Params{}), parallel(HashedVolume::Params{});
   TsdfIntegrator integrator_s{TsdfIntegrator::Params()}, integrator_p{TsdfIntegrator::Params()};

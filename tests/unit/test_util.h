@@ -28,10 +28,6 @@ inline double radToDeg(double rad) { return rad * 180.0 / kPi; }
 // The TUM freiburg3 camera of PinholeCamera's defaults, 640x480.
 inline PinholeCamera tumCamera() { return PinholeCamera(); }
 
-// The corner room of shared/ (SyntheticScene::cornerRoom), also what kinfly-fw's synthetic source
-// flies in.
-inline SyntheticScene cornerScene() { return SyntheticScene::cornerRoom(); }
-
 // Pose from a rotation vector (axis * angle, radians) and a translation.
 inline Pose makePose(const Eigen::Vector3d& rotation_vector, const Eigen::Vector3d& t) {
   Pose T = Pose::Identity();
@@ -39,10 +35,6 @@ inline Pose makePose(const Eigen::Vector3d& rotation_vector, const Eigen::Vector
   if (angle > 0.0) T.linear() = Eigen::AngleAxisd(angle, rotation_vector / angle).matrix();
   T.translation() = t;
   return T;
-}
-
-inline Pose lookAt(const Eigen::Vector3d& eye, const Eigen::Vector3d& target) {
-  return lookAtPose(eye, target);
 }
 
 // A random rigid motion with exactly the given translation length and rotation angle.

@@ -56,6 +56,8 @@ class FusionPipeline {
 
   const Pose& pose() const { return T_world_cam_; }
   const PinholeCamera& camera() const { return preprocessor_.camera(); }
+  // The raw depth images' camera, before any downsampling.
+  const PinholeCamera& inputCamera() const { return preprocessor_.inputCamera(); }
   const DepthFrame& frame() const { return frame_; }
   const ModelMaps& model() const { return model_; }
   // Lambertian render of the model from the latest pose: a full raycast, every pixel, on demand

@@ -218,7 +218,7 @@ class OpenniSource : public DepthSource,
     if (lost_ || openni::OpenNI::waitForAnyStream(streams, 1, &ready, kReadTimeoutMs) !=
                      openni::STATUS_OK) {
       if (file_ && secondsFrom(last_frame_) > kSilentLostS) {
-        // The capture thread does not log an end; an early one needs saying.
+        // The capture thread logs only that the source ended; why it ended early is ours to say.
         if (frames_in_file_ > 0)
           spdlog::warn("openni: recording {} stopped delivering after {} of its {} frames: it "
                        "ends here",

@@ -1,0 +1,259 @@
+"""The ground station's rerun output: a live viewer, an .rrd recording, both or neither.
+
+Entity paths mirror the frame tree under each vehicle's prefix ("" for one vehicle, "vehicle_3/"
+when serving several):
+  world                            ViewCoordinates RDF: `world` is the first keyframe's camera frame
+  world/drone/camera               Transform3D T_world_cam (the corrected one when there is
+                                   one) + Pinhole
+  world/drone/camera/depth         DepthImage, raw uint16
+  world/drone/camera/render        raycast shaded render from the current pose
+  world/trajectory/<name>/<block>  onboard, corrected, ground_truth (see _Trajectory)
+  world/map/mesh                   Mesh3D
+  health/<group>/<name>            Scalars, names from the caller ("link/latency_ms")
+  autopilot/<name>                 Scalars, MAVLink telemetry
+Every entry is stamped with its capture time `utime` on the timestamp timeline "capture_time".
+
+Only numpy and rerun: it works from the source tree, without the native module.
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+APPLICATION_ID = "kinfly-ground"
+TIMELINE = "capture_time"
+# The port rr.spawn starts the viewer on is the one the gRPC sink connects to.
+_VIEWER_PORT = 9876
+# A trajectory block's poses, the last shared with the next block. Each new pose re-logs its
+# block, so per pose at most this many points (3 KB) are written, small against the 600 KB depth
+# image logged with it, and a long flight costs blocks, not a re-logged whole strip.
+_BLOCK_POSES = 256
+_TRAJECTORY_RADIUS = rr.Radius.ui_points(2.0)
+_TRAJECTORY_COLORS = {
+    "onboard": (255, 140, 0),
+    "corrected": (0, 200, 80),
+    "ground_truth": (200, 200, 200),
+}
+
+
+class ViewerError(Exception):
+    """The viewer could not be started or the recording not written."""
+
+
+class _Trajectory:
+    """One trajectory as a polyline split into blocks, each its own entity `<path>/<k>`.
+
+    Why blocks rather than one new 2-point segment per pose: a segment logged at time t is shown
+    only while it is the latest value of its entity, so accumulating segments needs a visible time
+    range in a blueprint, and rerun's range queries ignore Clear: restarted() could not remove
+    the old frame's trajectory. Blocks are shown by plain latest-at (a finished block stays
+    visible, scrubbing back in time shows the trajectory as it was) and a recursive Clear on the
+    parent removes them all."""
+
+    def __init__(self, rec: rr.RecordingStream, path: str, color: tuple[int, int, int]) -> None:
+        self._rec = rec
+        self._path = path
+        self._color = color
+        self._positions = np.empty((_BLOCK_POSES, 3), dtype=np.float32)
+        self._count = 0
+        self._block = 0
+
+    def append(self, T_world_cam: np.ndarray) -> None:
+        if self._count == _BLOCK_POSES:
+            # The new block starts where the full one ends, so the line has no gap.
+            self._positions[0] = self._positions[-1]
+            self._count = 1
+            self._block += 1
+        self._positions[self._count] = T_world_cam[:3, 3]
+        self._count += 1
+        if self._count >= 2:  # one pose is not a line yet
+            self._rec.log(f"{self._path}/{self._block}",
+                          rr.LineStrips3D([self._positions[:self._count]],
+                                          colors=self._color, radii=_TRAJECTORY_RADIUS))
+
+    def reset(self) -> None:
+        """Start again at block 0; the caller has cleared the old blocks."""
+        self._count = 0
+        self._block = 0
+
+
+class VehicleView:
+    """One vehicle's entities, under its prefix. Made by Viewer.vehicle().
+
+    The calls that touch the trajectories (keyframe, ground_truth, restarted) must come from one
+    thread, the station's LCM handler. render, mesh, health and telemetry may come from any
+    thread: rerun's time is per thread and each call sets it before logging."""
+
+    def __init__(self, rec: rr.RecordingStream | None, prefix: str) -> None:
+        self._rec = rec
+        self._prefix = prefix
+        if rec is None:
+            return
+        rec.log(f"{prefix}world", rr.ViewCoordinates.RDF, static=True)
+        self._trajectories = {
+            name: _Trajectory(rec, f"{prefix}world/trajectory/{name}", color)
+            for name, color in _TRAJECTORY_COLORS.items()}
+
+    def keyframe(self, utime: int, depth: np.ndarray, depth_scale_m: float,
+                 intrinsics: tuple[float, float, float, float], T_world_cam_onboard: np.ndarray,
+                 T_world_cam_corrected: np.ndarray | None) -> None:
+        """The camera at the corrected pose (the onboard one while the ground has none) with its
+        depth; both trajectories grow, the corrected one only when there is a corrected pose."""
+        if self._rec is None:
+            return
+        T_world_cam = (T_world_cam_onboard if T_world_cam_corrected is None
+                       else T_world_cam_corrected)
+        fx, fy, cx, cy = intrinsics
+        height, width = depth.shape
+        camera = f"{self._prefix}world/drone/camera"
+        self._stamp(utime)
+        # Pinhole with every keyframe (tens of bytes): it is back right after restarted()'s Clear
+        # and follows a change of camera, with no state kept here.
+        self._rec.log(camera,
+                      rr.Transform3D(translation=T_world_cam[:3, 3], mat3x3=T_world_cam[:3, :3]),
+                      rr.Pinhole(focal_length=(fx, fy), principal_point=(cx, cy),
+                                 width=width, height=height, camera_xyz=rr.ViewCoordinates.RDF))
+        self._rec.log(f"{camera}/depth", rr.DepthImage(depth, meter=1.0 / depth_scale_m))
+        self._trajectories["onboard"].append(T_world_cam_onboard)
+        if T_world_cam_corrected is not None:
+            self._trajectories["corrected"].append(T_world_cam_corrected)
+
+    def ground_truth(self, utime: int, T_world_cam: np.ndarray) -> None:
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        self._trajectories["ground_truth"].append(T_world_cam)
+
+    def render(self, utime: int, image: np.ndarray) -> None:
+        """IMAGE: uint8 HxW, the model raycast from the current pose, at the depth's resolution."""
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        self._rec.log(f"{self._prefix}world/drone/camera/render", rr.Image(image, color_model="L"))
+
+    def mesh(self, utime: int, vertices: np.ndarray, triangles: np.ndarray,
+             normals: np.ndarray | None) -> None:
+        """VERTICES float32 Nx3 in `world`, TRIANGLES int32 Mx3, NORMALS float32 Nx3 or None."""
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        self._rec.log(f"{self._prefix}world/map/mesh",
+                      rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
+                                vertex_normals=normals))
+
+    def health(self, utime: int, metrics: dict[str, float]) -> None:
+        """METRICS: "group/name" -> value, each its own series health/group/name."""
+        self._series(utime, "health", metrics)
+
+    def telemetry(self, utime: int, metrics: dict[str, float]) -> None:
+        """METRICS: MAVLink telemetry name -> value, each its own series autopilot/name."""
+        self._series(utime, "autopilot", metrics)
+
+    def restarted(self, utime: int) -> None:
+        """The drone restarted with a new odometry frame: from UTIME on, nothing of the old frame
+        (trajectories, map, camera) is drawn over the new one. Earlier times keep it."""
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        # The children, not `world` itself: its ViewCoordinates are static and stay.
+        for child in ("trajectory", "map", "drone"):
+            self._rec.log(f"{self._prefix}world/{child}", rr.Clear(recursive=True))
+        for trajectory in self._trajectories.values():
+            trajectory.reset()
+
+    def _series(self, utime: int, root: str, metrics: dict[str, float]) -> None:
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        for name, value in metrics.items():
+            self._rec.log(f"{self._prefix}{root}/{name}", rr.Scalars(value))
+
+    def _stamp(self, utime: int) -> None:
+        # datetime64 in µs keeps utime exact; a float of seconds would round it.
+        self._rec.set_time(TIMELINE, timestamp=np.datetime64(utime, "us"))
+
+
+class Viewer:
+    """The rerun recording of one station run.
+
+    SAVE_PATH is written under a temporary name in the same directory (SAVE_PATH + ".partial")
+    and renamed to SAVE_PATH by close() only: a crashed run never leaves a file that looks
+    complete. A .partial file lacks rerun's footer but its data reads back, and
+    `rerun rrd optimize X.rrd.partial > X.rrd` makes it whole. With neither SPAWN nor SAVE_PATH
+    every method returns at once, so the station calls it unconditionally."""
+
+    def __init__(self, *, spawn: bool = False, save_path: Path | None = None,
+                 recording_name: str = "kinfly-ground") -> None:
+        self._save_path = save_path
+        self._partial_path = None if save_path is None else save_path.with_name(
+            save_path.name + ".partial")
+        self._views: dict[int, tuple[str, VehicleView]] = {}
+        self._rec: rr.RecordingStream | None = None
+        if not spawn and save_path is None:
+            return
+        rec = rr.RecordingStream(APPLICATION_ID)
+        if not rec.is_enabled():
+            raise ViewerError("rerun is disabled in this environment (RERUN=off): "
+                              "nothing would be shown or saved")
+        # Wall-clock log_time would make two replays of one flight differ; capture_time is the
+        # only timeline.
+        rec.set_log_time_enabled(False)
+        sinks: list[rr.GrpcSink | rr.FileSink] = []
+        if spawn:
+            # The rerun next to this interpreter is the SDK's own version, found even when the
+            # virtualenv is not on PATH.
+            bundled = Path(sys.executable).parent / "rerun"
+            try:
+                rr.spawn(port=_VIEWER_PORT, connect=False, recording=rec,
+                         executable_path=str(bundled) if bundled.exists() else None)
+            except (RuntimeError, OSError) as error:
+                raise ViewerError(f"cannot start the rerun viewer: {error}") from error
+            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{_VIEWER_PORT}/proxy"))
+        if self._partial_path is not None:
+            sinks.append(rr.FileSink(self._partial_path))
+        try:
+            rec.set_sinks(*sinks)  # creates the file
+        except (RuntimeError, OSError) as error:
+            raise ViewerError(f"cannot write the recording {save_path}: {error}") from error
+        rec.send_recording_name(recording_name)
+        self._rec = rec
+
+    def vehicle(self, vehicle_id: int, prefix: str) -> VehicleView:
+        """The view of VEHICLE_ID, its entities under PREFIX ("" or ending in "/"). Asking again
+        for the same vehicle gives the same view, whose trajectories carry on."""
+        if prefix and not prefix.endswith("/"):
+            raise ValueError(f"vehicle prefix {prefix!r} must be empty or end in '/'")
+        if vehicle_id in self._views:
+            known_prefix, view = self._views[vehicle_id]
+            if known_prefix != prefix:
+                raise ValueError(f"vehicle {vehicle_id} is already shown under {known_prefix!r}, "
+                                 f"not {prefix!r}")
+            return view
+        if any(known_prefix == prefix for known_prefix, _ in self._views.values()):
+            raise ValueError(f"another vehicle is already shown under prefix {prefix!r}")
+        view = VehicleView(self._rec, prefix)
+        self._views[vehicle_id] = (prefix, view)
+        return view
+
+    def close(self) -> None:
+        """Flush everything logged, finish the .rrd and rename it into place. Later calls to
+        this viewer and its vehicle views do nothing."""
+        if self._rec is None:
+            return
+        rec, self._rec = self._rec, None
+        for _, view in self._views.values():
+            view._rec = None
+        # rerun encodes and writes on its own threads: flush() waits until all is in the file,
+        # disconnect() then writes the footer and closes it.
+        rec.flush()
+        rec.disconnect()
+        if self._partial_path is not None:
+            try:
+                os.replace(self._partial_path, self._save_path)
+            except OSError as error:
+                raise ViewerError(f"cannot move the recording into place at {self._save_path}: "
+                                  f"{error}") from error

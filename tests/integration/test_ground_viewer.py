@@ -1,0 +1,245 @@
+"""The ground station's rerun output (kinfly_ground.viewer) recorded to an .rrd and read back:
+a short synthetic session with a restart gives a file `rerun rrd verify` accepts, holding the
+entity paths of the frame tree, stamped with exactly the capture times logged, and the camera
+where the keyframes put it. The file only appears under its name once closed; an unwritable path
+fails up front, naming it; a viewer with no sink does nothing."""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from rerun.chunk import RrdReader
+from scipy.spatial.transform import Rotation
+
+from kinfly_ground.viewer import Viewer, ViewerError
+
+SEED = 20261201
+T0_US = 1_700_000_000_000_000
+KEYFRAME_PERIOD_US = 200_000          # 5 Hz
+GROUND_TRUTH_PERIOD_US = 100_000      # twice the keyframe rate, as a mocap would be
+KEYFRAMES = 10
+RESTART_AFTER = 6                     # keyframes before the drone restarts
+HEIGHT, WIDTH = 48, 64                # small: what is tested is the plumbing, not the pixels
+INTRINSICS = (53.5, 53.9, 32.0, 24.7)
+DEPTH_SCALE_M = 1 / 5000
+# Translations travel as float32; poses within 2 m round to well under a micrometre.
+TRANSLATION_TOL_M = 1e-6
+# The ground's refinement, as a fixed small offset: enough to tell corrected from onboard.
+CORRECTION_M = np.array([0.01, -0.02, 0.005])
+
+
+def pose(t_s: float) -> np.ndarray:
+    """T_world_cam along a known curve: forward and sideways, slowly yawing."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("y", 0.2 * t_s).as_matrix()
+    T[:3, 3] = [0.3 * t_s, -0.05 * t_s, 0.5 * t_s]
+    return T
+
+
+def depth_image(rng: np.random.Generator) -> np.ndarray:
+    """A wall 2 m ahead with Kinect-like noise (~1 cm at 2 m), a few pixels invalid."""
+    depth_m = 2.0 + rng.normal(0.0, 0.01, (HEIGHT, WIDTH))
+    depth = np.round(depth_m / DEPTH_SCALE_M).astype(np.uint16)
+    depth[rng.random((HEIGHT, WIDTH)) < 0.05] = 0
+    return depth
+
+
+@dataclass
+class Row:
+    entity: str
+    utime: int | None      # None: static
+    row_id: bytes          # rerun's row ids grow with logging order
+    components: dict[str, Any]
+
+
+def read_rows(path: Path) -> list[Row]:
+    rows = []
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        names = batch.schema.names
+        utimes = (batch.column("capture_time").cast(pa.int64()).to_numpy() // 1000
+                  if "capture_time" in names else [None] * batch.num_rows)
+        data = {name: batch.column(name).to_pylist() for name in names
+                if ":" in name and not name.startswith("rerun.")}
+        for i in range(batch.num_rows):
+            rows.append(Row(chunk.entity_path.lstrip("/"),
+                            None if utimes[i] is None else int(utimes[i]),
+                            batch.column("rerun.controls.RowId")[i].as_py(),
+                            {name: values[i] for name, values in data.items()}))
+    return rows
+
+
+def latest(rows: list[Row], entity: str, component: str) -> Any:
+    """ENTITY's last value of COMPONENT, as a viewer at the end of the recording shows it."""
+    candidates = [r for r in rows if r.entity == entity and component in r.components]
+    assert candidates, f"nothing logged to {entity} {component}"
+    return max(candidates, key=lambda r: (r.utime, r.row_id)).components[component]
+
+
+def run_session(viewer: Viewer) -> dict[str, Any]:
+    """Drive a viewer through keyframes, ground truth, renders, a mesh, health, telemetry and a
+    restart; what was logged, for the checks."""
+    rng = np.random.default_rng(SEED)
+    view = viewer.vehicle(vehicle_id=1, prefix="")
+    utimes: set[int] = set()
+    last_T_world_cam = np.eye(4)
+    onboard_since_restart = []
+    restart_utime = 0
+    for k in range(KEYFRAMES):
+        utime = T0_US + k * KEYFRAME_PERIOD_US
+        if k == RESTART_AFTER:
+            restart_utime = utime - KEYFRAME_PERIOD_US // 2
+            view.restarted(restart_utime)
+            utimes.add(restart_utime)
+        # After the restart the new odometry frame is the new first keyframe's camera frame.
+        t_s = (k - (RESTART_AFTER if k >= RESTART_AFTER else 0)) * KEYFRAME_PERIOD_US * 1e-6
+        T_onboard = pose(t_s)
+        T_corrected = T_onboard.copy()
+        T_corrected[:3, 3] += CORRECTION_M
+        # One keyframe the ground could not refine: the camera falls back to the onboard pose.
+        corrected = None if k == 3 else T_corrected
+        view.keyframe(utime, depth_image(rng), DEPTH_SCALE_M, INTRINSICS, T_onboard, corrected)
+        last_T_world_cam = T_onboard if corrected is None else corrected
+        if k >= RESTART_AFTER:
+            onboard_since_restart.append(T_onboard[:3, 3])
+        for half in (0, 1):
+            gt_utime = utime + half * GROUND_TRUTH_PERIOD_US
+            view.ground_truth(gt_utime, pose(t_s + half * GROUND_TRUTH_PERIOD_US * 1e-6))
+            utimes.add(gt_utime)
+        view.health(utime, {"link/latency_ms": 12.0 + k, "link/keyframes_received": k + 1,
+                            "tracking/inlier_fraction": 0.9, "counters/rejected_malformed": 0})
+        view.telemetry(utime, {"battery_voltage_v": 16.0 - 0.01 * k, "altitude_m": 1.5})
+        if k in (2, 8):
+            view.render(utime, rng.integers(0, 256, (HEIGHT, WIDTH), dtype=np.uint8))
+        utimes.add(utime)
+    mesh_utime = T0_US + KEYFRAMES * KEYFRAME_PERIOD_US
+    tetrahedron = np.array([[0, 0, 2], [1, 0, 2], [0, 1, 2], [0, 0, 3]], dtype=np.float32)
+    view.mesh(mesh_utime, tetrahedron,
+              np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int32), None)
+    utimes.add(mesh_utime)
+    return {"utimes": utimes, "last_T_world_cam": last_T_world_cam,
+            "onboard_since_restart": np.array(onboard_since_restart),
+            "restart_utime": restart_utime}
+
+
+def test_session_recorded_and_read_back(tmp_path: Path) -> None:
+    path = tmp_path / "flight.rrd"
+    viewer = Viewer(save_path=path)
+    logged = run_session(viewer)
+    assert not path.exists(), "the recording must not look complete before close()"
+    assert [p.name for p in tmp_path.iterdir()] == ["flight.rrd.partial"]
+    viewer.close()
+    viewer.close()  # idempotent
+    assert [p.name for p in tmp_path.iterdir()] == ["flight.rrd"]
+
+    verify = subprocess.run([Path(sys.executable).parent / "rerun", "rrd", "verify", path],
+                            capture_output=True, text=True, timeout=60)
+    assert verify.returncode == 0, verify.stderr
+
+    rows = read_rows(path)
+    entities = {r.entity for r in rows}
+    for expected in ["world", "world/drone/camera", "world/drone/camera/depth",
+                     "world/drone/camera/render", "world/map/mesh",
+                     "world/trajectory/onboard/0", "world/trajectory/corrected/0",
+                     "world/trajectory/ground_truth/0", "health/link/latency_ms",
+                     "health/link/keyframes_received", "health/tracking/inlier_fraction",
+                     "health/counters/rejected_malformed", "autopilot/battery_voltage_v",
+                     "autopilot/altitude_m"]:
+        assert expected in entities, f"{expected} missing from {sorted(entities)}"
+
+    temporal = [r for r in rows if r.utime is not None]
+    assert {r.utime for r in temporal} == logged["utimes"]
+    for chunk in RrdReader(path).stream():
+        assert chunk.is_static or chunk.timeline_names == ["capture_time"], chunk.entity_path
+
+    translation = latest(rows, "world/drone/camera", "Transform3D:translation")[0]
+    np.testing.assert_allclose(translation, logged["last_T_world_cam"][:3, 3],
+                               atol=TRANSLATION_TOL_M)
+    rotation = np.array(latest(rows, "world/drone/camera", "Transform3D:mat3x3")[0])
+    # rerun stores 3x3 matrices column-major.
+    np.testing.assert_allclose(rotation.reshape(3, 3).T, logged["last_T_world_cam"][:3, :3],
+                               atol=TRANSLATION_TOL_M)
+
+    # The restart cleared the old frame's drawing, and the trajectory started again at block 0
+    # with only the new frame's poses.
+    cleared = {r.entity for r in rows if r.utime == logged["restart_utime"]
+               and r.components.get("Clear:is_recursive") == [True]}
+    assert cleared == {"world/trajectory", "world/map", "world/drone"}
+    strip = latest(rows, "world/trajectory/onboard/0", "LineStrips3D:strips")[0]
+    np.testing.assert_allclose(strip, logged["onboard_since_restart"], atol=TRANSLATION_TOL_M)
+
+    assert latest(rows, "world/drone/camera/depth", "DepthImage:meter") == [
+        pytest.approx(1 / DEPTH_SCALE_M)]
+    assert latest(rows, "health/link/latency_ms", "Scalars:scalars") == [12.0 + KEYFRAMES - 1]
+
+
+def test_long_trajectory_split_into_blocks_without_gaps(tmp_path: Path) -> None:
+    """More poses than one block holds: the blocks' last strips, joined at their shared point,
+    are the whole trajectory."""
+    poses = 600
+    path = tmp_path / "long.rrd"
+    viewer = Viewer(save_path=path)
+    view = viewer.vehicle(vehicle_id=3, prefix="vehicle_3/")
+    positions = []
+    for i in range(poses):
+        T = pose(i * 0.01)
+        view.ground_truth(T0_US + i * GROUND_TRUTH_PERIOD_US, T)
+        positions.append(T[:3, 3])
+    viewer.close()
+
+    rows = read_rows(path)
+    blocks = sorted({r.entity for r in rows
+                     if r.entity.startswith("vehicle_3/world/trajectory/ground_truth/")},
+                    key=lambda e: int(e.rsplit("/", 1)[1]))
+    assert len(blocks) > 1
+    joined = []
+    for b, entity in enumerate(blocks):
+        strip = latest(rows, entity, "LineStrips3D:strips")[0]
+        joined.extend(strip if b == 0 else strip[1:])
+    np.testing.assert_allclose(joined, positions, atol=TRANSLATION_TOL_M)
+
+
+@pytest.mark.parametrize("where", ["missing_directory", "parent_is_a_file"])
+def test_unwritable_path_fails_naming_it(tmp_path: Path, where: str) -> None:
+    # Permission bits do not stop root, who runs CI: a missing directory and a file in the way do.
+    (tmp_path / "a_file").write_text("")
+    parent = tmp_path / ("no_such_dir" if where == "missing_directory" else "a_file")
+    path = parent / "flight.rrd"
+    with pytest.raises(ViewerError, match=re.escape(str(path))):
+        Viewer(save_path=path)
+
+
+def test_no_sink_viewer_is_a_no_op(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    viewer = Viewer()
+    view = viewer.vehicle(vehicle_id=1, prefix="")
+    view.keyframe(T0_US, np.zeros((HEIGHT, WIDTH), np.uint16), DEPTH_SCALE_M, INTRINSICS,
+                  np.eye(4), None)
+    view.ground_truth(T0_US, np.eye(4))
+    view.render(T0_US, np.zeros((HEIGHT, WIDTH), np.uint8))
+    view.mesh(T0_US, np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), None)
+    view.health(T0_US, {"link/latency_ms": 1.0})
+    view.telemetry(T0_US, {"altitude_m": 1.0})
+    view.restarted(T0_US)
+    viewer.close()
+    viewer.close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_vehicle_prefixes_are_distinct() -> None:
+    viewer = Viewer()
+    view = viewer.vehicle(vehicle_id=3, prefix="vehicle_3/")
+    assert viewer.vehicle(vehicle_id=3, prefix="vehicle_3/") is view
+    with pytest.raises(ValueError):
+        viewer.vehicle(vehicle_id=4, prefix="vehicle_3/")
+    with pytest.raises(ValueError):
+        viewer.vehicle(vehicle_id=3, prefix="vehicle_4/")
+    with pytest.raises(ValueError):
+        viewer.vehicle(vehicle_id=5, prefix="vehicle_5")

@@ -5,7 +5,8 @@
 #   make test-asan  unit tests built with AddressSanitizer + UBSan in build-asan/
 #   make fuzz       the depth decoder under libFuzzer + ASan/UBSan (clang, build-fuzz/) for
 #                   FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
-#   make demo       fuse the bundled TUM sample into out/demo (mesh, trajectory, stats)
+#   make demo       a recorded flight end to end: kinfly-fw replays the shipped LCM log to
+#                   kinfly-ground over LCM in a network namespace; outputs in out/demo
 #   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      depth codec and keyframe delivery over LCM on the TUM sequence; the drone's
 #                   figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions per
@@ -44,7 +45,6 @@ CODEC_BENCH := $(BUILD_DIR)/bin/kinfly-codec-bench
 TUM_SEQUENCE := $(KINFLY_DATA)/tum_rgbd_freiburg3_teddy_first200/rgbd_dataset_freiburg3_teddy
 PY := $(REPO_ROOT)/.venv/bin/python
 BENCH_PY := $(REPO_ROOT)/.venv-bench/bin/python
-SAMPLE := $(REPO_ROOT)/tests/data/tum_teddy_sample
 DEMO_OUT := $(REPO_ROOT)/out/demo
 JOBS ?= $(shell nproc)
 AARCH64_DIR := $(REPO_ROOT)/build-aarch64
@@ -101,18 +101,10 @@ fuzz-corpus: build
 	mkdir -p $(FUZZ_SEEDS)
 	$(BUILD_DIR)/tests/make_depth_decode_corpus $(FUZZ_SEEDS)
 
+# The drone (kinfly-fw replaying the shipped flight log) and the ground station (kinfly-ground)
+# over LCM multicast in a private network namespace; outputs in out/demo.
 demo: deps build
-	rm -rf $(DEMO_OUT)
-	mkdir -p $(DEMO_OUT)
-	$(FUSE) --tum $(SAMPLE) --out $(DEMO_OUT)
-	@echo
-	@echo "kinfly-fuse fused $(SAMPLE) into:"
-	@echo "  mesh        $(DEMO_OUT)/mesh.ply"
-	@echo "  trajectory  $(DEMO_OUT)/trajectory.tum"
-	@echo "  render      $(DEMO_OUT)/render.png"
-	@echo "  statistics  $(DEMO_OUT)/stats.json"
-	@echo "ATE against the sample's ground truth (first frames have no GT within 20 ms):"
-	@$(PY) $(REPO_ROOT)/tests/tools/kinfly_eval.py ate $(DEMO_OUT)/trajectory.tum $(SAMPLE)/groundtruth.txt
+	$(PY) $(REPO_ROOT)/scripts/demo.py --out $(DEMO_OUT)
 
 eval: deps build
 	@test -d $(KINFLY_DATA) || { echo "no shared data at $(KINFLY_DATA) (set KINFLY_DATA)"; exit 1; }

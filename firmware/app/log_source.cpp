@@ -1,5 +1,6 @@
 #include <lcm/lcm-cpp.hpp>
 
+#include <cstdlib>
 #include <filesystem>
 #include <memory>
 
@@ -17,6 +18,7 @@ class LogSource : public DepthSource {
   LogSource(const LogSourceParams& params, std::unique_ptr<lcm::LogFile> log)
       : path_(params.path),
         channel_(link::channelName(link::Channel::kDepth, params.vehicle_id)),
+        truth_channel_(link::channelName(link::Channel::kGroundTruth, params.vehicle_id)),
         log_(std::move(log)),
         codec_(DepthCodec::Params()) {}
 
@@ -33,6 +35,7 @@ class LogSource : public DepthSource {
       }
     }
     frames_ = 0;
+    has_truth_ = has_truth_origin_ = false;
     return rewind(why);
   }
 
@@ -43,6 +46,10 @@ class LogSource : public DepthSource {
   SourceStatus next(DepthCapture* out, std::string* why) override {
     for (const lcm::LogEvent* event = log_->readNextEvent(); event != nullptr;
          event = log_->readNextEvent()) {
+      if (event->channel == truth_channel_) {
+        readTruth(*event);
+        continue;
+      }
       if (event->channel != channel_) continue;
       const link::DecodeResult decoded = link::decodeMessage(
           event->data, static_cast<size_t>(event->datalen), link::DecodeBounds(), &message_);
@@ -66,6 +73,7 @@ class LogSource : public DepthSource {
         return SourceStatus::kSkipped;
       }
       out->utime = message_.utime;
+      attachTruth(out);
       ++frames_;
       return SourceStatus::kFrame;
     }
@@ -73,19 +81,50 @@ class LogSource : public DepthSource {
   }
 
  private:
+  // Ground truth in a converted dataset's log (kinfly-tum-to-log) is motion capture at its own
+  // rate, in the capture system's frame. A frame gets the latest pose before it when that is close
+  // enough to stand for it, re-expressed from the first such pose on, so that it is in the
+  // odometry's world frame like a synthetic source's truth.
+  static constexpr int64_t kMaxTruthGapUs = 20'000;  // TUM's own association tolerance
+
+  void readTruth(const lcm::LogEvent& event) {
+    pose_t truth;
+    if (!link::decodeMessage(event.data, static_cast<size_t>(event.datalen), link::DecodeBounds(),
+                             &truth)
+             .ok())
+      return;  // ground truth is for evaluation only; a bad sample is simply not used
+    truth_utime_ = truth.utime;
+    T_mocap_cam_ = link::readPose(truth.position_m, truth.orientation_xyzw);
+    has_truth_ = true;
+  }
+
+  void attachTruth(DepthCapture* out) {
+    out->has_ground_truth = has_truth_ && std::abs(out->utime - truth_utime_) <= kMaxTruthGapUs;
+    if (!out->has_ground_truth) return;
+    if (!has_truth_origin_) {
+      T_cam0_mocap_ = T_mocap_cam_.inverse();
+      has_truth_origin_ = true;
+    }
+    out->T_world_cam_truth = orthonormalized(T_cam0_mocap_ * T_mocap_cam_);
+  }
+
   bool rewind(std::string* why) {
     log_ = std::make_unique<lcm::LogFile>(path_, "r");
     if (!log_->good()) *why = "cannot reopen " + path_;
     return log_->good();
   }
 
-  std::string path_, channel_;
+  std::string path_, channel_, truth_channel_;
   std::unique_ptr<lcm::LogFile> log_;
   DepthCodec codec_;
   depth_keyframe_t message_;
   PinholeCamera camera_;
   double depth_scale_m_ = 0.0;
   int64_t frames_ = 0;
+  bool has_truth_ = false, has_truth_origin_ = false;
+  int64_t truth_utime_ = 0;
+  Pose T_mocap_cam_ = Pose::Identity();
+  Pose T_cam0_mocap_ = Pose::Identity();
 };
 
 }  // namespace

@@ -1,15 +1,26 @@
 // kinfly_ground._native: the engine in shared/ for Python. Input arrays are read in place; a
-// decoded image is copied once out of the codec's reused buffer into the array handed over.
+// decoded image is copied once out of the codec's reused buffer into the array handed over, and a
+// mesh's vectors are handed over without a copy. The heavy calls release the GIL, so the LCM
+// thread keeps receiving while a keyframe is fused.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
+#include <nanobind/stl/string.h>
+#include <omp.h>
 
+#include <algorithm>
 #include <cstdint>
 #include <cstring>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
+#include "kinfly/camera.h"
 #include "kinfly/depth_codec.h"
+#include "kinfly/fusion_pipeline.h"
+#include "kinfly/marching_cubes.h"
+#include "kinfly/mesh.h"
+#include "kinfly/tsdf_volume.h"
 
 namespace nb = nanobind;
 using kinfly::CodecResult;
@@ -20,6 +31,39 @@ namespace {
 
 using DepthIn = nb::ndarray<const uint16_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 using DepthOut = nb::ndarray<nb::numpy, uint16_t, nb::ndim<2>>;
+using PoseIn = nb::ndarray<const double, nb::shape<4, 4>, nb::c_contig, nb::device::cpu>;
+using PoseOut = nb::ndarray<nb::numpy, double, nb::shape<4, 4>>;
+using GrayOut = nb::ndarray<nb::numpy, uint8_t, nb::ndim<2>>;
+using Rows3f = nb::ndarray<nb::numpy, float, nb::ndim<2>>;
+using Rows3i = nb::ndarray<nb::numpy, int32_t, nb::ndim<2>>;
+
+// Arrays handed to Python own a heap object through a capsule.
+template <typename T>
+nb::capsule ownerOf(T* object) {
+  return nb::capsule(object, [](void* p) noexcept { delete static_cast<T*>(p); });
+}
+
+kinfly::Pose poseOf(const PoseIn& T) {
+  kinfly::Pose pose = kinfly::Pose::Identity();
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) pose.matrix()(r, c) = T(r, c);
+  return kinfly::orthonormalized(pose);
+}
+
+PoseOut matrixOf(const kinfly::Pose& pose) {
+  auto* m = new double[16];
+  for (int r = 0; r < 4; ++r)
+    for (int c = 0; c < 4; ++c) m[4 * r + c] = pose.matrix()(r, c);
+  return PoseOut(m, {4, 4}, nb::capsule(m, [](void* p) noexcept { delete[] static_cast<double*>(p); }));
+}
+
+// Vector3f/Vector3i are three packed scalars, so a std::vector of them is an N x 3 array.
+template <typename Array, typename Vec>
+Array rowsOf(std::vector<Vec>&& values) {
+  static_assert(sizeof(Vec) == 3 * sizeof(typename Vec::Scalar));
+  auto* owned = new std::vector<Vec>(std::move(values));
+  return Array(owned->data(), {owned->size(), 3}, ownerOf(owned));
+}
 
 DepthEncoding encodingOf(int value) {
   if (value < 0 || value >= kinfly::kDepthEncodingCount)
@@ -71,6 +115,170 @@ class PyDepthCodec {
   kinfly::Image<uint16_t> depth_;
 };
 
+// A copy of a hashed volume, meshed on its own while the original goes on fusing.
+class PyMapSnapshot {
+ public:
+  explicit PyMapSnapshot(const kinfly::HashedVolume& source)
+      : volume_(paramsOf(source)) {
+    for (const kinfly::VoxelBlock* block : source.allocatedBlocks())
+      volume_.allocateBlock(block->index)->voxels = block->voxels;
+  }
+
+  nb::tuple mesh() const {
+    kinfly::TriangleMesh m;
+    {
+      nb::gil_scoped_release unlocked;
+      m = extract();
+    }
+    return nb::make_tuple(rowsOf<Rows3f>(std::move(m.vertices)),
+                          rowsOf<Rows3i>(std::move(m.triangles)),
+                          rowsOf<Rows3f>(std::move(m.normals)));
+  }
+
+  // Binary PLY; OSError naming the file when it cannot be written.
+  size_t writePly(const std::string& path) const {
+    std::string why;
+    size_t triangles = 0;
+    {
+      nb::gil_scoped_release unlocked;
+      const kinfly::TriangleMesh m = extract();
+      triangles = m.triangles.size();
+      why = kinfly::writePly(m, path);
+    }
+    if (!why.empty()) {
+      PyErr_SetString(PyExc_OSError, why.c_str());
+      throw nb::python_error();
+    }
+    return triangles;
+  }
+
+  size_t numBlocks() const { return volume_.numAllocatedBlocks(); }
+
+ private:
+  static kinfly::HashedVolume::Params paramsOf(const kinfly::HashedVolume& source) {
+    kinfly::HashedVolume::Params params;
+    params.voxel_size_m = source.voxelSizeM();
+    // One chunk for all the blocks: a snapshot never grows.
+    params.chunk_blocks = static_cast<int>(std::max<size_t>(1, source.numAllocatedBlocks()));
+    return params;
+  }
+  kinfly::TriangleMesh extract() const {
+    return kinfly::MarchingCubes(kinfly::MarchingCubes::Params()).extract(volume_);
+  }
+
+  kinfly::HashedVolume volume_;
+};
+
+struct RefineResult {
+  std::string status;  // "first", "ok", "lost", "given" (kinfly::toString(TrackingStatus))
+  kinfly::Pose T_world_cam = kinfly::Pose::Identity();
+  float inlier_fraction = 0.f;
+  float rmse_m = 0.f;
+  float valid_depth_fraction = 0.f;
+  std::string lost_reason;
+  double preprocess_ms = 0, track_ms = 0, integrate_ms = 0, raycast_ms = 0, total_ms = 0;
+};
+
+struct FusionParams {
+  int width = 0, height = 0;
+  float fx = 0, fy = 0, cx = 0, cy = 0;
+  double depth_scale_m = 0;
+  float voxel_size_m = 0.01f;
+  float truncation_m = 0.f;  // 0: four voxels
+  int threads = 2;
+};
+
+// One map: a hashed volume and the pipeline that tracks and fuses into it at full resolution.
+class PyFusion {
+ public:
+  explicit PyFusion(const FusionParams& p) : threads_(p.threads) {
+    if (p.threads < 1) throw nb::value_error("threads must be at least 1");
+    kinfly::PinholeCamera camera;
+    camera.width = p.width;
+    camera.height = p.height;
+    camera.fx = p.fx;
+    camera.fy = p.fy;
+    camera.cx = p.cx;
+    camera.cy = p.cy;
+    if (const std::string why = camera.validate(); !why.empty()) throw nb::value_error(why.c_str());
+    kinfly::HashedVolume::Params volume_params;
+    volume_params.voxel_size_m = p.voxel_size_m;
+    if (const std::string why = volume_params.validate(); !why.empty())
+      throw nb::value_error(why.c_str());
+    kinfly::FusionPipeline::Params params;
+    params.preprocess.depth_scale_m = p.depth_scale_m;
+    params.integrate.truncation_m = p.truncation_m > 0.f ? p.truncation_m : 4.f * p.voxel_size_m;
+    if (const std::string why = params.validate(p.voxel_size_m); !why.empty())
+      throw nb::value_error(why.c_str());
+    volume_ = std::make_unique<kinfly::HashedVolume>(volume_params);
+    pipeline_ = std::make_unique<kinfly::FusionPipeline>(camera, params, volume_.get());
+  }
+
+  RefineResult refine(DepthIn depth, int64_t utime, PoseIn T_world_cam_guess) {
+    checkSize(depth);
+    const kinfly::Pose guess = poseOf(T_world_cam_guess);
+    kinfly::FrameResult r;
+    {
+      nb::gil_scoped_release unlocked;
+      omp_set_num_threads(threads_);  // per calling thread: the worker, not the caller's others
+      r = pipeline_->processFrameFromGuess(viewOf(depth), utime, guess);
+    }
+    RefineResult out{kinfly::toString(r.status), r.T_world_cam};
+    out.inlier_fraction = r.inlier_fraction;
+    out.rmse_m = r.rmse_m;
+    out.valid_depth_fraction = r.valid_depth_fraction;
+    out.lost_reason = r.lost_reason;
+    out.preprocess_ms = r.ms.preprocess;
+    out.track_ms = r.ms.track;
+    out.integrate_ms = r.ms.integrate;
+    out.raycast_ms = r.ms.raycast;
+    out.total_ms = r.ms.total;
+    return out;
+  }
+
+  // full: a raycast of every pixel (slow at full resolution); otherwise the per-frame model
+  // maps shaded, where the last keyframe measured depth.
+  GrayOut render(bool full) {
+    const kinfly::PinholeCamera& camera = pipeline_->camera();
+    auto* image = new kinfly::Image<uint8_t>(camera.width, camera.height, 0);
+    {
+      nb::gil_scoped_release unlocked;
+      omp_set_num_threads(threads_);
+      if (full)
+        pipeline_->renderShaded(image->view());
+      else
+        pipeline_->shadeModel(image->view());
+    }
+    return GrayOut(image->data(), {static_cast<size_t>(camera.height), static_cast<size_t>(camera.width)},
+                   ownerOf(image));
+  }
+
+  // A copy of the map, so that meshing it (hundreds of ms) can run beside the fusion.
+  PyMapSnapshot* snapshot() const { return new PyMapSnapshot(*volume_); }
+
+  size_t numBlocks() const { return volume_->numAllocatedBlocks(); }
+  size_t memoryBytes() const { return volume_->memoryBytes(); }
+  float voxelSizeM() const { return volume_->voxelSizeM(); }
+
+ private:
+  void checkSize(const DepthIn& depth) const {
+    const kinfly::PinholeCamera& camera = pipeline_->inputCamera();
+    if (static_cast<int>(depth.shape(1)) != camera.width || static_cast<int>(depth.shape(0)) != camera.height)
+      throw nb::value_error(("depth image is " + std::to_string(depth.shape(1)) + "x" +
+                             std::to_string(depth.shape(0)) + ", the map's camera " +
+                             std::to_string(camera.width) + "x" + std::to_string(camera.height))
+                                .c_str());
+  }
+  static kinfly::ImageView<const uint16_t> viewOf(const DepthIn& depth) {
+    return kinfly::ImageView<const uint16_t>(depth.data(), static_cast<int>(depth.shape(1)),
+                                             static_cast<int>(depth.shape(0)));
+  }
+
+  int threads_;
+  std::unique_ptr<kinfly::HashedVolume> volume_;
+  std::unique_ptr<kinfly::FusionPipeline> pipeline_;
+};
+
 }  // namespace
 
 NB_MODULE(_native, m) {
@@ -87,4 +295,52 @@ NB_MODULE(_native, m) {
       .def("decode", &PyDepthCodec::decode, nb::arg("payload"), nb::arg("encoding"),
            nb::arg("width"), nb::arg("height"),
            "payload bytes -> uint16 (height, width) array; ValueError naming what is malformed");
+
+  nb::class_<PyMapSnapshot>(m, "MapSnapshot", "A copy of a map (Fusion.snapshot()).")
+      .def("mesh", &PyMapSnapshot::mesh,
+           "Marching cubes: (vertices float32 Nx3 [m], triangles int32 Mx3, normals float32 Nx3)")
+      .def("write_ply", &PyMapSnapshot::writePly, nb::arg("path"),
+           "Meshes the map and writes binary PLY; returns the triangle count")
+      .def_prop_ro("num_blocks", &PyMapSnapshot::numBlocks);
+
+  nb::class_<RefineResult>(m, "RefineResult", "What refining one keyframe gave (FrameResult).")
+      .def_ro("status", &RefineResult::status, "first, ok, lost or given")
+      .def_prop_ro("T_world_cam", [](const RefineResult& r) { return matrixOf(r.T_world_cam); },
+                   nb::rv_policy::move,
+                   "4x4 camera-to-world; the last fused pose when lost")
+      .def_ro("inlier_fraction", &RefineResult::inlier_fraction)
+      .def_ro("rmse_m", &RefineResult::rmse_m)
+      .def_ro("valid_depth_fraction", &RefineResult::valid_depth_fraction)
+      .def_ro("lost_reason", &RefineResult::lost_reason)
+      .def_ro("preprocess_ms", &RefineResult::preprocess_ms)
+      .def_ro("track_ms", &RefineResult::track_ms)
+      .def_ro("integrate_ms", &RefineResult::integrate_ms)
+      .def_ro("raycast_ms", &RefineResult::raycast_ms)
+      .def_ro("total_ms", &RefineResult::total_ms);
+
+  const FusionParams fusion_defaults;
+  nb::class_<PyFusion>(m, "Fusion",
+                       "A full-resolution map (hashed TSDF volume) of one vehicle and the pipeline "
+                       "that refines keyframes against it and fuses them.")
+      .def("__init__",
+           [](PyFusion* self, int width, int height, float fx, float fy, float cx, float cy,
+              double depth_scale_m, float voxel_size_m, float truncation_m, int threads) {
+             new (self) PyFusion(FusionParams{width, height, fx, fy, cx, cy, depth_scale_m,
+                                              voxel_size_m, truncation_m, threads});
+           },
+           nb::arg("width"), nb::arg("height"), nb::arg("fx"), nb::arg("fy"), nb::arg("cx"),
+           nb::arg("cy"), nb::arg("depth_scale_m"), nb::kw_only(),
+           nb::arg("voxel_size_m") = fusion_defaults.voxel_size_m,
+           nb::arg("truncation_m") = fusion_defaults.truncation_m,
+           nb::arg("threads") = fusion_defaults.threads)
+      .def("refine", &PyFusion::refine, nb::arg("depth"), nb::arg("utime"), nb::arg("T_world_cam_guess"),
+           "Tracks a uint16 depth image frame-to-model from a guessed 4x4 pose, then fuses it")
+      .def("render", &PyFusion::render, nb::arg("full") = false,
+           "The map shaded from the last fused pose (uint8): full=True raycasts every pixel, "
+           "otherwise only where the last keyframe measured depth (no extra raycast)")
+      .def("snapshot", &PyFusion::snapshot, nb::rv_policy::take_ownership,
+           "A copy of the map to mesh while fusion goes on")
+      .def_prop_ro("num_blocks", &PyFusion::numBlocks)
+      .def_prop_ro("memory_bytes", &PyFusion::memoryBytes)
+      .def_prop_ro("voxel_size_m", &PyFusion::voxelSizeM);
 }

@@ -33,60 +33,79 @@ FusionPipeline::FusionPipeline(const PinholeCamera& input_camera, const Params& 
   integrator_.reserve(preprocessor_.camera().width, preprocessor_.camera().height, *volume);
 }
 
-FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, int64_t utime) {
+bool FusionPipeline::preprocess(ImageView<const uint16_t> raw_depth, int64_t utime,
+                                const Pose& T_world_cam, FrameResult* result) {
   const auto start = std::chrono::steady_clock::now();
   const PreprocessResult pre = preprocessor_.process(raw_depth, &frame_);
-  const double preprocess_ms = msSince(start);
+  result->utime = utime;
+  result->T_world_cam = T_world_cam;
+  result->valid_depth_fraction = pre.valid_fraction;
+  result->ms.preprocess = result->ms.total = msSince(start);
+  if (pre.valid_fraction >= params_.min_valid_depth_fraction) return true;
+  result->status = TrackingStatus::kLost;
+  std::ostringstream why;
+  why << "only " << pre.valid_fraction * 100.f << "% of pixels have valid depth";
+  result->lost_reason = why.str();
+  return false;
+}
 
+FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, int64_t utime) {
   FrameResult result;
-  result.utime = utime;
-  result.T_world_cam = T_world_cam_;
-  result.valid_depth_fraction = pre.valid_fraction;
-  if (pre.valid_fraction < params_.min_valid_depth_fraction) {
-    result.status = TrackingStatus::kLost;
-    std::ostringstream why;
-    why << "only " << pre.valid_fraction * 100.f << "% of pixels have valid depth";
-    result.lost_reason = why.str();
-    result.ms.preprocess = result.ms.total = preprocess_ms;
-    return result;
-  }
+  if (!preprocess(raw_depth, utime, T_world_cam_, &result)) return result;
   if (!has_model_) {
     result.status = TrackingStatus::kFirstFrame;
-    return fuse(result, preprocess_ms);
+    return fuse(result);
   }
-  const auto track_start = std::chrono::steady_clock::now();
   // The model was raycast from the last pose, so the guess relative to it is the identity.
+  return trackAndFuse(result, T_world_cam_);
+}
+
+FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_depth,
+                                                  int64_t utime, const Pose& T_world_cam_guess) {
+  FrameResult result;
+  if (!preprocess(raw_depth, utime, T_world_cam_guess, &result)) return result;
+  if (!has_model_) {
+    result.status = TrackingStatus::kFirstFrame;
+    return fuse(result);
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_guess, &model_,
+                     frame_.depth_m[0].view());
+  model_.buildPyramid();
+  result.ms.raycast = msSince(t0);
+  return trackAndFuse(result, T_world_cam_guess);
+}
+
+FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world_ref) {
+  const auto t0 = std::chrono::steady_clock::now();
   const IcpResult icp = tracker_.track(frame_, model_, Pose::Identity());
-  result.ms.track = msSince(track_start);
+  result.ms.track = msSince(t0);
   result.status = icp.status;
   result.inlier_fraction = icp.inlier_fraction;
   result.rmse_m = icp.rmse_m;
   if (icp.status != TrackingStatus::kOk) {
     // Keep the previous pose and leave the map untouched: fusing a frame at a wrong pose
     // would corrupt the model that the next frames track against.
+    result.T_world_cam = T_world_cam_;
     result.lost_reason = icp.reason;
-    result.ms.preprocess = preprocess_ms;
-    result.ms.total = msSince(start);
+    result.ms.total = result.ms.preprocess + result.ms.track + result.ms.raycast;
     return result;
   }
-  result.T_world_cam = orthonormalized(T_world_cam_ * icp.T_ref_cur);
-  return fuse(result, preprocess_ms);
+  result.T_world_cam = orthonormalized(T_world_ref * icp.T_ref_cur);
+  return fuse(result);
 }
 
 FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_depth, int64_t utime,
                                                const Pose& T_world_cam) {
-  const auto start = std::chrono::steady_clock::now();
-  const PreprocessResult pre = preprocessor_.process(raw_depth, &frame_);
   FrameResult result;
-  result.utime = utime;
-  result.T_world_cam = T_world_cam;
+  preprocess(raw_depth, utime, T_world_cam, &result);
+  // A given pose is fused whatever the depth holds: the caller vouches for it.
   result.status = TrackingStatus::kGivenPose;
-  result.valid_depth_fraction = pre.valid_fraction;
-  return fuse(result, msSince(start));
+  result.lost_reason.clear();
+  return fuse(result);
 }
 
-FrameResult FusionPipeline::fuse(FrameResult result, double preprocess_ms) {
-  result.ms.preprocess = preprocess_ms;
+FrameResult FusionPipeline::fuse(FrameResult result) {
   T_world_cam_ = result.T_world_cam;
   volume_->followCamera(T_world_cam_);
 
@@ -99,7 +118,7 @@ FrameResult FusionPipeline::fuse(FrameResult result, double preprocess_ms) {
                      frame_.depth_m[0].view());
   model_.buildPyramid();
   has_model_ = true;
-  result.ms.raycast = msSince(t0);
+  result.ms.raycast += msSince(t0);
   result.ms.total = result.ms.preprocess + result.ms.track + result.ms.integrate + result.ms.raycast;
   return result;
 }
@@ -108,6 +127,10 @@ void FusionPipeline::renderShaded(ImageView<uint8_t> out) {
   if (!render_maps_) render_maps_ = std::make_unique<ModelMaps>(camera());
   raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_, render_maps_.get());
   Raycaster::shade(render_maps_->vertex_ref[0].view(), render_maps_->normal_ref[0].view(), out);
+}
+
+void FusionPipeline::shadeModel(ImageView<uint8_t> out) const {
+  Raycaster::shade(model_.vertex_ref[0].view(), model_.normal_ref[0].view(), out);
 }
 
 }  // namespace kinfly

@@ -16,6 +16,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "tests" / "tools"))
+sys.path.insert(0, str(REPO_ROOT / "scripts"))  # netns.py, shared with make demo
 
 import kinfly_eval  # noqa: E402  (needs the sys.path entry above)
 from netns import NetnsUnavailable, network_namespace  # noqa: E402

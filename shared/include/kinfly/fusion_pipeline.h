@@ -50,6 +50,12 @@ class FusionPipeline {
 
   // Tracks the frame against the model, then fuses it.
   FrameResult processFrame(ImageView<const uint16_t> raw_depth, int64_t utime);
+  // Tracks the frame against the model as seen from a pose guess, then fuses it: the ground
+  // station refines a keyframe starting from the drone's onboard pose. Keyframes are far apart,
+  // so the model is raycast from the guess rather than from the last fused pose, which would
+  // overlap the new view less. The first frame is fused at the guess.
+  FrameResult processFrameFromGuess(ImageView<const uint16_t> raw_depth, int64_t utime,
+                                    const Pose& T_world_cam_guess);
   // Fuses the frame at a given pose (motion capture, or a ground-station correction).
   FrameResult processFrameAtPose(ImageView<const uint16_t> raw_depth, int64_t utime,
                                  const Pose& T_world_cam);
@@ -63,9 +69,17 @@ class FusionPipeline {
   // Lambertian render of the model from the latest pose: a full raycast, every pixel, on demand
   // (the per-frame model maps only cover the pixels measured).
   void renderShaded(ImageView<uint8_t> out);
+  // The same from the per-frame model maps: only where the latest fused frame measured depth,
+  // but without another raycast.
+  void shadeModel(ImageView<uint8_t> out) const;
 
  private:
-  FrameResult fuse(FrameResult result, double preprocess_ms);
+  // Fills the result's first fields; false when the frame has too little depth to use.
+  bool preprocess(ImageView<const uint16_t> raw_depth, int64_t utime, const Pose& T_world_cam,
+                  FrameResult* result);
+  // ICP against model_, which was raycast from T_world_ref; fuses on success.
+  FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref);
+  FrameResult fuse(FrameResult result);
 
   Params params_;
   TsdfVolume* volume_;

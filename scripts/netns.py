@@ -1,6 +1,6 @@
-"""A private network namespace for tests and benchmarks that run LCM between processes: only
-`lo`, up, with the multicast route LCM needs, so nothing leaves the machine and parallel runs do
-not hear each other. Needs root (or passwordless sudo)."""
+"""A private network namespace for the demo, tests and benchmarks that run LCM between
+processes: only `lo`, up, with the multicast route LCM needs, so nothing leaves the machine and
+parallel runs do not hear each other. Needs root (or passwordless sudo)."""
 from __future__ import annotations
 
 import contextlib

@@ -1,0 +1,465 @@
+"""`kinfly-ground`: the ground station's command line.
+
+  kinfly-ground run     live: LCM keyframes in, signed corrections out, viewer, MAVLink
+  kinfly-ground replay  offline: every keyframe of a recorded flight log, with progress
+
+Both end with the outputs in --out (docs/ground.md). Exit status: 0 done, 1 failed while running
+(an output could not be written), 2 bad command line or input refused at start."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import gc
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from . import __version__
+from .channels import ALL_VEHICLES_REGEX, MAX_VEHICLE_ID, Channel, channel_name, \
+    vehicle_channels_regex
+from .outputs import (OutputError, ate, check_writable, memory, read_tum,
+                      write_error_plot, write_json, write_tum, write_atomically)
+from .signing import KeyFileError, Signer, load_key_file
+from .station import Segment, Station, StationParams, VehicleState, percentile
+from .viewer import Viewer, ViewerError
+
+DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=1"  # LCM's default group; ttl 1: one hop (Wi-Fi)
+STATUS_PERIOD_S = 0.1      # the ground's status_t at 10 Hz, as the drone's
+LINK_TIMEOUT_S = 1.0       # the drone is STALE after this long unheard (as kinfly-fw's default)
+PROGRESS_PERIOD_S = 2.0
+DRAIN_TIMEOUT_S = 30.0     # at exit, the longest wait for queued keyframes to be fused
+
+
+class UsageError(Exception):
+    """Bad input found before the station starts (exit status 2)."""
+
+
+def log(message: str) -> None:
+    print(f"kinfly-ground: {message}", file=sys.stderr, flush=True)
+
+
+def _stats(values: list[float]) -> dict[str, float | int | None]:
+    return {"count": len(values), "median": percentile(values, 50), "p90": percentile(values, 90),
+            "p99": percentile(values, 99), "max": max(values) if values else None}
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
+
+
+# --- arguments -------------------------------------------------------------------------------
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=Path("out/ground"),
+                   help="output directory: mesh.ply, trajectory_onboard.tum, "
+                        "trajectory_corrected.tum, session.rrd, summary.json (default out/ground)")
+    p.add_argument("--vehicle", type=int, metavar="ID",
+                   help=f"the vehicle id to serve, 0..{MAX_VEHICLE_ID} (default: every vehicle, "
+                        "one map each, outputs in OUT/vehicle_<id>/)")
+    p.add_argument("--save", type=Path, metavar="FILE.rrd",
+                   help="where to record the rerun session (default OUT/session.rrd)")
+    p.add_argument("--no-record", action="store_true", help="record no .rrd")
+    p.add_argument("--viewer", action="store_true", help="spawn the rerun viewer")
+    p.add_argument("--ground-truth", type=Path, metavar="FILE.tum",
+                   help="ground truth (TUM format, capture clock) to evaluate against; otherwise "
+                        "what arrives on KINFLY_<id>_GROUND_TRUTH, if anything")
+    d = StationParams()
+    p.add_argument("--voxel-size", type=float, default=d.voxel_size_m, metavar="M",
+                   help=f"voxel edge of the full-resolution map [m] (default {d.voxel_size_m})")
+    p.add_argument("--threads", type=int, default=d.threads,
+                   help=f"fusion threads (default {d.threads})")
+    p.add_argument("--reset-translation", type=float, default=d.reset_translation_m, metavar="M",
+                   help="a correction moving the pose further than this increments the reset "
+                        f"counter [m] (default {d.reset_translation_m})")
+    p.add_argument("--reset-rotation", type=float, default=math.degrees(d.reset_rotation_rad),
+                   metavar="DEG", help="the same for rotation [degrees] "
+                   f"(default {math.degrees(d.reset_rotation_rad):g})")
+
+
+def parser() -> argparse.ArgumentParser:
+    top = argparse.ArgumentParser(
+        prog="kinfly-ground",
+        description="kinfly ground station: fuses a drone's depth keyframes at full resolution, "
+                    "refines each keyframe's pose against the map and sends it back signed.")
+    top.add_argument("--version", action="version", version=f"kinfly-ground {__version__}")
+    sub = top.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="serve drones live over LCM",
+                         description="Listen for keyframes over LCM, fuse them, publish signed "
+                                     "pose corrections and the ground's status. Ctrl-C (SIGINT) "
+                                     "or SIGTERM: finish the queued keyframes, write the outputs "
+                                     "and exit; SIGUSR1: write the outputs now and go on.")
+    _add_common(run)
+    run.add_argument("--lcm-url", default=os.environ.get("LCM_DEFAULT_URL", DEFAULT_LCM_URL),
+                     help=f"LCM provider URL (default $LCM_DEFAULT_URL or {DEFAULT_LCM_URL})")
+    run.add_argument("--key", type=Path, metavar="FILE",
+                     help="the vehicle's 32-byte signing key (kinfly-keygen; with --vehicle)")
+    run.add_argument("--key-dir", type=Path, metavar="DIR",
+                     help="keys of several vehicles, DIR/<id>.key (without --vehicle)")
+    run.add_argument("--queue", type=int, default=StationParams().queue_keyframes,
+                     help="keyframes that may wait to be fused; when full the oldest is dropped "
+                          f"(default {StationParams().queue_keyframes})")
+    run.add_argument("--duration", type=float, metavar="S",
+                     help="stop after S seconds (default: until SIGINT/SIGTERM)")
+    run.add_argument("--mavlink", metavar="URL",
+                     help="autopilot link: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or a "
+                          "serial device (with --vehicle)")
+    run.add_argument("--mavlink-forward", choices=("vision", "odometry"),
+                     help="forward corrected poses as VISION_POSITION_ESTIMATE or ODOMETRY")
+    run.add_argument("--mavlink-rate", type=float, default=30.0, metavar="HZ",
+                     help="most poses forwarded per second (default 30)")
+    run.add_argument("--mavlink-key", type=Path, metavar="FILE",
+                     help="MAVLink 2 signing secret (32 bytes): sign what is sent, refuse "
+                          "unsigned telemetry")
+    run.add_argument("--mavlink-baud", type=int, default=57600, help="serial baud rate")
+
+    replay = sub.add_parser("replay", help="fuse a recorded flight log offline",
+                            description="Fuse every keyframe of an LCM flight log (recorded "
+                                        "with lcm-logger during a flight or `make demo`), "
+                                        "with progress; nothing is sent.")
+    replay.add_argument("log", type=Path, metavar="LOG", help="LCM event log")
+    _add_common(replay)
+    return top
+
+
+def _params(args: argparse.Namespace, **extra: Any) -> StationParams:
+    params = StationParams(voxel_size_m=args.voxel_size, threads=args.threads,
+                           reset_translation_m=args.reset_translation,
+                           reset_rotation_rad=math.radians(args.reset_rotation), **extra)
+    if why := params.validate():
+        raise UsageError(why)
+    return params
+
+
+def _check_vehicle(args: argparse.Namespace) -> None:
+    if args.vehicle is not None and not 0 <= args.vehicle <= MAX_VEHICLE_ID:
+        raise UsageError(f"--vehicle {args.vehicle} outside [0, {MAX_VEHICLE_ID}]")
+
+
+def _signers(args: argparse.Namespace) -> dict[int, Signer]:
+    if args.key and args.key_dir:
+        raise UsageError("give --key (one vehicle) or --key-dir (several), not both")
+    if args.key:
+        if args.vehicle is None:
+            raise UsageError("--key needs --vehicle (use --key-dir DIR/<id>.key for several)")
+        return {args.vehicle: Signer(load_key_file(args.key), args.vehicle)}
+    if not args.key_dir:
+        log("no --key: keyframes are mapped but no corrections are sent")
+        return {}
+    if not args.key_dir.is_dir():
+        raise UsageError(f"--key-dir {args.key_dir} is not a directory")
+    signers = {}
+    for path in sorted(args.key_dir.glob("*.key")):
+        if path.stem.isdigit() and 0 <= int(path.stem) <= MAX_VEHICLE_ID:
+            vid = int(path.stem)
+            if args.vehicle is None or vid == args.vehicle:
+                signers[vid] = Signer(load_key_file(path), vid)
+    if not signers:
+        raise UsageError(f"--key-dir {args.key_dir} holds no <vehicle id>.key file")
+    return signers
+
+
+def _viewer(args: argparse.Namespace) -> Viewer:
+    save = None if args.no_record else (args.save or args.out / "session.rrd")
+    return Viewer(spawn=args.viewer, save_path=save,
+                  recording_name=f"kinfly-ground {time.strftime('%Y-%m-%d %H:%M:%S')}")
+
+
+# --- outputs ---------------------------------------------------------------------------------
+
+def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, Any]:
+    truth = truth if truth is not None else segment.ground_truth
+    if not truth:
+        return {"available": False, "reason": "no ground truth"}
+    results = {name: r for name, r in (("onboard", ate(segment.onboard, truth)),
+                                       ("corrected", ate(segment.corrected, truth)))
+               if r is not None}
+    if not results:
+        return {"available": False, "reason": "fewer than 3 poses match the ground truth in time"}
+    write_error_plot(out / "ate.png", results)
+    summary: dict[str, Any] = {"available": True, "plot": "ate.png"}
+    for name, r in results.items():
+        summary[name] = {k: v for k, v in r.items() if k != "errors"}
+    return summary
+
+
+def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str, Any]:
+    files: dict[str, str] = {}
+    result: dict[str, Any] = {"files": files}
+    if segment.fusion is not None:
+        snapshot = segment.fusion.snapshot()
+        result["mesh_triangles"] = write_atomically(out / "mesh.ply",
+                                                    lambda tmp: snapshot.write_ply(str(tmp)))
+        files["mesh"] = "mesh.ply"
+        result["map_blocks"] = segment.fusion.num_blocks
+        result["map_memory_mb"] = segment.fusion.memory_bytes / 1e6
+    write_tum(out / "trajectory_onboard.tum", segment.onboard)
+    write_tum(out / "trajectory_corrected.tum", segment.corrected)
+    files["trajectory_onboard"] = "trajectory_onboard.tum"
+    files["trajectory_corrected"] = "trajectory_corrected.tum"
+    if segment.ground_truth:
+        write_tum(out / "trajectory_ground_truth.tum", segment.ground_truth)
+        files["trajectory_ground_truth"] = "trajectory_ground_truth.tum"
+    result["ate"] = _ate_summary(segment, truth, out)
+    if result["ate"]["available"]:
+        files["ate_plot"] = "ate.png"
+    return result
+
+
+def _vehicle_summary(state: VehicleState, out: Path, truth: list | None) -> dict[str, Any]:
+    with state.lock:
+        segment, finished = state.segment, list(state.finished_segments)
+    summary: dict[str, Any] = {
+        "vehicle_id": state.vehicle_id,
+        "keyframes": dataclasses.asdict(state.counters),
+        "latency_ms": _stats(state.latencies_ms),
+        "refine_ms": _stats(state.refine_ms),
+        "reset_counter": state.reset_counter,
+    }
+    summary.update(_export_segment(segment, out, truth))
+    # Earlier odometry frames (before a drone restart), each complete on its own.
+    summary["earlier_segments"] = [
+        {"directory": f"segments/{i}", **_export_segment(s, out / "segments" / str(i), None)}
+        for i, s in enumerate(finished, 1)]
+    d = state.drone_status
+    if d is not None:
+        summary["drone_reported"] = {
+            "frames_captured": d.frames_captured, "keyframes_sent": d.keyframes_sent,
+            "keyframes_dropped": d.keyframes_dropped, "corrections_accepted":
+            d.corrections_accepted, "rejected_wrong_key": d.rejected_wrong_key,
+            "rejected_bad_mac": d.rejected_bad_mac}
+    return summary
+
+
+def export(station: Station, out: Path, mode: str, started: float, truth: list | None,
+           extra: dict[str, Any]) -> dict[str, Any]:
+    """Writes every vehicle's outputs and summary.json (last). Runs on the fusion thread or after
+    it stopped, so the maps hold still."""
+    vehicles = {}
+    for vid, state in sorted(station.vehicles.items()):
+        where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
+        vehicles[str(vid)] = {"directory": str(where), **_vehicle_summary(state, where, truth)}
+    rejects = dataclasses.asdict(station.receiver.rejects)
+    rejects["too_many_vehicles"] = station.rejected_too_many_vehicles
+    summary = {
+        "kinfly_ground": __version__, "mode": mode, "duration_s": time.monotonic() - started,
+        "vehicles": vehicles, "rejected_messages": rejects, "memory": memory(),
+        "params": dataclasses.asdict(station.params), **extra,
+    }
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
+    print(f"kinfly-ground {summary['mode']}: {summary['duration_s']:.1f} s, outputs in {out}")
+    if not summary["vehicles"]:
+        print("  no keyframes were received")
+    for vid, v in summary["vehicles"].items():
+        k, lat = v["keyframes"], v["latency_ms"]
+        print(f"  vehicle {vid}: {k['keyframes_received']} keyframes received, "
+              f"{k['keyframes_fused']} fused, {k['keyframes_lost']} lost, "
+              f"{k['keyframes_dropped']} dropped, {k['corrections_sent']} corrections sent")
+        print(f"    correction latency: median {_ms(lat['median'])} ms, p99 {_ms(lat['p99'])} ms")
+        a = v["ate"]
+        if a["available"]:
+            parts = [f"{n} {a[n]['rmse_m'] * 100:.2f} cm ({a[n]['matched_poses']} poses)"
+                     for n in ("onboard", "corrected") if n in a]
+            print("    ATE RMSE: " + ", ".join(parts))
+        else:
+            print(f"    ATE: {a['reason']}")
+        print(f"    files: {', '.join(str(Path(v['directory']) / f) for f in v['files'].values())}")
+    m = summary["memory"]
+    print(f"  memory: {m['rss_mb']:.0f} MB resident, {m['peak_rss_mb']:.0f} MB peak")
+    if rrd is not None:
+        print(f"  rerun recording: {rrd} (open with: rerun {rrd})")
+    print(f"  summary: {out / 'summary.json'}")
+
+
+# --- run -------------------------------------------------------------------------------------
+
+def _mavlink(args: argparse.Namespace):
+    if not args.mavlink:
+        if args.mavlink_forward or args.mavlink_key:
+            raise UsageError("--mavlink-forward and --mavlink-key need --mavlink URL")
+        return None
+    if args.vehicle is None:
+        raise UsageError("--mavlink needs --vehicle: one autopilot link per vehicle")
+    from .mavlink import MavlinkBridge, load_signing_key
+    key = load_signing_key(args.mavlink_key) if args.mavlink_key else None
+    return MavlinkBridge(args.mavlink, forward=args.mavlink_forward, rate_hz=args.mavlink_rate,
+                         signing_key=key, baud=args.mavlink_baud)
+
+
+def run(args: argparse.Namespace) -> int:
+    import lcm
+
+    _check_vehicle(args)
+    params = _params(args, queue_keyframes=args.queue)
+    signers = _signers(args)
+    truth = read_tum(args.ground_truth) if args.ground_truth else None
+    check_writable(args.out)
+    bridge = _mavlink(args)
+    try:
+        lc = lcm.LCM(args.lcm_url)
+    except (OSError, RuntimeError) as error:
+        raise UsageError(f"cannot open LCM at {args.lcm_url}: {error} (multicast needs a route: "
+                         "see docs/ground.md)") from error
+    viewer = _viewer(args)
+    started = time.monotonic()
+    station = Station(params, viewer, vehicle_id=args.vehicle, signers=signers,
+                      publish=lc.publish, forward=bridge.send_pose if bridge else None, log=log)
+    regex = ALL_VEHICLES_REGEX if args.vehicle is None else vehicle_channels_regex(args.vehicle)
+    lc.subscribe(regex, station.on_message)
+
+    stop = threading.Event()
+    export_now = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGUSR1, lambda *_: export_now.set())
+    log(f"listening on {args.lcm_url} for "
+        f"{'every vehicle' if args.vehicle is None else f'vehicle {args.vehicle}'}; "
+        f"outputs in {args.out}")
+
+    def snapshot_outputs() -> None:
+        try:
+            export(station, args.out, "run", started, truth, {})
+            log(f"outputs written to {args.out} (on request)")
+        except OutputError as error:
+            log(f"export on request failed: {error}")
+
+    next_status = next_progress = time.monotonic()
+    while not stop.is_set():
+        try:
+            lc.handle_timeout(20)
+        except OSError:
+            if not stop.is_set():  # a signal interrupts the wait; anything else is real
+                raise
+        now = time.monotonic()
+        if args.duration is not None and now - started >= args.duration:
+            break
+        if export_now.is_set():
+            export_now.clear()
+            station.run_in_worker(snapshot_outputs)
+        if bridge is not None:
+            bridge.poll()
+            if args.vehicle in station.vehicles and bridge.state.last_heard_utime is not None:
+                station.vehicles[args.vehicle].view.telemetry(bridge.state.last_heard_utime,
+                                                              bridge.state.as_metrics())
+        if now >= next_status:
+            next_status = now + STATUS_PERIOD_S
+            for state in list(station.vehicles.values()):
+                lc.publish(channel_name(Channel.GROUND_STATUS, state.vehicle_id),
+                           station.ground_status(state, now, LINK_TIMEOUT_S).encode())
+        if now >= next_progress:
+            next_progress = now + PROGRESS_PERIOD_S
+            _progress(station, now - started)
+
+    log("stopping: fusing what is queued, then writing the outputs")
+    if not station.drain(DRAIN_TIMEOUT_S):
+        log(f"{station.queue_length()} keyframes still queued after {DRAIN_TIMEOUT_S:.0f} s: "
+            "left out")
+    station.stop()
+    extra = {}
+    if bridge is not None:
+        extra["mavlink"] = {"url": args.mavlink, **dataclasses.asdict(bridge.counters),
+                            "autopilot": dataclasses.asdict(bridge.state)}
+        bridge.close()
+    return _finish(station, viewer, args, "run", started, truth, extra)
+
+
+def _progress(station: Station, elapsed_s: float) -> None:
+    for vid, state in sorted(station.vehicles.items()):
+        c = state.counters
+        lat = state.latencies_ms[-50:]
+        fusion = state.segment.fusion
+        log(f"[{elapsed_s:6.1f} s] vehicle {vid}: {c.keyframes_received} keyframes, "
+            f"{c.keyframes_fused} fused, {c.keyframes_lost} lost, {c.keyframes_dropped} dropped; "
+            f"latency median {_ms(percentile(lat, 50))} ms (last 50); queue "
+            f"{station.queue_length()}; map {fusion.num_blocks if fusion else 0} blocks")
+
+
+def _finish(station: Station, viewer: Viewer, args: argparse.Namespace, mode: str,
+            started: float, truth: list | None, extra: dict[str, Any]) -> int:
+    rrd = None if args.no_record else (args.save or args.out / "session.rrd")
+    try:
+        viewer.close()
+    except ViewerError as error:
+        log(str(error))
+        return 1
+    try:
+        summary = export(station, args.out, mode, started, truth,
+                         {**extra, "rrd": None if rrd is None else str(rrd)})
+    except OutputError as error:
+        log(str(error))
+        return 1
+    print_summary(summary, args.out, rrd)
+    return 0
+
+
+# --- replay ----------------------------------------------------------------------------------
+
+def replay(args: argparse.Namespace) -> int:
+    import lcm
+
+    _check_vehicle(args)
+    params = _params(args)
+    if not args.log.is_file():
+        raise UsageError(f"{args.log} is not a file")
+    try:
+        log_file = lcm.EventLog(str(args.log), "r")
+    except (OSError, RuntimeError) as error:
+        raise UsageError(f"cannot open LCM log {args.log}: {error}") from error
+    truth = read_tum(args.ground_truth) if args.ground_truth else None
+    check_writable(args.out)
+    viewer = _viewer(args)
+    started = time.monotonic()
+    station = Station(params, viewer, vehicle_id=args.vehicle, signers={}, publish=None,
+                      inline=True, log=log)
+    size = max(1, log_file.size())
+    next_progress = started
+    keyframe_suffix = "_" + Channel.KEYFRAME.value
+    keyframes = 0
+    for event in log_file:
+        if event.channel.endswith(keyframe_suffix):
+            keyframes += 1
+        station.on_message(event.channel, event.data)
+        now = time.monotonic()
+        if now >= next_progress:
+            next_progress = now + PROGRESS_PERIOD_S
+            log(f"replay: {100.0 * log_file.tell() / size:5.1f}% of {args.log.name}, "
+                f"{keyframes} keyframes, {now - started:.1f} s")
+    log_file.close()
+    if keyframes == 0:
+        raise UsageError(f"{args.log} holds no keyframes (KINFLY_<id>_KEYFRAME): a sensor "
+                         "recording is flown through kinfly-fw first (see `make demo`)")
+    log(f"replay: 100.0% of {args.log.name}, {keyframes} keyframes")
+    return _finish(station, viewer, args, "replay", started, truth, {"log": str(args.log)})
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        return run(args) if args.command == "run" else replay(args)
+    finally:
+        # The station and its receiver refer to each other; freeing the maps here, not at
+        # interpreter exit, is what lets nanobind check that nothing native leaked.
+        gc.collect()
+    except (UsageError, KeyFileError, OutputError, ViewerError) as error:
+        log(f"error: {error}")
+        return 2
+    except Exception as error:  # the MAVLink module's own, imported only when used
+        if type(error).__name__ == "MavlinkError":
+            log(f"error: {error}")
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

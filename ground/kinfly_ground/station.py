@@ -1,0 +1,492 @@
+"""The ground station's core: one map per vehicle, fed with the keyframes the Receiver passed.
+
+Threads: keyframes arrive on the LCM thread (`on_message`), which classifies them (duplicate,
+out of order, a restarted drone) and puts them in a bounded queue; one worker thread refines and
+fuses them (the native code releases the GIL), publishes the signed correction at once and only
+then logs to the viewer; a low-priority mesher thread meshes copies of the map every few seconds,
+so marching cubes never holds up a correction. `replay` runs the same steps on the caller's thread
+(`inline=True`): every keyframe, nothing dropped.
+
+Queue policy: at most `queue_keyframes` keyframes wait; when a new one arrives to a full queue
+the oldest waiting one is dropped and counted. A correction is only worth something while it is
+fresh and the drone ignores one older than a correction it already applied, so the newest
+keyframe is the one to keep.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kinfly import depth_keyframe_t, odometry_t, pose_correction_t, status_t
+
+from ._native import Fusion, MapSnapshot
+from .channels import Channel, channel_name
+from .conversions import matrix_to_pose, pose_to_matrix
+from .link import Received, Receiver
+from .signing import Signer
+from .viewer import VehicleView, Viewer
+
+Publish = Callable[[str, bytes], None]
+Forward = Callable[[int, np.ndarray, int], None]  # (utime, T_world_cam, reset_counter)
+StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4 T_world_cam)
+
+
+@dataclasses.dataclass(frozen=True)
+class StationParams:
+    voxel_size_m: float = 0.01          # [m] (0.002, 0.1]: the full-resolution map's voxel
+    threads: int = 2                    # [1, 64] engine threads for fusion
+    queue_keyframes: int = 4            # [1, 1000] keyframes waiting to be fused (then drop oldest)
+    # A correction that moves the drone's pose further than this is a jump: reset_counter + 1,
+    # which tells consumers such as an autopilot's EKF to re-initialise rather than fuse it.
+    reset_translation_m: float = 0.05   # [m] > 0
+    reset_rotation_rad: float = math.radians(3.0)  # [rad] > 0
+    # A keyframe id below the last one is a late (reordered) keyframe when within this many of
+    # it and of close capture time, otherwise the drone restarted (ids from zero, new frame).
+    reorder_window: int = 8             # [0, 1000] keyframes
+    reorder_window_s: float = 5.0       # [s] > 0
+    mesh_interval_s: float = 5.0        # [s] >= 0.5 between meshes sent to the viewer; 0: none
+    max_vehicles: int = 16              # [1, 1000] maps held when serving every vehicle
+
+    def validate(self) -> str:
+        checks = [
+            (0.002 < self.voxel_size_m <= 0.1, "voxel size must be in (0.002, 0.1] m"),
+            (1 <= self.threads <= 64, "threads must be in [1, 64]"),
+            (1 <= self.queue_keyframes <= 1000, "queue must be in [1, 1000] keyframes"),
+            (self.reset_translation_m > 0, "reset translation must be > 0 m"),
+            (self.reset_rotation_rad > 0, "reset rotation must be > 0"),
+            (0 <= self.reorder_window <= 1000, "reorder window must be in [0, 1000] keyframes"),
+            (self.reorder_window_s > 0, "reorder window must be > 0 s"),
+            (self.mesh_interval_s == 0 or self.mesh_interval_s >= 0.5,
+             "mesh interval must be 0 (off) or >= 0.5 s"),
+            (1 <= self.max_vehicles <= 1000, "max vehicles must be in [1, 1000]"),
+        ]
+        return next((why for ok, why in checks if not ok), "")
+
+
+@dataclasses.dataclass
+class VehicleCounters:
+    keyframes_received: int = 0    # passed the Receiver's checks
+    keyframes_fused: int = 0       # refined (or the first of a map) and fused
+    keyframes_lost: int = 0        # the refinement failed: not fused, no correction
+    keyframes_dropped: int = 0     # the queue was full (oldest dropped)
+    duplicates: int = 0            # the same keyframe id and capture time again
+    out_of_order: int = 0          # older than one already received
+    drone_restarts: int = 0        # keyframe ids started again from zero
+    camera_changes: int = 0        # a keyframe with other intrinsics: the map starts again
+    corrections_sent: int = 0
+    corrections_unsigned: int = 0  # not sent: no key for this vehicle
+    resets: int = 0                # corrections beyond the jump threshold
+
+
+@dataclasses.dataclass
+class Segment:
+    """One odometry frame's map and trajectories: a drone restart starts a new segment."""
+    fusion: Fusion | None = None
+    camera: tuple[Any, ...] | None = None
+    onboard: list[StampedPose] = dataclasses.field(default_factory=list)
+    corrected: list[StampedPose] = dataclasses.field(default_factory=list)
+    ground_truth: list[StampedPose] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass
+class _Job:
+    vehicle_id: int
+    session: int
+    message: depth_keyframe_t
+    depth: np.ndarray
+    arrival_ns: int  # time.monotonic_ns() when the message came off the socket
+
+
+class _RateMeter:
+    """Events per second over the last WINDOW_S."""
+
+    WINDOW_S = 2.0
+
+    def __init__(self) -> None:
+        self._times: collections.deque[float] = collections.deque()
+
+    def tick(self, now_s: float) -> None:
+        self._times.append(now_s)
+
+    def rate_hz(self, now_s: float) -> float:
+        while self._times and self._times[0] < now_s - self.WINDOW_S:
+            self._times.popleft()
+        return len(self._times) / self.WINDOW_S
+
+
+class VehicleState:
+    """Everything the station holds about one vehicle. Fields written by the worker are read by
+    the other threads only for status and progress, where a value one keyframe old is fine."""
+
+    def __init__(self, vehicle_id: int, view: VehicleView, signer: Signer | None) -> None:
+        self.vehicle_id = vehicle_id
+        self.view = view
+        self.signer = signer
+        self.counters = VehicleCounters()
+        self.segment = Segment()
+        self.finished_segments: list[Segment] = []
+        self.reset_counter = 0
+        self.latencies_ms: list[float] = []
+        self.refine_ms: list[float] = []
+        self.last_result: Any = None
+        self.mesh_time_s = 0.0
+        # Arrival side (LCM thread only).
+        self.session = 0
+        self.last_keyframe: tuple[int, int] | None = None  # (keyframe_id, utime)
+        self.worker_session = 0
+        self.drone_heard_s: float | None = None
+        self.drone_status: status_t | None = None
+        self.pending_truth: list[StampedPose] = []
+        self.rates = {name: _RateMeter() for name in ("received", "fused", "corrections")}
+        self.lock = threading.Lock()  # pending_truth and segment swaps
+
+
+def jump_exceeds(delta: np.ndarray, translation_m: float, rotation_rad: float) -> bool:
+    """Whether the rigid transform DELTA moves further than either bound."""
+    cos_angle = np.clip((np.trace(delta[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return bool(np.linalg.norm(delta[:3, 3]) > translation_m
+                or math.acos(cos_angle) > rotation_rad)
+
+
+def percentile(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None
+
+
+class Station:
+    """Maps keyframes into per-vehicle maps and publishes corrections. PUBLISH sends an encoded
+    message on a channel (None: nothing is sent, as in replay). SIGNERS maps a vehicle id to its
+    signer; a vehicle without one is mapped but gets no corrections. VEHICLE_ID None serves every
+    vehicle (each under its own viewer prefix)."""
+
+    def __init__(self, params: StationParams, viewer: Viewer, *, vehicle_id: int | None,
+                 signers: dict[int, Signer], publish: Publish | None, inline: bool = False,
+                 forward: Forward | None = None, log: Callable[[str], None] = print) -> None:
+        if why := params.validate():
+            raise ValueError(why)
+        self.params = params
+        self.viewer = viewer
+        self.vehicle_id = vehicle_id
+        self._signers = signers
+        self._publish = publish
+        self._inline = inline
+        self._forward = forward
+        self._log = log
+        self.vehicles: dict[int, VehicleState] = {}
+        self.rejected_too_many_vehicles = 0
+        self.receiver = Receiver(self._on_received)
+        self._arrival_ns = 0
+        self._queue: collections.deque[_Job] = collections.deque()
+        self._cv = threading.Condition()
+        self._stopping = False
+        self._idle = True
+        self._mesh_jobs: collections.deque[tuple[VehicleState, int, MapSnapshot]] = \
+            collections.deque(maxlen=1)
+        self._mesh_cv = threading.Condition()
+        self._threads: list[threading.Thread] = []
+        self._export_requests: list[Callable[[], None]] = []
+        if not inline:
+            self._threads = [threading.Thread(target=self._work, name="kground-fuse", daemon=True),
+                             threading.Thread(target=self._mesh_loop, name="kground-mesh",
+                                              daemon=True)]
+            for thread in self._threads:
+                thread.start()
+
+    # --- arrival (LCM thread) -----------------------------------------------------------------
+
+    def on_message(self, channel: str, data: bytes) -> None:
+        self._arrival_ns = time.monotonic_ns()
+        self.receiver.on_message(channel, data)
+
+    def _vehicle(self, vehicle_id: int) -> VehicleState | None:
+        state = self.vehicles.get(vehicle_id)
+        if state is not None:
+            return state
+        if self.vehicle_id is not None and vehicle_id != self.vehicle_id:
+            return None  # the subscription only lets this vehicle through; belt and braces
+        if len(self.vehicles) >= self.params.max_vehicles:
+            self.rejected_too_many_vehicles += 1
+            return None
+        prefix = "" if self.vehicle_id is not None else f"vehicle_{vehicle_id}/"
+        signer = self._signers.get(vehicle_id)
+        if signer is None and self._publish is not None:
+            self._log(f"vehicle {vehicle_id}: no key, so its keyframes are mapped but no "
+                      "corrections are sent")
+        state = VehicleState(vehicle_id, self.viewer.vehicle(vehicle_id, prefix), signer)
+        self.vehicles[vehicle_id] = state
+        return state
+
+    def _on_received(self, received: Received) -> None:
+        message = received.message
+        state = self._vehicle(message.vehicle_id)
+        if state is None:
+            return
+        now_s = time.monotonic()
+        if received.channel is Channel.KEYFRAME:
+            self._on_keyframe(state, message, received.depth, now_s)
+        elif received.channel is Channel.STATUS:
+            state.drone_heard_s = now_s
+            state.drone_status = message
+        elif received.channel is Channel.GROUND_TRUTH:
+            with state.lock:
+                state.pending_truth.append(
+                    (message.utime, pose_to_matrix(message.position_m, message.orientation_xyzw)))
+        elif received.channel in (Channel.ODOMETRY, Channel.IMU, Channel.DEPTH):
+            state.drone_heard_s = now_s
+            if received.channel is Channel.ODOMETRY and self._forward is not None:
+                # The drone's own pose, re-anchored by the corrections it applied: the freshest
+                # corrected pose there is, at the camera's rate.
+                self._forward(message.utime,
+                              pose_to_matrix(message.position_m, message.orientation_xyzw),
+                              message.reset_counter)
+
+    def _on_keyframe(self, state: VehicleState, message: depth_keyframe_t, depth: np.ndarray,
+                     now_s: float) -> None:
+        state.drone_heard_s = now_s
+        key = (message.keyframe_id, message.utime)
+        last = state.last_keyframe
+        if last is not None and key == last:
+            state.counters.duplicates += 1
+            return
+        if last is not None and message.keyframe_id <= last[0]:
+            late = (message.keyframe_id != 0
+                    and last[0] - message.keyframe_id <= self.params.reorder_window
+                    and abs(message.utime - last[1]) <= self.params.reorder_window_s * 1e6)
+            if late:
+                # Its correction would be older than one the drone already applied.
+                state.counters.out_of_order += 1
+                return
+            state.session += 1
+            state.counters.drone_restarts += 1
+            self._log(f"vehicle {state.vehicle_id}: keyframe {message.keyframe_id} after "
+                      f"{last[0]}: the drone restarted; starting a new map")
+        state.last_keyframe = key
+        state.counters.keyframes_received += 1
+        state.rates["received"].tick(now_s)
+        job = _Job(state.vehicle_id, state.session, message, depth, self._arrival_ns)
+        if self._inline:
+            self._process(job)
+            return
+        with self._cv:
+            if len(self._queue) >= self.params.queue_keyframes:
+                dropped = self._queue.popleft()
+                self.vehicles[dropped.vehicle_id].counters.keyframes_dropped += 1
+            self._queue.append(job)
+            self._cv.notify()
+
+    # --- fusion (worker thread) ---------------------------------------------------------------
+
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._export_requests and not self._stopping:
+                    self._idle = True
+                    self._cv.notify_all()
+                    self._cv.wait()
+                if self._export_requests:
+                    request = self._export_requests.pop(0)
+                    job = None
+                elif self._queue:
+                    job = self._queue.popleft()
+                    request = None
+                else:
+                    self._idle = True
+                    self._cv.notify_all()
+                    return
+                self._idle = False
+            if request is not None:
+                request()
+            else:
+                self._process(job)
+
+    def _process(self, job: _Job) -> None:
+        state = self.vehicles[job.vehicle_id]
+        m = job.message
+        camera = (m.width, m.height, m.fx, m.fy, m.cx, m.cy, m.depth_scale_m)
+        if job.session != state.worker_session:
+            state.worker_session = job.session
+            self._new_segment(state, m.utime)
+        elif state.segment.camera is not None and state.segment.camera != camera:
+            state.counters.camera_changes += 1
+            self._log(f"vehicle {state.vehicle_id}: the camera changed "
+                      f"({state.segment.camera[:6]} -> {camera[:6]}); starting a new map")
+            self._new_segment(state, m.utime)
+        segment = state.segment
+        if segment.fusion is None:
+            segment.camera = camera
+            segment.fusion = Fusion(m.width, m.height, m.fx, m.fy, m.cx, m.cy, m.depth_scale_m,
+                                    voxel_size_m=self.params.voxel_size_m,
+                                    threads=self.params.threads)
+        T_onboard = pose_to_matrix(m.position_m, m.orientation_xyzw)
+        guess = T_onboard
+        if m.tracking_status == odometry_t.TRACKING_NONE and segment.corrected:
+            guess = segment.corrected[-1][1]  # no onboard pose: start from the last refined one
+        result = segment.fusion.refine(job.depth, m.utime, guess)
+        state.refine_ms.append(result.total_ms)
+        state.last_result = result
+        segment.onboard.append((m.utime, T_onboard))
+        T_corrected = None
+        if result.status in ("first", "ok"):
+            T_corrected = result.T_world_cam
+            segment.corrected.append((m.utime, T_corrected))
+            state.counters.keyframes_fused += 1
+            state.rates["fused"].tick(time.monotonic())
+            self._send_correction(state, m, T_onboard, T_corrected, job.arrival_ns)
+        else:
+            state.counters.keyframes_lost += 1
+            self._log(f"vehicle {state.vehicle_id}: keyframe {m.keyframe_id} not refined "
+                      f"({result.lost_reason}); no correction")
+        self._show(state, m, job.depth, T_onboard, T_corrected, result)
+
+    def _send_correction(self, state: VehicleState, m: depth_keyframe_t, T_onboard: np.ndarray,
+                         T_corrected: np.ndarray, arrival_ns: int) -> None:
+        if jump_exceeds(T_corrected @ np.linalg.inv(T_onboard), self.params.reset_translation_m,
+                        self.params.reset_rotation_rad):
+            state.reset_counter += 1
+            state.counters.resets += 1
+        if self._publish is not None and state.signer is None:
+            state.counters.corrections_unsigned += 1
+            return
+        if self._publish is not None:
+            correction = pose_correction_t()
+            correction.utime = m.utime
+            correction.vehicle_id = m.vehicle_id
+            correction.keyframe_id = m.keyframe_id
+            correction.position_m, correction.orientation_xyzw = matrix_to_pose(T_corrected)
+            correction.reset_counter = state.reset_counter
+            envelope = state.signer.sign(correction.encode())
+            self._publish(channel_name(Channel.CORRECTION, m.vehicle_id), envelope.encode())
+            state.counters.corrections_sent += 1
+            state.rates["corrections"].tick(time.monotonic())
+        # Replay has nothing to send: its latency is the time to refine and fuse.
+        state.latencies_ms.append((time.monotonic_ns() - arrival_ns) / 1e6)
+
+    def _show(self, state: VehicleState, m: depth_keyframe_t, depth: np.ndarray,
+              T_onboard: np.ndarray, T_corrected: np.ndarray | None, result: Any) -> None:
+        with state.lock:
+            truth, state.pending_truth = state.pending_truth, []
+        for utime, T in truth:
+            state.segment.ground_truth.append((utime, T))
+            state.view.ground_truth(utime, T)
+        state.view.keyframe(m.utime, depth, m.depth_scale_m, (m.fx, m.fy, m.cx, m.cy), T_onboard,
+                            T_corrected)
+        fusion = state.segment.fusion
+        if T_corrected is not None:
+            state.view.render(m.utime, fusion.render())
+        health = {
+            "tracking/inlier_fraction": result.inlier_fraction,
+            "tracking/rmse_mm": result.rmse_m * 1e3,
+            "tracking/refine_ms": result.total_ms,
+            "map/blocks": float(fusion.num_blocks),
+        }
+        if T_corrected is not None and state.latencies_ms:
+            health["link/latency_ms"] = state.latencies_ms[-1]
+        for name, value in dataclasses.asdict(state.counters).items():
+            health[f"counters/{name}"] = float(value)
+        state.view.health(m.utime, health)
+        now_s = time.monotonic()
+        if (self.params.mesh_interval_s > 0 and not self._inline
+                and now_s - state.mesh_time_s >= self.params.mesh_interval_s):
+            state.mesh_time_s = now_s
+            with self._mesh_cv:
+                self._mesh_jobs.append((state, m.utime, fusion.snapshot()))
+                self._mesh_cv.notify()
+
+    def _new_segment(self, state: VehicleState, utime: int) -> None:
+        with state.lock:
+            if state.segment.fusion is not None:
+                state.finished_segments.append(state.segment)
+            state.segment = Segment()
+        state.view.restarted(utime)
+
+    def _mesh_loop(self) -> None:
+        # Niceness is per thread on Linux: fusion keeps the cores while a mesh is made.
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except OSError:
+            pass
+        while True:
+            with self._mesh_cv:
+                while not self._mesh_jobs and not self._stopping:
+                    self._mesh_cv.wait()
+                if not self._mesh_jobs:
+                    return
+                state, utime, snapshot = self._mesh_jobs.popleft()
+            vertices, triangles, normals = snapshot.mesh()
+            state.view.mesh(utime, vertices, triangles, normals)
+
+    # --- control (any thread) -----------------------------------------------------------------
+
+    def run_in_worker(self, request: Callable[[], None]) -> None:
+        """Runs REQUEST on the fusion thread between keyframes (an export on request), where the
+        maps are not being changed."""
+        if self._inline:
+            request()
+            return
+        with self._cv:
+            self._export_requests.append(request)
+            self._cv.notify()
+
+    def drain(self, timeout_s: float) -> bool:
+        """Waits until every queued keyframe is fused; False when TIMEOUT_S passed first."""
+        if self._inline:
+            return True
+        deadline = time.monotonic() + timeout_s
+        with self._cv:
+            while self._queue or self._export_requests or not self._idle:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cv.wait(left)
+        return True
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stopping = True
+            self._cv.notify_all()
+        with self._mesh_cv:
+            self._mesh_cv.notify_all()
+        for thread in self._threads:
+            thread.join()
+
+    def queue_length(self) -> int:
+        return len(self._queue)
+
+    # --- status -------------------------------------------------------------------------------
+
+    def ground_status(self, state: VehicleState, now_s: float, link_timeout_s: float) -> status_t:
+        s = status_t()
+        s.utime = time.time_ns() // 1000
+        s.vehicle_id = state.vehicle_id
+        s.source = status_t.SOURCE_GROUND
+        s.depth_rate_hz = state.rates["received"].rate_hz(now_s)
+        s.odometry_rate_hz = state.rates["fused"].rate_hz(now_s)
+        s.keyframe_rate_hz = state.rates["corrections"].rate_hz(now_s)
+        c = state.counters
+        s.frames_captured = c.keyframes_received
+        s.queue_drops = c.keyframes_dropped
+        s.keyframes_sent = c.corrections_sent
+        s.corrections_accepted = c.corrections_sent
+        s.frames_lost = c.keyframes_lost
+        s.frames_skipped = c.duplicates + c.out_of_order
+        result = state.last_result
+        s.tracking_state = (odometry_t.TRACKING_NONE if result is None else
+                            {"first": odometry_t.TRACKING_FIRST, "ok": odometry_t.TRACKING_OK,
+                             "given": odometry_t.TRACKING_GIVEN}.get(result.status,
+                                                                     odometry_t.TRACKING_LOST))
+        if state.drone_heard_s is None:
+            s.link_state = status_t.LINK_UNKNOWN
+        elif now_s - state.drone_heard_s <= link_timeout_s:
+            s.link_state = status_t.LINK_UP
+        else:
+            s.link_state = status_t.LINK_STALE
+        self.receiver.rejects.write_to(s)
+        return s

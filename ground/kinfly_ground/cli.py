@@ -192,7 +192,7 @@ def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, A
 
 def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str, Any]:
     files: dict[str, str] = {}
-    result: dict[str, Any] = {"files": files}
+    result: dict[str, Any] = {"files": files, "corrected_poses": len(segment.corrected)}
     if segment.fusion is not None:
         snapshot = segment.fusion.snapshot()
         result["mesh_triangles"] = write_atomically(out / "mesh.ply",
@@ -339,7 +339,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             lc.handle_timeout(20)
         except OSError:
-            if not stop.is_set():  # a signal interrupts the wait; anything else is real
+            # Our signals interrupt the wait (EINTR); anything else is real.
+            if not (stop.is_set() or export_now.is_set()):
                 raise
         now = time.monotonic()
         if args.duration is not None and now - started >= args.duration:
@@ -447,10 +448,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         return run(args) if args.command == "run" else replay(args)
-    finally:
-        # The station and its receiver refer to each other; freeing the maps here, not at
-        # interpreter exit, is what lets nanobind check that nothing native leaked.
-        gc.collect()
     except (UsageError, KeyFileError, OutputError, ViewerError) as error:
         log(f"error: {error}")
         return 2
@@ -459,6 +456,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             log(f"error: {error}")
             return 2
         raise
+    finally:
+        # The station and its receiver refer to each other: free the maps now, not whenever
+        # the interpreter gets to it.
+        gc.collect()
 
 
 if __name__ == "__main__":

@@ -145,7 +145,8 @@ class VehicleState:
         self.worker_session = 0
         self.drone_heard_s: float | None = None
         self.drone_status: status_t | None = None
-        self.pending_truth: list[StampedPose] = []
+        # Ground truth heard but not yet filed, tagged with the session it arrived in.
+        self.pending_truth: list[tuple[int, int, np.ndarray]] = []
         self.rates = {name: _RateMeter() for name in ("received", "fused", "corrections")}
         self.lock = threading.Lock()  # pending_truth and segment swaps
 
@@ -238,7 +239,8 @@ class Station:
         elif received.channel is Channel.GROUND_TRUTH:
             with state.lock:
                 state.pending_truth.append(
-                    (message.utime, pose_to_matrix(message.position_m, message.orientation_xyzw)))
+                    (state.session, message.utime,
+                     pose_to_matrix(message.position_m, message.orientation_xyzw)))
         elif received.channel in (Channel.ODOMETRY, Channel.IMU, Channel.DEPTH):
             state.drone_heard_s = now_s
             if received.channel is Channel.ODOMETRY and self._forward is not None:
@@ -371,11 +373,7 @@ class Station:
 
     def _show(self, state: VehicleState, m: depth_keyframe_t, depth: np.ndarray,
               T_onboard: np.ndarray, T_corrected: np.ndarray | None, result: Any) -> None:
-        with state.lock:
-            truth, state.pending_truth = state.pending_truth, []
-        for utime, T in truth:
-            state.segment.ground_truth.append((utime, T))
-            state.view.ground_truth(utime, T)
+        self._file_truth(state)
         state.view.keyframe(m.utime, depth, m.depth_scale_m, (m.fx, m.fy, m.cx, m.cy), T_onboard,
                             T_corrected)
         fusion = state.segment.fusion
@@ -399,6 +397,20 @@ class Station:
             with self._mesh_cv:
                 self._mesh_jobs.append((state, m.utime, fusion.snapshot()))
                 self._mesh_cv.notify()
+
+    def _file_truth(self, state: VehicleState) -> None:
+        """Ground truth goes with the map of the session it arrived in: a restarted drone's
+        poses are in another frame, and a replayed log repeats the capture times."""
+        with state.lock:
+            pending, state.pending_truth = state.pending_truth, []
+            later = [entry for entry in pending if entry[0] > state.worker_session]
+            state.pending_truth = later
+        for session, utime, T in pending:
+            if session == state.worker_session:
+                state.segment.ground_truth.append((utime, T))
+                state.view.ground_truth(utime, T)
+            elif session < state.worker_session and state.finished_segments:
+                state.finished_segments[-1].ground_truth.append((utime, T))
 
     def _new_segment(self, state: VehicleState, utime: int) -> None:
         with state.lock:

@@ -283,6 +283,9 @@ class PyFusion {
 
 NB_MODULE(_native, m) {
   m.doc() = "kinfly's engine (shared/) for the ground station";
+  // Python does not promise to destroy every object before it exits (an uncaught exception's
+  // traceback keeps the station alive), so nanobind's exit-time leak report would be noise.
+  nb::set_leak_warnings(false);
   const DepthCodec::Params defaults;
   nb::class_<PyDepthCodec>(m, "DepthCodec",
                            "Lossless depth codec (RVL family, docs/wire.md); keeps its buffers.")

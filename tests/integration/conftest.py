@@ -116,7 +116,7 @@ def replica_dir(shared_data: Path) -> Path:
 
 @pytest.fixture
 def netns() -> Iterator[list[str]]:
-    """A private network namespace (tests/tools/netns.py) for LCM between processes; yields the
+    """A private network namespace (scripts/netns.py) for LCM between processes; yields the
     command prefix that runs a program in it. Unavailable: a skip here, a failure under CI."""
     try:
         with network_namespace("test") as prefix:

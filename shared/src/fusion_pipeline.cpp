@@ -54,29 +54,37 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
   if (!preprocess(raw_depth, utime, T_world_cam_, &result)) return result;
   if (!has_model_) {
     result.status = TrackingStatus::kFirstFrame;
-    return fuse(result);
+    return fuse(result, /*predict_from_pose=*/true);
   }
+  if (!model_at_pose_) predict(T_world_cam_, &result);
   // The model was raycast from the last pose, so the guess relative to it is the identity.
-  return trackAndFuse(result, T_world_cam_);
+  return trackAndFuse(result, T_world_cam_, /*predict_from_pose=*/true);
 }
 
 FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_depth,
                                                   int64_t utime, const Pose& T_world_cam_guess) {
   FrameResult result;
   if (!preprocess(raw_depth, utime, T_world_cam_guess, &result)) return result;
+  // The next frame brings its own guess to raycast from: no prediction after fusing.
   if (!has_model_) {
     result.status = TrackingStatus::kFirstFrame;
-    return fuse(result);
+    return fuse(result, /*predict_from_pose=*/false);
   }
-  const auto t0 = std::chrono::steady_clock::now();
-  raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_guess, &model_,
-                     frame_.depth_m[0].view());
-  model_.buildPyramid();
-  result.ms.raycast = msSince(t0);
-  return trackAndFuse(result, T_world_cam_guess);
+  model_at_pose_ = false;
+  predict(T_world_cam_guess, &result);
+  return trackAndFuse(result, T_world_cam_guess, /*predict_from_pose=*/false);
 }
 
-FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world_ref) {
+void FusionPipeline::predict(const Pose& T_world_cam, FrameResult* result) {
+  const auto t0 = std::chrono::steady_clock::now();
+  raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam, &model_,
+                     frame_.depth_m[0].view());
+  model_.buildPyramid();
+  result->ms.raycast += msSince(t0);
+}
+
+FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world_ref,
+                                         bool predict_from_pose) {
   const auto t0 = std::chrono::steady_clock::now();
   const IcpResult icp = tracker_.track(frame_, model_, Pose::Identity());
   result.ms.track = msSince(t0);
@@ -92,7 +100,7 @@ FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world
     return result;
   }
   result.T_world_cam = orthonormalized(T_world_ref * icp.T_ref_cur);
-  return fuse(result);
+  return fuse(result, predict_from_pose);
 }
 
 FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_depth, int64_t utime,
@@ -102,23 +110,19 @@ FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_dep
   // A given pose is fused whatever the depth holds: the caller vouches for it.
   result.status = TrackingStatus::kGivenPose;
   result.lost_reason.clear();
-  return fuse(result);
+  return fuse(result, /*predict_from_pose=*/true);
 }
 
-FrameResult FusionPipeline::fuse(FrameResult result) {
+FrameResult FusionPipeline::fuse(FrameResult result, bool predict_from_pose) {
   T_world_cam_ = result.T_world_cam;
   volume_->followCamera(T_world_cam_);
 
-  auto t0 = std::chrono::steady_clock::now();
+  const auto t0 = std::chrono::steady_clock::now();
   integrator_.integrate(frame_.raw_depth_m.view(), frame_.camera[0], T_world_cam_, volume_);
   result.ms.integrate = msSince(t0);
-
-  t0 = std::chrono::steady_clock::now();
-  raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_, &model_,
-                     frame_.depth_m[0].view());
-  model_.buildPyramid();
   has_model_ = true;
-  result.ms.raycast += msSince(t0);
+  model_at_pose_ = predict_from_pose;
+  if (predict_from_pose) predict(T_world_cam_, &result);
   result.ms.total = result.ms.preprocess + result.ms.track + result.ms.integrate + result.ms.raycast;
   return result;
 }

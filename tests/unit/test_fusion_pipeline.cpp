@@ -169,6 +169,13 @@ TEST_F(PipelineFixture, RefinesKeyframesFromADriftedGuess) {
     EXPECT_LT(test::radToDeg(test::rotationErrorRad(r.T_world_cam, groundTruth(k))), kRefineTolDeg)
         << "keyframe " << i;
   }
+  // Plain tracking carries on from the last refined pose, although the model maps it left are
+  // the prediction from that keyframe's guess.
+  const int next = (kKeyframes - 1) * kKeyframeStride + 1;
+  render(next, 5000 + next);
+  const FrameResult r = pipeline.processFrame(raw, utimeOf(next));
+  ASSERT_EQ(r.status, TrackingStatus::kOk) << r.lost_reason;
+  EXPECT_LT(test::translationErrorM(r.T_world_cam, groundTruth(next)), kRefineTolM);
 }
 
 }  // namespace

@@ -69,17 +69,22 @@ class FusionPipeline {
   // Lambertian render of the model from the latest pose: a full raycast, every pixel, on demand
   // (the per-frame model maps only cover the pixels measured).
   void renderShaded(ImageView<uint8_t> out);
-  // The same from the per-frame model maps: only where the latest fused frame measured depth,
-  // but without another raycast.
+  // The same from the per-frame model maps, only where the latest frame measured depth but
+  // without another raycast. After processFrameFromGuess these maps are the prediction from
+  // that frame's guess, which the frame was registered against.
   void shadeModel(ImageView<uint8_t> out) const;
 
  private:
   // Fills the result's first fields; false when the frame has too little depth to use.
   bool preprocess(ImageView<const uint16_t> raw_depth, int64_t utime, const Pose& T_world_cam,
                   FrameResult* result);
+  // Raycasts model_ from a pose, masked by the current frame's depth.
+  void predict(const Pose& T_world_cam, FrameResult* result);
   // ICP against model_, which was raycast from T_world_ref; fuses on success.
-  FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref);
-  FrameResult fuse(FrameResult result);
+  FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref, bool predict_from_pose);
+  // Integrates at result.T_world_cam; with predict_from_pose, raycasts model_ from there for
+  // the next frame to track against.
+  FrameResult fuse(FrameResult result, bool predict_from_pose);
 
   Params params_;
   TsdfVolume* volume_;
@@ -91,6 +96,7 @@ class FusionPipeline {
   ModelMaps model_;
   std::unique_ptr<ModelMaps> render_maps_;  // allocated by the first renderShaded()
   bool has_model_ = false;
+  bool model_at_pose_ = false;  // model_ was raycast from T_world_cam_
   // Latest fused pose; the model maps are always raycast from it, since lost frames change
   // neither.
   Pose T_world_cam_ = Pose::Identity();

@@ -1,0 +1,526 @@
+"""The ground station's core (kinfly_ground.station.Station) without a network: keyframes made from
+the committed TUM teddy sample, with onboard poses from its ground truth, are fed to
+Station.on_message as the LCM thread would, and what it publishes is decoded and checked: one
+signed correction per keyframe near the truth, reset counting, duplicates, reordering, restarts,
+camera changes, malformed data, a vehicle without a key, the bounded queue, the ground's status and
+several vehicles. Then kinfly_ground.outputs: atomic writes, TUM round trips and the ATE."""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from kinfly import depth_keyframe_t, odometry_t, pose_correction_t, pose_t, signed_t, status_t
+from kinfly_ground._native import DepthCodec
+from kinfly_ground.channels import Channel, channel_name
+from kinfly_ground.conversions import decode, matrix_to_pose, pose_to_matrix
+from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
+                                   write_atomically, write_tum)
+from kinfly_ground.signing import Signer, compute_mac, key_id_of
+from kinfly_ground.station import Station, StationParams
+from kinfly_ground.viewer import Viewer
+
+VEHICLE = 7
+OTHER_VEHICLE = 8
+KEYS = {VEHICLE: bytes(range(32)), OTHER_VEHICLE: bytes(range(100, 132))}  # fixed test keys
+FIRST_SEQUENCE = 1000
+SEED = 20260307
+FX, FY, CX, CY = 535.4, 539.2, 320.1, 247.6  # freiburg3 (tests/data/tum_teddy_sample/README.md)
+DEPTH_SCALE_M = 1 / 5000
+# Ground truth starts after the 4th depth frame (README); keyframes are every 3rd frame after it.
+FIRST_FRAME = 4
+FRAME_STEP = 3
+GT_MAX_DIFF_US = 20_000  # TUM's association tolerance (outputs.ATE_MAX_TIME_DIFF_S)
+LINK_TIMEOUT_S = 1.0     # as kinfly-ground's
+
+# The station refines from the (true) onboard pose and the map drifts slowly against the
+# motion-capture truth: measured up to 1.2 cm and 1.1 degrees after 10 keyframes. 3 cm is the
+# design's ATE budget on this sequence.
+CORRECTION_TOLERANCE_M = 0.03
+CORRECTION_TOLERANCE_DEG = 2.0
+# A map's first keyframe is fused at its onboard pose: only quaternion round trips differ.
+ROUNDOFF = 1e-9
+# Reset test: an onboard pose 4 cm off (inside ICP's 10 cm correspondence gate, so the refinement
+# pulls it back) against a 2 cm reset threshold; true onboard poses correct by < 0.7 cm there.
+DISPLACEMENT_M = 0.04
+RESET_TRANSLATION_M = 0.02
+# tum_lines writes 6 decimals of metres and 7 of quaternion components.
+TUM_TOLERANCE = 1e-6
+# ate() of a rigidly moved copy: Umeyama alignment removes it up to double round-off.
+ALIGNED_ATE_TOLERANCE_M = 1e-6
+
+CODEC = DepthCodec(encoding=depth_keyframe_t.ENCODING_PALETTE_RVL_ZSTD)
+QUIET = StationParams(mesh_interval_s=0)  # no mesher: inline runs never mesh anyway
+
+
+# --- keyframes from the sample --------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def sample(sample_dir: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(utime, uint16 depth, T_world_cam ground truth) of each sample frame from FIRST_FRAME."""
+    truth = read_tum(sample_dir / "groundtruth.txt")
+    rows = [line.split() for line in (sample_dir / "depth.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+    frames = []
+    for t, name in rows[FIRST_FRAME:]:
+        utime = round(float(t) * 1e6)
+        t_truth, T = min(truth, key=lambda pose: abs(pose[0] - utime))
+        assert abs(t_truth - utime) <= GT_MAX_DIFF_US
+        depth = np.ascontiguousarray(np.asarray(Image.open(sample_dir / name), dtype=np.uint16))
+        frames.append((utime, depth, T))
+    return frames
+
+
+def keyframe(utime: int, depth: np.ndarray, keyframe_id: int, T_onboard: np.ndarray, *,
+             vehicle: int = VEHICLE, fx: float = FX,
+             tracking: int = odometry_t.TRACKING_OK) -> depth_keyframe_t:
+    m = depth_keyframe_t()
+    m.utime, m.vehicle_id, m.frame_id, m.keyframe_id = utime, vehicle, 3 * keyframe_id, keyframe_id
+    m.height, m.width = depth.shape
+    m.fx, m.fy, m.cx, m.cy = fx, FY, CX, CY
+    m.depth_scale_m = DEPTH_SCALE_M
+    m.position_m, m.orientation_xyzw = matrix_to_pose(T_onboard)
+    m.tracking_status = tracking
+    m.encoding = depth_keyframe_t.ENCODING_PALETTE_RVL_ZSTD
+    m.payload = CODEC.encode(depth)
+    m.payload_size = len(m.payload)
+    return m
+
+
+def flight(sample, keyframes: int, *, start: int = 0, step: int = FRAME_STEP, first_id: int = 0,
+           **kwargs) -> list[tuple[depth_keyframe_t, np.ndarray]]:
+    """KEYFRAMES keyframes every STEP sample frames from START, with ids from FIRST_ID, and
+    their true poses: the onboard pose, ground truth re-expressed in the first one's frame."""
+    frames = sample[start:start + step * keyframes:step]
+    assert len(frames) == keyframes
+    T_first_inv = np.linalg.inv(frames[0][2])
+    out = []
+    for k, (utime, depth, T) in enumerate(frames):
+        T_truth = T_first_inv @ T
+        out.append((keyframe(utime, depth, first_id + k, T_truth, **kwargs), T_truth))
+    return out
+
+
+def angle_deg(R: np.ndarray) -> float:
+    return math.degrees(math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+class Rig:
+    """A Station with a publish function that keeps what is sent."""
+
+    def __init__(self, params: StationParams = QUIET, *, vehicle_id: int | None = VEHICLE,
+                 signed: tuple[int, ...] = (VEHICLE,), inline: bool = True) -> None:
+        self.published: list[tuple[str, bytes]] = []
+        self.logs: list[str] = []
+        signers = {v: Signer(KEYS[v], v, first_sequence=FIRST_SEQUENCE) for v in signed}
+        self.station = Station(params, Viewer(), vehicle_id=vehicle_id, signers=signers,
+                               publish=lambda channel, data: self.published.append((channel, data)),
+                               inline=inline, log=self.logs.append)
+
+    def send(self, message: depth_keyframe_t) -> None:
+        self.send_bytes(message.encode(), message.vehicle_id)
+
+    def send_bytes(self, data: bytes, vehicle: int = VEHICLE) -> None:
+        self.station.on_message(channel_name(Channel.KEYFRAME, vehicle), data)
+
+    def corrections(self, vehicle: int = VEHICLE) -> list[pose_correction_t]:
+        """The corrections published for VEHICLE, each one's envelope and MAC checked."""
+        out = []
+        channel = channel_name(Channel.CORRECTION, vehicle)
+        sequences = []
+        for published_on, data in self.published:
+            if published_on != channel:
+                continue
+            envelope = decode(signed_t, data)
+            assert envelope.vehicle_id == vehicle
+            assert envelope.key_id == key_id_of(KEYS[vehicle])
+            assert envelope.mac == compute_mac(KEYS[vehicle], vehicle, envelope.sequence,
+                                               envelope.utime, envelope.payload)
+            sequences.append(envelope.sequence)
+            correction = decode(pose_correction_t, envelope.payload)
+            assert correction.vehicle_id == vehicle
+            out.append(correction)
+        assert sequences == list(range(FIRST_SEQUENCE, FIRST_SEQUENCE + len(sequences)))
+        return out
+
+    def state(self, vehicle: int = VEHICLE):
+        return self.station.vehicles[vehicle]
+
+
+def corrected_pose(correction: pose_correction_t) -> np.ndarray:
+    return pose_to_matrix(correction.position_m, correction.orientation_xyzw)
+
+
+def assert_near(T: np.ndarray, T_truth: np.ndarray) -> None:
+    assert np.linalg.norm(T[:3, 3] - T_truth[:3, 3]) <= CORRECTION_TOLERANCE_M
+    assert angle_deg(T_truth[:3, :3].T @ T[:3, :3]) <= CORRECTION_TOLERANCE_DEG
+
+
+# --- corrections ----------------------------------------------------------------------------
+
+def test_every_keyframe_gets_one_signed_correction_near_the_truth(sample) -> None:
+    keyframes = flight(sample, 10)
+    rig = Rig()
+    for message, _ in keyframes:
+        rig.send(message)
+
+    assert {channel for channel, _ in rig.published} == {f"KINFLY_{VEHICLE}_CORRECTION"}
+    corrections = rig.corrections()
+    assert len(corrections) == len(keyframes)
+    for correction, (message, T_truth) in zip(corrections, keyframes):
+        assert (correction.keyframe_id, correction.utime) == (message.keyframe_id, message.utime)
+        assert correction.reset_counter == 0
+        assert_near(corrected_pose(correction), T_truth)
+    # The map frame is the first keyframe's onboard frame: it is fused where the drone said.
+    assert np.allclose(corrected_pose(corrections[0]), keyframes[0][1], rtol=0, atol=ROUNDOFF)
+
+    state = rig.state()
+    c = state.counters
+    assert (c.keyframes_received, c.keyframes_fused, c.corrections_sent) == (10, 10, 10)
+    assert (c.keyframes_lost, c.keyframes_dropped, c.duplicates, c.out_of_order, c.resets,
+            c.corrections_unsigned) == (0, 0, 0, 0, 0, 0)
+    assert len(state.latencies_ms) == len(corrections)
+    assert all(latency > 0 for latency in state.latencies_ms)
+    assert [u for u, _ in state.segment.corrected] == [m.utime for m, _ in keyframes]
+
+
+def test_a_correction_beyond_the_threshold_counts_a_reset_and_it_stays(sample) -> None:
+    keyframes = flight(sample, 6)
+    displaced = 2
+    message, T_truth = keyframes[displaced]
+    T_off = T_truth.copy()
+    T_off[0, 3] += DISPLACEMENT_M
+    keyframes[displaced] = (keyframe(message.utime, sample[displaced * FRAME_STEP][1],
+                                     message.keyframe_id, T_off), T_truth)
+    rig = Rig(StationParams(mesh_interval_s=0, reset_translation_m=RESET_TRANSLATION_M))
+    for message, _ in keyframes:
+        rig.send(message)
+
+    corrections = rig.corrections()
+    assert [c.reset_counter for c in corrections] == [0, 0, 1, 1, 1, 1]
+    assert rig.state().counters.resets == 1
+    # The refinement moved the displaced keyframe back towards the truth.
+    assert_near(corrected_pose(corrections[displaced]), T_truth)
+
+
+# --- what arrives out of the ordinary -------------------------------------------------------
+
+def test_duplicates_and_late_keyframes_are_counted_not_fused(sample) -> None:
+    keyframes = [m for m, _ in flight(sample, 4)]
+    rig = Rig()
+    for message in keyframes[:3]:
+        rig.send(message)
+    rig.send(keyframes[2])  # the same message again
+    rig.send(keyframes[1])  # one id lower, a capture time 0.1 s away: late, not a restart
+    rig.send(keyframes[3])
+
+    c = rig.state().counters
+    assert (c.duplicates, c.out_of_order, c.drone_restarts) == (1, 1, 0)
+    assert (c.keyframes_received, c.keyframes_fused, c.corrections_sent) == (4, 4, 4)
+    assert [x.keyframe_id for x in rig.corrections()] == [0, 1, 2, 3]
+
+
+def test_a_drone_restart_finishes_the_segment(sample) -> None:
+    before = flight(sample, 4)
+    # The drone starts again a little later: ids from 0, poses in its new first keyframe's frame.
+    after = flight(sample, 3, start=5 * FRAME_STEP)
+    rig = Rig()
+    for message, _ in before + after:
+        rig.send(message)
+
+    state = rig.state()
+    assert state.counters.drone_restarts == 1
+    assert any("restarted" in line for line in rig.logs)
+    assert len(state.finished_segments) == 1
+    old = state.finished_segments[0]
+    assert [u for u, _ in old.onboard] == [u for u, _ in old.corrected] == \
+        [m.utime for m, _ in before]
+    new = state.segment
+    assert new.fusion is not old.fusion
+    assert [u for u, _ in new.corrected] == [m.utime for m, _ in after]
+    assert np.allclose(new.corrected[0][1], np.eye(4), rtol=0, atol=ROUNDOFF)  # a new map frame
+    corrections = rig.corrections()
+    assert [c.keyframe_id for c in corrections] == [0, 1, 2, 3, 0, 1, 2]
+    for correction, (_, T_truth) in zip(corrections[4:], after):
+        assert_near(corrected_pose(correction), T_truth)
+
+
+def test_a_camera_change_starts_a_new_segment(sample) -> None:
+    keyframes = flight(sample, 5)
+    changed_fx = FX * 1.02
+    for k in (3, 4):
+        message, T_truth = keyframes[k]
+        keyframes[k] = (keyframe(message.utime, sample[k * FRAME_STEP][1], k, T_truth,
+                                 fx=changed_fx), T_truth)
+    rig = Rig()
+    for message, _ in keyframes:
+        rig.send(message)
+
+    state = rig.state()
+    assert state.counters.camera_changes == 1
+    assert state.counters.drone_restarts == 0
+    assert len(state.finished_segments) == 1
+    assert len(state.finished_segments[0].corrected) == 3
+    assert state.segment.camera[2] == pytest.approx(changed_fx)
+    assert [u for u, _ in state.segment.corrected] == [keyframes[3][0].utime,
+                                                       keyframes[4][0].utime]
+    # The new map starts at the first keyframe's onboard pose.
+    assert np.allclose(state.segment.corrected[0][1], keyframes[3][1], rtol=0, atol=ROUNDOFF)
+    assert len(rig.corrections()) == 5
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "bug: Station._process converts the onboard pose before looking at tracking_status, so a "
+    "keyframe without an onboard pose (TRACKING_NONE, fields meaningless per the proto, here "
+    "the zero quaternion) raises from scipy: out of on_message inline, and it kills the worker "
+    "thread when threaded"))
+def test_a_keyframe_without_an_onboard_pose_is_refined_from_the_last_corrected(sample) -> None:
+    keyframes = flight(sample, 3)
+    message, T_truth = keyframes[2]
+    message.tracking_status = odometry_t.TRACKING_NONE
+    message.position_m, message.orientation_xyzw = [0.0] * 3, [0.0] * 4
+    rig = Rig()
+    for m, _ in keyframes:
+        rig.send(m)
+    corrections = rig.corrections()
+    assert len(corrections) == 3
+    assert_near(corrected_pose(corrections[2]), T_truth)
+
+
+def test_malformed_keyframes_are_counted_and_dropped(sample) -> None:
+    (good, _), = flight(sample, 1)
+    data = good.encode()
+    undecodable = keyframe(good.utime, sample[0][1], 0, np.eye(4))
+    undecodable.payload = bytes(len(undecodable.payload))
+    bad = {
+        "empty": b"",
+        "truncated": data[:-100],
+        "garbage": np.random.default_rng(SEED).bytes(len(data)),
+        "wrong fingerprint": status_t().encode()[:8] + data[8:],
+        "undecodable payload": undecodable.encode(),
+    }
+    rig = Rig()
+    for data_bad in bad.values():
+        rig.send_bytes(data_bad)  # raises nothing
+    assert rig.station.receiver.rejects.malformed == len(bad)
+    assert rig.published == []
+    assert rig.station.vehicles == {}
+    rig.send_bytes(data)  # the station still works
+    assert len(rig.corrections()) == 1
+
+
+def test_a_vehicle_without_a_key_is_mapped_but_gets_no_corrections(sample) -> None:
+    rig = Rig(signed=())
+    for message, _ in flight(sample, 3):
+        rig.send(message)
+    c = rig.state().counters
+    assert (c.keyframes_fused, c.corrections_unsigned, c.corrections_sent) == (3, 3, 0)
+    assert rig.published == []
+    assert any("no key" in line for line in rig.logs)
+
+
+# --- the bounded queue (worker thread) ------------------------------------------------------
+
+def test_a_full_queue_drops_the_oldest(sample) -> None:
+    """Ten keyframes pushed back to back while the worker is busy: an export (run_in_worker)
+    holds it, as a slow refine would, so the pushes surely outrun the fusion on any machine.
+    Then, once those are fused, eight more with the worker free, pushed as fast as they decode:
+    how many of those are dropped depends on the machine, the accounting does not."""
+    rig = Rig(StationParams(mesh_interval_s=0, queue_keyframes=1), inline=False)
+    station = rig.station
+    burst = [m for m, _ in flight(sample, 10)]
+    # The same flight goes on, a keyframe each frame after the burst's last (frame 27).
+    T_first_inv = np.linalg.inv(sample[0][2])
+    later = [keyframe(sample[i][0], sample[i][1], 10 + k, T_first_inv @ sample[i][2])
+             for k, i in enumerate(range(28, 36))]
+    keyframes = burst + later
+    release = threading.Event()
+    try:
+        station.run_in_worker(lambda: release.wait(30.0))
+        for message in burst:
+            rig.send(message)
+        release.set()
+        assert station.drain(30.0)
+        burst_dropped = rig.state().counters.keyframes_dropped
+        for message in later:
+            rig.send(message)
+        assert station.drain(30.0)
+    finally:
+        release.set()
+        station.stop()
+
+    c = rig.state().counters
+    assert c.keyframes_received == len(keyframes)
+    assert c.keyframes_received == c.keyframes_fused + c.keyframes_lost + c.keyframes_dropped
+    # Of the ten pushed while the worker was held, at most two survive: one the worker may have
+    # taken before the export, one in the queue.
+    assert burst_dropped >= len(burst) - 2
+    fused_ids = [x.keyframe_id for x in rig.corrections()]
+    assert burst[-1].keyframe_id in fused_ids  # drop oldest keeps the newest of the burst
+    assert fused_ids[-1] == keyframes[-1].keyframe_id
+    assert fused_ids == sorted(fused_ids)
+    assert station.queue_length() == 0
+
+
+# --- the ground's status --------------------------------------------------------------------
+
+def test_ground_status_mirrors_the_counters_and_the_link(sample) -> None:
+    keyframes = [m for m, _ in flight(sample, 3)]
+    rig = Rig()
+    station = rig.station
+    truth = pose_t()
+    truth.utime, truth.vehicle_id = keyframes[0].utime, VEHICLE
+    truth.position_m, truth.orientation_xyzw = [0.0] * 3, [0.0, 0.0, 0.0, 1.0]
+    station.on_message(channel_name(Channel.GROUND_TRUTH, VEHICLE), truth.encode())
+    state = rig.state()  # known from its ground truth, not yet heard from
+
+    s = station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
+    assert (s.source, s.vehicle_id, s.link_state) == (status_t.SOURCE_GROUND, VEHICLE,
+                                                      status_t.LINK_UNKNOWN)
+    assert s.tracking_state == odometry_t.TRACKING_NONE
+    assert s.frames_captured == s.keyframes_sent == 0
+
+    rig.send(keyframes[0])
+    s = station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
+    assert s.link_state == status_t.LINK_UP
+    rig.send(keyframes[1])
+    rig.send(keyframes[1])                                  # duplicate
+    rig.send_bytes(keyframes[2].encode()[:-1])              # malformed
+    empty = keyframe(keyframes[2].utime, np.zeros_like(sample[0][1]), 2, np.eye(4))
+    rig.send(empty)                                         # no depth: lost
+
+    now = time.monotonic()
+    s = decode(status_t, station.ground_status(state, now, LINK_TIMEOUT_S).encode())
+    c = state.counters
+    assert (c.keyframes_received, c.keyframes_fused, c.keyframes_lost) == (3, 2, 1)
+    assert s.source == status_t.SOURCE_GROUND and s.link_state == status_t.LINK_UP
+    assert s.frames_captured == c.keyframes_received
+    assert s.keyframes_sent == s.corrections_accepted == c.corrections_sent == 2
+    assert s.frames_lost == c.keyframes_lost
+    assert s.frames_skipped == c.duplicates + c.out_of_order == 1
+    assert s.queue_drops == c.keyframes_dropped == 0
+    assert s.rejected_malformed == station.receiver.rejects.malformed == 1
+    assert s.tracking_state == odometry_t.TRACKING_LOST
+    stale = station.ground_status(state, now + LINK_TIMEOUT_S + 1.0, LINK_TIMEOUT_S)
+    assert stale.link_state == status_t.LINK_STALE
+
+
+# --- several vehicles -----------------------------------------------------------------------
+
+def test_serving_every_vehicle_keeps_one_map_each(sample) -> None:
+    rig = Rig(vehicle_id=None, signed=(VEHICLE, OTHER_VEHICLE))
+    first = flight(sample, 3)
+    second = flight(sample, 3, start=1, vehicle=OTHER_VEHICLE)
+    for (a, _), (b, _) in zip(first, second):
+        rig.send(a)
+        rig.send(b)
+
+    assert set(rig.station.vehicles) == {VEHICLE, OTHER_VEHICLE}
+    one, other = rig.state(VEHICLE), rig.state(OTHER_VEHICLE)
+    assert one.segment.fusion is not other.segment.fusion
+    for state, keyframes in ((one, first), (other, second)):
+        assert state.counters.keyframes_fused == 3
+        assert [u for u, _ in state.segment.corrected] == [m.utime for m, _ in keyframes]
+    for vehicle, keyframes in ((VEHICLE, first), (OTHER_VEHICLE, second)):
+        corrections = rig.corrections(vehicle)
+        assert [c.utime for c in corrections] == [m.utime for m, _ in keyframes]
+        for correction, (_, T_truth) in zip(corrections, keyframes):
+            assert_near(corrected_pose(correction), T_truth)
+
+
+def test_vehicles_beyond_the_limit_are_counted(sample) -> None:
+    rig = Rig(StationParams(mesh_interval_s=0, max_vehicles=1), vehicle_id=None,
+              signed=(VEHICLE, OTHER_VEHICLE))
+    (a, _), = flight(sample, 1)
+    (b, _), = flight(sample, 1, vehicle=OTHER_VEHICLE)
+    rig.send(a)
+    rig.send(b)
+    assert set(rig.station.vehicles) == {VEHICLE}
+    assert rig.station.rejected_too_many_vehicles == 1
+    assert len(rig.corrections(VEHICLE)) == 1
+    assert rig.corrections(OTHER_VEHICLE) == []
+
+
+# --- outputs --------------------------------------------------------------------------------
+
+def test_write_atomically_leaves_nothing_when_the_writer_fails(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    path = out / "trajectory.txt"
+
+    def fails_midway(tmp: Path) -> None:
+        tmp.write_text("1.0 0 0 0 0 0 0 1\n")
+        raise RuntimeError("interrupted")
+
+    with pytest.raises(RuntimeError, match="interrupted"):
+        write_atomically(path, fails_midway)
+    assert list(out.iterdir()) == []
+
+    def disk_full(tmp: Path) -> None:
+        tmp.write_text("half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OutputError, match=str(path)):
+        write_atomically(path, disk_full)
+    assert list(out.iterdir()) == []
+
+    assert write_atomically(path, lambda tmp: tmp.write_text("done")) == 4
+    assert [p.name for p in out.iterdir()] == [path.name]
+
+
+def test_check_writable_names_an_unwritable_location(tmp_path: Path) -> None:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    target = blocker / "outputs"  # under a regular file: cannot exist, even for root
+    with pytest.raises(OutputError, match=str(target)):
+        check_writable(target)
+    check_writable(tmp_path / "fine" / "deeper")
+    assert list((tmp_path / "fine" / "deeper").iterdir()) == []  # the probe file is gone
+
+
+def test_tum_lines_round_trip_through_read_tum(tmp_path: Path) -> None:
+    rng = np.random.default_rng(SEED)
+    utimes = [1_341_841_873_273_820, 1_341_841_873_000_005, 1_341_841_873_999_999, 5,
+              1_700_000_000_000_000]
+    poses = []
+    for utime in utimes:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        T[:3, 3] = rng.uniform(-10.0, 10.0, 3)
+        poses.append((utime, T))
+    path = tmp_path / "trajectory.txt"
+    write_tum(path, poses)
+    assert path.read_text() == tum_lines(poses)
+    back = read_tum(path)
+    assert [u for u, _ in back] == utimes
+    for (_, T), (_, T_back) in zip(poses, back):
+        assert np.allclose(T_back, T, rtol=0, atol=TUM_TOLERANCE)
+
+
+def test_ate_aligns_a_rigidly_moved_copy(sample) -> None:
+    truth = [(utime, T) for utime, _, T in sample[::3]]
+    D = np.eye(4)
+    D[:3, :3] = Rotation.from_euler("xyz", [20.0, -35.0, 50.0], degrees=True).as_matrix()
+    D[:3, 3] = [1.5, -2.0, 0.7]
+    moved = [(utime, D @ T) for utime, T in truth]
+    result = ate(moved, truth)
+    assert result is not None
+    assert result["matched_poses"] == len(truth)
+    assert result["rmse_m"] <= ALIGNED_ATE_TOLERANCE_M
+    assert result["max_m"] <= ALIGNED_ATE_TOLERANCE_M
+
+    # Not alignment alone: an error in one pose shows.
+    bent = list(moved)
+    T_bent = bent[5][1].copy()
+    T_bent[:3, 3] += [0.05, 0.0, 0.0]
+    bent[5] = (bent[5][0], T_bent)
+    assert ate(bent, truth)["max_m"] > 0.03
+
+    assert ate(moved[:2], truth) is None
+    # Three poses, none within 20 ms of a true one.
+    assert ate([(u + 1_000_000_000, T) for u, T in moved[:3]], truth) is None

@@ -327,14 +327,17 @@ class Station:
             segment.fusion = Fusion(m.width, m.height, m.fx, m.fy, m.cx, m.cy, m.depth_scale_m,
                                     voxel_size_m=self.params.voxel_size_m,
                                     threads=self.params.threads)
-        T_onboard = pose_to_matrix(m.position_m, m.orientation_xyzw)
-        guess = T_onboard
-        if m.tracking_status == odometry_t.TRACKING_NONE and segment.corrected:
-            guess = segment.corrected[-1][1]  # no onboard pose: start from the last refined one
-        result = segment.fusion.refine(job.depth, m.utime, guess)
+        has_onboard = m.tracking_status != odometry_t.TRACKING_NONE
+        if has_onboard:
+            T_onboard = pose_to_matrix(m.position_m, m.orientation_xyzw)
+        else:
+            # No onboard pose (its fields are meaningless): start from the last refined one.
+            T_onboard = segment.corrected[-1][1] if segment.corrected else np.eye(4)
+        result = segment.fusion.refine(job.depth, m.utime, T_onboard)
         state.refine_ms.append(result.total_ms)
         state.last_result = result
-        segment.onboard.append((m.utime, T_onboard))
+        if has_onboard:
+            segment.onboard.append((m.utime, T_onboard))
         T_corrected = None
         if result.status in ("first", "ok"):
             T_corrected = result.T_world_cam

@@ -293,7 +293,7 @@ NB_MODULE(_native, m) {
            nb::arg("zstd_level") = defaults.zstd_level,
            nb::arg("max_width_px") = defaults.max_width_px,
            nb::arg("max_height_px") = defaults.max_height_px)
-      .def("encode", &PyDepthCodec::encode, nb::arg("depth"),
+      .def("encode", &PyDepthCodec::encode, nb::arg("depth").noconvert(),
            "uint16 (height, width) C-contiguous array -> payload bytes")
       .def("decode", &PyDepthCodec::decode, nb::arg("payload"), nb::arg("encoding"),
            nb::arg("width"), nb::arg("height"),
@@ -336,7 +336,9 @@ NB_MODULE(_native, m) {
            nb::arg("voxel_size_m") = fusion_defaults.voxel_size_m,
            nb::arg("truncation_m") = fusion_defaults.truncation_m,
            nb::arg("threads") = fusion_defaults.threads)
-      .def("refine", &PyFusion::refine, nb::arg("depth"), nb::arg("utime"), nb::arg("T_world_cam_guess"),
+      // noconvert: a float or strided array is refused, not silently cast or copied.
+      .def("refine", &PyFusion::refine, nb::arg("depth").noconvert(), nb::arg("utime"),
+           nb::arg("T_world_cam_guess"),
            "Tracks a uint16 depth image frame-to-model from a guessed 4x4 pose, then fuses it")
       .def("render", &PyFusion::render, nb::arg("full") = false,
            "The map shaded from the last fused pose (uint8): full=True raycasts every pixel, "

@@ -64,7 +64,10 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
 FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_depth,
                                                   int64_t utime, const Pose& T_world_cam_guess) {
   FrameResult result;
-  if (!preprocess(raw_depth, utime, T_world_cam_guess, &result)) return result;
+  if (!preprocess(raw_depth, utime, T_world_cam_guess, &result)) {
+    if (has_model_) result.T_world_cam = T_world_cam_;  // lost: the last fused pose, as below
+    return result;
+  }
   // The next frame brings its own guess to raycast from: no prediction after fusing.
   if (!has_model_) {
     result.status = TrackingStatus::kFirstFrame;

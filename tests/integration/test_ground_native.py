@@ -213,10 +213,6 @@ def test_depth_of_the_wrong_size_names_both_sizes(frames) -> None:
     assert fusion.num_blocks == 0
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "bug: refine's depth argument lacks nb::arg(\"depth\").noconvert() (ground/src/native.cpp), "
-    "so nanobind silently casts other dtypes (float metres truncate to 0) and copies "
-    "non-contiguous arrays instead of raising TypeError"))
 @pytest.mark.parametrize("make", [
     lambda d: (d * DEPTH_SCALE_M).astype(np.float32),  # metres, a likely mistake
     lambda d: d.astype(np.int32),
@@ -258,10 +254,6 @@ def test_a_frame_without_depth_is_lost_and_leaves_the_map(frames) -> None:
     assert fusion.refine(keyframes[2][1], keyframes[2][0], last).status == "ok"
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "bug: a frame with too little depth returns the guess, not the last fused pose as "
-    "RefineResult.T_world_cam documents (and as an ICP failure does): "
-    "FusionPipeline::processFrameFromGuess returns preprocess()'s result unchanged"))
 def test_a_lost_frame_reports_the_last_fused_pose_not_the_guess(frames) -> None:
     fusion = _fusion()
     last = _refine_all(fusion, _keyframes(frames, count=2), np.eye(4))[-1].T_world_cam

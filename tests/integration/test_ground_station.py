@@ -275,11 +275,6 @@ def test_a_camera_change_starts_a_new_segment(sample) -> None:
     assert len(rig.corrections()) == 5
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "bug: Station._process converts the onboard pose before looking at tracking_status, so a "
-    "keyframe without an onboard pose (TRACKING_NONE, fields meaningless per the proto, here "
-    "the zero quaternion) raises from scipy: out of on_message inline, and it kills the worker "
-    "thread when threaded"))
 def test_a_keyframe_without_an_onboard_pose_is_refined_from_the_last_corrected(sample) -> None:
     keyframes = flight(sample, 3)
     message, T_truth = keyframes[2]

@@ -390,6 +390,7 @@ def _finish(station: Station, viewer: Viewer, args: argparse.Namespace, mode: st
             started: float, truth: list | None, extra: dict[str, Any]) -> int:
     rrd = None if args.no_record else (args.save or args.out / "session.rrd")
     try:
+        station.show_final_maps()
         viewer.close()
     except ViewerError as error:
         log(str(error))

@@ -472,6 +472,16 @@ class Station:
         for thread in self._threads:
             thread.join()
 
+    def show_final_maps(self) -> None:
+        """Sends every vehicle's finished map to the viewer, stamped with its last keyframe:
+        the periodic meshes miss whatever came after the last one. Call after stop()."""
+        for state in self.vehicles.values():
+            segment = state.segment
+            if segment.fusion is None or not segment.onboard:
+                continue
+            vertices, triangles, normals = segment.fusion.snapshot().mesh()
+            state.view.mesh(segment.onboard[-1][0], vertices, triangles, normals)
+
     def queue_length(self) -> int:
         return len(self._queue)
 

@@ -362,3 +362,37 @@ def test_signing_key_files(tmp_path: Path) -> None:
     short = write_key(tmp_path / "short.key", KEY[:16], 0o600)
     with pytest.raises(KeyFileError, match=re.escape(f"{short} holds 16 bytes")):
         load_signing_key(short)
+
+
+def test_a_serial_autopilot_over_a_pseudo_terminal() -> None:
+    """The serial path with a real tty: a pseudo-terminal stands in for the USB/UART cable, the
+    autopilot writes its frames into the other end and reads our pose frames from it."""
+    controller, device = os.openpty()
+    try:
+        bridge = MavlinkBridge(os.ttyname(device), forward="vision", baud=115200)
+        try:
+            encoder = mavlink2.MAVLink(None, srcSystem=AUTOPILOT_SYSTEM,
+                                       srcComponent=AUTOPILOT_COMPONENT)
+            os.write(controller, encoder.heartbeat_encode(
+                mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_PX4, 0, 0,
+                mavlink2.MAV_STATE_STANDBY).pack(encoder))
+            os.write(controller, encoder.attitude_encode(0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0)
+                     .pack(encoder))
+            poll_until(bridge, lambda heard: {"HEARTBEAT", "ATTITUDE"} <= heard)
+            assert bridge.state.roll_rad == pytest.approx(0.5)
+            assert bridge.send_pose(1_000_000, np.eye(4), 3)
+            parser = mavlink2.MAVLink(None)
+            deadline = time.monotonic() + WAIT_S
+            vision = None
+            while vision is None:
+                assert time.monotonic() < deadline, "no VISION_POSITION_ESTIMATE on the tty"
+                for msg in parser.parse_buffer(os.read(controller, 4096)) or []:
+                    if msg.get_type() == "VISION_POSITION_ESTIMATE":
+                        vision = msg
+            assert vision.usec == 1_000_000 and vision.reset_counter == 3
+            assert (vision.x, vision.y, vision.z) == (0.0, 0.0, 0.0)
+        finally:
+            bridge.close()
+    finally:
+        os.close(controller)
+        os.close(device)

@@ -18,6 +18,7 @@ import pytest
 
 import demo  # scripts/demo.py (conftest puts scripts/ on the path)
 from firmware_run import summary as drone_summary
+from test_ground_viewer import read_rows
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 GROUND = Path(sys.executable).parent / "kinfly-ground"
@@ -82,6 +83,18 @@ def test_demo_flies_the_sample_end_to_end(demo_run: Path) -> None:
     assert summary["memory"]["peak_rss_mb"] > 0
     subprocess.run([RERUN, "rrd", "verify", demo_run / "session.rrd"], check=True,
                    capture_output=True)
+    rows = read_rows(demo_run / "session.rrd")
+    entities = {row.entity.rsplit("/", 1)[0] if "/trajectory/" in row.entity else row.entity
+                for row in rows}
+    assert {"world/drone/camera", "world/drone/camera/depth", "world/drone/camera/render",
+            "world/trajectory/onboard", "world/trajectory/corrected",
+            "world/trajectory/ground_truth", "world/map/mesh",
+            "health/link/latency_ms", "health/tracking/inlier_fraction"} <= entities
+    # Stamped with the keyframes' capture times, as the trajectory file has them.
+    keyframe_utimes = {round(float(line.split()[0]) * 1e6) for line in
+                       (demo_run / "trajectory_onboard.tum").read_text().splitlines()}
+    depth_utimes = {row.utime for row in rows if row.entity == "world/drone/camera/depth"}
+    assert depth_utimes == keyframe_utimes
 
 
 def test_recorded_flight_replays_offline(demo_run: Path, tmp_path: Path) -> None:
@@ -245,3 +258,53 @@ def test_on_request_export_then_clean_exit(tmp_path: Path) -> None:
     assert not [p.name for p in out.iterdir() if "partial" in p.name]
     # The recording was finished and renamed into place.
     assert (out / "session.rrd").exists()
+
+
+PEER = """
+import json, sys, time
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink2
+peer = mavutil.mavlink_connection(sys.argv[1], source_system=1, source_component=1,
+                                  dialect="common")
+peer.mav = mavlink2.MAVLink(peer, srcSystem=1, srcComponent=1)
+poses, last, deadline = 0, None, time.monotonic() + float(sys.argv[2])
+while time.monotonic() < deadline:
+    peer.mav.heartbeat_send(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_PX4,
+                            mavlink2.MAV_MODE_FLAG_SAFETY_ARMED, 0, mavlink2.MAV_STATE_ACTIVE)
+    peer.mav.attitude_send(0, 0.1, -0.2, 0.3, 0.0, 0.0, 0.0)
+    stop = time.monotonic() + 0.05
+    while time.monotonic() < stop:
+        msg = peer.recv_match(type="VISION_POSITION_ESTIMATE", blocking=True, timeout=0.05)
+        if msg is not None:
+            poses, last = poses + 1, msg.to_dict()
+print(json.dumps({"poses": poses, "last": last}))
+"""
+
+
+def test_mavlink_autopilot_sees_the_corrected_poses(tmp_path: Path, netns: list[str]) -> None:
+    """The ground with --mavlink forwards the drone's corrected poses to a pymavlink autopilot
+    in the namespace and records the autopilot's telemetry."""
+    key = demo.make_key(tmp_path / "vehicle.key")
+    out = tmp_path / "out"
+    port = 14590
+    ground = [*demo.ground_command(out, key=key), "--mavlink", f"udpin:127.0.0.1:{port}",
+              "--mavlink-forward", "vision", "--mavlink-rate", "20"]
+    peers: list[subprocess.Popen] = []
+
+    def start_autopilot() -> None:
+        peers.append(subprocess.Popen([*netns, sys.executable, "-c", PEER,
+                                       f"udpout:127.0.0.1:{port}", "4"],
+                                      stdout=subprocess.PIPE, text=True))
+
+    flight = demo.fly(netns, ground, [demo.drone_command(demo.SAMPLE_LOG, key=key)],
+                      during=start_autopilot, quiet=True)
+    heard = json.loads(peers[0].communicate(timeout=30)[0])
+    assert flight.ground_rc == 0, flight.ground_output
+    # The 2 s flight at 30 Hz, limited to 20 Hz, minus the start: well over 10 poses.
+    assert heard["poses"] >= 10, heard
+    # The drone's frame starts at the first keyframe, so early poses sit near the origin.
+    assert abs(heard["last"]["x"]) < 1.0 and abs(heard["last"]["z"]) < 1.0
+    mav = read_summary(out)["mavlink"]
+    assert mav["sent"] >= heard["poses"]
+    assert mav["autopilot"]["armed"] is True
+    assert mav["autopilot"]["roll_rad"] == pytest.approx(0.1, abs=1e-6)

@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from netns import NetnsUnavailable, network_namespace  # noqa: E402
+from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 BUILD = REPO_ROOT / "build" / "bin"
@@ -89,9 +89,11 @@ def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]]
     logger = None
     if record is not None:
         logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", LCM_URL,
-                                   str(record)], stdout=subprocess.DEVNULL)
+                                   str(record)], stdout=subprocess.DEVNULL,
+                                  start_new_session=True)
     ground_proc = subprocess.Popen([*netns, *ground], stdout=subprocess.PIPE,
-                                   stderr=subprocess.STDOUT, text=True)
+                                   stderr=subprocess.STDOUT, text=True,
+                                   start_new_session=True)
     ground_lines: list[str] = []
     drone_lines: list[str] = []
     ready = threading.Event()
@@ -116,13 +118,12 @@ def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]]
             drone_rcs.append(drone_proc.wait())
         time.sleep(SETTLE_S)
     finally:
-        # `ip netns exec` runs the program itself (and sudo passes signals on): the ground
-        # finishes its queue and writes the outputs.
-        ground_proc.send_signal(signal.SIGTERM)
+        # As Ctrl-C would: the ground finishes its queue and writes the outputs.
+        send_signal(ground_proc, signal.SIGTERM)
         ground_rc = ground_proc.wait(GROUND_EXIT_TIMEOUT_S)
         echo.join()
         if logger is not None:
-            logger.send_signal(signal.SIGINT)
+            send_signal(logger, signal.SIGINT)
             logger.wait(10)
     return Flight(ground_rc, drone_rcs, "".join(ground_lines), "".join(drone_lines))
 
@@ -142,8 +143,8 @@ def main() -> int:
     started = time.monotonic()
     try:
         with network_namespace("demo") as netns:
-            flight = fly(netns, ground_command(out, key=key),
-                         [drone_command(args.log, key=key, trajectory=out / "drone_trajectory.tum")],
+            drone = drone_command(args.log, key=key, trajectory=out / "drone_trajectory.tum")
+            flight = fly(netns, ground_command(out, key=key), [drone],
                          record=out / "flight.lcmlog")
     except NetnsUnavailable as error:
         print(f"demo: {error}", file=sys.stderr)

@@ -7,6 +7,7 @@ import contextlib
 import itertools
 import os
 import shutil
+import signal
 import subprocess
 from collections.abc import Iterator
 
@@ -44,6 +45,22 @@ def network_namespace(tag: str = "test") -> Iterator[list[str]]:
                         ["ip", "route", "add", MULTICAST_ROUTE, "dev", "lo"]):
             subprocess.run([*sudo, "ip", "netns", "exec", name, *command], check=True,
                            capture_output=True)
-        yield [*sudo, "ip", "netns", "exec", name]
+        # Through sudo, the programs still run as the caller, at home: their files stay the
+        # caller's (sudo's reset environment would give them root's HOME).
+        as_caller = (["setpriv", f"--reuid={os.getuid()}", f"--regid={os.getgid()}",
+                      "--init-groups", "env", f"HOME={os.path.expanduser('~')}"] if sudo else [])
+        yield [*sudo, "ip", "netns", "exec", name, *as_caller]
     finally:
         subprocess.run([*sudo, "ip", "netns", "del", name], capture_output=True)
+
+
+def send_signal(process: subprocess.Popen, sig: int) -> None:
+    """Signals a program started with the namespace's prefix and `start_new_session=True`. Under
+    sudo the process is sudo's, which the caller may not signal: `sudo kill` does, and sudo
+    passes it on to the program (it would not, were the sender in the program's own session)."""
+    sudo = _privileged()
+    if not sudo:
+        process.send_signal(sig)
+        return
+    subprocess.run([*sudo, "kill", f"-{signal.Signals(sig).name.removeprefix('SIG')}",
+                    str(process.pid)], capture_output=True)

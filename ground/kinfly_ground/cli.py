@@ -17,7 +17,8 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +27,7 @@ from .channels import ALL_VEHICLES_REGEX, MAX_VEHICLE_ID, Channel, channel_name,
     vehicle_channels_regex
 from .outputs import (OutputError, ate, check_writable, memory, read_tum,
                       write_error_plot, write_json, write_tum, write_atomically)
+from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
 from .signing import KeyFileError, Signer, load_key_file
 from .station import Segment, Station, StationParams, VehicleState, percentile
 from .viewer import Viewer, ViewerError
@@ -166,9 +168,12 @@ def _signers(args: argparse.Namespace) -> dict[int, Signer]:
     return signers
 
 
+def _rrd_path(args: argparse.Namespace) -> Path | None:
+    return None if args.no_record else (args.save or args.out / "session.rrd")
+
+
 def _viewer(args: argparse.Namespace) -> Viewer:
-    save = None if args.no_record else (args.save or args.out / "session.rrd")
-    return Viewer(spawn=args.viewer, save_path=save,
+    return Viewer(spawn=args.viewer, save_path=_rrd_path(args),
                   recording_name=f"kinfly-ground {time.strftime('%Y-%m-%d %H:%M:%S')}")
 
 
@@ -194,7 +199,7 @@ def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str
     files: dict[str, str] = {}
     result: dict[str, Any] = {"files": files, "corrected_poses": len(segment.corrected)}
     if segment.fusion is not None:
-        snapshot = segment.fusion.snapshot()
+        snapshot = segment.snapshot or segment.fusion.snapshot()
         result["mesh_triangles"] = write_atomically(out / "mesh.ply",
                                                     lambda tmp: snapshot.write_ply(str(tmp)))
         files["mesh"] = "mesh.ply"
@@ -242,8 +247,10 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
            extra: dict[str, Any]) -> dict[str, Any]:
     """Writes every vehicle's outputs and summary.json (last). Runs on the fusion thread or after
     it stopped, so the maps hold still."""
+    # A summary from an earlier export must not vouch for files this one is replacing.
+    (out / "summary.json").unlink(missing_ok=True)
     vehicles = {}
-    for vid, state in sorted(station.vehicles.items()):
+    for vid, state in sorted(list(station.vehicles.items())):
         where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
         vehicles[str(vid)] = {"directory": str(where), **_vehicle_summary(state, where, truth)}
     rejects = dataclasses.asdict(station.receiver.rejects)
@@ -291,10 +298,12 @@ def _mavlink(args: argparse.Namespace):
         return None
     if args.vehicle is None:
         raise UsageError("--mavlink needs --vehicle: one autopilot link per vehicle")
-    from .mavlink import MavlinkBridge, load_signing_key
     key = load_signing_key(args.mavlink_key) if args.mavlink_key else None
-    return MavlinkBridge(args.mavlink, forward=args.mavlink_forward, rate_hz=args.mavlink_rate,
-                         signing_key=key, baud=args.mavlink_baud)
+    try:
+        return MavlinkBridge(args.mavlink, forward=args.mavlink_forward,
+                             rate_hz=args.mavlink_rate, signing_key=key, baud=args.mavlink_baud)
+    except ValueError as error:
+        raise UsageError(f"--mavlink: {error}") from error
 
 
 def run(args: argparse.Namespace) -> int:
@@ -334,6 +343,30 @@ def run(args: argparse.Namespace) -> int:
         except OutputError as error:
             log(f"export on request failed: {error}")
 
+    failure = None
+    try:
+        _serve(lc, station, bridge, args, started, stop, export_now, snapshot_outputs)
+    except Exception as error:  # whatever it was, what was mapped so far is still written
+        failure = error
+        log(f"stopping on an error: {type(error).__name__}: {error}")
+    log("stopping: fusing what is queued, then writing the outputs")
+    if not station.drain(DRAIN_TIMEOUT_S):
+        log(f"{station.queue_length()} keyframes still queued after {DRAIN_TIMEOUT_S:.0f} s: "
+            "left out")
+    station.stop()
+    extra = {}
+    if bridge is not None:
+        extra["mavlink"] = {"url": args.mavlink, **dataclasses.asdict(bridge.counters),
+                            "autopilot": dataclasses.asdict(bridge.state)}
+        bridge.close()
+    rc = _finish(station, viewer, args, "run", started, truth, extra)
+    return 1 if failure is not None else rc
+
+
+def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, started: float,
+           stop: threading.Event, export_now: threading.Event,
+           snapshot_outputs: Callable[[], None]) -> None:
+    """The LCM thread's loop: messages, status at 10 Hz, MAVLink, progress, until told to stop."""
     next_status = next_progress = time.monotonic()
     while not stop.is_set():
         try:
@@ -348,11 +381,9 @@ def run(args: argparse.Namespace) -> int:
         if export_now.is_set():
             export_now.clear()
             station.run_in_worker(snapshot_outputs)
-        if bridge is not None:
-            bridge.poll()
-            if args.vehicle in station.vehicles and bridge.state.last_heard_utime is not None:
-                station.vehicles[args.vehicle].view.telemetry(bridge.state.last_heard_utime,
-                                                              bridge.state.as_metrics())
+        if bridge is not None and bridge.poll() and args.vehicle in station.vehicles:
+            station.vehicles[args.vehicle].view.telemetry(bridge.state.last_heard_utime,
+                                                          bridge.state.as_metrics())
         if now >= next_status:
             next_status = now + STATUS_PERIOD_S
             for state in list(station.vehicles.values()):
@@ -362,39 +393,29 @@ def run(args: argparse.Namespace) -> int:
             next_progress = now + PROGRESS_PERIOD_S
             _progress(station, now - started)
 
-    log("stopping: fusing what is queued, then writing the outputs")
-    if not station.drain(DRAIN_TIMEOUT_S):
-        log(f"{station.queue_length()} keyframes still queued after {DRAIN_TIMEOUT_S:.0f} s: "
-            "left out")
-    station.stop()
-    extra = {}
-    if bridge is not None:
-        extra["mavlink"] = {"url": args.mavlink, **dataclasses.asdict(bridge.counters),
-                            "autopilot": dataclasses.asdict(bridge.state)}
-        bridge.close()
-    return _finish(station, viewer, args, "run", started, truth, extra)
-
 
 def _progress(station: Station, elapsed_s: float) -> None:
     for vid, state in sorted(station.vehicles.items()):
         c = state.counters
         lat = state.latencies_ms[-50:]
-        fusion = state.segment.fusion
         log(f"[{elapsed_s:6.1f} s] vehicle {vid}: {c.keyframes_received} keyframes, "
             f"{c.keyframes_fused} fused, {c.keyframes_lost} lost, {c.keyframes_dropped} dropped; "
             f"latency median {_ms(percentile(lat, 50))} ms (last 50); queue "
-            f"{station.queue_length()}; map {fusion.num_blocks if fusion else 0} blocks")
+            f"{station.queue_length()}; map {state.map_blocks} blocks")
 
 
 def _finish(station: Station, viewer: Viewer, args: argparse.Namespace, mode: str,
             started: float, truth: list | None, extra: dict[str, Any]) -> int:
-    rrd = None if args.no_record else (args.save or args.out / "session.rrd")
+    """Finishes the recording, then writes the outputs and prints the summary: 0, or 1 when
+    something could not be written (the rest still is)."""
+    rrd = _rrd_path(args)
+    rc = 0
     try:
         station.show_final_maps()
         viewer.close()
     except ViewerError as error:
         log(str(error))
-        return 1
+        rrd, rc = None, 1
     try:
         summary = export(station, args.out, mode, started, truth,
                          {**extra, "rrd": None if rrd is None else str(rrd)})
@@ -402,7 +423,7 @@ def _finish(station: Station, viewer: Viewer, args: argparse.Namespace, mode: st
         log(str(error))
         return 1
     print_summary(summary, args.out, rrd)
-    return 0
+    return rc
 
 
 # --- replay ----------------------------------------------------------------------------------
@@ -449,14 +470,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         return run(args) if args.command == "run" else replay(args)
-    except (UsageError, KeyFileError, OutputError, ViewerError) as error:
+    except (UsageError, KeyFileError, OutputError, ViewerError, MavlinkError) as error:
         log(f"error: {error}")
         return 2
-    except Exception as error:  # the MAVLink module's own, imported only when used
-        if type(error).__name__ == "MavlinkError":
-            log(f"error: {error}")
-            return 2
-        raise
     finally:
         # The station and its receiver refer to each other: free the maps now, not whenever
         # the interpreter gets to it.

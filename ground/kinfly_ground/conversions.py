@@ -149,6 +149,18 @@ def pose_to_matrix(position_m: Sequence[float], orientation_xyzw: Sequence[float
     return T
 
 
+def correction_message(vehicle_id: int, keyframe_id: int, utime: int, T_world_cam: np.ndarray,
+                       reset_counter: int) -> pose_correction_t:
+    """The refined pose of one keyframe, for the drone (to be signed)."""
+    m = pose_correction_t()
+    m.utime = utime
+    m.vehicle_id = vehicle_id
+    m.keyframe_id = keyframe_id
+    m.position_m, m.orientation_xyzw = matrix_to_pose(T_world_cam)
+    m.reset_counter = reset_counter
+    return m
+
+
 def matrix_to_pose(T: np.ndarray) -> tuple[list[float], list[float]]:
     """(position_m, orientation_xyzw) of a 4x4 T_world_cam, with w >= 0."""
     q = Rotation.from_matrix(T[:3, :3]).as_quat()

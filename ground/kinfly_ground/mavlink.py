@@ -98,7 +98,7 @@ class MavlinkCounters:
     heartbeats_sent: int = 0
     skipped_rate: int = 0  # poses not sent: sooner than rate_hz allows (_RateLimiter)
     skipped_forward_off: int = 0  # poses not sent: the bridge forwards nothing
-    skipped_invalid: int = 0  # poses not sent: not finite
+    skipped_invalid: int = 0  # poses not sent: not finite, or a negative time
     rejected_unsigned: int = 0  # signing on, message unsigned
     rejected_bad_signature: int = 0  # signing on, wrong key or a replayed/old timestamp
     bad_data: int = 0  # bytes that did not parse (bad CRC, garbage)
@@ -338,7 +338,8 @@ class MavlinkBridge:
             if self.forward is None:
                 self.counters.skipped_forward_off += 1
                 return False
-            if not np.all(np.isfinite(T_world_cam)):
+            # MAVLink's time fields are unsigned: a negative utime cannot be sent.
+            if not np.all(np.isfinite(T_world_cam)) or utime < 0:
                 self.counters.skipped_invalid += 1
                 return False
             if not self._rate.allow(time.monotonic()):

@@ -85,6 +85,7 @@ def ate(estimate: list[StampedPose], truth: list[StampedPose]) -> dict[str, Any]
     alignment, without scale (depth is metric: a scale error is an error). None when fewer than
     three poses match. 'errors' holds each matched pose's (t [s], error [m])."""
     from evo.core import metrics, sync
+    from evo.core.geometry import GeometryException
     from evo.core.sync import SyncException
 
     if len(estimate) < 3 or len(truth) < 3:
@@ -96,7 +97,10 @@ def ate(estimate: list[StampedPose], truth: list[StampedPose]) -> dict[str, Any]
         return None
     if est_sync.num_poses < 3:
         return None
-    est_sync.align(gt_sync, correct_scale=False)
+    try:
+        est_sync.align(gt_sync, correct_scale=False)
+    except GeometryException:  # degenerate: a hover or a straight line gives no rotation
+        return None
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((gt_sync, est_sync))
     stats = ape.get_all_statistics()
@@ -131,11 +135,12 @@ def write_error_plot(path: Path, results: dict[str, dict[str, Any]]) -> None:
 
 
 def memory() -> dict[str, float]:
-    """This process's resident memory now and at its peak [MB]."""
+    """This process's resident memory now and at its peak [MB, 10^6 bytes]."""
     with open("/proc/self/statm") as f:
         resident_pages = int(f.read().split()[1])
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # Linux: KiB
     return {"rss_mb": resident_pages * os.sysconf("SC_PAGE_SIZE") / 1e6,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3}
+            "peak_rss_mb": peak_kib * 1024 / 1e6}
 
 
 def read_tum(path: Path) -> list[StampedPose]:

@@ -26,11 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from kinfly import depth_keyframe_t, odometry_t, pose_correction_t, status_t
+from kinfly import depth_keyframe_t, odometry_t, status_t
 
 from ._native import Fusion, MapSnapshot
 from .channels import Channel, channel_name
-from .conversions import matrix_to_pose, pose_to_matrix
+from .conversions import correction_message, pose_to_matrix
 from .link import Received, Receiver
 from .signing import Signer
 from .viewer import VehicleView, Viewer
@@ -85,6 +85,7 @@ class VehicleCounters:
     corrections_sent: int = 0
     corrections_unsigned: int = 0  # not sent: no key for this vehicle
     resets: int = 0                # corrections beyond the jump threshold
+    failed: int = 0                # keyframes whose handling raised (logged): the station goes on
 
 
 @dataclasses.dataclass
@@ -95,6 +96,7 @@ class Segment:
     onboard: list[StampedPose] = dataclasses.field(default_factory=list)
     corrected: list[StampedPose] = dataclasses.field(default_factory=list)
     ground_truth: list[StampedPose] = dataclasses.field(default_factory=list)
+    snapshot: MapSnapshot | None = None  # the final map's copy, meshed once for viewer and file
 
 
 @dataclasses.dataclass
@@ -138,7 +140,9 @@ class VehicleState:
         self.latencies_ms: list[float] = []
         self.refine_ms: list[float] = []
         self.last_result: Any = None
-        self.mesh_time_s = 0.0
+        self.mesh_utime: int | None = None  # capture time of the last mesh sent to the viewer
+        # Written by the fusion thread: the map itself must not be read while a refine runs.
+        self.map_blocks = 0
         # Arrival side (LCM thread only).
         self.session = 0
         self.last_keyframe: tuple[int, int] | None = None  # (keyframe_id, utime)
@@ -183,6 +187,7 @@ class Station:
         self._log = log
         self.vehicles: dict[int, VehicleState] = {}
         self.rejected_too_many_vehicles = 0
+        self.handler_errors = 0
         self.receiver = Receiver(self._on_received)
         self._arrival_ns = 0
         self._queue: collections.deque[_Job] = collections.deque()
@@ -204,8 +209,14 @@ class Station:
     # --- arrival (LCM thread) -----------------------------------------------------------------
 
     def on_message(self, channel: str, data: bytes) -> None:
+        # The arrival is stamped when Python gets the message: time spent waiting for the GIL
+        # before that is not in the latency.
         self._arrival_ns = time.monotonic_ns()
-        self.receiver.on_message(channel, data)
+        try:
+            self.receiver.on_message(channel, data)
+        except Exception as error:  # a message that passed decoding but broke a handler
+            self.handler_errors += 1
+            self._log(f"{channel}: message not handled: {type(error).__name__}: {error}")
 
     def _vehicle(self, vehicle_id: int) -> VehicleState | None:
         state = self.vehicles.get(vehicle_id)
@@ -275,7 +286,7 @@ class Station:
         state.rates["received"].tick(now_s)
         job = _Job(state.vehicle_id, state.session, message, depth, self._arrival_ns)
         if self._inline:
-            self._process(job)
+            self._process_guarded(job)
             return
         with self._cv:
             if len(self._queue) >= self.params.queue_keyframes:
@@ -305,9 +316,22 @@ class Station:
                     return
                 self._idle = False
             if request is not None:
-                request()
+                try:
+                    request()
+                except Exception as error:  # an export on request: fusion goes on regardless
+                    self._log(f"request failed: {type(error).__name__}: {error}")
             else:
-                self._process(job)
+                self._process_guarded(job)
+
+    def _process_guarded(self, job: _Job) -> None:
+        """One keyframe that cannot be handled (intrinsics the engine refuses, say) is counted
+        and logged; the next one is fused as usual."""
+        try:
+            self._process(job)
+        except Exception as error:
+            self.vehicles[job.vehicle_id].counters.failed += 1
+            self._log(f"vehicle {job.vehicle_id}: keyframe {job.message.keyframe_id} not "
+                      f"handled: {type(error).__name__}: {error}")
 
     def _process(self, job: _Job) -> None:
         state = self.vehicles[job.vehicle_id]
@@ -334,6 +358,7 @@ class Station:
             # No onboard pose (its fields are meaningless): start from the last refined one.
             T_onboard = segment.corrected[-1][1] if segment.corrected else np.eye(4)
         result = segment.fusion.refine(job.depth, m.utime, T_onboard)
+        state.map_blocks = segment.fusion.num_blocks
         state.refine_ms.append(result.total_ms)
         state.last_result = result
         if has_onboard:
@@ -353,7 +378,9 @@ class Station:
 
     def _send_correction(self, state: VehicleState, m: depth_keyframe_t, T_onboard: np.ndarray,
                          T_corrected: np.ndarray, arrival_ns: int) -> None:
-        if jump_exceeds(T_corrected @ np.linalg.inv(T_onboard), self.params.reset_translation_m,
+        # The move in the camera's own frame: its translation is the distance between the two
+        # poses, however far from the origin the drone is.
+        if jump_exceeds(np.linalg.inv(T_onboard) @ T_corrected, self.params.reset_translation_m,
                         self.params.reset_rotation_rad):
             state.reset_counter += 1
             state.counters.resets += 1
@@ -361,12 +388,8 @@ class Station:
             state.counters.corrections_unsigned += 1
             return
         if self._publish is not None:
-            correction = pose_correction_t()
-            correction.utime = m.utime
-            correction.vehicle_id = m.vehicle_id
-            correction.keyframe_id = m.keyframe_id
-            correction.position_m, correction.orientation_xyzw = matrix_to_pose(T_corrected)
-            correction.reset_counter = state.reset_counter
+            correction = correction_message(m.vehicle_id, m.keyframe_id, m.utime, T_corrected,
+                                            state.reset_counter)
             envelope = state.signer.sign(correction.encode())
             self._publish(channel_name(Channel.CORRECTION, m.vehicle_id), envelope.encode())
             state.counters.corrections_sent += 1
@@ -380,25 +403,33 @@ class Station:
         state.view.keyframe(m.utime, depth, m.depth_scale_m, (m.fx, m.fy, m.cx, m.cy), T_onboard,
                             T_corrected)
         fusion = state.segment.fusion
-        if T_corrected is not None:
+        if result.status == "ok":
+            # The map as raycast for this keyframe's registration, from its onboard pose (a few
+            # mm from the refined one) where it measured depth; a map's first keyframe has none.
             state.view.render(m.utime, fusion.render())
         health = {
             "tracking/inlier_fraction": result.inlier_fraction,
             "tracking/rmse_mm": result.rmse_m * 1e3,
             "tracking/refine_ms": result.total_ms,
-            "map/blocks": float(fusion.num_blocks),
+            "map/blocks": float(state.map_blocks),
         }
         if T_corrected is not None and state.latencies_ms:
             health["link/latency_ms"] = state.latencies_ms[-1]
         for name, value in dataclasses.asdict(state.counters).items():
             health[f"counters/{name}"] = float(value)
         state.view.health(m.utime, health)
-        now_s = time.monotonic()
-        if (self.params.mesh_interval_s > 0 and not self._inline
-                and now_s - state.mesh_time_s >= self.params.mesh_interval_s):
-            state.mesh_time_s = now_s
+        # By capture time, which runs at the wall clock's pace in flight and at the log's in a
+        # replay.
+        interval_us = self.params.mesh_interval_s * 1e6
+        if interval_us > 0 and (state.mesh_utime is None
+                                or m.utime - state.mesh_utime >= interval_us):
+            state.mesh_utime = m.utime
+            snapshot = fusion.snapshot()
+            if self._inline:
+                state.view.mesh(m.utime, *snapshot.mesh())
+                return
             with self._mesh_cv:
-                self._mesh_jobs.append((state, m.utime, fusion.snapshot()))
+                self._mesh_jobs.append((state, m.utime, snapshot))
                 self._mesh_cv.notify()
 
     def _file_truth(self, state: VehicleState) -> None:
@@ -435,8 +466,10 @@ class Station:
                 if not self._mesh_jobs:
                     return
                 state, utime, snapshot = self._mesh_jobs.popleft()
-            vertices, triangles, normals = snapshot.mesh()
-            state.view.mesh(utime, vertices, triangles, normals)
+            try:
+                state.view.mesh(utime, *snapshot.mesh())
+            except Exception as error:  # a mesh is for display: fusion goes on without it
+                self._log(f"vehicle {state.vehicle_id}: no mesh for the viewer: {error}")
 
     # --- control (any thread) -----------------------------------------------------------------
 
@@ -473,14 +506,14 @@ class Station:
             thread.join()
 
     def show_final_maps(self) -> None:
-        """Sends every vehicle's finished map to the viewer, stamped with its last keyframe:
-        the periodic meshes miss whatever came after the last one. Call after stop()."""
+        """Sends every vehicle's map to the viewer as it is at the end, stamped with its last
+        keyframe: the periodic meshes miss whatever came after the last one. Call after stop()."""
         for state in self.vehicles.values():
             segment = state.segment
-            if segment.fusion is None or not segment.onboard:
+            if segment.fusion is None or not segment.corrected:
                 continue
-            vertices, triangles, normals = segment.fusion.snapshot().mesh()
-            state.view.mesh(segment.onboard[-1][0], vertices, triangles, normals)
+            segment.snapshot = segment.fusion.snapshot()
+            state.view.mesh(segment.corrected[-1][0], *segment.snapshot.mesh())
 
     def queue_length(self) -> int:
         return len(self._queue)

@@ -85,7 +85,7 @@ class VehicleView:
     """One vehicle's entities, under its prefix. Made by Viewer.vehicle().
 
     The calls that touch the trajectories (keyframe, ground_truth, restarted) must come from one
-    thread, the station's LCM handler. render, mesh, health and telemetry may come from any
+    thread, the station's fusion thread. render, mesh, health and telemetry may come from any
     thread: rerun's time is per thread and each call sets it before logging."""
 
     def __init__(self, rec: rr.RecordingStream | None, prefix: str) -> None:

@@ -12,7 +12,6 @@
 #include <cstring>
 #include <memory>
 #include <string>
-#include <utility>
 #include <vector>
 
 #include "kinfly/camera.h"
@@ -57,12 +56,12 @@ PoseOut matrixOf(const kinfly::Pose& pose) {
   return PoseOut(m, {4, 4}, nb::capsule(m, [](void* p) noexcept { delete[] static_cast<double*>(p); }));
 }
 
-// Vector3f/Vector3i are three packed scalars, so a std::vector of them is an N x 3 array.
+// Vector3f/Vector3i are three packed scalars, so a std::vector of them is an N x 3 array: a
+// view of it, kept alive by OWNER.
 template <typename Array, typename Vec>
-Array rowsOf(std::vector<Vec>&& values) {
+Array rowsOf(std::vector<Vec>& values, nb::handle owner) {
   static_assert(sizeof(Vec) == 3 * sizeof(typename Vec::Scalar));
-  auto* owned = new std::vector<Vec>(std::move(values));
-  return Array(owned->data(), {owned->size(), 3}, ownerOf(owned));
+  return Array(values.data(), {values.size(), 3}, owner);
 }
 
 DepthEncoding encodingOf(int value) {
@@ -115,41 +114,38 @@ class PyDepthCodec {
   kinfly::Image<uint16_t> depth_;
 };
 
-// A copy of a hashed volume, meshed on its own while the original goes on fusing.
+// A copy of a hashed volume, meshed on its own while the original goes on fusing. The mesh is
+// extracted once (the viewer and the PLY file share it) and handed out as views owned by the
+// snapshot.
 class PyMapSnapshot {
  public:
-  explicit PyMapSnapshot(const kinfly::HashedVolume& source)
-      : volume_(paramsOf(source)) {
+  explicit PyMapSnapshot(const kinfly::HashedVolume& source) : volume_(paramsOf(source)) {
     for (const kinfly::VoxelBlock* block : source.allocatedBlocks())
       volume_.allocateBlock(block->index)->voxels = block->voxels;
   }
 
-  nb::tuple mesh() const {
-    kinfly::TriangleMesh m;
+  nb::tuple mesh(nb::handle self) {
     {
       nb::gil_scoped_release unlocked;
-      m = extract();
+      extract();
     }
-    return nb::make_tuple(rowsOf<Rows3f>(std::move(m.vertices)),
-                          rowsOf<Rows3i>(std::move(m.triangles)),
-                          rowsOf<Rows3f>(std::move(m.normals)));
+    return nb::make_tuple(rowsOf<Rows3f>(mesh_.vertices, self), rowsOf<Rows3i>(mesh_.triangles, self),
+                          rowsOf<Rows3f>(mesh_.normals, self));
   }
 
   // Binary PLY; OSError naming the file when it cannot be written.
-  size_t writePly(const std::string& path) const {
+  size_t writePly(const std::string& path) {
     std::string why;
-    size_t triangles = 0;
     {
       nb::gil_scoped_release unlocked;
-      const kinfly::TriangleMesh m = extract();
-      triangles = m.triangles.size();
-      why = kinfly::writePly(m, path);
+      extract();
+      why = kinfly::writePly(mesh_, path);
     }
     if (!why.empty()) {
       PyErr_SetString(PyExc_OSError, why.c_str());
       throw nb::python_error();
     }
-    return triangles;
+    return mesh_.triangles.size();
   }
 
   size_t numBlocks() const { return volume_.numAllocatedBlocks(); }
@@ -162,11 +158,14 @@ class PyMapSnapshot {
     params.chunk_blocks = static_cast<int>(std::max<size_t>(1, source.numAllocatedBlocks()));
     return params;
   }
-  kinfly::TriangleMesh extract() const {
-    return kinfly::MarchingCubes(kinfly::MarchingCubes::Params()).extract(volume_);
+  void extract() {
+    if (!extracted_) mesh_ = kinfly::MarchingCubes(kinfly::MarchingCubes::Params()).extract(volume_);
+    extracted_ = true;
   }
 
   kinfly::HashedVolume volume_;
+  kinfly::TriangleMesh mesh_;
+  bool extracted_ = false;
 };
 
 struct RefineResult {
@@ -254,7 +253,10 @@ class PyFusion {
   }
 
   // A copy of the map, so that meshing it (hundreds of ms) can run beside the fusion.
-  PyMapSnapshot* snapshot() const { return new PyMapSnapshot(*volume_); }
+  PyMapSnapshot* snapshot() const {
+    nb::gil_scoped_release unlocked;  // a copy of every block; only this thread changes the map
+    return new PyMapSnapshot(*volume_);
+  }
 
   size_t numBlocks() const { return volume_->numAllocatedBlocks(); }
   size_t memoryBytes() const { return volume_->memoryBytes(); }
@@ -300,8 +302,9 @@ NB_MODULE(_native, m) {
            "payload bytes -> uint16 (height, width) array; ValueError naming what is malformed");
 
   nb::class_<PyMapSnapshot>(m, "MapSnapshot", "A copy of a map (Fusion.snapshot()).")
-      .def("mesh", &PyMapSnapshot::mesh,
-           "Marching cubes: (vertices float32 Nx3 [m], triangles int32 Mx3, normals float32 Nx3)")
+      .def("mesh", [](nb::handle self) { return nb::cast<PyMapSnapshot&>(self).mesh(self); },
+           "Marching cubes: (vertices float32 Nx3 [m], triangles int32 Mx3, normals float32 Nx3), "
+           "views that keep the snapshot alive")
       .def("write_ply", &PyMapSnapshot::writePly, nb::arg("path"),
            "Meshes the map and writes binary PLY; returns the triangle count")
       .def_prop_ro("num_blocks", &PyMapSnapshot::numBlocks);

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import stat
 import subprocess
 import sys
@@ -25,6 +26,9 @@ GROUND = Path(sys.executable).parent / "kinfly-ground"
 RERUN = Path(sys.executable).parent / "rerun"
 # DESIGN's accuracy budget: ATE RMSE on the shared TUM sequence, and never worse than onboard.
 ATE_BOUND_M = 0.03
+# Corrections of the drone's last keyframes that may arrive after it has exited: keyframes come
+# at least 0.1 s apart and a correction takes tens of ms, more on a loaded machine.
+LATE_CORRECTIONS = 2
 OUTPUTS = ("mesh.ply", "trajectory_onboard.tum", "trajectory_corrected.tum", "session.rrd",
            "summary.json", "ate.png")
 
@@ -53,6 +57,7 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
         pytest.skip(result.stderr)
     assert result.returncode == 0, result.stdout + result.stderr
     assert f"outputs in {out}" in result.stdout
+    (out / "demo.txt").write_text(result.stdout)
     return out
 
 
@@ -74,9 +79,12 @@ def test_demo_flies_the_sample_end_to_end(demo_run: Path) -> None:
     assert k["keyframes_fused"] == k["keyframes_received"]
     assert k["corrections_sent"] == k["keyframes_fused"]
     assert vehicle["latency_ms"]["count"] == k["corrections_sent"]
-    # The drone heard and applied them (the last may come after it ended).
+    # The drone applied them, as its own exit summary (printed by the demo) says; it exits
+    # when its log ends, so the corrections of its last keyframes may come too late.
+    applied = int(re.search(r"the drone applied (\d+) of the ground's corrections",
+                            (demo_run / "demo.txt").read_text()).group(1))
+    assert k["corrections_sent"] - LATE_CORRECTIONS <= applied <= k["corrections_sent"]
     drone = vehicle["drone_reported"]
-    assert drone["corrections_accepted"] >= k["corrections_sent"] - 1 > 0
     assert drone["rejected_bad_mac"] == drone["rejected_wrong_key"] == 0
     check_accuracy(vehicle)
     assert summary["rejected_messages"]["malformed"] == 0
@@ -108,8 +116,14 @@ def test_recorded_flight_replays_offline(demo_run: Path, tmp_path: Path) -> None
     summary = read_summary(out)
     assert summary["mode"] == "replay"
     replayed = summary["vehicles"]["1"]
-    # lcm-logger heard what the ground heard: the same keyframes, fused the same way.
-    assert replayed["keyframes"]["keyframes_fused"] == live["keyframes"]["keyframes_fused"]
+    # Every keyframe the logger heard is fused. The logger and the live ground are separate UDP
+    # receivers; on a loaded machine either may miss a fragmented keyframe, so the two counts
+    # are compared with that slack only.
+    import lcm
+    logged = sum(1 for event in lcm.EventLog(str(demo_run / "flight.lcmlog"), "r")
+                 if event.channel == "KINFLY_1_KEYFRAME")
+    assert replayed["keyframes"]["keyframes_fused"] == logged
+    assert abs(logged - live["keyframes"]["keyframes_fused"]) <= 1
     assert replayed["keyframes"]["corrections_sent"] == 0  # offline: nothing is sent
     check_accuracy(replayed)
     for name in OUTPUTS:
@@ -142,7 +156,7 @@ def test_wrong_key_is_refused_by_the_drone(tmp_path: Path, netns: list[str]) -> 
     vehicle = read_summary(out)["vehicles"]["1"]
     assert vehicle["keyframes"]["corrections_sent"] > 0
     assert drone.applied == 0
-    assert drone.rejected >= vehicle["keyframes"]["corrections_sent"] - 1 > 0
+    assert drone.rejected >= vehicle["keyframes"]["corrections_sent"] - LATE_CORRECTIONS > 0
     assert vehicle["drone_reported"]["rejected_wrong_key"] > 0
 
 

@@ -519,3 +519,23 @@ def test_ate_aligns_a_rigidly_moved_copy(sample) -> None:
     assert ate(moved[:2], truth) is None
     # Three poses, none within 20 ms of a true one.
     assert ate([(u + 1_000_000_000, T) for u, T in moved[:3]], truth) is None
+
+
+@pytest.mark.parametrize("inline", [True, False], ids=["inline", "threaded"])
+def test_a_keyframe_the_engine_refuses_is_counted_and_fusion_goes_on(sample, inline) -> None:
+    """A keyframe that passes decoding but that the engine refuses (a principal point outside
+    the image) must not stop the station: counted, logged, and the next keyframes are fused."""
+    keyframes = flight(sample, 3)
+    bad = keyframes[0][0]
+    bad.cx = -1.0
+    rig = Rig(inline=inline)
+    for m, _ in keyframes:
+        rig.send(m)
+    if not inline:
+        assert rig.station.drain(30.0)
+        rig.station.stop()
+    counters = rig.state().counters
+    assert counters.failed == 1
+    assert counters.keyframes_fused == 2
+    assert len(rig.corrections()) == 2
+    assert any("not handled" in line and "cx" in line for line in rig.logs)

@@ -143,6 +143,8 @@ class VehicleState:
         self.mesh_utime: int | None = None  # capture time of the last mesh sent to the viewer
         # Written by the fusion thread: the map itself must not be read while a refine runs.
         self.map_blocks = 0
+        # The latest correction as a transform: the drone's odometry frame into the map's.
+        self.T_map_onboard = np.eye(4)
         # Arrival side (LCM thread only).
         self.session = 0
         self.last_keyframe: tuple[int, int] | None = None  # (keyframe_id, utime)
@@ -255,11 +257,18 @@ class Station:
         elif received.channel in (Channel.ODOMETRY, Channel.IMU, Channel.DEPTH):
             state.drone_heard_s = now_s
             if received.channel is Channel.ODOMETRY and self._forward is not None:
-                # The drone's own pose, re-anchored by the corrections it applied: the freshest
-                # corrected pose there is, at the camera's rate.
-                self._forward(message.utime,
-                              pose_to_matrix(message.position_m, message.orientation_xyzw),
-                              message.reset_counter)
+                self._forward_odometry(state, message)
+
+    def _forward_odometry(self, state: VehicleState, message: odometry_t) -> None:
+        """The drone's pose at the camera's rate, corrected: a drone that applies the ground's
+        corrections (its status says so) already sends it re-anchored; for one that does not
+        (no key, a wrong one) the ground's latest correction is applied here."""
+        T = pose_to_matrix(message.position_m, message.orientation_xyzw)
+        drone = state.drone_status
+        if drone is not None and drone.corrections_accepted > 0:
+            self._forward(message.utime, T, message.reset_counter)
+        else:
+            self._forward(message.utime, state.T_map_onboard @ T, state.reset_counter)
 
     def _on_keyframe(self, state: VehicleState, message: depth_keyframe_t, depth: np.ndarray,
                      now_s: float) -> None:
@@ -384,6 +393,7 @@ class Station:
                         self.params.reset_rotation_rad):
             state.reset_counter += 1
             state.counters.resets += 1
+        state.T_map_onboard = T_corrected @ np.linalg.inv(T_onboard)
         if self._publish is not None and state.signer is None:
             state.counters.corrections_unsigned += 1
             return

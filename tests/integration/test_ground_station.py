@@ -539,3 +539,40 @@ def test_a_keyframe_the_engine_refuses_is_counted_and_fusion_goes_on(sample, inl
     assert counters.keyframes_fused == 2
     assert len(rig.corrections()) == 2
     assert any("not handled" in line and "cx" in line for line in rig.logs)
+
+
+def test_forwarded_odometry_is_corrected_once(sample) -> None:
+    """What goes to an autopilot: while the drone applies no correction (its status says none
+    accepted) the ground's latest correction is applied to the drone's odometry; once the drone
+    applies them, its odometry is already corrected and goes out as it is."""
+    keyframes = flight(sample, 3)
+    message, T_truth = keyframes[2]
+    T_drifted = T_truth.copy()
+    T_drifted[0, 3] += DISPLACEMENT_M  # the onboard pose has drifted 4 cm along x
+    keyframes[2] = (keyframe(message.utime, sample[2 * FRAME_STEP][1], message.keyframe_id,
+                             T_drifted), T_truth)
+    forwarded: list[tuple[int, np.ndarray, int]] = []
+    station = Station(QUIET, Viewer(), vehicle_id=VEHICLE, signers={}, publish=None,
+                      inline=True, forward=lambda *pose: forwarded.append(pose))
+    for m, _ in keyframes:
+        station.on_message(channel_name(Channel.KEYFRAME, VEHICLE), m.encode())
+
+    odometry = odometry_t()
+    odometry.utime, odometry.vehicle_id, odometry.frame_id = message.utime + 33_333, VEHICLE, 99
+    odometry.position_m, odometry.orientation_xyzw = matrix_to_pose(T_drifted)
+    odometry.tracking_status, odometry.inlier_fraction = odometry_t.TRACKING_OK, 0.8
+    odometry.reset_counter = 5
+    channel = channel_name(Channel.ODOMETRY, VEHICLE)
+    station.on_message(channel, odometry.encode())
+    utime, T, reset_counter = forwarded[-1]
+    assert utime == odometry.utime
+    assert_near(T, T_truth)  # the drift taken out
+    assert reset_counter == station.vehicles[VEHICLE].reset_counter
+
+    status = status_t()
+    status.utime, status.vehicle_id, status.source = 1, VEHICLE, status_t.SOURCE_DRONE
+    status.corrections_accepted = 1
+    station.on_message(channel_name(Channel.STATUS, VEHICLE), status.encode())
+    station.on_message(channel, odometry.encode())
+    utime, T, reset_counter = forwarded[-1]
+    assert np.allclose(T, T_drifted, atol=ROUNDOFF) and reset_counter == 5

@@ -283,7 +283,10 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
             print(f"    ATE: {a['reason']}")
         print(f"    files: {', '.join(str(Path(v['directory']) / f) for f in v['files'].values())}")
     m = summary["memory"]
-    print(f"  memory: {m['rss_mb']:.0f} MB resident, {m['peak_rss_mb']:.0f} MB peak")
+    after = summary.get("memory_after_fusion")
+    print(f"  memory: {after['rss_mb']:.0f} MB resident after fusing, " if after else "  memory: ",
+          end="")
+    print(f"{m['rss_mb']:.0f} MB at exit, {m['peak_rss_mb']:.0f} MB peak")
     if rrd is not None:
         print(f"  rerun recording: {rrd} (open with: rerun {rrd})")
     print(f"  summary: {out / 'summary.json'}")
@@ -410,6 +413,8 @@ def _finish(station: Station, viewer: Viewer, args: argparse.Namespace, mode: st
     something could not be written (the rest still is)."""
     rrd = _rrd_path(args)
     rc = 0
+    # The process after the whole flight, before the final mesh and the evaluation add theirs.
+    extra = {**extra, "memory_after_fusion": memory()}
     try:
         station.show_final_maps()
         viewer.close()

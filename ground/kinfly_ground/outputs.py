@@ -59,8 +59,10 @@ def tum_lines(poses: Iterable[StampedPose]) -> str:
     for utime, T in poses:
         q = Rotation.from_matrix(T[:3, :3]).as_quat()  # (x, y, z, w)
         t = T[:3, 3]
-        lines.append(f"{utime // 1_000_000}.{utime % 1_000_000:06d} {t[0]:.6f} {t[1]:.6f} "
-                     f"{t[2]:.6f} {q[0]:.7f} {q[1]:.7f} {q[2]:.7f} {q[3]:.7f}\n")
+        # Nanometres and 1e-9 of a quaternion component: given poses (a dataset's) are kept
+        # as they were, far below any error measured.
+        lines.append(f"{utime // 1_000_000}.{utime % 1_000_000:06d} {t[0]:.9f} {t[1]:.9f} "
+                     f"{t[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
     return "".join(lines)
 
 

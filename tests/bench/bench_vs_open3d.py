@@ -74,8 +74,9 @@ def nearest_rgb(depth_stamps: list[float], rgb: list[tuple[float, str]]) -> list
 
 
 def write_tum(path: Path, stamps: list[float], poses: list[np.ndarray]) -> None:
-    lines = [kinfly_eval.tum_line(t, T) for t, T in zip(stamps, poses)]
-    path.write_text("\n".join(lines) + "\n")
+    from kinfly_ground.outputs import tum_lines
+
+    path.write_text(tum_lines((round(t * 1e6), T) for t, T in zip(stamps, poses)))
 
 
 def run_open3d(tum_dir: Path, out_dir: Path, max_frames: int | None) -> dict[str, Any]:

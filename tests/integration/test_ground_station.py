@@ -50,7 +50,8 @@ ROUNDOFF = 1e-9
 # pulls it back) against a 2 cm reset threshold; true onboard poses correct by < 0.7 cm there.
 DISPLACEMENT_M = 0.04
 RESET_TRANSLATION_M = 0.02
-# tum_lines writes 6 decimals of metres and 7 of quaternion components.
+# tum_lines writes 9 decimals of metres and of quaternion components; the quaternion round trip
+# through scipy stays well inside this.
 TUM_TOLERANCE = 1e-6
 # ate() of a rigidly moved copy: Umeyama alignment removes it up to double round-off.
 ALIGNED_ATE_TOLERANCE_M = 1e-6

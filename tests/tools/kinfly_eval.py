@@ -48,10 +48,6 @@ REPLICA_DEPTH_SCALE = 6553.5
 REPLICA_VOXEL_SIZE_M = 0.01
 REPLICA_FRAMES = 4  # the sample holds depth000000.png .. depth000003.png only
 
-# TUM depth and ground truth are not captured together; 20 ms pairs each depth frame with its
-# mocap pose (GT runs at 100 Hz) without ever pairing a frame with a pose a whole frame away.
-ATE_MAX_TIME_DIFF_S = 0.02
-
 # Exact point-to-triangle queries cost memory per point; chunks keep the peak small.
 _MESH_QUERY_CHUNK = 20000
 # The decimated Replica GT mesh lacks some small surfaces the renders show (noise-free rendered
@@ -75,27 +71,16 @@ def data_root(root: Path | None = None) -> Path:
 
 # --- ATE -----------------------------------------------------------------------------------------
 def ate(traj_path: str | Path, gt_path: str | Path) -> dict[str, float | int]:
-    """Absolute trajectory error (translation) of a TUM trajectory against TUM ground truth, after
-    nearest-time association and SE(3) Umeyama alignment (no scale: depth gives metric scale, so
-    a scale error is an error we want to see)."""
-    # evo is imported here so that the mesh tooling works without it (and imports stay fast).
-    from evo.core import metrics, sync
-    from evo.tools import file_interface
+    """The ground station's ATE (kinfly_ground.outputs.ate: nearest-time association within
+    20 ms, SE(3) Umeyama alignment without scale) of a TUM trajectory file against a TUM ground
+    truth file, without the per-pose errors."""
+    # Imported here so that the mesh tooling works without evo (and imports stay fast).
+    from kinfly_ground import outputs
 
-    traj = file_interface.read_tum_trajectory_file(str(traj_path))
-    gt = file_interface.read_tum_trajectory_file(str(gt_path))
-    gt_sync, traj_sync = sync.associate_trajectories(gt, traj, max_diff=ATE_MAX_TIME_DIFF_S)
-    traj_sync.align(gt_sync, correct_scale=False)
-    ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((gt_sync, traj_sync))
-    stats = ape.get_all_statistics()
-    return {
-        "rmse_m": float(stats["rmse"]),
-        "mean_m": float(stats["mean"]),
-        "median_m": float(stats["median"]),
-        "max_m": float(stats["max"]),
-        "matched_poses": int(traj_sync.num_poses),
-    }
+    result = outputs.ate(outputs.read_tum(Path(traj_path)), outputs.read_tum(Path(gt_path)))
+    if result is None:
+        raise ValueError(f"{traj_path}: fewer than 3 poses match {gt_path} in time")
+    return {k: v for k, v in result.items() if k != "errors"}
 
 
 def depth_frame_count(tum_dir: str | Path) -> int:
@@ -105,15 +90,6 @@ def depth_frame_count(tum_dir: str | Path) -> int:
 
 
 # --- Replica -> TUM layout -----------------------------------------------------------------------
-def tum_line(t_s: float, T_world_cam: np.ndarray) -> str:
-    """One TUM trajectory line `t tx ty tz qx qy qz qw` for a 4x4 camera-to-world matrix."""
-    from scipy.spatial.transform import Rotation
-
-    qx, qy, qz, qw = Rotation.from_matrix(T_world_cam[:3, :3]).as_quat()  # scipy order: x y z w
-    tx, ty, tz = T_world_cam[:3, 3]
-    return f"{t_s:.6f} {tx:.9f} {ty:.9f} {tz:.9f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
-
-
 def replica_to_tum(replica_dir: str | Path, out_dir: str | Path,
                    n_frames: int = REPLICA_FRAMES) -> dict[str, Path]:
     """Lays the Replica office0 sample out as a TUM folder kinfly-fuse can read.
@@ -122,6 +98,8 @@ def replica_to_tum(replica_dir: str | Path, out_dir: str | Path,
     them with timestamps i * 1.0 s, and poses.tum holds the matching traj.txt poses (row-major 4x4
     camera-to-world, OpenCV axes: already kinfly's camera convention, so no axis change)."""
     replica_dir, out_dir = Path(replica_dir).resolve(), Path(out_dir)
+    from kinfly_ground.outputs import tum_lines
+
     results = replica_dir / "office0" / "results"
     matrices = np.loadtxt(replica_dir / "office0" / "traj.txt").reshape(-1, 4, 4)
     if n_frames > len(matrices):
@@ -130,7 +108,7 @@ def replica_to_tum(replica_dir: str | Path, out_dir: str | Path,
     (out_dir / "depth").mkdir(parents=True, exist_ok=True)
     depth_lines = ["# depth maps", "# Replica office0 (converted by kinfly_eval.py)",
                    "# timestamp filename"]
-    pose_lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, from traj.txt)"]
+    poses_stamped = []
     for i in range(n_frames):
         source = results / f"depth{i:06d}.png"
         if not source.is_file():
@@ -139,12 +117,14 @@ def replica_to_tum(replica_dir: str | Path, out_dir: str | Path,
         if link.is_symlink() or link.exists():
             link.unlink()
         link.symlink_to(source)
-        t_s = float(i)  # Replica has no capture times; any monotonic clock pairs frames and poses
-        depth_lines.append(f"{t_s:.6f} depth/{i:06d}.png")
-        pose_lines.append(tum_line(t_s, matrices[i]))
+        # Replica has no capture times; any monotonic clock (here 1 s a frame) pairs frames and
+        # poses.
+        depth_lines.append(f"{i}.000000 depth/{i:06d}.png")
+        poses_stamped.append((i * 1_000_000, matrices[i]))
     depth_txt, poses = out_dir / "depth.txt", out_dir / "poses.tum"
     depth_txt.write_text("\n".join(depth_lines) + "\n")
-    poses.write_text("\n".join(pose_lines) + "\n")
+    poses.write_text("# timestamp tx ty tz qx qy qz qw (camera-to-world, from traj.txt)\n"
+                     + tum_lines(poses_stamped))
     return {"dir": out_dir, "depth_txt": depth_txt, "poses": poses}
 
 

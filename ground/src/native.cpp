@@ -192,13 +192,7 @@ class PyFusion {
  public:
   explicit PyFusion(const FusionParams& p) : threads_(p.threads) {
     if (p.threads < 1) throw nb::value_error("threads must be at least 1");
-    kinfly::PinholeCamera camera;
-    camera.width = p.width;
-    camera.height = p.height;
-    camera.fx = p.fx;
-    camera.fy = p.fy;
-    camera.cx = p.cx;
-    camera.cy = p.cy;
+    const kinfly::PinholeCamera camera{p.fx, p.fy, p.cx, p.cy, p.width, p.height};
     if (const std::string why = camera.validate(); !why.empty()) throw nb::value_error(why.c_str());
     kinfly::HashedVolume::Params volume_params;
     volume_params.voxel_size_m = p.voxel_size_m;

@@ -14,14 +14,7 @@ Pose readPose(const double position_m[3], const double orientation_xyzw[4]) {
 }
 
 PinholeCamera cameraOf(const depth_keyframe_t& message) {
-  PinholeCamera camera;
-  camera.fx = message.fx;
-  camera.fy = message.fy;
-  camera.cx = message.cx;
-  camera.cy = message.cy;
-  camera.width = message.width;
-  camera.height = message.height;
-  return camera;
+  return {message.fx, message.fy, message.cx, message.cy, message.width, message.height};
 }
 
 CodecResult encodeDepth(DepthCodec& codec, ImageView<const uint16_t> raw,

@@ -16,18 +16,16 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from . import __version__
 from .channels import ALL_VEHICLES_REGEX, MAX_VEHICLE_ID, Channel, channel_name, \
     vehicle_channels_regex
-from .outputs import (OutputError, ate, check_writable, memory, read_tum,
-                      write_error_plot, write_json, write_tum, write_atomically)
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
+from .outputs import (OutputError, ate, check_writable, memory, read_tum, write_atomically,
+                      write_error_plot, write_json, write_tum)
 from .signing import KeyFileError, Signer, load_key_file
 from .station import Segment, Station, StationParams, VehicleState, percentile
 from .viewer import Viewer, ViewerError
@@ -255,6 +253,7 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
         vehicles[str(vid)] = {"directory": str(where), **_vehicle_summary(state, where, truth)}
     rejects = dataclasses.asdict(station.receiver.rejects)
     rejects["too_many_vehicles"] = station.rejected_too_many_vehicles
+    rejects["handler_errors"] = station.handler_errors
     summary = {
         "kinfly_ground": __version__, "mode": mode, "duration_s": time.monotonic() - started,
         "vehicles": vehicles, "rejected_messages": rejects, "memory": memory(),

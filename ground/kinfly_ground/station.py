@@ -21,7 +21,6 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -446,9 +445,8 @@ class Station:
         """Ground truth goes with the map of the session it arrived in: a restarted drone's
         poses are in another frame, and a replayed log repeats the capture times."""
         with state.lock:
-            pending, state.pending_truth = state.pending_truth, []
-            later = [entry for entry in pending if entry[0] > state.worker_session]
-            state.pending_truth = later
+            pending = [e for e in state.pending_truth if e[0] <= state.worker_session]
+            state.pending_truth = [e for e in state.pending_truth if e[0] > state.worker_session]
         for session, utime, T in pending:
             if session == state.worker_session:
                 state.segment.ground_truth.append((utime, T))

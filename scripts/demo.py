@@ -6,12 +6,19 @@ the flight as heard on the link. They talk LCM over UDP multicast inside a priva
 namespace (loopback only, with the multicast route), set up here and removed at the end whatever
 happens. The outputs land in --out; the ground station prints the summary.
 
+The demo succeeds only when the flight did: every keyframe the drone sent was fused (beyond
+--max-missing), every output is there and the ATE could be computed. Otherwise it says which
+and exits 1. Nothing in it waits a fixed time: it waits for the ground station to say it is
+listening, for the drone to exit (it waits for the ground's last corrections itself), and for
+the ground station to report the drone's final status.
+
 Run with the project's .venv python (the Makefile does). Needs root or passwordless sudo for the
 namespace. The integration tests fly their own variations through fly()."""
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import re
 import shutil
 import signal
@@ -31,9 +38,24 @@ FW_CONFIG = REPO_ROOT / "firmware" / "config" / "kinfly-fw.toml"
 SAMPLE_LOG = REPO_ROOT / "tests" / "data" / "tum_teddy_sample.lcmlog"
 VEHICLE_ID = 1
 LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
-GROUND_READY_TIMEOUT_S = 60.0   # the ground imports rerun and evo before it listens
+# Bounds on waits for events, not waits: a loaded laptop may take long, a broken one forever.
+GROUND_READY_TIMEOUT_S = 120.0  # the ground imports rerun and evo and sets up its viewer
+DRONE_FINAL_TIMEOUT_S = 30.0    # the drone's last status reaching the ground after it exits
 GROUND_EXIT_TIMEOUT_S = 120.0   # drain the queue, mesh, evaluate, write
-SETTLE_S = 1.0                  # after the drone ends: the last corrections and statuses
+DRONE_STOPPED = "the drone stopped"  # the ground's line when it hears a drone's final status
+# The demo's files, in the order they are listed, with what each is.
+OUTPUTS = {
+    "mesh.ply": "the full-resolution map (binary PLY; MeshLab, Blender)",
+    "session.rrd": "the rerun recording (open it with rerun)",
+    "trajectory_onboard.tum": "each keyframe's pose as the drone sent it",
+    "trajectory_corrected.tum": "each keyframe's pose as the ground refined it",
+    "trajectory_ground_truth.tum": "the motion capture that came with the log",
+    "ate.png": "both trajectories' error against the ground truth over time",
+    "summary.json": "keyframes, losses, latency, ATE, memory",
+    "flight.lcmlog": "every message on the link (kinfly-ground replay reads it)",
+    "drone_trajectory.tum": "every pose the drone published",
+    "vehicle.key": "the signing key made for this flight (kinfly-keygen; secret on a real drone)",
+}
 
 
 @dataclasses.dataclass
@@ -69,63 +91,141 @@ def drone_command(log: Path, *, key: Path | None, trajectory: Path | None = None
     return command
 
 
-def _echo(stream, prefix: str, lines: list[str], ready: threading.Event | None = None,
-          quiet: bool = False) -> None:
+def _echo(stream, prefix: str, lines: list[str], quiet: bool,
+          events: threading.Condition | None = None) -> None:
     for line in stream:
-        lines.append(line)
+        if events is None:
+            lines.append(line)
+        else:
+            with events:
+                lines.append(line)
+                events.notify_all()
         if not quiet:
             sys.stdout.write(f"{prefix}{line}")
             sys.stdout.flush()
-        if ready is not None and "listening on" in line:
-            ready.set()
+
+
+class _Ground:
+    """The ground station's process and its output as it comes, so that the flight can wait for
+    what it says."""
+
+    def __init__(self, command: Sequence[str], quiet: bool) -> None:
+        self.process = subprocess.Popen(command, stdout=subprocess.PIPE,
+                                        stderr=subprocess.STDOUT, text=True,
+                                        start_new_session=True)
+        self.lines: list[str] = []
+        self._events = threading.Condition()
+        self._echo = threading.Thread(target=_echo, args=(self.process.stdout, "[ground] ",
+                                                          self.lines, quiet, self._events),
+                                      daemon=True)
+        self._echo.start()
+
+    def wait_for(self, text: str, count: int, timeout_s: float) -> bool:
+        """Until COUNT lines contain TEXT, the process exits, or TIMEOUT_S passes."""
+        deadline = time.monotonic() + timeout_s
+        with self._events:
+            while sum(text in line for line in self.lines) < count:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._echo.is_alive():
+                    return False
+                self._events.wait(min(left, 0.5))
+        return True
+
+    def output(self) -> str:
+        with self._events:
+            return "".join(self.lines)
+
+    def finish(self) -> int:
+        self._echo.join()
+        return self.process.returncode
 
 
 def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]], *,
         record: Path | None = None, during: Callable[[], None] | None = None,
-        quiet: bool = False) -> Flight:
-    """Starts the GROUND command in the namespace, waits until it listens, runs each of DRONES
-    to its end in turn (a second one is the drone restarting), calls DURING while the last one
-    flies, then stops the ground with SIGTERM, as Ctrl-C would."""
+        quiet: bool = False, drone_heard: bool = True) -> Flight:
+    """Starts the GROUND command in the namespace, waits until it says it is listening, runs each
+    of DRONES to its end in turn (a second one is the drone restarting), calls DURING while the
+    last one flies, then stops the ground with SIGTERM, as Ctrl-C would. With DRONE_HEARD (the
+    ground serves the drones' vehicle) each drone's final status must have reached the ground
+    first: then every keyframe it sent has arrived or is lost, and the drone itself waited for
+    the ground's corrections before it exited."""
     logger = None
     if record is not None:
         logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", LCM_URL,
                                    str(record)], stdout=subprocess.DEVNULL,
                                   start_new_session=True)
-    ground_proc = subprocess.Popen([*netns, *ground], stdout=subprocess.PIPE,
-                                   stderr=subprocess.STDOUT, text=True,
-                                   start_new_session=True)
-    ground_lines: list[str] = []
+    ground_proc = _Ground([*netns, *ground], quiet)
     drone_lines: list[str] = []
-    ready = threading.Event()
-    echo = threading.Thread(target=_echo, args=(ground_proc.stdout, "[ground] ", ground_lines,
-                                                ready, quiet), daemon=True)
-    echo.start()
     drone_rcs: list[int] = []
     try:
-        deadline = time.monotonic() + GROUND_READY_TIMEOUT_S
-        while not ready.wait(0.1) and ground_proc.poll() is None and time.monotonic() < deadline:
-            pass
-        if not ready.is_set():
-            echo.join(1.0)
+        if not ground_proc.wait_for("listening on", 1, GROUND_READY_TIMEOUT_S):
             raise RuntimeError("the ground station did not start listening:\n"
-                               + "".join(ground_lines))
+                               + ground_proc.output())
         for i, drone in enumerate(drones):
             drone_proc = subprocess.Popen([*netns, *drone], stdout=subprocess.PIPE,
                                           stderr=subprocess.STDOUT, text=True)
             if during is not None and i == len(drones) - 1:
                 during()
-            _echo(drone_proc.stdout, "[drone]  ", drone_lines, quiet=quiet)
+            _echo(drone_proc.stdout, "[drone]  ", drone_lines, quiet)
             drone_rcs.append(drone_proc.wait())
-        time.sleep(SETTLE_S)
+            if drone_heard and drone_rcs[-1] == 0 and not ground_proc.wait_for(
+                    DRONE_STOPPED, i + 1, DRONE_FINAL_TIMEOUT_S):
+                print(f"demo: the ground station did not hear drone run {i + 1}'s final status "
+                      f"within {DRONE_FINAL_TIMEOUT_S:.0f} s", file=sys.stderr)
     finally:
         # As Ctrl-C would: the ground finishes its queue and writes the outputs.
-        send_signal(ground_proc, signal.SIGTERM)
-        ground_rc = ground_proc.wait(GROUND_EXIT_TIMEOUT_S)
-        echo.join()
+        send_signal(ground_proc.process, signal.SIGTERM)
+        ground_proc.process.wait(GROUND_EXIT_TIMEOUT_S)
+        ground_rc = ground_proc.finish()
         if logger is not None:
             send_signal(logger, signal.SIGINT)
             logger.wait(10)
-    return Flight(ground_rc, drone_rcs, "".join(ground_lines), "".join(drone_lines))
+    return Flight(ground_rc, drone_rcs, ground_proc.output(), "".join(drone_lines))
+
+
+def check_flight(out: Path, max_missing: int) -> list[str]:
+    """What is wrong with the flight whose outputs are in OUT: an empty list when it mapped every
+    keyframe the drone sent (up to MAX_MISSING), wrote every output and has an ATE."""
+    summary_path = out / "summary.json"
+    if not summary_path.is_file():
+        return [f"{summary_path} was not written"]
+    summary = json.loads(summary_path.read_text())
+    vehicle = summary["vehicles"].get(str(VEHICLE_ID))
+    if vehicle is None:
+        return [f"the ground station received nothing from vehicle {VEHICLE_ID}"]
+    problems = []
+    k, drone = vehicle["keyframes"], vehicle.get("drone_reported")
+    if drone is None or not drone["final"]:
+        problems.append("the ground station never heard the drone's final status, so what it "
+                        "sent is unknown")
+    else:
+        missing = drone["keyframes_sent"] - k["keyframes_fused"]
+        if missing > max_missing:
+            problems.append(
+                f"the drone sent {drone['keyframes_sent']} keyframes but the ground fused "
+                f"{k['keyframes_fused']}: {k['lost_on_link']} lost on the link, "
+                f"{k['keyframes_dropped']} dropped from the ground's queue, "
+                f"{k['keyframes_lost']} not refined, {k['failed']} failed (at most "
+                f"{max_missing} may be missing)")
+    for name in OUTPUTS:
+        path = out / name
+        if name == "vehicle.key":
+            continue
+        if not path.is_file() or path.stat().st_size == 0:
+            problems.append(f"{name} is missing or empty")
+    if not vehicle["ate"]["available"]:
+        problems.append(f"no ATE: {vehicle['ate']['reason']}")
+    return problems
+
+
+def list_outputs(out: Path) -> str:
+    """The files that are in OUT, each with its size and what it is."""
+    rows = []
+    for name, what in OUTPUTS.items():
+        path = out / name
+        if path.is_file():
+            rows.append(f"  {name:<28} {path.stat().st_size / 1e3:9.1f} KB  {what}")
+    return "\n".join(rows)
 
 
 def main() -> int:
@@ -133,6 +233,9 @@ def main() -> int:
     p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "demo")
     p.add_argument("--log", type=Path, default=SAMPLE_LOG,
                    help="the flight log the drone replays (default: the shipped TUM sample)")
+    p.add_argument("--max-missing", type=int, default=0, metavar="N",
+                   help="keyframes the drone sent that the ground may fail to fuse before the "
+                        "demo fails (default 0: on loopback none is lost)")
     args = p.parse_args()
 
     out = args.out
@@ -149,17 +252,19 @@ def main() -> int:
     except NetnsUnavailable as error:
         print(f"demo: {error}", file=sys.stderr)
         return 1
+    print()
+    problems = []
     if flight.drone_rcs != [0] or flight.ground_rc != 0:
-        print(f"demo: kinfly-fw exited {flight.drone_rcs}, kinfly-ground {flight.ground_rc}",
+        problems.append(f"kinfly-fw exited {flight.drone_rcs}, kinfly-ground {flight.ground_rc}")
+    problems += check_flight(out, args.max_missing)
+    applied = re.search(r"(\d+) corrections applied", flight.drone_output)
+    print(f"demo: {time.monotonic() - started:.0f} s; the drone applied "
+          f"{applied.group(1) if applied else 'none'} of the ground's corrections.")
+    print(f"demo: files in {out}:\n{list_outputs(out)}")
+    if problems:
+        print("demo: FAILED:\n" + "\n".join(f"  - {problem}" for problem in problems),
               file=sys.stderr)
         return 1
-    applied = re.search(r"(\d+) corrections applied", flight.drone_output)
-    print()
-    print(f"demo: done in {time.monotonic() - started:.0f} s; the drone applied "
-          f"{applied.group(1) if applied else '?'} of the ground's corrections.")
-    print(f"demo: outputs in {out}: mesh.ply, trajectory_onboard.tum, trajectory_corrected.tum, "
-          "session.rrd, summary.json, ate.png; the flight as heard on the link: flight.lcmlog "
-          "(kinfly-ground replay it)")
     print(f"demo: look at it with `{Path(sys.executable).parent / 'rerun'} {out / 'session.rrd'}`")
     return 0
 

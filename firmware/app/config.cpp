@@ -112,6 +112,9 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--link.timeout_s", c->link_timeout_s,
                   "ground station unheard this long: link stale [s]")
       ->capture_default_str();
+  app->add_option("--link.final_wait_s", c->final_wait_s,
+                  "when the source ends: the longest wait for the ground's last corrections [s]")
+      ->capture_default_str();
   app->add_option("--corrections.history_keyframes", c->corrections.history_keyframes,
                   "keyframes whose onboard pose is kept for corrections")
       ->capture_default_str();
@@ -165,6 +168,7 @@ std::string FirmwareConfig::validate() const {
   range("link.keyframe_queue", keyframe_queue, 1, 64, false);
   range("link.status_rate_hz", status_rate_hz, 1, 100, false);
   range("link.timeout_s", link_timeout_s, 0, 60, true);
+  range("link.final_wait_s", final_wait_s, 0, 60, false);
   if (why.tellp() == 0) {
     if (std::string k = keyframe.validate(); !k.empty()) why << k;
   }

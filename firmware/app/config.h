@@ -50,6 +50,9 @@ struct FirmwareConfig {
   int keyframe_queue = 4;               // [1, 64] keyframes waiting for the link
   double status_rate_hz = 10.0;         // [Hz] [1, 100]
   double link_timeout_s = 2.0;          // [s] (0, 60] ground unheard this long: link stale
+  // [s] [0, 60] when the source ends (a replayed flight), how long at most to wait for the
+  // ground's corrections of the last keyframes before exiting
+  double final_wait_s = 5.0;
   CorrectionAnchor::Params corrections;
   // [output]
   std::string trajectory_out;           // TUM file of the published poses, written at exit

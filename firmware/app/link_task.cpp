@@ -7,15 +7,19 @@
 
 namespace kinfly::fw {
 
-LinkTask::LinkTask(const FirmwareConfig& config, Publisher* publisher,
-                   std::optional<link::Key> key, SharedAnchor* anchor, Counters* counters,
-                   BoundedQueue<KeyframeJob>* keyframes,
+LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
+                   SharedAnchor* anchor, Counters* counters, BoundedQueue<KeyframeJob>* keyframes,
                    const BoundedQueue<DepthCapture>* capture_queue, const PinholeCamera& camera,
                    double depth_scale_m)
-    : config_(config), publisher_(publisher), anchor_(anchor), counters_(counters),
-      keyframes_(keyframes), capture_queue_(capture_queue), camera_(camera),
-      depth_scale_m_(depth_scale_m), codec_(DepthCodec::Params()),
-      job_(withDepthImage<KeyframeJob>(camera)), watch_(config.sensor) {
+    : config_(config), anchor_(anchor), counters_(counters), keyframes_(keyframes),
+      capture_queue_(capture_queue), camera_(camera), depth_scale_m_(depth_scale_m),
+      codec_(DepthCodec::Params()), job_(withDepthImage<KeyframeJob>(camera)),
+      watch_(config.sensor),
+      publisher_("link", config.lcm_url, config.vehicle_id, [this](lcm::LCM& lcm) {
+        lcm_subscribe(lcm.getUnderlyingLCM(),
+                      link::vehicleChannelsRegex(config_.vehicle_id).c_str(), &LinkTask::onMessage,
+                      this);
+      }) {
   if (key) {
     link::VerifierParams verifier;
     verifier.window_s = config.signing_window_s;
@@ -24,28 +28,55 @@ LinkTask::LinkTask(const FirmwareConfig& config, Publisher* publisher,
   codec_.reserve(camera.width, camera.height, &message_.payload);
   status_.vehicle_id = config.vehicle_id;
   status_.source = status_t::SOURCE_DRONE;
-  lcm_subscribe(publisher_->lcm().getUnderlyingLCM(),
-                link::vehicleChannelsRegex(config.vehicle_id).c_str(), &LinkTask::onMessage,
-                this);
 }
 
 void LinkTask::run() {
-  const auto status_period = std::chrono::duration_cast<Clock::duration>(
-      std::chrono::duration<double>(1.0 / config_.status_rate_hz));
   Clock::time_point next_status = Clock::now();
-  while (!stop_) {
-    publisher_->lcm().handleTimeout(10);
-    while (keyframes_->pop(&job_, std::chrono::milliseconds(0))) send(job_);
-    if (Clock::now() >= next_status) {
-      watchSensor();
-      publishStatus();
-      next_status += status_period;
-    }
-  }
+  while (!stop_) serve(&next_status);
   // What the odometry selected before it stopped still goes out (at most a queue's worth).
   while (keyframes_->pop(&job_, std::chrono::milliseconds(0))) send(job_);
+  if (await_corrections_) awaitCorrections();
   watchSensor();
-  publishStatus();
+  publishStatus(status_t::RUN_FINAL);
+}
+
+void LinkTask::serve(Clock::time_point* next_status) {
+  using namespace std::chrono_literals;
+  publisher_.maintain();
+  if (lcm::LCM* lcm = publisher_.lcm()) {
+    lcm->handleTimeout(10);
+  } else if (keyframes_->pop(&job_, 10ms)) {  // nothing to hear: wait for work instead
+    send(job_);
+  }
+  while (keyframes_->pop(&job_, 0ms)) send(job_);
+  if (Clock::now() >= *next_status) {
+    watchSensor();
+    publishStatus();
+    *next_status += std::chrono::duration_cast<Clock::duration>(
+        std::chrono::duration<double>(1.0 / config_.status_rate_hz));
+  }
+}
+
+bool LinkTask::groundHeard() const {
+  return ground_status_heard_ && Clock::now() - last_ground_heard_ <=
+                                     std::chrono::duration<double>(config_.link_timeout_s);
+}
+
+void LinkTask::awaitCorrections() {
+  const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                           std::chrono::duration<double>(config_.final_wait_s));
+  // Only for a ground station that is there: one never heard, or gone quiet, sends nothing.
+  if (last_keyframe_sent_ < 0 || !groundHeard()) return;
+  spdlog::info("link: waiting up to {:.1f} s for the ground's corrections of the last keyframes",
+               config_.final_wait_s);
+  Clock::time_point next_status = Clock::now();
+  while (!g_signalled && Clock::now() < deadline && groundHeard() &&
+         ground_status_.last_keyframe_id < last_keyframe_sent_)
+    serve(&next_status);
+  if (ground_status_.last_keyframe_id < last_keyframe_sent_)
+    spdlog::warn("link: the ground station had not answered keyframe {} (its last: {}) when the "
+                 "wait ended",
+                 last_keyframe_sent_, ground_status_.last_keyframe_id);
 }
 
 link::RejectCounters LinkTask::rejects() const {
@@ -63,7 +94,7 @@ void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
   for (link::Channel own : {link::Channel::kOdometry, link::Channel::kKeyframe,
                             link::Channel::kStatus, link::Channel::kGroundTruth,
                             link::Channel::kImu, link::Channel::kDepth})
-    if (publisher_->channel(own) == channel) return;
+    if (publisher_.channel(own) == channel) return;
   const double now_s = secondsSince(began_);
   const auto parsed = link::parseChannel(channel);
   if (!parsed) {
@@ -72,7 +103,7 @@ void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
     return;
   }
   if (parsed->channel == link::Channel::kGroundStatus) {
-    last_ground_heard_ = Clock::now();
+    onGroundStatus(rbuf);
     return;
   }
   if (parsed->channel != link::Channel::kCorrection) return;  // another drone's traffic
@@ -105,6 +136,19 @@ void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
   }
 }
 
+void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {
+  last_ground_heard_ = Clock::now();
+  const link::DecodeResult r =
+      link::decodeMessage(rbuf->data, rbuf->data_size, link::DecodeBounds(), &ground_status_);
+  if (!r.ok() || ground_status_.vehicle_id != config_.vehicle_id ||
+      ground_status_.source != status_t::SOURCE_GROUND) {
+    ++rejects_.malformed;
+    ground_status_heard_ = false;
+    return;
+  }
+  ground_status_heard_ = true;
+}
+
 void LinkTask::send(const KeyframeJob& job) {
   depth_keyframe_t& m = message_;
   m.utime = job.utime;
@@ -119,7 +163,7 @@ void LinkTask::send(const KeyframeJob& job) {
     spdlog::error("link: keyframe {} not encoded: {}", job.keyframe_id, toString(r.status));
     return;
   }
-  if (!publisher_->publish(link::Channel::kKeyframe, m) || !network_up_) {
+  if (!publisher_.up() || !publisher_.publish(link::Channel::kKeyframe, m)) {
     ++counters_->keyframes_failed;
     if (send_log_.allow(secondsSince(began_)))
       spdlog::warn("link: keyframe {} not sent: the network is down ({} more since the last "
@@ -128,6 +172,7 @@ void LinkTask::send(const KeyframeJob& job) {
     return;
   }
   ++counters_->keyframes_sent;
+  last_keyframe_sent_ = job.keyframe_id;
 }
 
 void LinkTask::watchSensor() {
@@ -147,8 +192,9 @@ void LinkTask::watchSensor() {
   }
 }
 
-void LinkTask::publishStatus() {
+void LinkTask::publishStatus(int8_t run_state) {
   status_t& s = status_;
+  s.run_state = run_state;
   s.utime = link::wallClockUtime();
   const double elapsed_s = secondsSince(rate_window_start_);
   if (elapsed_s >= 1.0) {
@@ -170,6 +216,7 @@ void LinkTask::publishStatus() {
   s.queue_drops = capture_queue_->dropped();
   s.keyframes_sent = counters_->keyframes_sent;
   s.keyframes_dropped = counters_->keyframes_failed + keyframes_->dropped();
+  s.last_keyframe_id = last_keyframe_sent_;
   s.tracking_state = counters_->tracking;
   const auto since = Clock::now() - last_ground_heard_;
   s.link_state = last_ground_heard_ == Clock::time_point()
@@ -190,13 +237,7 @@ void LinkTask::publishStatus() {
   rejects().writeTo(&s);
   s.corrections_accepted = accepted() - counters_->corrections_unknown;
   s.corrections_unknown_keyframe = counters_->corrections_unknown;
-  const bool was_up = network_up_;
-  network_up_ = publisher_->publish(link::Channel::kStatus, s);
-  if (was_up && !network_up_)
-    spdlog::warn("link: the network is down (LCM cannot send): keyframes are dropped until it "
-                 "is back");
-  else if (!was_up && network_up_)
-    spdlog::info("link: the network is back");
+  publisher_.publish(link::Channel::kStatus, s);  // the publisher logs a network going down
 }
 
 }  // namespace kinfly::fw

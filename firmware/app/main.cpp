@@ -28,12 +28,16 @@
 namespace kinfly::fw {
 
 std::atomic<bool> g_stop{false};
+std::atomic<bool> g_signalled{false};
 
 namespace {
 
 constexpr const char* kVersion = "0.1.0";
 
-void onSignal(int) { g_stop = true; }
+void onSignal(int) {
+  g_signalled = true;
+  g_stop = true;
+}
 
 std::unique_ptr<DepthSource> openSource(const FirmwareConfig& config, std::string* why) {
   if (config.source_kind == "dataset") {
@@ -136,15 +140,6 @@ int run(int argc, char** argv) {
     spdlog::critical("odometry: {}", why);
     return 2;
   }
-  // One LCM instance per sending thread (publisher.h says why).
-  std::unique_ptr<Publisher> odometry_out = Publisher::open(config.lcm_url, config.vehicle_id, &why);
-  std::unique_ptr<Publisher> link_out =
-      odometry_out ? Publisher::open(config.lcm_url, config.vehicle_id, &why) : nullptr;
-  if (!link_out) {
-    spdlog::critical("{}", why);
-    return 2;
-  }
-
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   spdlog::info("kinfly-fw {} vehicle {}: {}, {}x{} -> {}x{} odometry", kVersion,
@@ -162,10 +157,11 @@ int run(int argc, char** argv) {
                                            [&] { return withDepthImage<DepthCapture>(camera); });
   BoundedQueue<KeyframeJob> keyframe_queue(static_cast<size_t>(config.keyframe_queue),
                                            [&] { return withDepthImage<KeyframeJob>(camera); });
-  OdometryTask odometry(config, camera, volume_params, pipeline_params, odometry_out.get(),
-                        &anchor, &counters, &capture_queue, &keyframe_queue);
-  LinkTask link(config, link_out.get(), key, &anchor, &counters, &keyframe_queue,
-                &capture_queue, camera, source->depthScaleM());
+  // Each task owns its LCM instance (publisher.h says why); neither needs the network to start.
+  OdometryTask odometry(config, camera, volume_params, pipeline_params, &anchor, &counters,
+                        &capture_queue, &keyframe_queue);
+  LinkTask link(config, key, &anchor, &counters, &keyframe_queue, &capture_queue, camera,
+                source->depthScaleM());
 
   std::thread capture_thread([&] {
     nameThisThread("kfw-capture");
@@ -180,10 +176,11 @@ int run(int argc, char** argv) {
     odometry.run();
   });
   odometry_thread.join();
-  const bool interrupted = g_stop.exchange(true);
+  g_stop = true;
+  const bool interrupted = g_signalled;
   capture_queue.close();
   capture_thread.join();
-  link.stop();
+  link.stop(/*await_corrections=*/!interrupted);
   link_thread.join();
 
   const bool written =

@@ -38,12 +38,13 @@ std::string OdometryTask::engineParams(const FirmwareConfig& config, const Pinho
 
 OdometryTask::OdometryTask(const FirmwareConfig& config, const PinholeCamera& camera,
                            const DenseVolume::Params& volume,
-                           const FusionPipeline::Params& pipeline, Publisher* publisher,
-                           SharedAnchor* anchor, Counters* counters,
+                           const FusionPipeline::Params& pipeline, SharedAnchor* anchor,
+                           Counters* counters,
                            BoundedQueue<DepthCapture>* frames,
                            BoundedQueue<KeyframeJob>* keyframes)
     : config_(config), volume_(volume), pipeline_(camera, pipeline, &volume_),
-      selector_(config.keyframe), publisher_(publisher), anchor_(anchor), counters_(counters),
+      selector_(config.keyframe), publisher_("odometry", config.lcm_url, config.vehicle_id),
+      anchor_(anchor), counters_(counters),
       frames_(frames), keyframes_(keyframes), job_(withDepthImage<KeyframeJob>(camera)) {
   odometry_.vehicle_id = config.vehicle_id;
   truth_.vehicle_id = config.vehicle_id;
@@ -87,18 +88,15 @@ void OdometryTask::process(const DepthCapture& capture) {
   odometry_.tracking_status = trackingCode(r.status);
   odometry_.inlier_fraction = r.inlier_fraction;
   odometry_.residual_m = r.rmse_m;
-  bool published = publisher_->publish(link::Channel::kOdometry, odometry_);
+  // Not sent while the network is down: the publisher says so once, the pose still counts.
+  publisher_.publish(link::Channel::kOdometry, odometry_);
   if (capture.has_ground_truth) {
     truth_.utime = capture.utime;
     link::writePose(capture.T_world_cam_truth, truth_.position_m, truth_.orientation_xyzw);
-    published = publisher_->publish(link::Channel::kGroundTruth, truth_) && published;
+    publisher_.publish(link::Channel::kGroundTruth, truth_);
     if (!config_.ground_truth_out.empty())
       ground_truth_.push_back({static_cast<double>(r.utime) * 1e-6, capture.T_world_cam_truth});
   }
-  if (!published && publish_log_.allow(secondsSince(began_)))
-    spdlog::warn("odometry: LCM could not send the pose: the network is down ({} more since "
-                 "the last report)",
-                 publish_log_.suppressed());
   if (!config_.trajectory_out.empty())
     trajectory_.push_back({static_cast<double>(r.utime) * 1e-6, T_world_cam});
   if (!keyframe) return;

@@ -32,7 +32,7 @@ class OdometryTask {
   // Every buffer is allocated here, none per frame.
   OdometryTask(const FirmwareConfig& config, const PinholeCamera& camera,
                const DenseVolume::Params& volume, const FusionPipeline::Params& pipeline,
-               Publisher* publisher, SharedAnchor* anchor, Counters* counters,
+               SharedAnchor* anchor, Counters* counters,
                BoundedQueue<DepthCapture>* frames, BoundedQueue<KeyframeJob>* keyframes);
 
   // Until g_stop, or the frame queue is closed and empty.
@@ -49,7 +49,7 @@ class OdometryTask {
   DenseVolume volume_;
   FusionPipeline pipeline_;
   KeyframeSelector selector_;
-  Publisher* publisher_;
+  Publisher publisher_;
   SharedAnchor* anchor_;
   Counters* counters_;
   BoundedQueue<DepthCapture>* frames_;
@@ -59,7 +59,7 @@ class OdometryTask {
   KeyframeJob job_;
   int64_t next_keyframe_id_ = 0;
   Clock::time_point began_ = Clock::now();
-  LogThrottle lost_log_, publish_log_, keyframe_drop_log_;
+  LogThrottle lost_log_, keyframe_drop_log_;
   std::vector<StampedPose> trajectory_, ground_truth_;
 };
 

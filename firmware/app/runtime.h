@@ -57,6 +57,8 @@ Item withDepthImage(const PinholeCamera& camera) {
 
 // Set by SIGINT/SIGTERM (and by main when the source ends); every loop checks it.
 extern std::atomic<bool> g_stop;
+// Set by SIGINT/SIGTERM only: the drone was told to stop, as opposed to a source that ended.
+extern std::atomic<bool> g_signalled;
 
 inline double secondsSince(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();

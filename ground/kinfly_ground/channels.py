@@ -51,9 +51,10 @@ def parse_channel(name: str) -> ParsedChannel | None:
     return ParsedChannel(channel, vehicle_id)
 
 
-def vehicle_channels_regex(vehicle_id: int) -> str:
-    """LCM subscription pattern for every channel of one vehicle."""
-    return f"{_PREFIX}{vehicle_id}_.*"
-
-
-ALL_VEHICLES_REGEX = f"{_PREFIX}[0-9]+_.*"
+def channels_regex(vehicle_id: int | None) -> tuple[str, str]:
+    """LCM subscription patterns (LCM anchors them) for the keyframes and for every other
+    channel of one vehicle, or of every vehicle when VEHICLE_ID is None: two subscriptions,
+    so that each has its own queue in LCM."""
+    vid = "[0-9]+" if vehicle_id is None else str(vehicle_id)
+    keyframe = Channel.KEYFRAME.value
+    return f"{_PREFIX}{vid}_{keyframe}", f"{_PREFIX}{vid}_(?!{keyframe}$).*"

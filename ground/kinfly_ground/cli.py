@@ -12,6 +12,7 @@ import dataclasses
 import gc
 import math
 import os
+import re
 import signal
 import sys
 import threading
@@ -20,9 +21,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from kinfly import status_t
+
 from . import __version__
-from .channels import ALL_VEHICLES_REGEX, MAX_VEHICLE_ID, Channel, channel_name, \
-    vehicle_channels_regex
+from .channels import MAX_VEHICLE_ID, Channel, channel_name, channels_regex
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
 from .outputs import (OutputError, ate, check_writable, memory, read_tum, write_atomically,
                       write_error_plot, write_json, write_tum)
@@ -35,6 +37,16 @@ STATUS_PERIOD_S = 0.1      # the ground's status_t at 10 Hz, as the drone's
 LINK_TIMEOUT_S = 1.0       # the drone is STALE after this long unheard (as kinfly-fw's default)
 PROGRESS_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 30.0     # at exit, the longest wait for queued keyframes to be fused
+# The kernel's receive buffer of the LCM socket holds what arrives while LCM's receive thread
+# cannot run (a loaded laptop). A 50 KB keyframe costs about 64 KB of buffer on loopback and
+# about 90 KB as 37 fragments of a 1500-byte MTU: 4 MB holds two seconds of keyframes at 20 Hz.
+RECV_BUFFER_BYTES = 4 << 20
+RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
+# Messages LCM queues for this process's handler thread, per subscription, before it drops the
+# newest: keyframes (50 KB each) apart from the small messages, which arrive at up to 200 Hz
+# (odometry, ground truth, status), so a burst of those never pushes a keyframe out.
+KEYFRAME_QUEUE_MESSAGES = 64
+SMALL_QUEUE_MESSAGES = 2000
 
 
 class UsageError(Exception):
@@ -234,10 +246,12 @@ def _vehicle_summary(state: VehicleState, out: Path, truth: list | None) -> dict
     d = state.drone_status
     if d is not None:
         summary["drone_reported"] = {
-            "frames_captured": d.frames_captured, "keyframes_sent": d.keyframes_sent,
-            "keyframes_dropped": d.keyframes_dropped, "corrections_accepted":
-            d.corrections_accepted, "rejected_wrong_key": d.rejected_wrong_key,
-            "rejected_bad_mac": d.rejected_bad_mac}
+            "final": d.run_state == status_t.RUN_FINAL,
+            "frames_captured": d.frames_captured, "queue_drops": d.queue_drops,
+            "frames_lost": d.frames_lost, "keyframes_sent": d.keyframes_sent,
+            "last_keyframe_id": d.last_keyframe_id, "keyframes_dropped": d.keyframes_dropped,
+            "corrections_accepted": d.corrections_accepted,
+            "rejected_wrong_key": d.rejected_wrong_key, "rejected_bad_mac": d.rejected_bad_mac}
     return summary
 
 
@@ -269,9 +283,18 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
         print("  no keyframes were received")
     for vid, v in summary["vehicles"].items():
         k, lat = v["keyframes"], v["latency_ms"]
-        print(f"  vehicle {vid}: {k['keyframes_received']} keyframes received, "
-              f"{k['keyframes_fused']} fused, {k['keyframes_lost']} lost, "
-              f"{k['keyframes_dropped']} dropped, {k['corrections_sent']} corrections sent")
+        drone = v.get("drone_reported")
+        if drone is None:
+            print(f"  vehicle {vid}: no status heard from the drone")
+        else:
+            print(f"  vehicle {vid}: the drone sent {drone['keyframes_sent']} keyframes"
+                  f"{'' if drone['final'] else ' by its last status heard (not its final one)'}"
+                  f"; it dropped {drone['queue_drops']} of {drone['frames_captured']} frames "
+                  f"(odometry behind) and {drone['keyframes_dropped']} keyframes (link busy)")
+        print(f"    {k['keyframes_received']} keyframes received, {k['lost_on_link']} lost on "
+              f"the link, {k['keyframes_fused']} fused, {k['keyframes_lost']} not refined, "
+              f"{k['keyframes_dropped']} dropped from the queue, {k['corrections_sent']} "
+              "corrections sent")
         print(f"    correction latency: median {_ms(lat['median'])} ms, p99 {_ms(lat['p99'])} ms")
         a = v["ate"]
         if a["available"]:
@@ -308,6 +331,31 @@ def _mavlink(args: argparse.Namespace):
         raise UsageError(f"--mavlink: {error}") from error
 
 
+def with_receive_buffer(url: str) -> str:
+    """URL with LCM's recv_buf_size option, unless it is not UDP multicast or sets its own."""
+    if not url.startswith("udpm://") or "recv_buf_size=" in url:
+        return url
+    return f"{url}{'&' if '?' in url else '?'}recv_buf_size={RECV_BUFFER_BYTES}"
+
+
+def check_receive_buffer(url: str) -> None:
+    """Says so at start when the kernel will give LCM less receive buffer than asked for."""
+    match = re.search(r"recv_buf_size=(\d+)", url)
+    if not url.startswith("udpm://") or match is None:
+        return
+    try:
+        cap = int(RMEM_MAX.read_text())
+    except (OSError, ValueError):
+        return
+    wanted = int(match.group(1))
+    if cap < wanted:
+        log(f"warning: the kernel caps socket receive buffers at {cap // 1024} KB "
+            f"(net.core.rmem_max), below the {wanted // 1024} KB asked for to hold a burst of "
+            "keyframes while this machine is busy; raise it with `sudo sysctl -w "
+            f"net.core.rmem_max={wanted}` (add `net.core.rmem_max = {wanted}` to a file in "
+            "/etc/sysctl.d/ to keep it)")
+
+
 def run(args: argparse.Namespace) -> int:
     import lcm
 
@@ -317,24 +365,29 @@ def run(args: argparse.Namespace) -> int:
     truth = read_tum(args.ground_truth) if args.ground_truth else None
     check_writable(args.out)
     bridge = _mavlink(args)
+    url = with_receive_buffer(args.lcm_url)
+    check_receive_buffer(url)
     try:
-        lc = lcm.LCM(args.lcm_url)
+        lc = lcm.LCM(url)
     except (OSError, RuntimeError) as error:
-        raise UsageError(f"cannot open LCM at {args.lcm_url}: {error} (multicast needs a route: "
+        raise UsageError(f"cannot open LCM at {url}: {error} (multicast needs a route: "
                          "see docs/ground.md)") from error
     viewer = _viewer(args)
     started = time.monotonic()
     station = Station(params, viewer, vehicle_id=args.vehicle, signers=signers,
                       publish=lc.publish, forward=bridge.send_pose if bridge else None, log=log)
-    regex = ALL_VEHICLES_REGEX if args.vehicle is None else vehicle_channels_regex(args.vehicle)
-    lc.subscribe(regex, station.on_message)
+    keyframes, others = channels_regex(args.vehicle)
+    lc.subscribe(keyframes, station.on_message).set_queue_capacity(KEYFRAME_QUEUE_MESSAGES)
+    lc.subscribe(others, station.on_message).set_queue_capacity(SMALL_QUEUE_MESSAGES)
 
     stop = threading.Event()
     export_now = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGUSR1, lambda *_: export_now.set())
-    log(f"listening on {args.lcm_url} for "
+    # Only now, with the viewer, the recording and the outputs set up: whoever waits for this
+    # line may send keyframes at once.
+    log(f"listening on {url} for "
         f"{'every vehicle' if args.vehicle is None else f'vehicle {args.vehicle}'}; "
         f"outputs in {args.out}")
 
@@ -356,6 +409,7 @@ def run(args: argparse.Namespace) -> int:
         log(f"{station.queue_length()} keyframes still queued after {DRAIN_TIMEOUT_S:.0f} s: "
             "left out")
     station.stop()
+    _publish_status(lc, station, status_t.RUN_FINAL)
     extra = {}
     if bridge is not None:
         extra["mavlink"] = {"url": args.mavlink, **dataclasses.asdict(bridge.counters),
@@ -388,12 +442,17 @@ def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, sta
                                                           bridge.state.as_metrics())
         if now >= next_status:
             next_status = now + STATUS_PERIOD_S
-            for state in list(station.vehicles.values()):
-                lc.publish(channel_name(Channel.GROUND_STATUS, state.vehicle_id),
-                           station.ground_status(state, now, LINK_TIMEOUT_S).encode())
+            _publish_status(lc, station, status_t.RUN_ACTIVE)
         if now >= next_progress:
             next_progress = now + PROGRESS_PERIOD_S
             _progress(station, now - started)
+
+
+def _publish_status(lc: Any, station: Station, run_state: int) -> None:
+    now = time.monotonic()
+    for state in list(station.vehicles.values()):
+        lc.publish(channel_name(Channel.GROUND_STATUS, state.vehicle_id),
+                   station.ground_status(state, now, LINK_TIMEOUT_S, run_state).encode())
 
 
 def _progress(station: Station, elapsed_s: float) -> None:
@@ -401,7 +460,8 @@ def _progress(station: Station, elapsed_s: float) -> None:
         c = state.counters
         lat = state.latencies_ms[-50:]
         log(f"[{elapsed_s:6.1f} s] vehicle {vid}: {c.keyframes_received} keyframes, "
-            f"{c.keyframes_fused} fused, {c.keyframes_lost} lost, {c.keyframes_dropped} dropped; "
+            f"{c.lost_on_link} lost on the link, {c.keyframes_fused} fused, "
+            f"{c.keyframes_lost} not refined, {c.keyframes_dropped} dropped; "
             f"latency median {_ms(percentile(lat, 50))} ms (last 50); queue "
             f"{station.queue_length()}; map {state.map_blocks} blocks")
 
@@ -432,6 +492,25 @@ def _finish(station: Station, viewer: Viewer, args: argparse.Namespace, mode: st
 
 # --- replay ----------------------------------------------------------------------------------
 
+LCM_LOG_SYNC = bytes.fromhex("eda1da01")  # every event of an LCM event log starts with it
+
+
+def check_event_log(path: Path) -> None:
+    """Refuses a file that is not an LCM event log: LCM's reader would just find no events in
+    it, and the user would be told to look for keyframes that were never the problem."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(len(LCM_LOG_SYNC))
+    except OSError as error:
+        raise UsageError(f"cannot read {path}: {error.strerror or error}") from error
+    if not head:
+        raise UsageError(f"{path} is empty: not an LCM event log")
+    if head != LCM_LOG_SYNC:
+        raise UsageError(f"{path} is not an LCM event log (it does not start with LCM's event "
+                         "marker); flight logs are written by lcm-logger, kinfly-tum-to-log or "
+                         "`make demo`")
+
+
 def replay(args: argparse.Namespace) -> int:
     import lcm
 
@@ -439,6 +518,7 @@ def replay(args: argparse.Namespace) -> int:
     params = _params(args)
     if not args.log.is_file():
         raise UsageError(f"{args.log} is not a file")
+    check_event_log(args.log)
     try:
         log_file = lcm.EventLog(str(args.log), "r")
     except (OSError, RuntimeError) as error:

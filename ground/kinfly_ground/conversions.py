@@ -133,9 +133,13 @@ def _field_problem(m: object, bounds: DecodeBounds) -> str:
             return "keyframe_id is negative"
         if m.reset_counter < 0:
             return "reset_counter is negative"
-    if isinstance(m, status_t) and m.source not in (status_t.SOURCE_DRONE,
-                                                    status_t.SOURCE_GROUND):
-        return f"unknown source {m.source}"
+    if isinstance(m, status_t):
+        if m.source not in (status_t.SOURCE_DRONE, status_t.SOURCE_GROUND):
+            return f"unknown source {m.source}"
+        if m.run_state not in (status_t.RUN_ACTIVE, status_t.RUN_FINAL):
+            return f"unknown run_state {m.run_state}"
+        if m.last_keyframe_id < -1:
+            return "last_keyframe_id below -1"
     if hasattr(m, "orientation_xyzw"):
         return _pose_problem(m.position_m, m.orientation_xyzw)
     return ""

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -137,12 +136,16 @@ def write_error_plot(path: Path, results: dict[str, dict[str, Any]]) -> None:
 
 
 def memory() -> dict[str, float]:
-    """This process's resident memory now and at its peak [MB, 10^6 bytes]."""
-    with open("/proc/self/statm") as f:
-        resident_pages = int(f.read().split()[1])
-    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # Linux: KiB
-    return {"rss_mb": resident_pages * os.sysconf("SC_PAGE_SIZE") / 1e6,
-            "peak_rss_mb": peak_kib * 1024 / 1e6}
+    """This process's resident memory now and at its peak [MB, 10^6 bytes]. Both from one read
+    of /proc/self/status, where the peak (VmHWM) already includes the present (VmRSS); two
+    sources (statm, getrusage) sampled apart could put the peak below the present."""
+    kib = {}
+    with open("/proc/self/status") as f:
+        for line in f:
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "VmHWM"):
+                kib[key] = int(value.split()[0])
+    return {"rss_mb": kib["VmRSS"] * 1024 / 1e6, "peak_rss_mb": kib["VmHWM"] * 1024 / 1e6}
 
 
 def read_tum(path: Path) -> list[StampedPose]:

@@ -1,16 +1,24 @@
 """The ground station's core: one map per vehicle, fed with the keyframes the Receiver passed.
 
-Threads: keyframes arrive on the LCM thread (`on_message`), which classifies them (duplicate,
-out of order, a restarted drone) and puts them in a bounded queue; one worker thread refines and
-fuses them (the native code releases the GIL), publishes the signed correction at once and only
-then logs to the viewer; a low-priority mesher thread meshes copies of the map every few seconds,
-so marching cubes never holds up a correction. `replay` runs the same steps on the caller's thread
-(`inline=True`): every keyframe, nothing dropped.
+Threads: keyframes arrive on the LCM thread (`on_message`), which only decodes, checks,
+classifies them (duplicate, out of order, a restarted drone) and puts them in a bounded queue:
+nothing slow runs there (no viewer, no files, no fusion), or the next keyframes would wait in
+LCM's buffers until they overflow. One worker thread refines and fuses them (the native code
+releases the GIL), publishes the signed correction at once and only then logs to the viewer; a
+low-priority mesher thread meshes copies of the map every few seconds, so marching cubes never
+holds up a correction. `replay` runs the same steps on the caller's thread (`inline=True`):
+every keyframe, nothing dropped.
 
-Queue policy: at most `queue_keyframes` keyframes wait; when a new one arrives to a full queue
-the oldest waiting one is dropped and counted. A correction is only worth something while it is
-fresh and the drone ignores one older than a correction it already applied, so the newest
-keyframe is the one to keep.
+Losses are counted where they happen: the drone's own (its status: frames its odometry could not
+keep up with, keyframes its link could not send), the link's (keyframe ids the drone's status says
+it sent that never arrived: `lost_on_link`), and the station's (`keyframes_dropped` from a full
+queue, `keyframes_lost` that could not be refined).
+
+Queue policy: at most `queue_keyframes` keyframes wait (32: about 6 s of keyframes at 5 Hz), so
+a laptop busy with other work for a few seconds delays corrections but loses no keyframe from
+the map. When a new one arrives to a full queue the oldest waiting one is dropped and counted: a
+station that stays slower than the drone can only keep up by dropping, and the newest keyframe,
+whose correction is freshest, is the one to keep.
 """
 from __future__ import annotations
 
@@ -43,7 +51,7 @@ StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4 T_world_cam)
 class StationParams:
     voxel_size_m: float = 0.01          # [m] (0.002, 0.1]: the full-resolution map's voxel
     threads: int = 2                    # [1, 64] engine threads for fusion
-    queue_keyframes: int = 4            # [1, 1000] keyframes waiting to be fused (then drop oldest)
+    queue_keyframes: int = 32           # [1, 1000] keyframes waiting to be fused (then drop oldest)
     # A correction that moves the drone's pose further than this is a jump: reset_counter + 1,
     # which tells consumers such as an autopilot's EKF to re-initialise rather than fuse it.
     reset_translation_m: float = 0.05   # [m] > 0
@@ -74,6 +82,7 @@ class StationParams:
 @dataclasses.dataclass
 class VehicleCounters:
     keyframes_received: int = 0    # passed the Receiver's checks
+    lost_on_link: int = 0          # sent by the drone (its status says) but never received
     keyframes_fused: int = 0       # refined (or the first of a map) and fused
     keyframes_lost: int = 0        # the refinement failed: not fused, no correction
     keyframes_dropped: int = 0     # the queue was full (oldest dropped)
@@ -128,9 +137,11 @@ class VehicleState:
     """Everything the station holds about one vehicle. Fields written by the worker are read by
     the other threads only for status and progress, where a value one keyframe old is fine."""
 
-    def __init__(self, vehicle_id: int, view: VehicleView, signer: Signer | None) -> None:
+    def __init__(self, vehicle_id: int, make_view: Callable[[], VehicleView],
+                 signer: Signer | None) -> None:
         self.vehicle_id = vehicle_id
-        self.view = view
+        self._make_view = make_view
+        self._view: VehicleView | None = None
         self.signer = signer
         self.counters = VehicleCounters()
         self.segment = Segment()
@@ -149,11 +160,35 @@ class VehicleState:
         self.last_keyframe: tuple[int, int] | None = None  # (keyframe_id, utime)
         self.worker_session = 0
         self.drone_heard_s: float | None = None
+        # The drone's latest status in this session, and what the link lost in earlier ones.
         self.drone_status: status_t | None = None
+        self.session_keyframe_ids: set[int] = set()
+        self.lost_on_link_before = 0
+        # The highest keyframe id of this session the worker is done with (fused, lost or
+        # failed): the ground's status tells the drone, which waits for it at the end of a replay.
+        self.last_done_keyframe_id = -1
         # Ground truth heard but not yet filed, tagged with the session it arrived in.
         self.pending_truth: list[tuple[int, int, np.ndarray]] = []
         self.rates = {name: _RateMeter() for name in ("received", "fused", "corrections")}
-        self.lock = threading.Lock()  # pending_truth and segment swaps
+        self.lock = threading.Lock()  # pending_truth, segment swaps, last_done_keyframe_id
+
+    @property
+    def view(self) -> VehicleView:
+        """Made at first use, on the fusion thread (or at start by a station serving one
+        vehicle): rerun takes up to a second to set one up, which the LCM thread must not wait
+        for."""
+        if self._view is None:
+            self._view = self._make_view()
+        return self._view
+
+    def lost_on_link_now(self) -> int:
+        """Keyframes this session's drone says it sent, up to the last id it reported, that did
+        not arrive; plus the earlier sessions'. LCM thread."""
+        d = self.drone_status
+        if d is None:
+            return self.lost_on_link_before
+        heard = sum(1 for i in self.session_keyframe_ids if i <= d.last_keyframe_id)
+        return self.lost_on_link_before + max(0, d.keyframes_sent - heard)
 
 
 def jump_exceeds(delta: np.ndarray, translation_m: float, rotation_rad: float) -> bool:
@@ -176,6 +211,8 @@ class Station:
     def __init__(self, params: StationParams, viewer: Viewer, *, vehicle_id: int | None,
                  signers: dict[int, Signer], publish: Publish | None, inline: bool = False,
                  forward: Forward | None = None, log: Callable[[str], None] = print) -> None:
+        """A station serving one vehicle (VEHICLE_ID) sets up its view here, before it can be
+        announced ready, so its first keyframe does not wait for it."""
         if why := params.validate():
             raise ValueError(why)
         self.params = params
@@ -200,6 +237,10 @@ class Station:
         self._mesh_cv = threading.Condition()
         self._threads: list[threading.Thread] = []
         self._export_requests: list[Callable[[], None]] = []
+        if vehicle_id is not None:
+            # Made now, not at the first keyframe: the vehicle's state asks the viewer again then
+            # and gets this one.
+            viewer.vehicle(vehicle_id, "")
         if not inline:
             self._threads = [threading.Thread(target=self._work, name="kground-fuse", daemon=True),
                              threading.Thread(target=self._mesh_loop, name="kground-mesh",
@@ -233,7 +274,7 @@ class Station:
         if signer is None and self._publish is not None:
             self._log(f"vehicle {vehicle_id}: no key, so its keyframes are mapped but no "
                       "corrections are sent")
-        state = VehicleState(vehicle_id, self.viewer.vehicle(vehicle_id, prefix), signer)
+        state = VehicleState(vehicle_id, lambda: self.viewer.vehicle(vehicle_id, prefix), signer)
         self.vehicles[vehicle_id] = state
         return state
 
@@ -247,7 +288,7 @@ class Station:
             self._on_keyframe(state, message, received.depth, now_s)
         elif received.channel is Channel.STATUS:
             state.drone_heard_s = now_s
-            state.drone_status = message
+            self._on_drone_status(state, message)
         elif received.channel is Channel.GROUND_TRUTH:
             with state.lock:
                 state.pending_truth.append(
@@ -257,6 +298,22 @@ class Station:
             state.drone_heard_s = now_s
             if received.channel is Channel.ODOMETRY and self._forward is not None:
                 self._forward_odometry(state, message)
+
+    def _on_drone_status(self, state: VehicleState, message: status_t) -> None:
+        last = state.drone_status
+        if last is not None and message.keyframes_sent < last.keyframes_sent:
+            # A restarted drone, before its first keyframe has started a new session here: its
+            # counters count from zero again and are not this session's.
+            return
+        state.drone_status = message
+        state.counters.lost_on_link = state.lost_on_link_now()
+        if message.run_state == status_t.RUN_FINAL and (last is None
+                                                        or last.run_state != status_t.RUN_FINAL):
+            self._log(f"vehicle {state.vehicle_id}: the drone stopped: it sent "
+                      f"{message.keyframes_sent} keyframes (ids up to "
+                      f"{message.last_keyframe_id}); {state.counters.lost_on_link} lost on the "
+                      f"link; {message.queue_drops} frames its odometry could not keep up with, "
+                      f"{message.keyframes_dropped} keyframes its link could not send")
 
     def _forward_odometry(self, state: VehicleState, message: odometry_t) -> None:
         """The drone's pose at the camera's rate, corrected: a drone that applies the ground's
@@ -284,12 +341,20 @@ class Station:
             if late:
                 # Its correction would be older than one the drone already applied.
                 state.counters.out_of_order += 1
+                state.session_keyframe_ids.add(message.keyframe_id)
                 return
-            state.session += 1
+            state.lost_on_link_before = state.lost_on_link_now()
+            state.drone_status = None
+            state.session_keyframe_ids = set()
+            with state.lock:
+                state.session += 1
+                state.last_done_keyframe_id = -1
             state.counters.drone_restarts += 1
             self._log(f"vehicle {state.vehicle_id}: keyframe {message.keyframe_id} after "
                       f"{last[0]}: the drone restarted; starting a new map")
         state.last_keyframe = key
+        state.session_keyframe_ids.add(message.keyframe_id)
+        state.counters.lost_on_link = state.lost_on_link_now()
         state.counters.keyframes_received += 1
         state.rates["received"].tick(now_s)
         job = _Job(state.vehicle_id, state.session, message, depth, self._arrival_ns)
@@ -334,12 +399,17 @@ class Station:
     def _process_guarded(self, job: _Job) -> None:
         """One keyframe that cannot be handled (intrinsics the engine refuses, say) is counted
         and logged; the next one is fused as usual."""
+        state = self.vehicles[job.vehicle_id]
         try:
             self._process(job)
         except Exception as error:
-            self.vehicles[job.vehicle_id].counters.failed += 1
+            state.counters.failed += 1
             self._log(f"vehicle {job.vehicle_id}: keyframe {job.message.keyframe_id} not "
                       f"handled: {type(error).__name__}: {error}")
+        with state.lock:
+            if job.session == state.session:
+                state.last_done_keyframe_id = max(state.last_done_keyframe_id,
+                                                  job.message.keyframe_id)
 
     def _process(self, job: _Job) -> None:
         state = self.vehicles[job.vehicle_id]
@@ -528,8 +598,11 @@ class Station:
 
     # --- status -------------------------------------------------------------------------------
 
-    def ground_status(self, state: VehicleState, now_s: float, link_timeout_s: float) -> status_t:
+    def ground_status(self, state: VehicleState, now_s: float, link_timeout_s: float,
+                      run_state: int = status_t.RUN_ACTIVE) -> status_t:
         s = status_t()
+        s.run_state = run_state
+        s.last_keyframe_id = state.last_done_keyframe_id
         s.utime = time.time_ns() // 1000
         s.vehicle_id = state.vehicle_id
         s.source = status_t.SOURCE_GROUND

@@ -65,6 +65,7 @@ def samples() -> dict[type, object]:
     st.tracking_state, st.link_state = odometry_t.TRACKING_OK, status_t.LINK_UP
     st.sensor_state, st.sensor_connects, st.sensor_stalls = status_t.SENSOR_STALLED, 2, 3
     st.frames_skipped, st.frames_lost = 11, 13
+    st.last_keyframe_id, st.run_state = 1503, status_t.RUN_FINAL
     (st.rejected_unsigned, st.rejected_wrong_key, st.rejected_bad_mac, st.rejected_stale,
      st.rejected_replayed, st.rejected_malformed, st.rejected_unknown_channel,
      st.rejected_wrong_vehicle) = range(1, 9)

@@ -252,7 +252,7 @@ void fuzzDecode(const std::vector<uint8_t>& valid, uint32_t seed) {
 TEST(Decode, RandomCorruptionNeverCrashes) {
   fuzzDecode<depth_keyframe_t>(encode(sampleKeyframe(64)), 1);
   fuzzDecode<pose_correction_t>(encode(sampleCorrection(5)), 2);
-  status_t status;
+  status_t status{};
   status.vehicle_id = kVehicle;
   fuzzDecode<status_t>(encode(status), 3);
   signed_t envelope;

@@ -104,6 +104,8 @@ status_t sampleStatus() {
   m.queue_drops = 12;
   m.keyframes_sent = 1500;
   m.keyframes_dropped = 4;
+  m.last_keyframe_id = 1503;
+  m.run_state = status_t::RUN_FINAL;
   m.tracking_state = odometry_t::TRACKING_OK;
   m.link_state = status_t::LINK_UP;
   m.sensor_state = status_t::SENSOR_STALLED;

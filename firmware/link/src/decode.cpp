@@ -117,6 +117,9 @@ std::string fieldProblem(const status_t& m, const DecodeBounds&) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
   if (m.source != status_t::SOURCE_DRONE && m.source != status_t::SOURCE_GROUND)
     return "unknown source " + std::to_string(m.source);
+  if (m.run_state != status_t::RUN_ACTIVE && m.run_state != status_t::RUN_FINAL)
+    return "unknown run_state " + std::to_string(m.run_state);
+  if (m.last_keyframe_id < -1) return "last_keyframe_id below -1";
   return {};
 }
 

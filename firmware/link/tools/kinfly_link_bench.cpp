@@ -185,12 +185,13 @@ int runDrone(const Options& options) {
       next_frame += frame_period;
     }
     if (Clock::now() >= next_status) {
-      status_t status;
+      status_t status{};
       status.utime = link::wallClockUtime();
       status.vehicle_id = options.vehicle_id;
       status.source = status_t::SOURCE_DRONE;
       status.keyframe_rate_hz = static_cast<float>(options.rate_hz);
       status.keyframes_sent = sent;
+      status.last_keyframe_id = sent - 1;
       status.tracking_state = odometry_t::TRACKING_GIVEN;
       status.link_state = status_t::LINK_UNKNOWN;
       status.corrections_accepted = end.accepted();

@@ -1,0 +1,27 @@
+// Whether LCM's UDP multicast can start: LCM refuses to without a route to its group, and prints
+// a page of advice on every attempt. The drone asks first, so that it can wait for a Wi-Fi that
+// is not up yet with one log line of its own.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+
+namespace kinfly::link {
+
+struct MulticastTarget {
+  std::string group;  // dotted IPv4 address
+  uint16_t port = 0;
+};
+
+// LCM's URL when none is given and LCM_DEFAULT_URL is not set.
+inline constexpr const char* kLcmDefaultUrl = "udpm://239.255.76.67:7667?ttl=0";
+
+// The multicast group and port LCM would use for `lcm_url` ("" means LCM_DEFAULT_URL, else
+// LCM's default); nullopt for providers that need no network (memq://, file://).
+std::optional<MulticastTarget> multicastTarget(const std::string& lcm_url);
+
+// Empty when the kernel has a route to the target, else why not (as connect() says it).
+std::string multicastRouteProblem(const MulticastTarget& target);
+
+}  // namespace kinfly::link

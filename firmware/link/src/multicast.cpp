@@ -1,0 +1,49 @@
+#include "kinfly/link/multicast.h"
+
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstdlib>
+#include <cstring>
+
+namespace kinfly::link {
+
+std::optional<MulticastTarget> multicastTarget(const std::string& lcm_url) {
+  std::string url = lcm_url;
+  if (url.empty()) {
+    const char* env = std::getenv("LCM_DEFAULT_URL");
+    url = env != nullptr && *env != '\0' ? env : kLcmDefaultUrl;
+  }
+  const std::string scheme = "udpm://";
+  if (url.compare(0, scheme.size(), scheme) != 0) return std::nullopt;
+  // udpm://GROUP:PORT?options, where LCM fills in whichever of GROUP and PORT is missing.
+  std::string address = url.substr(scheme.size());
+  address = address.substr(0, address.find('?'));
+  MulticastTarget target{"239.255.76.67", 7667};
+  const size_t colon = address.find(':');
+  if (!address.empty() && colon != 0) target.group = address.substr(0, colon);
+  if (colon != std::string::npos && colon + 1 < address.size())
+    target.port = static_cast<uint16_t>(std::atoi(address.c_str() + colon + 1));
+  return target;
+}
+
+std::string multicastRouteProblem(const MulticastTarget& target) {
+  sockaddr_in to{};
+  to.sin_family = AF_INET;
+  to.sin_port = htons(target.port);
+  if (inet_pton(AF_INET, target.group.c_str(), &to.sin_addr) != 1)
+    return "\"" + target.group + "\" is not an IPv4 address";
+  const int fd = socket(AF_INET, SOCK_DGRAM, 0);
+  if (fd < 0) return std::string("socket: ") + std::strerror(errno);
+  // A UDP connect() sends nothing: it only looks up the route, as LCM does before it starts.
+  const int connected = connect(fd, reinterpret_cast<const sockaddr*>(&to), sizeof to);
+  const int error = errno;
+  close(fd);
+  if (connected == 0) return "";
+  return "no route to the multicast group " + target.group + " (" + std::strerror(error) + ")";
+}
+
+}  // namespace kinfly::link

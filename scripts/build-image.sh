@@ -79,6 +79,8 @@ EOF
   mkdir -p "$root/etc/systemd/network"
   printf '[Match]\nName=eth* wlan*\n\n[Network]\nDHCP=yes\nMulticastDNS=no\n' \
     >"$root/etc/systemd/network/20-kinfly-dhcp.network"
+  install -m 644 "$repo_root/firmware/image/10-kinfly-multicast.network" \
+    "$root/etc/systemd/network/"
   mkdir -p "$root/etc/systemd/system/wpa_supplicant@.service.d"
   printf '[Unit]\nConditionPathExists=/etc/wpa_supplicant/wpa_supplicant-%%i.conf\n' \
     >"$root/etc/systemd/system/wpa_supplicant@.service.d/kinfly.conf"

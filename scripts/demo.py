@@ -105,17 +105,18 @@ def _echo(stream, prefix: str, lines: list[str], quiet: bool,
             sys.stdout.flush()
 
 
-class _Ground:
-    """The ground station's process and its output as it comes, so that the flight can wait for
-    what it says."""
+class Watched:
+    """A process and its output (stdout and stderr together) as it comes, so that whoever
+    started it can wait for what it says instead of for a time. Started in a session of its
+    own (netns.send_signal)."""
 
-    def __init__(self, command: Sequence[str], quiet: bool) -> None:
+    def __init__(self, command: Sequence[str], prefix: str = "", quiet: bool = True) -> None:
         self.process = subprocess.Popen(command, stdout=subprocess.PIPE,
                                         stderr=subprocess.STDOUT, text=True,
                                         start_new_session=True)
         self.lines: list[str] = []
         self._events = threading.Condition()
-        self._echo = threading.Thread(target=_echo, args=(self.process.stdout, "[ground] ",
+        self._echo = threading.Thread(target=_echo, args=(self.process.stdout, prefix,
                                                           self.lines, quiet, self._events),
                                       daemon=True)
         self._echo.start()
@@ -135,7 +136,9 @@ class _Ground:
         with self._events:
             return "".join(self.lines)
 
-    def finish(self) -> int:
+    def finish(self, timeout_s: float) -> int:
+        """Its exit status, once it has exited (within TIMEOUT_S) and all it said is read."""
+        self.process.wait(timeout_s)
         self._echo.join()
         return self.process.returncode
 
@@ -154,7 +157,7 @@ def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]]
         logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", LCM_URL,
                                    str(record)], stdout=subprocess.DEVNULL,
                                   start_new_session=True)
-    ground_proc = _Ground([*netns, *ground], quiet)
+    ground_proc = Watched([*netns, *ground], "[ground] ", quiet)
     drone_lines: list[str] = []
     drone_rcs: list[int] = []
     try:
@@ -175,8 +178,7 @@ def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]]
     finally:
         # As Ctrl-C would: the ground finishes its queue and writes the outputs.
         send_signal(ground_proc.process, signal.SIGTERM)
-        ground_proc.process.wait(GROUND_EXIT_TIMEOUT_S)
-        ground_rc = ground_proc.finish()
+        ground_rc = ground_proc.finish(GROUND_EXIT_TIMEOUT_S)
         if logger is not None:
             send_signal(logger, signal.SIGINT)
             logger.wait(10)

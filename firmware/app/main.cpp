@@ -87,6 +87,32 @@ bool writeIfAsked(const std::string& path, const std::vector<StampedPose>& poses
   return true;
 }
 
+// CLI11 exits with a code of its own for each kind of error (109 an unknown option, 110 an
+// unknown key in the file) and words some of them for its parser ("INI was not able to parse").
+// Every refused command line or file is a configuration error: exit 2, naming what was wrong.
+std::optional<int> parseArguments(CLI::App* app, int argc, char** argv) {
+  try {
+    app->parse(argc, argv);
+    return std::nullopt;
+  } catch (const CLI::Success& done) {  // --help, --version
+    return app->exit(done);
+  } catch (const CLI::ParseError& error) {
+    std::string why = error.what();
+    const std::string file = app->get_config_ptr()->as<std::string>();
+    const std::string extras_prefix = "INI was not able to parse ";
+    if (dynamic_cast<const CLI::ConfigError*>(&error) != nullptr &&
+        why.rfind(extras_prefix, 0) == 0)
+      why = "unknown key \"" + why.substr(extras_prefix.size()) + "\" in " + file;
+    else if (dynamic_cast<const CLI::ExtrasError*>(&error) != nullptr)
+      why = "unknown option or stray argument: " + why.substr(why.find(':') + 2);
+    std::fprintf(stderr,
+                 "kinfly-fw: invalid configuration: %s (kinfly-fw --help lists the options, "
+                 "--print-config the keys and their values)\n",
+                 why.c_str());
+    return 2;
+  }
+}
+
 int run(int argc, char** argv) {
   CLI::App app{
       "kinfly-fw: the drone's program. Onboard KinectFusion odometry at QVGA, keyframes to the "
@@ -102,7 +128,7 @@ int run(int argc, char** argv) {
   app.add_flag("--print-config", print_config, "print the effective configuration and exit")
       ->configurable(false);
   app.set_version_flag("--version", std::string("kinfly-fw ") + kVersion);
-  CLI11_PARSE(app, argc, argv);
+  if (std::optional<int> exit_code = parseArguments(&app, argc, argv)) return *exit_code;
   if (print_config) {
     std::fputs(app.config_to_str(true, false).c_str(), stdout);
     return 0;
@@ -114,6 +140,11 @@ int run(int argc, char** argv) {
     return 2;
   }
   spdlog::set_level(spdlog::level::from_str(config.log_level));
+  // A URL LCM cannot use is a configuration error; a network that is not up yet is not.
+  if (std::string problem = Publisher::urlProblem(config.lcm_url); !problem.empty()) {
+    spdlog::critical("invalid configuration: {}", problem);
+    return 2;
+  }
 
   std::string why;
   std::optional<link::Key> key;

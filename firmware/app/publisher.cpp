@@ -13,6 +13,15 @@ Publisher::Publisher(std::string name, const std::string& url, int vehicle_id,
   maintain();
 }
 
+std::string Publisher::urlProblem(const std::string& url) {
+  if (const auto target = link::multicastTarget(url)) {
+    const std::string problem = link::multicastTargetProblem(*target);
+    return problem.empty() ? "" : "link.lcm_url \"" + url + "\": " + problem;
+  }
+  // Providers without a network (memq://, file://) start at once, or never.
+  return lcm::LCM(url).good() ? "" : "LCM cannot start on \"" + url + "\" (link.lcm_url)";
+}
+
 void Publisher::maintain() {
   if (lcm_ || Clock::now() < next_attempt_) return;
   // Only when the kernel has a route: LCM itself would print a page of advice on every try.

@@ -87,7 +87,7 @@ def test_config_file_with_a_wrong_type_names_the_key(sample_log: Path, tmp_path:
     config.write_text(CONFIG.read_text().replace("stall_timeout_s = 1.0", 'stall_timeout_s = "soon"'))
     run = subprocess.run(firmware("--source.path", sample_log) + ["--config", str(config)],
                          capture_output=True, text=True, timeout=30)
-    assert run.returncode != 0
+    assert run.returncode == 2
     assert "stall_timeout_s" in run.stdout + run.stderr, run.stdout + run.stderr
 
 
@@ -110,7 +110,12 @@ def test_config_file_sections_apply_and_unknown_keys_are_refused(sample_log: Pat
     config.write_text(CONFIG.read_text().replace("max_frames = 0 ", "max_frame = 7 "))
     run = subprocess.run(firmware("--source.path", sample_log) + ["--config", str(config)],
                          capture_output=True, text=True, timeout=30)
-    assert run.returncode != 0 and "source.max_frame" in run.stdout + run.stderr
+    assert run.returncode == 2
+    assert f'unknown key "source.max_frame" in {config}' in run.stderr, run.stderr
+    # The same misspelling on the command line.
+    run = subprocess.run(firmware("--source.path", sample_log, "--source.max_frame", "7"),
+                         capture_output=True, text=True, timeout=30)
+    assert run.returncode == 2 and "--source.max_frame" in run.stderr, run.stderr
 
 
 def test_synthetic_flight_tracks_its_ground_truth(tmp_path: Path) -> None:
@@ -135,7 +140,7 @@ def test_synthetic_flight_tracks_its_ground_truth(tmp_path: Path) -> None:
 def test_wrong_types_and_unsafe_keys_refuse_to_start(sample_log: Path, tmp_path: Path) -> None:
     run = subprocess.run(firmware("--source.path", sample_log, "--vehicle.id", "seven"),
                          capture_output=True, text=True, timeout=30)
-    assert run.returncode != 0 and "vehicle.id" in run.stderr
+    assert run.returncode == 2 and "vehicle.id" in run.stderr
     key = tmp_path / "v1.key"
     subprocess.run([built("bin/kinfly-keygen"), "--out", key], check=True, capture_output=True)
     os.chmod(key, 0o644)

@@ -17,6 +17,7 @@ from conftest import REPO_ROOT
 
 FIRSTBOOT = REPO_ROOT / "firmware" / "image" / "kinfly-firstboot"
 CONFIG = REPO_ROOT / "firmware" / "config" / "kinfly-fw.toml"
+MULTICAST_NETWORK = REPO_ROOT / "firmware" / "image" / "10-kinfly-multicast.network"
 
 STUBS = {
     # What wpa_passphrase prints: the passphrase as a comment, then the derived key.
@@ -29,9 +30,11 @@ STUBS = {
 @pytest.fixture
 def tree(tmp_path: Path) -> dict[str, Path]:
     root, boot, stubs = tmp_path / "root", tmp_path / "boot", tmp_path / "stubs"
-    for folder in (root / "etc" / "kinfly", root / "etc" / "default", boot, stubs):
+    network = root / "etc" / "systemd" / "network"
+    for folder in (root / "etc" / "kinfly", root / "etc" / "default", network, boot, stubs):
         folder.mkdir(parents=True)
     shutil.copy(CONFIG, root / "etc" / "kinfly" / "kinfly-fw.toml")
+    shutil.copy(MULTICAST_NETWORK, network)
     (root / "etc" / "hosts").write_text("127.0.0.1\tlocalhost\n127.0.1.1\tkinfly\n")
     (root / "etc" / "hostname").write_text("kinfly\n")
     for name, body in STUBS.items():
@@ -54,7 +57,7 @@ def test_provisioning_file_configures_the_drone_and_leaves(tree: dict[str, Path]
     (boot / "kinfly.conf").write_text(
         "# a comment\r\nwifi_ssid = field net\r\nwifi_passphrase=correct horse\r\n"
         "wifi_country=DE\r\nvehicle_id=42\r\nhostname=drone42\r\n"
-        "ssh_authorized_key=ssh-ed25519 AAAAC3Nz me@laptop\r\n")
+        "ssh_authorized_key=ssh-ed25519 AAAAC3Nz me@laptop\r\nmulticast_dev=wlan1\r\n")
     (boot / "vehicle.key").write_bytes(bytes(range(32)))
     run = firstboot(tree)
     assert "applied and removed" in run.stdout
@@ -82,7 +85,10 @@ def test_provisioning_file_configures_the_drone_and_leaves(tree: dict[str, Path]
     assert "127.0.1.1\tdrone42" in (root / "etc" / "hosts").read_text()
     assert (root / "root" / ".ssh" / "authorized_keys").read_text() == \
         "ssh-ed25519 AAAAC3Nz me@laptop\n"
-    assert "KINFLY_MULTICAST_DEV=wlan0" in (root / "etc" / "default" / "kinfly-fw").read_text()
+    assert "KINFLY_MULTICAST_DEV=wlan1" in (root / "etc" / "default" / "kinfly-fw").read_text()
+    # The route to the multicast group comes and goes with that interface (systemd-networkd).
+    network = (root / "etc" / "systemd" / "network" / MULTICAST_NETWORK.name).read_text()
+    assert "\nName=wlan1\n" in network and "\nDestination=239.0.0.0/8\n" in network
 
 
 def test_bad_values_change_nothing(tree: dict[str, Path]) -> None:

@@ -133,9 +133,13 @@ def test_root_has_firmware_config_units_and_first_boot(root_fs: Path) -> None:
                  "/usr/lib/systemd/system/kinfly-fw.service",
                  "/usr/libexec/kinfly/kinfly-firstboot",
                  "/etc/systemd/system/kinfly-firstboot.service", "/etc/default/kinfly-fw",
-                 "/vmlinuz", "/initrd.img"):
+                 "/etc/systemd/network/10-kinfly-multicast.network", "/vmlinuz", "/initrd.img"):
         stat(root_fs, path)
     assert "Mode:  0755" in stat(root_fs, "/usr/libexec/kinfly/kinfly-firstboot")
+    # The multicast route comes and goes with the Wi-Fi (systemd-networkd), so kinfly-fw, which
+    # waits for it, links whenever the Wi-Fi is up.
+    network = debugfs(root_fs, 'cat "/etc/systemd/network/10-kinfly-multicast.network"')
+    assert "Name=wlan0" in network and "Destination=239.0.0.0/8" in network, network
     wants = "/etc/systemd/system/multi-user.target.wants"
     for unit, target in (("kinfly-fw.service", "/lib/systemd/system/kinfly-fw.service"),
                          ("kinfly-firstboot.service",

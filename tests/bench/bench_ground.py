@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -49,6 +50,8 @@ def one_run(netns: list[str], log: Path, work: Path, drone_args: list[str]) -> d
     out = work / "out"
     flight = demo.fly(netns, demo.ground_command(out, key=key),
                       [demo.drone_command(log, key=key) + drone_args], quiet=True)
+    # The machine's load over the flight, with it: a latency means little without it.
+    load = os.getloadavg()[0]
     if flight.ground_rc != 0 or flight.drone_rcs != [0]:
         raise RuntimeError(f"flight failed:\n{flight.ground_output}\n{flight.drone_output}")
     summary = json.loads((out / "summary.json").read_text())
@@ -57,7 +60,10 @@ def one_run(netns: list[str], log: Path, work: Path, drone_args: list[str]) -> d
     v = summary["vehicles"]["1"]
     corrected, onboard = v["ate"]["corrected"], v["ate"]["onboard"]
     return {
+        "load_average_1min": load,
+        "keyframes_sent": v["drone_reported"]["keyframes_sent"],
         "keyframes": v["keyframes"]["keyframes_received"],
+        "lost_on_link": v["keyframes"]["lost_on_link"],
         "keyframe_rate_hz": (len(utimes) - 1) / (utimes[-1] - utimes[0]),
         "keyframes_dropped": v["keyframes"]["keyframes_dropped"],
         "corrections_sent": v["keyframes"]["corrections_sent"],

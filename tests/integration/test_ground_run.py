@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 import demo  # scripts/demo.py (conftest puts scripts/ on the path)
+from busy import busy_cores
 from firmware_run import summary as drone_summary
 from test_ground_viewer import read_rows
 
@@ -27,6 +28,8 @@ GROUND = Path(sys.executable).parent / "kinfly-ground"
 RERUN = Path(sys.executable).parent / "rerun"
 # DESIGN's accuracy budget: ATE RMSE on the shared TUM sequence, and never worse than onboard.
 ATE_BOUND_M = 0.03
+# Busy loops beside the loaded-machine flight: one per core of the 2-core machines this runs on.
+BUSY_CORES = 2
 OUTPUTS = ("mesh.ply", "trajectory_onboard.tum", "trajectory_corrected.tum", "session.rrd",
            "summary.json", "ate.png")
 
@@ -57,6 +60,22 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     assert f"demo: files in {out}" in result.stdout
     (out / "demo.txt").write_text(result.stdout)
     return out
+
+
+def test_demo_with_both_cores_busy(tmp_path: Path) -> None:
+    """`make demo` on a laptop doing other work: two busy loops take both cores of this 2-core
+    machine (load average about 4 with the flight). Every keyframe the drone sends is fused, the
+    demo's own checks pass, and the map keeps its accuracy."""
+    out = tmp_path / "out"
+    with busy_cores(BUSY_CORES):
+        result = subprocess.run([sys.executable, REPO_ROOT / "scripts" / "demo.py", "--out", out],
+                                capture_output=True, text=True, timeout=600)
+    if result.returncode != 0 and "network namespace" in result.stderr and not os.environ.get("CI"):
+        pytest.skip(result.stderr)
+    assert result.returncode == 0, result.stdout + result.stderr
+    vehicle = read_summary(out)["vehicles"]["1"]
+    check_every_keyframe_fused(vehicle)
+    check_accuracy(vehicle)
 
 
 def test_shipped_log_is_what_the_converter_makes(sample_dir: Path, tmp_path: Path) -> None:

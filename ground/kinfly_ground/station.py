@@ -39,6 +39,7 @@ from ._native import Fusion, MapSnapshot
 from .channels import Channel, channel_name
 from .conversions import correction_message, pose_to_matrix
 from .link import Received, Receiver
+from .outputs import ATE_MAX_TIME_DIFF_S
 from .signing import Signer
 from .viewer import VehicleView, Viewer
 
@@ -104,6 +105,10 @@ class Segment:
     onboard: list[StampedPose] = dataclasses.field(default_factory=list)
     corrected: list[StampedPose] = dataclasses.field(default_factory=list)
     ground_truth: list[StampedPose] = dataclasses.field(default_factory=list)
+    # Draws the ground truth in the map's frame (None until a refined keyframe anchors it), and
+    # how many of its poses have been drawn.
+    T_map_truth: np.ndarray | None = None
+    truth_drawn: int = 0
     snapshot: MapSnapshot | None = None  # the final map's copy, meshed once for viewer and file
 
 
@@ -196,6 +201,19 @@ def jump_exceeds(delta: np.ndarray, translation_m: float, rotation_rad: float) -
     cos_angle = np.clip((np.trace(delta[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
     return bool(np.linalg.norm(delta[:3, 3]) > translation_m
                 or math.acos(cos_angle) > rotation_rad)
+
+
+def truth_anchor(corrected: list[StampedPose], truth: list[StampedPose]) -> np.ndarray | None:
+    """T_map_truth that puts the ground truth on the first corrected keyframe that has a
+    ground-truth pose within ATE_MAX_TIME_DIFF_S of its capture time; None while none has."""
+    if not truth:
+        return None
+    truth_utimes = np.array([utime for utime, _ in truth])
+    for utime, T_map_cam in corrected:
+        nearest = int(np.argmin(np.abs(truth_utimes - utime)))
+        if abs(truth_utimes[nearest] - utime) <= ATE_MAX_TIME_DIFF_S * 1e6:
+            return T_map_cam @ np.linalg.inv(truth[nearest][1])
+    return None
 
 
 def percentile(values: list[float], q: float) -> float | None:
@@ -520,9 +538,23 @@ class Station:
         for session, utime, T in pending:
             if session == state.worker_session:
                 state.segment.ground_truth.append((utime, T))
-                state.view.ground_truth(utime, T)
             elif session < state.worker_session and state.finished_segments:
                 state.finished_segments[-1].ground_truth.append((utime, T))
+        self._draw_truth(state)
+
+    def _draw_truth(self, state: VehicleState) -> None:
+        """Ground truth has a frame of its own (a recording's starts at its first sample, which
+        need not be the first keyframe's time), so it is drawn in the map's frame, anchored at the
+        first refined keyframe with a ground-truth pose at its capture time; poses heard before
+        that wait. At the end it is drawn again as the ATE aligns it (cli._finish)."""
+        segment = state.segment
+        if segment.T_map_truth is None:
+            segment.T_map_truth = truth_anchor(segment.corrected, segment.ground_truth)
+            if segment.T_map_truth is None:
+                return
+        for utime, T in segment.ground_truth[segment.truth_drawn:]:
+            state.view.ground_truth(utime, segment.T_map_truth @ T)
+        segment.truth_drawn = len(segment.ground_truth)
 
     def _new_segment(self, state: VehicleState, utime: int) -> None:
         with state.lock:

@@ -23,7 +23,7 @@ from kinfly_ground.conversions import decode, matrix_to_pose, pose_to_matrix
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
                                    write_atomically, write_tum)
 from kinfly_ground.signing import Signer, compute_mac, key_id_of
-from kinfly_ground.station import Station, StationParams
+from kinfly_ground.station import Station, StationParams, truth_anchor
 from kinfly_ground.viewer import Viewer
 
 VEHICLE = 7
@@ -577,3 +577,21 @@ def test_forwarded_odometry_is_corrected_once(sample) -> None:
     station.on_message(channel, odometry.encode())
     utime, T, reset_counter = forwarded[-1]
     assert np.allclose(T, T_drifted, atol=ROUNDOFF) and reset_counter == 5
+
+
+def test_ground_truth_is_anchored_at_the_first_keyframe_it_covers() -> None:
+    """The truth of a recording has a frame of its own, here a rigid transform X away from the
+    map's, and starts after the first keyframe: it is put on the map at the first keyframe that
+    has a truth pose within the association tolerance, which recovers X."""
+    rng = np.random.default_rng(SEED)
+    X = pose_to_matrix(rng.normal(size=3), Rotation.random(random_state=SEED).as_quat())
+    path = [pose_to_matrix(rng.normal(scale=0.5, size=3),
+                           Rotation.random(random_state=SEED + i).as_quat()) for i in range(6)]
+    corrected = [(1_000_000 + 200_000 * i, T) for i, T in enumerate(path)]
+    # Truth at the keyframes' times (off by 5 ms), from the third keyframe on only.
+    truth = [(u + 5_000, np.linalg.inv(X) @ T) for u, T in corrected[2:]]
+    assert truth_anchor(corrected[:2], truth) is None
+    np.testing.assert_allclose(truth_anchor(corrected, truth), X, atol=ROUNDOFF)
+    # Beyond the tolerance no pose anchors it.
+    late = [(u + GT_MAX_DIFF_US + 1, T) for u, T in truth]
+    assert truth_anchor(corrected, late) is None

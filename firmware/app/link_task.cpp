@@ -140,13 +140,12 @@ void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {
   last_ground_heard_ = Clock::now();
   const link::DecodeResult r =
       link::decodeMessage(rbuf->data, rbuf->data_size, link::DecodeBounds(), &ground_status_);
-  if (!r.ok() || ground_status_.vehicle_id != config_.vehicle_id ||
-      ground_status_.source != status_t::SOURCE_GROUND) {
+  ground_status_heard_ = r.ok() && ground_status_.source == status_t::SOURCE_GROUND &&
+                         ground_status_.vehicle_id == config_.vehicle_id;
+  if (!r.ok() || ground_status_.source != status_t::SOURCE_GROUND)
     ++rejects_.malformed;
-    ground_status_heard_ = false;
-    return;
-  }
-  ground_status_heard_ = true;
+  else if (ground_status_.vehicle_id != config_.vehicle_id)
+    ++rejects_.wrong_vehicle;
 }
 
 void LinkTask::send(const KeyframeJob& job) {

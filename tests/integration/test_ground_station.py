@@ -595,3 +595,45 @@ def test_ground_truth_is_anchored_at_the_first_keyframe_it_covers() -> None:
     # Beyond the tolerance no pose anchors it.
     late = [(u + GT_MAX_DIFF_US + 1, T) for u, T in truth]
     assert truth_anchor(corrected, late) is None
+
+
+def drone_status(keyframes_sent: int, last_keyframe_id: int,
+                 run_state: int = status_t.RUN_ACTIVE) -> bytes:
+    s = status_t()
+    s.vehicle_id, s.source, s.run_state = VEHICLE, status_t.SOURCE_DRONE, run_state
+    s.keyframes_sent, s.last_keyframe_id = keyframes_sent, last_keyframe_id
+    return s.encode()
+
+
+def test_keyframes_lost_on_the_link_are_counted_from_the_drones_status(sample) -> None:
+    """The drone's status says how many keyframes it sent and the last id; the ids up to that
+    one that never arrived are lost on the link, whatever came after the status. A restarted
+    drone's first statuses (counts from zero) do not undo the earlier flight's count, and the
+    ground reports the last keyframe it is done with, per flight."""
+    rig = Rig()
+    status_channel = channel_name(Channel.STATUS, VEHICLE)
+    keyframes = flight(sample, 8)
+    for message, _ in keyframes:
+        if message.keyframe_id not in (2, 5):  # lost on the way
+            rig.send(message)
+    state = rig.state()
+    assert state.counters.lost_on_link == 0  # the drone has not said what it sent yet
+    # Its status after keyframe 6: 7 sent (ids 0..6); 7 was not covered yet.
+    rig.station.on_message(status_channel, drone_status(7, 6))
+    assert state.counters.lost_on_link == 2
+    rig.station.on_message(status_channel, drone_status(8, 7, status_t.RUN_FINAL))
+    assert state.counters.lost_on_link == 2
+    assert any("the drone stopped: it sent 8 keyframes" in line for line in rig.logs)
+    ground = rig.station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
+    assert ground.last_keyframe_id == 7 and ground.run_state == status_t.RUN_ACTIVE
+
+    # The drone restarts: its statuses count from zero until its first keyframe is here.
+    rig.station.on_message(status_channel, drone_status(0, -1))
+    assert state.counters.lost_on_link == 2 and state.drone_status.keyframes_sent == 8
+    for message, _ in flight(sample, 3):
+        rig.send(message)
+    rig.station.on_message(status_channel, drone_status(4, 3, status_t.RUN_FINAL))
+    assert state.counters.drone_restarts == 1
+    assert state.counters.lost_on_link == 2 + 1  # keyframe 3 of the second flight
+    ground = rig.station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
+    assert ground.last_keyframe_id == 2

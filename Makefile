@@ -6,7 +6,8 @@
 #   make fuzz       the depth decoder under libFuzzer + ASan/UBSan (clang, build-fuzz/) for
 #                   FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
 #   make demo       a recorded flight end to end: kinfly-fw replays the shipped LCM log to
-#                   kinfly-ground over LCM in a network namespace; outputs in out/demo
+#                   kinfly-ground over LCM in a network namespace; outputs in out/demo. Builds
+#                   only the programs it runs, without the unit tests in a new build tree
 #   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      depth codec and keyframe delivery over LCM on the TUM sequence; the drone's
 #                   figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions per
@@ -58,15 +59,32 @@ IMAGE ?= $(AARCH64_DIR)/kinfly-arm64.img
 # Steps run in the order written; ninja and ctest do the parallel work.
 .NOTPARALLEL:
 
-.PHONY: deps build test unit-test integration-test test-asan fuzz fuzz-corpus demo eval bench clean \
-        distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
+.PHONY: deps build test unit-test integration-test test-asan fuzz fuzz-corpus demo \
+        eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
 	@$(REPO_ROOT)/scripts/install-deps.sh
 
+# The Release tree, whole: programs, unit tests and their tools.
 build:
-	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release
+	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release -DKINFLY_BUILD_TESTS=ON
 	cmake --build $(BUILD_DIR) -j $(JOBS)
+
+# $(call build_programs,TARGET...): only these targets of the Release tree. A new tree is
+# configured without the unit tests (no GoogleTest needed); an existing one keeps what it has, so
+# `make demo` and `make test` share build/ in either order without a clean or a flip-flopping
+# reconfigure.
+define build_programs
+cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release \
+  $(if $(wildcard $(BUILD_DIR)/CMakeCache.txt),,-DKINFLY_BUILD_TESTS=OFF)
+cmake --build $(BUILD_DIR) -j $(JOBS) --target $(1)
+endef
+
+# What scripts/demo.py runs from build/bin (the ground station comes from .venv).
+DEMO_PROGRAMS := kinfly-fw kinfly-keygen
+# What the benchmarks run from build/bin (tests/bench/*.py; bench_ground flies the demo's way).
+BENCH_PROGRAMS := kinfly-codec-bench kinfly-link-bench kinfly-fuse kinfly-tum-to-log \
+                  $(DEMO_PROGRAMS)
 
 test: deps build unit-test integration-test
 
@@ -103,18 +121,21 @@ fuzz-corpus: build
 
 # The drone (kinfly-fw replaying the shipped flight log) and the ground station (kinfly-ground)
 # over LCM multicast in a private network namespace; outputs in out/demo.
-demo: deps build
+demo: deps
+	$(call build_programs,$(DEMO_PROGRAMS))
 	$(PY) $(REPO_ROOT)/scripts/demo.py --out $(DEMO_OUT)
 
-eval: deps build
+eval: deps
 	@test -d $(KINFLY_DATA) || { echo "no shared data at $(KINFLY_DATA) (set KINFLY_DATA)"; exit 1; }
+	$(call build_programs,kinfly-fuse)
 	$(PY) $(REPO_ROOT)/tests/tools/kinfly_eval.py all --fuse $(FUSE) --data $(KINFLY_DATA) \
 	  --out $(REPO_ROOT)/out/eval
 
 # Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
 # runs on one thread and fails only if a frame does not come back bit for bit. The link bench
 # needs root (or sudo) for its network namespace.
-bench: deps build
+bench: deps
+	$(call build_programs,$(BENCH_PROGRAMS))
 	mkdir -p $(REPO_ROOT)/out/bench
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

@@ -58,7 +58,8 @@ time_of() {
 
 # Runs COMMAND in the root as root from the repository, with /proc, /sys, /dev and a fresh /run
 # (where `ip netns` keeps its namespaces) mounted in a private mount namespace, so nothing stays
-# mounted when it ends, whatever happens.
+# mounted when it ends, whatever happens. The root is bound onto itself first: `ip netns exec`
+# makes / a slave mount, which fails (EINVAL) where / is not a mount point.
 in_root() {
   local root="$1" command="$2"
   local env=(PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin HOME=/root
@@ -66,6 +67,7 @@ in_root() {
   [[ -z "$pip_cert" ]] || env+=(PIP_CERT="$pip_cert")
   unshare --mount --propagation private -- bash -euo pipefail -c '
     root="$1"; shift
+    mount --bind "$root" "$root"
     mount -t proc proc "$root/proc"
     mount -t sysfs sysfs "$root/sys"
     mount --rbind /dev "$root/dev"

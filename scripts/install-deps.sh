@@ -7,13 +7,16 @@
 # the ground package (ground/) is rebuilt only when a file it is built from changed.
 #
 # Usage: scripts/install-deps.sh GROUP...      (--help lists the groups and their packages)
+
+# The package lists below are read by name, which shellcheck cannot follow.
+# shellcheck disable=SC2034
 set -euo pipefail
 
 repo_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
 # The Debian packages of each group; a group also installs the groups it includes
 # (group_includes below). Each package sits beside the code that uses it, so moving or dropping
-# one is a local decision.
+# one is a local decision. The lists are read by name ("${group}_packages").
 
 # cxx (in demo and unit): configuring and compiling the C++ project without its tests: kinfly-fw
 # and the link tools (scripts/demo.py runs kinfly-fw and kinfly-keygen), kinfly-fuse, and the

@@ -65,6 +65,7 @@ in_root() {
   local env=(PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin HOME=/root
              LANG=C.UTF-8 TERM=dumb)
   [[ -z "$pip_cert" ]] || env+=(PIP_CERT="$pip_cert")
+  # shellcheck disable=SC2016  # expanded by the inner shell, from its arguments
   unshare --mount --propagation private -- bash -euo pipefail -c '
     root="$1"; shift
     mount --bind "$root" "$root"

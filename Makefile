@@ -1,25 +1,35 @@
 # kinfly front door. On a fresh Debian 12 machine: `make demo`, then `make test`.
 #
-#   make build      Release build with Ninja; binaries in build/bin/
-#   make test       deps + build + C++ unit tests (ctest) + Python integration tests (pytest)
-#   make test-asan  unit tests built with AddressSanitizer + UBSan in build-asan/
-#   make fuzz       the depth decoder under libFuzzer + ASan/UBSan (clang, build-fuzz/) for
-#                   FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
-#   make demo       a recorded flight end to end: kinfly-fw replays the shipped LCM log to
-#                   kinfly-ground over LCM in a network namespace; outputs in out/demo
-#   make eval       accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
-#   make bench      depth codec and keyframe delivery over LCM on the TUM sequence; the drone's
-#                   figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions per
-#                   frame); kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never
+# Every target that needs packages first runs scripts/install-deps.sh with the groups it uses
+# (apt only for what dpkg reports missing, pip only when a requirements file changed; `--help`
+# lists the groups): demo (compiler, CMake, the libraries kinfly-fw links, Python; .venv with
+# the ground package), unit (+ GoogleTest), test (demo + unit + the integration tests' tools),
+# fuzz (unit + clang), aarch64 (cross compiler, qemu-user, mmdebstrap), image (aarch64 +
+# qemu-user-static, binfmt-support, GRUB and disk tools), bench (demo + valgrind; .venv-bench).
+#
+#   make build      Release build with Ninja, everything (programs and unit tests); binaries in
+#                   build/bin/. Installs nothing.
+#   make test       deps test + build + C++ unit tests (ctest) + Python integration tests (pytest)
+#   make test-asan  deps unit; unit tests built with AddressSanitizer + UBSan in build-asan/
+#   make fuzz       deps fuzz; the depth decoder under libFuzzer + ASan/UBSan (clang, build-fuzz/)
+#                   for FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
+#   make demo       deps demo; builds only kinfly-fw and kinfly-keygen; a recorded flight end to
+#                   end: kinfly-fw replays the shipped LCM log to kinfly-ground over LCM in a
+#                   network namespace; outputs in out/demo
+#   make eval       deps demo; accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
+#   make bench      deps bench; depth codec and keyframe delivery over LCM on the TUM sequence; the
+#                   drone's figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions
+#                   per frame); kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never
 #                   fails on timings
-#   make firmware-aarch64  kinfly-fw, the link tools and the unit tests for aarch64 (cross
-#                   compiler + Debian arm64 sysroot, build-aarch64/)
-#   make test-aarch64  the above + the image; unit tests and a replay under qemu-aarch64, the
-#                   image test
+#   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
+#                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
+#   make test-aarch64  deps demo, unit, image; the above + the image; unit tests and a replay
+#                   under qemu-aarch64, the image test
 #   make package-aarch64  the kinfly-fw .deb (arm64) in build-aarch64/pkg/
-#   make image      flashable arm64 disk image build-aarch64/kinfly-arm64.img (needs root)
+#   make image      deps image; flashable arm64 disk image build-aarch64/kinfly-arm64.img (root)
 #   make flash IMAGE=... DEVICE=/dev/sdX CONFIRM=yes  write the image to an SD card (checked)
 #   make deploy HOST=user@drone  install the .deb on a running drone over ssh
+#   make deps       every package group; `make deps-GROUP` one of them
 #   make clean      remove build outputs (build/, build-asan/, build-fuzz/, build-aarch64/, out/);
 #                   `make distclean` also venvs
 #
@@ -58,17 +68,41 @@ IMAGE ?= $(AARCH64_DIR)/kinfly-arm64.img
 # Steps run in the order written; ninja and ctest do the parallel work.
 .NOTPARALLEL:
 
-.PHONY: deps build test unit-test integration-test test-asan fuzz fuzz-corpus demo eval bench clean \
-        distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
+# Each target installs only the package groups it uses (scripts/install-deps.sh --help).
+DEPS_GROUPS := demo unit test fuzz aarch64 image bench
+DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
+
+.PHONY: deps $(DEPS_TARGETS) build test unit-test integration-test test-asan fuzz fuzz-corpus demo \
+        eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
-	@$(REPO_ROOT)/scripts/install-deps.sh
+	@$(REPO_ROOT)/scripts/install-deps.sh all
 
+$(DEPS_TARGETS): deps-%:
+	@$(REPO_ROOT)/scripts/install-deps.sh $*
+
+# The Release tree, whole: programs, unit tests and their tools.
 build:
-	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release
+	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release -DKINFLY_BUILD_TESTS=ON
 	cmake --build $(BUILD_DIR) -j $(JOBS)
 
-test: deps build unit-test integration-test
+# $(call build_programs,TARGET...): only these targets of the Release tree. A new tree is
+# configured without the unit tests (no GoogleTest needed); an existing one keeps what it has, so
+# `make demo` and `make test` share build/ in either order without a clean or a flip-flopping
+# reconfigure.
+define build_programs
+cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release \
+  $(if $(wildcard $(BUILD_DIR)/CMakeCache.txt),,-DKINFLY_BUILD_TESTS=OFF)
+cmake --build $(BUILD_DIR) -j $(JOBS) --target $(1)
+endef
+
+# What scripts/demo.py runs from build/bin (the ground station comes from .venv).
+DEMO_PROGRAMS := kinfly-fw kinfly-keygen
+# What the benchmarks run from build/bin (tests/bench/*.py; bench_ground flies the demo's way).
+BENCH_PROGRAMS := kinfly-codec-bench kinfly-link-bench kinfly-fuse kinfly-tum-to-log \
+                  $(DEMO_PROGRAMS)
+
+test: deps-test build unit-test integration-test
 
 unit-test:
 	ctest --test-dir $(BUILD_DIR) --output-on-failure -j $(JOBS)
@@ -79,7 +113,7 @@ integration-test:
 
 # Sanitizers slow everything down, so only the unit tests (synthetic, small) run here; the
 # micro-benchmarks are left out of this build.
-test-asan: deps
+test-asan: deps-unit
 	cmake -S $(REPO_ROOT) -B $(ASAN_DIR) -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 	  -DKINFLY_SANITIZE=ON -DKINFLY_BUILD_BENCH=OFF
 	cmake --build $(ASAN_DIR) -j $(JOBS)
@@ -88,7 +122,7 @@ test-asan: deps
 
 # The committed seeds stay read-only: what libFuzzer finds goes to build-fuzz/corpus, and a crash
 # to build-fuzz/crash-*. Only the codec library is compiled for this build.
-fuzz: deps
+fuzz: deps-fuzz
 	CC=clang CXX=clang++ cmake -S $(REPO_ROOT) -B $(FUZZ_DIR) -G Ninja \
 	  -DCMAKE_BUILD_TYPE=RelWithDebInfo -DKINFLY_FUZZ=ON -DKINFLY_SANITIZE=ON -DKINFLY_BUILD_BENCH=OFF
 	cmake --build $(FUZZ_DIR) --target fuzz_depth_decode
@@ -103,30 +137,32 @@ fuzz-corpus: build
 
 # The drone (kinfly-fw replaying the shipped flight log) and the ground station (kinfly-ground)
 # over LCM multicast in a private network namespace; outputs in out/demo.
-demo: deps build
+demo: deps-demo
+	$(call build_programs,$(DEMO_PROGRAMS))
 	$(PY) $(REPO_ROOT)/scripts/demo.py --out $(DEMO_OUT)
 
-eval: deps build
+eval: deps-demo
 	@test -d $(KINFLY_DATA) || { echo "no shared data at $(KINFLY_DATA) (set KINFLY_DATA)"; exit 1; }
+	$(call build_programs,kinfly-fuse)
 	$(PY) $(REPO_ROOT)/tests/tools/kinfly_eval.py all --fuse $(FUSE) --data $(KINFLY_DATA) \
 	  --out $(REPO_ROOT)/out/eval
 
 # Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
 # runs on one thread and fails only if a frame does not come back bit for bit. The link bench
 # needs root (or sudo) for its network namespace.
-bench: deps build
+bench: deps-bench
+	$(call build_programs,$(BENCH_PROGRAMS))
 	mkdir -p $(REPO_ROOT)/out/bench
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_ground.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
-	@$(REPO_ROOT)/scripts/install-deps.sh --bench
 	OMP_NUM_THREADS=2 $(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_vs_open3d.py --fuse $(FUSE) \
 	  --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 
 # The sysroot is rebuilt only when scripts/aarch64-sysroot.sh (its package list) changes; test
 # discovery and ctest run the arm64 binaries through qemu-aarch64 (the toolchain file's emulator).
-firmware-aarch64: deps
+firmware-aarch64: deps-aarch64
 	$(REPO_ROOT)/scripts/aarch64-sysroot.sh $(AARCH64_SYSROOT)
 	cmake -S $(REPO_ROOT) -B $(AARCH64_BUILD) -G Ninja -DCMAKE_BUILD_TYPE=Release \
 	  -DCMAKE_TOOLCHAIN_FILE=$(REPO_ROOT)/cmake/aarch64-linux-gnu.cmake \
@@ -138,11 +174,12 @@ package-aarch64: firmware-aarch64
 	cd $(AARCH64_BUILD) && cpack -G DEB -B $(AARCH64_PKG)
 	rm -rf $(AARCH64_PKG)/_CPack_Packages
 
-image: package-aarch64
+image: deps-image package-aarch64
 	$(REPO_ROOT)/scripts/build-image.sh --deb $(AARCH64_DEB) --out $(IMAGE)
 
-# The native build makes the replay's flight log and the trajectory the emulated one must match.
-test-aarch64: build image
+# The native build makes the replay's flight log and the trajectory the emulated one must match;
+# pytest runs from .venv.
+test-aarch64: deps-demo deps-unit build image
 	ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS)
 	$(PY) -m pytest $(REPO_ROOT)/tests/integration -v -m aarch64
 

@@ -1,34 +1,149 @@
 #!/usr/bin/env bash
-# Installs what kinfly needs on Debian 12: the C++ toolchain and libraries from apt, and the
-# Python environment (.venv) from requirements.txt.
+# Installs what kinfly needs on Debian 12, one group of packages per kind of make target, so that
+# `make demo` waits for a compiler and a few libraries, not for cross compilers, qemu or GRUB.
 #
 # Idempotent and fast when everything is present: apt is touched only when dpkg says a package
-# is missing, and pip only when requirements.txt changed since the last successful install.
+# is missing, pip only when a requirements file changed since the last successful install, and
+# the ground package (ground/) is rebuilt only when a file it is built from changed.
 #
-# Usage: scripts/install-deps.sh [--bench]
-#   --bench  also (re)creates .venv-bench from requirements-bench.txt (Open3D, benchmark only)
+# Usage: scripts/install-deps.sh GROUP...      (--help lists the groups and their packages)
+
+# The package lists below are read by name, which shellcheck cannot follow.
+# shellcheck disable=SC2034
 set -euo pipefail
 
 repo_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
-apt_packages=(
-  build-essential cmake ninja-build pkg-config
-  libeigen3-dev libpng-dev
-  libgtest-dev libgmock-dev libbenchmark-dev libcli11-dev libspdlog-dev libzstd-dev
-  # make fuzz: clang with libFuzzer, and clang's OpenMP runtime (the project configures whole)
-  clang libclang-rt-14-dev libomp-14-dev
-  python3 python3-venv python3-dev
-  liblcm-dev liblcm-bin libsodium-dev libzstd-dev iproute2
-  # kinfly-fw's depth sensors: OpenNI2 (with its PS1080 and file drivers) and libusb for hot-plug
-  libopenni2-dev libusb-1.0-0-dev
-  # make firmware-aarch64 / image: the cross compiler, qemu-user for the arm64 tests, the sysroot
-  # and image builder, qemu-user-static with binfmt-support for the image's maintainer scripts,
-  # and the tools that assemble the disk image from files (no mounts)
-  g++-aarch64-linux-gnu qemu-user mmdebstrap arch-test debian-archive-keyring
-  qemu-user-static binfmt-support dosfstools mtools fdisk e2fsprogs grub-common
+# The Debian packages of each group; a group also installs the groups it includes
+# (group_includes below). Each package sits beside the code that uses it, so moving or dropping
+# one is a local decision. The lists are read by name ("${group}_packages").
+
+# cxx (in demo and unit): configuring and compiling the C++ project without its tests: kinfly-fw
+# and the link tools (scripts/demo.py runs kinfly-fw and kinfly-keygen), kinfly-fuse, and the
+# ground package's native module, which builds shared/ again (ground/CMakeLists.txt). gcc's
+# OpenMP (libgomp) comes with g++.
+cxx_packages=(
+  g++ make cmake ninja-build pkg-config
+  # shared/ and its tools (cmake/KinflyDependencies.cmake, shared/CMakeLists.txt)
+  libeigen3-dev libpng-dev libzstd-dev libcli11-dev
+  # proto/ (lcm-gen: cmake/FindLCM.cmake) and firmware/link/ (signing); liblcm-bin also has the
+  # lcm-logger that records the demo's flight
+  liblcm-dev liblcm-bin libsodium-dev
+  # firmware/app/ (kinfly-fw): logging, the OpenNI2 sensor source and libusb for its hot-plug;
+  # tests/tools/oni/ (the OpenNI2 test driver) finds the same OpenNI2
+  libspdlog-dev libopenni2-dev libusb-1.0-0-dev
 )
 
+# demo (make demo, make eval): the Python environment .venv with the ground package (python3-dev
+# for its native module), and `ip` for the demo's network namespace (scripts/netns.py).
+demo_packages=(
+  python3 python3-venv python3-dev iproute2
+)
+
+# unit (make test-asan, and the unit tests of make test): GoogleTest (CMake's
+# KINFLY_BUILD_TESTS). No gmock: nothing uses it, and GTestConfig.cmake includes its targets only
+# if present. No Google Benchmark: KINFLY_BUILD_BENCH adds tests/bench/CMakeLists.txt, which does
+# not exist yet; whoever writes it adds libbenchmark-dev here.
+unit_packages=(
+  libgtest-dev
+)
+
+# test (make test): what the integration tests use beyond demo and unit.
+test_packages=(
+  # tests/integration/test_flash.py: sfdisk and mkfs.ext4 on loop devices (losetup, partx and
+  # mount come with every Debian system)
+  fdisk e2fsprogs
+  # The viewer screenshot test (Xvfb) adds its packages here: the X server, the renderer.
+)
+
+# fuzz (make fuzz): clang with libFuzzer, and clang's OpenMP runtime (the project configures
+# whole, with the unit tests, so fuzz includes unit).
+fuzz_packages=(
+  clang libclang-rt-14-dev libomp-14-dev
+)
+
+# aarch64 (make firmware-aarch64, make package-aarch64): the cross compiler, qemu-user for the
+# arm64 unit tests (the toolchain file's emulator), mmdebstrap and Debian's keyring for the sysroot
+# (scripts/aarch64-sysroot.sh); CMake, Ninja, pkg-config and lcm-gen of the build host. The arm64
+# libraries come from the sysroot, not from here.
+aarch64_packages=(
+  cmake ninja-build pkg-config liblcm-bin
+  g++-aarch64-linux-gnu qemu-user mmdebstrap debian-archive-keyring
+)
+
+# image (make image: scripts/build-image.sh): qemu-user-static with binfmt-support and arch-test
+# for the image's maintainer scripts, and the tools that assemble the disk image from files (no
+# mounts): sfdisk, mkfs.vfat, mcopy, mkfs.ext4, grub-mkimage.
+image_packages=(
+  qemu-user-static binfmt-support arch-test
+  dosfstools mtools fdisk e2fsprogs grub-common
+)
+
+# bench (make bench): callgrind for the drone's instructions per frame
+# (tests/bench/bench_onboard.py); the group also makes .venv-bench (Open3D).
+bench_packages=(
+  valgrind
+)
+
+all_groups=(demo unit test fuzz aarch64 image bench)
+
+# The groups that GROUP includes.
+group_includes() {
+  case "$1" in
+    demo | unit) echo cxx ;;
+    test) echo demo unit ;;
+    fuzz) echo unit ;;
+    image) echo aarch64 ;;
+    bench) echo demo ;;
+  esac
+}
+
+usage() {
+  cat <<'EOF'
+Usage: scripts/install-deps.sh GROUP...
+
+Installs the Debian packages of each GROUP (apt-get, with sudo when not root, only for packages
+dpkg reports missing) and the Python environments the group needs. Each make target names the
+groups it uses:
+
+  demo     make demo, make eval: the C++ build of the programs, Python with its headers, `ip`;
+           .venv from requirements.txt with the ground package (ground/)
+  unit     make test-asan: the C++ build and GoogleTest, no Python
+  test     make test: demo + unit + what the integration tests use
+  fuzz     make fuzz: unit + clang with libFuzzer
+  aarch64  make firmware-aarch64, make package-aarch64: cross compiler, qemu-user, mmdebstrap
+  image    make image: aarch64 + qemu-user-static, binfmt-support and the disk image tools
+           (make test-aarch64 installs demo, unit and image)
+  bench    make bench: demo + valgrind; .venv-bench from requirements-bench.txt (Open3D)
+  all      every group above (make deps)
+
+The Debian packages each group adds to those it includes:
+EOF
+  local group includes own
+  for group in cxx "${all_groups[@]}"; do
+    own="${group}_packages[*]"
+    includes="$(group_includes "$group")"
+    printf '%s\n' "${includes:+${includes// / + } + }${!own}" |
+      fold -s -w 88 | sed "s/ *$//; 1s/^/  $(printf '%-8s' "$group") /; 2,\$s/^/           /"
+  done
+  echo "  (cxx: the compiler and the libraries kinfly-fw links, shared by demo and unit)"
+}
+
 log() { echo "[install-deps] $*"; }
+
+# Appends GROUP and the groups it includes, those first, to the global `groups`, each once
+# (the global associative array `seen` holds the groups appended so far).
+declare -a groups=()
+declare -A seen=()
+add_group() {
+  local group="$1" included
+  [[ -z "${seen[$group]:-}" ]] || return 0
+  seen[$group]=1
+  for included in $(group_includes "$group"); do
+    add_group "$included"
+  done
+  groups+=("$group")
+}
 
 # Prints the packages of "$@" that dpkg does not report as fully installed.
 missing_apt_packages() {
@@ -41,7 +156,7 @@ missing_apt_packages() {
 
 install_apt_packages() {
   local missing
-  mapfile -t missing < <(missing_apt_packages "${apt_packages[@]}")
+  mapfile -t missing < <(missing_apt_packages "$@" | sort -u)
   if ((${#missing[@]} == 0)); then
     log "apt packages: all present"
     return
@@ -101,18 +216,34 @@ ensure_ground_package() {
 }
 
 main() {
-  local bench=0
+  (($#)) || { usage >&2; exit 2; }
+  local arg
   for arg in "$@"; do
     case "$arg" in
-      --bench) bench=1 ;;
-      -h | --help) sed -n '2,10p' "${BASH_SOURCE[0]}"; exit 0 ;;
-      *) echo "install-deps.sh: unknown argument '$arg'" >&2; exit 2 ;;
+      -h | --help) usage; exit 0 ;;
+      all) set -- "${all_groups[@]}"; break ;;
     esac
   done
-  install_apt_packages
-  ensure_venv "$repo_root/.venv" "$repo_root/requirements.txt"
-  ensure_ground_package "$repo_root/.venv"
-  if ((bench)); then
+  for arg in "$@"; do
+    if [[ " ${all_groups[*]} " != *" $arg "* ]]; then
+      echo "install-deps.sh: unknown group '$arg' (--help lists them)" >&2
+      exit 2
+    fi
+    add_group "$arg"
+  done
+
+  local packages=() group own
+  for group in "${groups[@]}"; do
+    own="${group}_packages[@]"
+    packages+=("${!own}")
+  done
+  install_apt_packages "${packages[@]}"
+
+  if [[ -n "${seen[demo]:-}" ]]; then
+    ensure_venv "$repo_root/.venv" "$repo_root/requirements.txt"
+    ensure_ground_package "$repo_root/.venv"
+  fi
+  if [[ -n "${seen[bench]:-}" ]]; then
     # The benchmarks evaluate with the ground station's own ATE (kinfly_ground.outputs).
     ensure_venv "$repo_root/.venv-bench" "$repo_root/requirements-bench.txt"
     ensure_ground_package "$repo_root/.venv-bench"

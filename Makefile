@@ -16,6 +16,8 @@
 #   make demo       deps demo; builds only kinfly-fw and kinfly-keygen; a recorded flight end to
 #                   end: kinfly-fw replays the shipped LCM log to kinfly-ground over LCM in a
 #                   network namespace; outputs in out/demo
+#   make demo-runs  deps demo; make demo's flight DEMO_RUNS times (20) on the machine as it is,
+#                   then DEMO_BUSY_RUNS times (10) beside two busy loops; out/bench/demo_runs_*.json
 #   make eval       deps demo; accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      deps bench; depth codec and keyframe delivery over LCM on the TUM sequence; the
 #                   drone's figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions
@@ -73,7 +75,7 @@ DEPS_GROUPS := demo unit test fuzz aarch64 image bench
 DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
 
 .PHONY: deps $(DEPS_TARGETS) build test unit-test integration-test test-asan fuzz fuzz-corpus demo \
-        eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
+        demo-runs eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
 	@$(REPO_ROOT)/scripts/install-deps.sh all
@@ -140,6 +142,16 @@ fuzz-corpus: build
 demo: deps-demo
 	$(call build_programs,$(DEMO_PROGRAMS))
 	$(PY) $(REPO_ROOT)/scripts/demo.py --out $(DEMO_OUT)
+
+# How often the demo's flight holds: every keyframe fused, every output written, an ATE; on a
+# machine as it is, then with both cores of a 2-core machine busy with other work.
+DEMO_RUNS ?= 20
+DEMO_BUSY_RUNS ?= 10
+demo-runs: deps-demo
+	$(call build_programs,$(DEMO_PROGRAMS))
+	$(PY) $(REPO_ROOT)/tests/bench/demo_runs.py --runs $(DEMO_RUNS) --out $(REPO_ROOT)/out/bench
+	$(PY) $(REPO_ROOT)/tests/bench/demo_runs.py --runs $(DEMO_BUSY_RUNS) --busy 2 \
+	  --out $(REPO_ROOT)/out/bench
 
 eval: deps-demo
 	@test -d $(KINFLY_DATA) || { echo "no shared data at $(KINFLY_DATA) (set KINFLY_DATA)"; exit 1; }

@@ -504,16 +504,21 @@ class Station:
             # The map as raycast for this keyframe's registration, from its onboard pose (a few
             # mm from the refined one) where it measured depth; a map's first keyframe has none.
             state.view.render(m.utime, fusion.render())
+        # What the viewer's two plots show (viewer._layout): the keyframes' fate as the progress
+        # line counts it, and how well the ground registered them. The other counters are in
+        # summary.json; a first keyframe is not registered, so it has no tracking figures.
+        counters = state.counters
         health = {
-            "tracking/inlier_fraction": result.inlier_fraction,
-            "tracking/rmse_mm": result.rmse_m * 1e3,
-            "tracking/refine_ms": result.total_ms,
-            "map/blocks": float(state.map_blocks),
+            "link/received": float(counters.keyframes_received),
+            "link/fused": float(counters.keyframes_fused),
+            "link/lost": float(counters.keyframes_lost),
+            "link/dropped": float(counters.keyframes_dropped),
         }
         if T_corrected is not None and state.latencies_ms:
             health["link/latency_ms"] = state.latencies_ms[-1]
-        for name, value in dataclasses.asdict(state.counters).items():
-            health[f"counters/{name}"] = float(value)
+        if result.status != "first":
+            health["tracking/inlier_fraction"] = result.inlier_fraction
+            health["tracking/rmse_mm"] = result.rmse_m * 1e3
         state.view.health(m.utime, health)
         # By capture time, which runs at the wall clock's pace in flight and at the log's in a
         # replay.

@@ -13,6 +13,10 @@ when serving several):
   autopilot/<name>                 Scalars, MAVLink telemetry
 Every entry is stamped with its capture time `utime` on the timestamp timeline "capture_time".
 
+The layout (a rerun blueprint, see _layout) is sent with each new vehicle, so a recording opens
+on it: the map large, and beside it the camera and one plot each of health/link and
+health/tracking. autopilot/ is recorded but has no view of its own.
+
 Only numpy and rerun: it works from the source tree, without the native module.
 """
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 APPLICATION_ID = "kinfly-ground"
 TIMELINE = "capture_time"
@@ -38,10 +43,48 @@ _TRAJECTORY_COLORS = {
     "corrected": (0, 200, 80),
     "ground_truth": (200, 200, 200),
 }
+# The map's column against the side column (camera over the two plots): the map is what a
+# person flies by, and the side views stay readable at a laptop's 1600 px.
+_MAP_COLUMN_SHARES = [2.0, 1.0]
+# The side column's rows: the camera, then the link and tracking plots.
+_SIDE_ROW_SHARES = [2.0, 1.0, 1.0]
+# The render drawn over the depth in the camera view, half see-through so the measured depth
+# shows where the model has no surface yet.
+_RENDER_OPACITY = 0.5
 
 
 class ViewerError(Exception):
     """The viewer could not be started or the recording not written."""
+
+
+def _vehicle_layout(prefix: str) -> rrb.Horizontal:
+    """One vehicle's views: its map (mesh, trajectories, camera frustum with depth and render),
+    the camera's own view with the render over the depth, and the two health plots."""
+    camera = f"/{prefix}world/drone/camera"
+    return rrb.Horizontal(
+        rrb.Spatial3DView(name="map", origin=f"/{prefix}world"),
+        rrb.Vertical(
+            rrb.Spatial2DView(name="camera", origin=camera,
+                              overrides={f"{camera}/render":
+                                         rr.Image.from_fields(opacity=_RENDER_OPACITY)}),
+            rrb.TimeSeriesView(name="link", origin=f"/{prefix}health/link"),
+            rrb.TimeSeriesView(name="tracking", origin=f"/{prefix}health/tracking"),
+            row_shares=_SIDE_ROW_SHARES),
+        column_shares=_MAP_COLUMN_SHARES,
+        name=prefix.rstrip("/") or None)
+
+
+def _layout(prefixes: list[str]) -> rrb.Blueprint:
+    """PREFIXES' views; several vehicles get a tab each, as every vehicle maps in its own
+    `world` frame and one 3D view of them all would draw unrelated frames over each other."""
+    layouts = [_vehicle_layout(prefix) for prefix in prefixes]
+    # Open, the blueprint and selection panels would take a third of a laptop's width from the
+    # map and the time panel a quarter of its height; collapsed, the time panel keeps its
+    # playback bar, and a click opens any of them.
+    return rrb.Blueprint(layouts[0] if len(layouts) == 1 else rrb.Tabs(*layouts),
+                         rrb.BlueprintPanel(state="collapsed"),
+                         rrb.SelectionPanel(state="collapsed"),
+                         rrb.TimePanel(state="collapsed"))
 
 
 class _Trajectory:
@@ -223,8 +266,9 @@ class Viewer:
         self._rec = rec
 
     def vehicle(self, vehicle_id: int, prefix: str) -> VehicleView:
-        """The view of VEHICLE_ID, its entities under PREFIX ("" or ending in "/"). Asking again
-        for the same vehicle gives the same view, whose trajectories carry on."""
+        """The view of VEHICLE_ID, its entities under PREFIX ("" or ending in "/"); a new vehicle
+        sends the layout again, with its views added. Asking again for the same vehicle gives the
+        same view, whose trajectories carry on."""
         if prefix and not prefix.endswith("/"):
             raise ValueError(f"vehicle prefix {prefix!r} must be empty or end in '/'")
         if vehicle_id in self._views:
@@ -237,6 +281,11 @@ class Viewer:
             raise ValueError(f"another vehicle is already shown under prefix {prefix!r}")
         view = VehicleView(self._rec, prefix)
         self._views[vehicle_id] = (prefix, view)
+        if self._rec is not None:
+            # Made active, so a new vehicle's tab appears at once; it replaces whatever layout the
+            # user arranged in the viewer meanwhile, a fair price for a vehicle joining mid-flight.
+            self._rec.send_blueprint(_layout([p for p, _ in self._views.values()]),
+                                     make_active=True, make_default=True)
         return view
 
     def close(self) -> None:

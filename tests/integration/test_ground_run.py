@@ -126,7 +126,13 @@ def test_demo_flies_the_sample_end_to_end(demo_run: Path) -> None:
     assert {"world/drone/camera", "world/drone/camera/depth", "world/drone/camera/render",
             "world/trajectory/onboard", "world/trajectory/corrected",
             "world/trajectory/ground_truth", "world/map/mesh",
-            "health/link/latency_ms", "health/tracking/inlier_fraction"} <= entities
+            "health/link/received", "health/link/fused", "health/link/lost",
+            "health/link/dropped", "health/link/latency_ms",
+            "health/tracking/inlier_fraction", "health/tracking/rmse_mm"} <= entities
+    # Every health series has a plot: the layout has one of health/link and one of
+    # health/tracking, and nothing else.
+    assert all(e.startswith(("health/link/", "health/tracking/"))
+               for e in entities if e.startswith("health/")), sorted(entities)
     # Stamped with the keyframes' capture times, as the trajectory file has them.
     keyframe_utimes = {round(float(line.split()[0]) * 1e6) for line in
                        (demo_run / "trajectory_onboard.tum").read_text().splitlines()}

@@ -113,8 +113,8 @@ def run_session(viewer: Viewer) -> dict[str, Any]:
             gt_utime = utime + half * GROUND_TRUTH_PERIOD_US
             view.ground_truth(gt_utime, pose(t_s + half * GROUND_TRUTH_PERIOD_US * 1e-6))
             utimes.add(gt_utime)
-        view.health(utime, {"link/latency_ms": 12.0 + k, "link/keyframes_received": k + 1,
-                            "tracking/inlier_fraction": 0.9, "counters/rejected_malformed": 0})
+        view.health(utime, {"link/latency_ms": 12.0 + k, "link/received": k + 1,
+                            "tracking/inlier_fraction": 0.9, "tracking/rmse_mm": 4.0})
         view.telemetry(utime, {"battery_voltage_v": 16.0 - 0.01 * k, "altitude_m": 1.5})
         if k in (2, 8):
             view.render(utime, rng.integers(0, 256, (HEIGHT, WIDTH), dtype=np.uint8))
@@ -149,8 +149,8 @@ def test_session_recorded_and_read_back(tmp_path: Path) -> None:
                      "world/drone/camera/render", "world/map/mesh",
                      "world/trajectory/onboard/0", "world/trajectory/corrected/0",
                      "world/trajectory/ground_truth/0", "health/link/latency_ms",
-                     "health/link/keyframes_received", "health/tracking/inlier_fraction",
-                     "health/counters/rejected_malformed", "autopilot/battery_voltage_v",
+                     "health/link/received", "health/tracking/inlier_fraction",
+                     "health/tracking/rmse_mm", "autopilot/battery_voltage_v",
                      "autopilot/altitude_m"]:
         assert expected in entities, f"{expected} missing from {sorted(entities)}"
 

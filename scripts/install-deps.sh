@@ -53,7 +53,10 @@ test_packages=(
   # tests/integration/test_flash.py: sfdisk and mkfs.ext4 on loop devices (losetup, partx and
   # mount come with every Debian system)
   fdisk e2fsprogs
-  # The viewer screenshot test (Xvfb) adds its packages here: the X server, the renderer.
+  # tests/integration/test_viewer_screenshot.py: the rerun viewer on a virtual X display with
+  # software Vulkan (Mesa's lavapipe), the X libraries it loads at run time, and the certificates
+  # rerun's control client loads even for http to 127.0.0.1
+  xvfb libvulkan1 mesa-vulkan-drivers libxcursor1 libxi6 libxkbcommon-x11-0 ca-certificates
 )
 
 # fuzz (make fuzz): clang with libFuzzer, and clang's OpenMP runtime (the project configures

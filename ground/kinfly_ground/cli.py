@@ -26,8 +26,8 @@ from kinfly import status_t
 from . import __version__
 from .channels import MAX_VEHICLE_ID, Channel, channel_name, channels_regex
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
-from .outputs import (OutputError, ate, check_writable, memory, read_tum, write_atomically,
-                      write_error_plot, write_json, write_tum)
+from .outputs import (OutputError, ate_figures, check_writable, evaluate, memory, read_tum,
+                      write_atomically, write_error_plot, write_json, write_tum)
 from .signing import KeyFileError, Signer, load_key_file
 from .station import Segment, Station, StationParams, VehicleState, percentile
 from .viewer import Viewer, ViewerError
@@ -193,15 +193,16 @@ def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, A
     truth = truth if truth is not None else segment.ground_truth
     if not truth:
         return {"available": False, "reason": "no ground truth"}
-    results = {name: r for name, r in (("onboard", ate(segment.onboard, truth)),
-                                       ("corrected", ate(segment.corrected, truth)))
-               if r is not None}
+    # Made at the end by Station.show_final; an export on request evaluates the map so far.
+    results = segment.evaluation
+    if results is None:
+        results = evaluate({"onboard": segment.onboard, "corrected": segment.corrected}, truth)
     if not results:
         return {"available": False, "reason": "fewer than 3 poses match the ground truth in time"}
     write_error_plot(out / "ate.png", results)
     summary: dict[str, Any] = {"available": True, "plot": "ate.png"}
     for name, r in results.items():
-        summary[name] = {k: v for k, v in r.items() if k != "errors"}
+        summary[name] = ate_figures(r)
     return summary
 
 
@@ -475,7 +476,7 @@ def _finish(station: Station, viewer: Viewer, args: argparse.Namespace, mode: st
     # The process after the whole flight, before the final mesh and the evaluation add theirs.
     extra = {**extra, "memory_after_fusion": memory()}
     try:
-        station.show_final_maps()
+        station.show_final(truth)
         viewer.close()
     except ViewerError as error:
         log(str(error))

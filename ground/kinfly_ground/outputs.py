@@ -84,7 +84,8 @@ def _trajectory(poses: list[StampedPose]):
 def ate(estimate: list[StampedPose], truth: list[StampedPose]) -> dict[str, Any] | None:
     """Absolute trajectory error (translation) after nearest-time association and SE(3) Umeyama
     alignment, without scale (depth is metric: a scale error is an error). None when fewer than
-    three poses match. 'errors' holds each matched pose's (t [s], error [m])."""
+    three poses match. 'errors' holds each matched pose's (t [s], error [m]), 'T_truth_estimate'
+    the alignment (4x4: the estimate's frame into the truth's)."""
     from evo.core import metrics, sync
     from evo.core.geometry import GeometryException
     from evo.core.sync import SyncException
@@ -99,9 +100,11 @@ def ate(estimate: list[StampedPose], truth: list[StampedPose]) -> dict[str, Any]
     if est_sync.num_poses < 3:
         return None
     try:
-        est_sync.align(gt_sync, correct_scale=False)
+        rotation, translation, _ = est_sync.align(gt_sync, correct_scale=False)
     except GeometryException:  # degenerate: a hover or a straight line gives no rotation
         return None
+    T_truth_estimate = np.eye(4)
+    T_truth_estimate[:3, :3], T_truth_estimate[:3, 3] = rotation, translation
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((gt_sync, est_sync))
     stats = ape.get_all_statistics()
@@ -110,7 +113,20 @@ def ate(estimate: list[StampedPose], truth: list[StampedPose]) -> dict[str, Any]
         "median_m": float(stats["median"]), "max_m": float(stats["max"]),
         "matched_poses": int(est_sync.num_poses),
         "errors": list(zip(est_sync.timestamps.tolist(), ape.error.tolist())),
+        "T_truth_estimate": T_truth_estimate,
     }
+
+
+def ate_figures(result: dict[str, Any]) -> dict[str, Any]:
+    """An ate() result without its per-pose errors and its alignment: what a summary reports."""
+    return {k: v for k, v in result.items() if k not in ("errors", "T_truth_estimate")}
+
+
+def evaluate(trajectories: dict[str, list[StampedPose]],
+             truth: list[StampedPose]) -> dict[str, dict[str, Any]]:
+    """ate() of each named trajectory against TRUTH, those that have one."""
+    return {name: r for name, poses in trajectories.items()
+            if (r := ate(poses, truth)) is not None}
 
 
 def write_error_plot(path: Path, results: dict[str, dict[str, Any]]) -> None:

@@ -39,7 +39,7 @@ from ._native import Fusion, MapSnapshot
 from .channels import Channel, channel_name
 from .conversions import correction_message, pose_to_matrix
 from .link import Received, Receiver
-from .outputs import ATE_MAX_TIME_DIFF_S
+from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
 from .signing import Signer
 from .viewer import VehicleView, Viewer
 
@@ -110,6 +110,8 @@ class Segment:
     T_map_truth: np.ndarray | None = None
     truth_drawn: int = 0
     snapshot: MapSnapshot | None = None  # the final map's copy, meshed once for viewer and file
+    # The final ATE of each trajectory (outputs.evaluate), made once for viewer and summary.
+    evaluation: dict[str, dict[str, Any]] | None = None
 
 
 @dataclasses.dataclass
@@ -510,8 +512,9 @@ class Station:
         counters = state.counters
         health = {
             "link/received": float(counters.keyframes_received),
+            "link/lost_on_link": float(counters.lost_on_link),
             "link/fused": float(counters.keyframes_fused),
-            "link/lost": float(counters.keyframes_lost),
+            "link/not_refined": float(counters.keyframes_lost),
             "link/dropped": float(counters.keyframes_dropped),
         }
         if T_corrected is not None and state.latencies_ms:
@@ -620,15 +623,25 @@ class Station:
         for thread in self._threads:
             thread.join()
 
-    def show_final_maps(self) -> None:
+    def show_final(self, truth: list[StampedPose] | None) -> None:
         """Sends every vehicle's map to the viewer as it is at the end, stamped with its last
-        keyframe: the periodic meshes miss whatever came after the last one. Call after stop()."""
+        keyframe (the periodic meshes miss whatever came after the last one), and its ground
+        truth (TRUTH, else what the drone sent) as the ATE aligns it with the corrected
+        trajectory: the frame the evaluation compares them in. Call after stop()."""
         for state in self.vehicles.values():
             segment = state.segment
             if segment.fusion is None or not segment.corrected:
                 continue
+            last_utime = segment.corrected[-1][0]
             segment.snapshot = segment.fusion.snapshot()
-            state.view.mesh(segment.corrected[-1][0], *segment.snapshot.mesh())
+            state.view.mesh(last_utime, *segment.snapshot.mesh())
+            segment_truth = truth if truth is not None else segment.ground_truth
+            segment.evaluation = evaluate({"onboard": segment.onboard,
+                                           "corrected": segment.corrected}, segment_truth)
+            if "corrected" in segment.evaluation:
+                T_map_truth = np.linalg.inv(segment.evaluation["corrected"]["T_truth_estimate"])
+                state.view.ground_truth_aligned(
+                    last_utime, np.array([(T_map_truth @ T)[:3, 3] for _, T in segment_truth]))
 
     def queue_length(self) -> int:
         return len(self._queue)

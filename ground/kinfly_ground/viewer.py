@@ -106,13 +106,30 @@ class _Trajectory:
         self._block = 0
 
     def append(self, T_world_cam: np.ndarray) -> None:
+        self._add(T_world_cam[:3, 3])
+        self._log_block()
+
+    def replace(self, positions: np.ndarray) -> None:
+        """POSITIONS (Nx3) instead of what was drawn, from the time the caller set on; each
+        block is logged once, full."""
+        self._rec.log(self._path, rr.Clear(recursive=True))
+        self.reset()
+        for position in positions:
+            if self._count == _BLOCK_POSES:
+                self._log_block()
+            self._add(position)
+        self._log_block()
+
+    def _add(self, position: np.ndarray) -> None:
         if self._count == _BLOCK_POSES:
             # The new block starts where the full one ends, so the line has no gap.
             self._positions[0] = self._positions[-1]
             self._count = 1
             self._block += 1
-        self._positions[self._count] = T_world_cam[:3, 3]
+        self._positions[self._count] = position
         self._count += 1
+
+    def _log_block(self) -> None:
         if self._count >= 2:  # one pose is not a line yet
             self._rec.log(f"{self._path}/{self._block}",
                           rr.LineStrips3D([self._positions[:self._count]],
@@ -127,8 +144,8 @@ class _Trajectory:
 class VehicleView:
     """One vehicle's entities, under its prefix. Made by Viewer.vehicle().
 
-    The calls that touch the trajectories (keyframe, ground_truth, restarted) must come from one
-    thread, the station's fusion thread. render, mesh, health and telemetry may come from any
+    The calls that touch the trajectories (keyframe, ground_truth, ground_truth_aligned,
+    restarted) must come from one thread, the station's fusion thread (or after it stopped). render, mesh, health and telemetry may come from any
     thread: rerun's time is per thread and each call sets it before logging."""
 
     def __init__(self, rec: rr.RecordingStream | None, prefix: str) -> None:
@@ -170,6 +187,15 @@ class VehicleView:
             return
         self._stamp(utime)
         self._trajectories["ground_truth"].append(T_world_cam)
+
+    def ground_truth_aligned(self, utime: int, positions: np.ndarray) -> None:
+        """The whole ground truth drawn again from UTIME on, as POSITIONS (Nx3, in `world`):
+        once the evaluation has aligned it with the map, it replaces the path drawn during the
+        flight, which could only be anchored at one keyframe."""
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        self._trajectories["ground_truth"].replace(positions)
 
     def render(self, utime: int, image: np.ndarray) -> None:
         """IMAGE: uint8 HxW, the model raycast from the current pose, at the depth's resolution."""

@@ -16,18 +16,23 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import demo  # scripts/demo.py (conftest puts scripts/ on the path)
 from busy import busy_cores
 from firmware_run import summary as drone_summary
-from test_ground_viewer import read_rows
+from kinfly_ground.outputs import ATE_MAX_TIME_DIFF_S
+from test_ground_viewer import latest, read_rows
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 GROUND = Path(sys.executable).parent / "kinfly-ground"
 RERUN = Path(sys.executable).parent / "rerun"
 # DESIGN's accuracy budget: ATE RMSE on the shared TUM sequence, and never worse than onboard.
 ATE_BOUND_M = 0.03
+# Positions drawn in rerun are float32: metres to about 1e-7 near the origin, and the TUM files
+# they are compared with keep 9 decimals.
+DRAWN_POSITION_TOLERANCE_M = 1e-5
 # Busy loops beside the loaded-machine flight: one per core of the 2-core machines this runs on.
 BUSY_CORES = 2
 OUTPUTS = ("mesh.ply", "trajectory_onboard.tum", "trajectory_corrected.tum", "session.rrd",
@@ -126,8 +131,8 @@ def test_demo_flies_the_sample_end_to_end(demo_run: Path) -> None:
     assert {"world/drone/camera", "world/drone/camera/depth", "world/drone/camera/render",
             "world/trajectory/onboard", "world/trajectory/corrected",
             "world/trajectory/ground_truth", "world/map/mesh",
-            "health/link/received", "health/link/fused", "health/link/lost",
-            "health/link/dropped", "health/link/latency_ms",
+            "health/link/received", "health/link/lost_on_link", "health/link/fused",
+            "health/link/not_refined", "health/link/dropped", "health/link/latency_ms",
             "health/tracking/inlier_fraction", "health/tracking/rmse_mm"} <= entities
     # Every health series has a plot: the layout has one of health/link and one of
     # health/tracking, and nothing else.
@@ -138,6 +143,18 @@ def test_demo_flies_the_sample_end_to_end(demo_run: Path) -> None:
                        (demo_run / "trajectory_onboard.tum").read_text().splitlines()}
     depth_utimes = {row.utime for row in rows if row.entity == "world/drone/camera/depth"}
     assert depth_utimes == keyframe_utimes
+    # At the end the ground truth is drawn as the ATE aligns it: the keyframes the ATE matched
+    # (a truth pose within 20 ms) are as far from the truth drawn for their time as the ATE says.
+    truth_path = np.array(latest(rows, "world/trajectory/ground_truth/0", "LineStrips3D:strips")[0])
+    truth_times = np.loadtxt(demo_run / "trajectory_ground_truth.tum")[:, 0]
+    assert len(truth_path) == len(truth_times)
+    corrected = np.loadtxt(demo_run / "trajectory_corrected.tum")
+    nearest = np.argmin(np.abs(corrected[:, :1] - truth_times[None, :]), axis=1)
+    matched = np.abs(truth_times[nearest] - corrected[:, 0]) <= ATE_MAX_TIME_DIFF_S
+    assert matched.sum() == vehicle["ate"]["corrected"]["matched_poses"]
+    gaps = np.linalg.norm(corrected[matched, 1:4] - truth_path[nearest[matched]], axis=1)
+    ate_m = vehicle["ate"]["corrected"]["rmse_m"]
+    assert np.sqrt(np.mean(gaps ** 2)) == pytest.approx(ate_m, abs=DRAWN_POSITION_TOLERANCE_M)
 
 
 def test_recorded_flight_replays_offline(demo_run: Path, tmp_path: Path) -> None:

@@ -217,7 +217,7 @@ def record_session(path: Path, prefixes: list[str]) -> int:
                           DEPTH_SCALE_M, INTRINSICS, T_world_cam, T_world_cam)
             view.render(last_utime, np.uint8(255 * (depth_m - depth_m.min()) / np.ptp(depth_m)))
             view.health(last_utime, {
-                "link/received": k + 1.0, "link/fused": k + 1.0, "link/lost": 0.0,
+                "link/received": k + 1.0, "link/fused": k + 1.0, "link/not_refined": 0.0,
                 "link/dropped": 0.0, "link/latency_ms": 20.0 + rng.normal(0.0, 2.0),
                 "tracking/inlier_fraction": 0.9, "tracking/rmse_mm": 4.0 + rng.normal(0.0, 0.5)})
         view.mesh(last_utime, vertices.reshape(-1, 3).astype(np.float32),

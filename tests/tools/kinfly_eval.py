@@ -80,7 +80,7 @@ def ate(traj_path: str | Path, gt_path: str | Path) -> dict[str, float | int]:
     result = outputs.ate(outputs.read_tum(Path(traj_path)), outputs.read_tum(Path(gt_path)))
     if result is None:
         raise ValueError(f"{traj_path}: fewer than 3 poses match {gt_path} in time")
-    return {k: v for k, v in result.items() if k != "errors"}
+    return outputs.ate_figures(result)
 
 
 def depth_frame_count(tum_dir: str | Path) -> int:

@@ -29,6 +29,8 @@ from busy import busy_cores  # noqa: E402
 
 DEMO = REPO_ROOT / "scripts" / "demo.py"
 DEMO_TIMEOUT_S = 600
+# The 1-minute load average reaches 95 % of a new steady load after 3 minutes.
+LOAD_SETTLE_TIMEOUT_S = 240.0
 
 
 def one_run(out: Path) -> dict[str, Any]:
@@ -61,6 +63,15 @@ def one_run(out: Path) -> dict[str, Any]:
     return run
 
 
+def settle_load(busy: int) -> None:
+    """Until the 1-minute load average shows the BUSY processes (it lags them by about a
+    minute), so that the first runs meet the same machine as the last and the load reported
+    with each run is the one it met; at most LOAD_SETTLE_TIMEOUT_S."""
+    deadline = time.monotonic() + LOAD_SETTLE_TIMEOUT_S
+    while busy and os.getloadavg()[0] < busy and time.monotonic() < deadline:
+        time.sleep(1.0)
+
+
 def median(runs: list[dict[str, Any]], key: str) -> float | None:
     values = [r[key] for r in runs if r.get(key) is not None]
     return statistics.median(values) if values else None
@@ -78,6 +89,7 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     runs = []
     with busy_cores(args.busy):
+        settle_load(args.busy)
         for i in range(args.runs):
             runs.append(one_run(work / str(i)))
             r = runs[-1]

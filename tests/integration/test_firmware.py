@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO_ROOT, built, wait_for_line
+from demo import Watched
 from firmware_run import CONFIG, firmware, read_tum, summary
 
 # Same engine, same parameters, same frames in the same order: only float summation order could
@@ -25,6 +26,8 @@ SAME_ENGINE_TOLERANCE_M = 1e-6
 # The synthetic flight against its own ground truth: a 3 cm voxel volume and one full swing of
 # the flight; drift well under a voxel.
 SYNTHETIC_MAX_ERROR_M = 0.02
+# The longest wait for kinfly-fw to start flying (a loaded machine is slow, never this slow).
+STARTUP_TIMEOUT_S = 60.0
 
 
 def test_log_replay_matches_the_offline_engine(sample_log: Path, sample_dir: Path,
@@ -153,16 +156,18 @@ def test_wrong_types_and_unsafe_keys_refuse_to_start(sample_log: Path, tmp_path:
 
 
 def test_sigterm_stops_within_a_second_with_a_summary(sample_log: Path) -> None:
-    process = subprocess.Popen(firmware("--source.path", sample_log, "--source.realtime", "true"),
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(0.8)
-    assert process.poll() is None, "the 2 s replay ended early"
-    sent = time.monotonic()
-    process.send_signal(signal.SIGTERM)
-    out, _ = process.communicate(timeout=10)
-    assert time.monotonic() - sent < 1.0
-    assert process.returncode == 0
-    assert out.startswith("kinfly-fw: stopped:")
+    drone = Watched(firmware("--source.path", sample_log, "--source.realtime", "true"))
+    try:
+        # Flying: both threads that send have started LCM.
+        assert drone.wait_for("LCM started", 2, STARTUP_TIMEOUT_S), drone.output()
+        assert drone.process.poll() is None, "the 2 s replay ended early"
+        sent = time.monotonic()
+        drone.process.send_signal(signal.SIGTERM)
+        assert drone.finish(10) == 0
+        assert time.monotonic() - sent < 1.0
+    finally:
+        drone.process.kill()
+    assert "kinfly-fw: stopped:" in drone.output()
 
 
 def test_flight_over_lcm_keyframes_bit_exact_and_corrections_checked(

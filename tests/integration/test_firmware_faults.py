@@ -32,6 +32,8 @@ GAP_S = 2.5
 OVERLOAD_SPEED = 20
 # The longest wait for something the drone is expected to say (a loaded machine is slow).
 EVENT_TIMEOUT_S = 60.0
+# Longer than the drone's 2 s link timeout (link.timeout_s), with a second to spare.
+GROUND_AWAY_S = 3.0
 # 8 s at 15 frames a second: the network goes and comes back within it.
 NETWORK_FLIGHT_FRAMES = 120
 # Resident memory may move by allocator noise, not by the length of the flight.
@@ -130,24 +132,26 @@ def test_ground_station_gone_and_restarted(netns: list[str], tmp_path: Path) -> 
     keyframes go out all along, heard or not."""
     key = tmp_path / "v7.key"
     subprocess.run([built("bin/kinfly-keygen"), "--out", key], check=True, capture_output=True)
-    drone = subprocess.Popen(
+    drone = Watched(
         [*netns, *firmware("--vehicle.id", VEHICLE, "--source.kind", "synthetic",
-                           "--source.max_frames", 300, key_file=str(key), lcm_url=None)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                           "--source.max_frames", 300, key_file=str(key), lcm_url=None)])
     watcher = subprocess.Popen(probe(netns, "watch", "--seconds", 9), stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     try:
-        time.sleep(1.0)
+        assert drone.wait_for("link: LCM started", 1, EVENT_TIMEOUT_S), drone.output()
         subprocess.run(probe(netns, "beacon", "--seconds", 1.5), check=True, timeout=30)
-        time.sleep(3.0)  # gone for longer than the drone's 2 s link timeout
+        # The scenario itself, not a wait for something: the ground station stays away for
+        # longer than the drone's 2 s link timeout.
+        time.sleep(GROUND_AWAY_S)
         subprocess.run(probe(netns, "beacon", "--seconds", 1.5, "--key", key, "--correct", 3),
                        check=True, timeout=30)
         timeline = json.loads(watcher.communicate(timeout=30)[0])
-        drone_out, drone_err = drone.communicate(timeout=30)
+        rc = drone.finish(30)
     finally:
-        drone.kill()
+        drone.process.kill()
         watcher.kill()
-    assert drone.returncode == 0, drone_err
+    assert rc == 0, drone.output()
+    drone_out = drone.output()
     states = [s["link_state"] for s in timeline]
     # 0 unknown, 1 up, 2 stale: up, then stale, then up again.
     first_up = states.index(1)

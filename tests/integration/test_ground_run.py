@@ -11,6 +11,7 @@ import json
 import os
 import random
 import re
+import signal
 import stat
 import subprocess
 import sys
@@ -22,6 +23,7 @@ import pytest
 import demo  # scripts/demo.py (conftest puts scripts/ on the path)
 from busy import busy_cores
 from firmware_run import summary as drone_summary
+from netns import send_signal
 from kinfly_ground.outputs import ATE_MAX_TIME_DIFF_S
 from test_ground_viewer import latest, read_rows
 
@@ -339,19 +341,24 @@ def test_on_request_export_then_clean_exit(tmp_path: Path) -> None:
 
 
 PEER = """
-import json, sys, time
+import json, signal, sys, time
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
+stopping = []
+signal.signal(signal.SIGTERM, lambda *_: stopping.append(True))
 peer = mavutil.mavlink_connection(sys.argv[1], source_system=1, source_component=1,
                                   dialect="common")
 peer.mav = mavlink2.MAVLink(peer, srcSystem=1, srcComponent=1)
-poses, last, deadline = 0, None, time.monotonic() + float(sys.argv[2])
-while time.monotonic() < deadline:
+poses, last, ready = 0, None, False
+while not stopping:
     peer.mav.heartbeat_send(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_PX4,
                             mavlink2.MAV_MODE_FLAG_SAFETY_ARMED, 0, mavlink2.MAV_STATE_ACTIVE)
     peer.mav.attitude_send(0, 0.1, -0.2, 0.3, 0.0, 0.0, 0.0)
+    if not ready:
+        print("ready", flush=True)
+        ready = True
     stop = time.monotonic() + 0.05
-    while time.monotonic() < stop:
+    while time.monotonic() < stop and not stopping:
         msg = peer.recv_match(type="VISION_POSITION_ESTIMATE", blocking=True, timeout=0.05)
         if msg is not None:
             poses, last = poses + 1, msg.to_dict()
@@ -361,22 +368,23 @@ print(json.dumps({"poses": poses, "last": last}))
 
 def test_mavlink_autopilot_sees_the_corrected_poses(tmp_path: Path, netns: list[str]) -> None:
     """The ground with --mavlink forwards the drone's corrected poses to a pymavlink autopilot
-    in the namespace and records the autopilot's telemetry."""
+    in the namespace and records the autopilot's telemetry. The autopilot sends its heartbeat
+    before the flight starts and listens until the flight is over."""
     key = demo.make_key(tmp_path / "vehicle.key")
     out = tmp_path / "out"
     port = 14590
     ground = [*demo.ground_command(out, key=key), "--mavlink", f"udpin:127.0.0.1:{port}",
               "--mavlink-forward", "vision", "--mavlink-rate", "20"]
-    peers: list[subprocess.Popen] = []
-
-    def start_autopilot() -> None:
-        peers.append(subprocess.Popen([*netns, sys.executable, "-c", PEER,
-                                       f"udpout:127.0.0.1:{port}", "4"],
-                                      stdout=subprocess.PIPE, text=True))
-
-    flight = demo.fly(netns, ground, [demo.drone_command(demo.SAMPLE_LOG, key=key)],
-                      during=start_autopilot, quiet=True)
-    heard = json.loads(peers[0].communicate(timeout=30)[0])
+    autopilot = subprocess.Popen([*netns, sys.executable, "-c", PEER, f"udpout:127.0.0.1:{port}"],
+                                 stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert autopilot.stdout.readline().strip() == "ready"
+        flight = demo.fly(netns, ground, [demo.drone_command(demo.SAMPLE_LOG, key=key)],
+                          quiet=True)
+        send_signal(autopilot, signal.SIGTERM)
+        heard = json.loads(autopilot.communicate(timeout=30)[0])
+    finally:
+        autopilot.kill()
     assert flight.ground_rc == 0, flight.ground_output
     # The 2 s flight at 30 Hz, limited to 20 Hz, minus the start: well over 10 poses.
     assert heard["poses"] >= 10, heard

@@ -61,8 +61,12 @@ QUANTISATION_ROTATION_RAD = 1e-3
 # the replug and only the plug-in notice reconnects within RETRY_LATE_S of it.
 UNPLUG_AFTER_FRAMES, AWAY_S = 30, 1.2
 REPLUG_RETRY_MIN_S, REPLUG_RETRY_MAX_S = 0.3, 0.6
-# The source reads with this timeout, so it notices an unplug at most this late.
+# The source reads with this timeout, so it notices an unplug at most this late, on a machine
+# that runs its capture thread at once.
 READ_TIMEOUT_S = 0.1
+# A machine busy with other work runs the capture thread later than that: with two busy loops
+# beside the tests it noticed the unplug 0.19 s after the feed pulled the cable.
+NOTICE_LATE_S = 0.5
 # A log line awaited longer than this will not come: kinfly-fw is killed and the test fails.
 LOG_WAIT_S = 30.0
 
@@ -249,7 +253,8 @@ def test_unplugged_sensor_is_reconnected_and_counted(netns: list[str], sample_di
     assert promised[:2] == [REPLUG_RETRY_MIN_S, REPLUG_RETRY_MAX_S], log
     assert all(wait_s == REPLUG_RETRY_MAX_S for wait_s in promised[2:]), log
     away_s = stamps["(connection 2)"] - stamps["depth sensor unplugged: closed, reconnecting"]
-    assert AWAY_S - READ_TIMEOUT_S - LOG_STAMP_S <= away_s <= AWAY_S + RETRY_LATE_S, log
+    assert AWAY_S - READ_TIMEOUT_S - NOTICE_LATE_S - LOG_STAMP_S <= away_s, log
+    assert away_s <= AWAY_S + RETRY_LATE_S, log
 
     assert probe.returncode == 0, probe_err
     heard = json.loads(probe_out)

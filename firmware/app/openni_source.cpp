@@ -287,6 +287,11 @@ class OpenniSource : public DepthSource,
     if (file_) {
       frames_in_file_ = device_.getPlaybackControl()->getNumberOfFrames(stream_);
       frames_read_ = last_index_ = 0;
+      // With a frame count the reader stops by itself, and the file driver may go round: at
+      // its end it then waits for the next read instead of spinning over its list of streams,
+      // which it walks unlocked while destroying a stream changes it (a crash when the two
+      // meet, seen under load; OpenNI2's PlayerDevice::MainLoop and destroyStream).
+      if (frames_in_file_ > 0) device_.getPlaybackControl()->setRepeatEnabled(true);
     }
     {
       const std::lock_guard<std::mutex> lock(uri_mutex_);

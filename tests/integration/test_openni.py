@@ -30,6 +30,7 @@ import pytest
 from conftest import REPO_ROOT, built
 from firmware_run import firmware as firmware_command
 from firmware_run import read_tum
+
 GROUND_PROBE = REPO_ROOT / "tests" / "tools" / "ground_probe.py"
 VEHICLE = 1
 # status_t.SENSOR_* (proto/kinfly/status_t.lcm)
@@ -215,6 +216,14 @@ def test_unplugged_sensor_is_reconnected_and_counted(netns: list[str], sample_di
     openni2 = built("tests/oni/kinfly-oni-record").parent / "openni2"
     uri = f"tumfeed://{sample_dir}?live&unplug_after={UNPLUG_AFTER_FRAMES}&away_s={AWAY_S}"
     trajectory = tmp_path / "replugged.tum"
+    # Listening from before the drone starts (the first connection streams for only a second,
+    # less than the listener takes to start on a loaded machine) until it has heard the second
+    # connection streaming.
+    probe = subprocess.Popen([*netns, sys.executable, GROUND_PROBE, "watch", "--vehicle",
+                              str(VEHICLE), "--until-sensor", f"{SENSOR_STREAMING}:2"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             start_new_session=True)
+    assert probe.stderr.readline().strip() == "watching"
     process = subprocess.Popen(
         [*netns, *firmware("--source.path", uri, "--source.intrinsics", TUM_INTRINSICS,
                            "--source.reconnect_min_s", REPLUG_RETRY_MIN_S,
@@ -225,16 +234,13 @@ def test_unplugged_sensor_is_reconnected_and_counted(netns: list[str], sample_di
     lines: list[str] = []
     try:
         read_until(process, "streaming 640x480 depth (connection 1)", lines)
-        # Listens across the unplug: it comes 1 s after the first frame, the replug 1.2 s later.
-        probe = subprocess.Popen([*netns, sys.executable, GROUND_PROBE, "watch", "--vehicle",
-                                  str(VEHICLE), "--seconds", "3.0"],
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         read_until(process, "streaming 640x480 depth (connection 2)", lines)
         read_until(process, "delivering again", lines)
-        probe_out, probe_err = probe.communicate(timeout=30)
+        probe_out, probe_err = probe.communicate(timeout=LOG_WAIT_S)
         out, elapsed = stop(process, lines)
     finally:
         process.kill()
+        probe.kill()
     log = "\n".join(lines)
     assert elapsed < STOP_WITHIN_S, elapsed
     assert process.returncode == 0, log
@@ -258,9 +264,12 @@ def test_unplugged_sensor_is_reconnected_and_counted(netns: list[str], sample_di
 
     assert probe.returncode == 0, probe_err
     heard = json.loads(probe_out)
-    # streaming on the first connection, waiting while unplugged, streaming on the second
+    # Streaming on the first connection, waiting while unplugged, streaming on the second; heard
+    # from before the start, where the first status may come before the first connection.
     phases = [(s["sensor_state"], s["sensor_connects"]) for s in heard]
     collapsed = [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]]
+    if collapsed[0] == (SENSOR_WAITING, 0):
+        collapsed = collapsed[1:]
     assert collapsed == [(SENSOR_STREAMING, 1), (SENSOR_WAITING, 1), (SENSOR_STREAMING, 2)], phases
 
     # Capture times go on increasing across the reconnection, though the device's own clock

@@ -6,15 +6,18 @@ roles:
         sends the ground station's status at 10 Hz for S seconds, as a ground station that is
         up; with --key, first one signed correction of KEYFRAME (a fresh Signer, as a
         restarted ground station has).
-    ground_probe.py watch --seconds S
-        records the drone's status_t for S seconds and prints one JSON list, each status with
-        every field and t_s, the seconds since the watch began; exit 1 if none was heard.
+    ground_probe.py watch [--seconds S] [--until-sensor STATE:CONNECTS]
+        records the drone's status_t for S seconds (without --seconds: until SIGTERM, or until
+        a status reports that sensor_state and sensor_connects) and prints one JSON list, each
+        status with every field and t_s, the seconds since the watch began; exit 1 if none was
+        heard. It says "watching" on stderr once it listens.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import select
+import signal
 import sys
 import time
 
@@ -27,6 +30,7 @@ from kinfly_ground.conversions import decode
 from uplink_probe import correction
 
 STATUS_PERIOD_S = 0.1
+DRAIN_S = 0.2  # after a stop: what LCM had taken in by then is handled within this
 
 
 def beacon(lc: lcm.LCM, vehicle: int, seconds: float, key: str | None, keyframe: int) -> None:
@@ -43,20 +47,30 @@ def beacon(lc: lcm.LCM, vehicle: int, seconds: float, key: str | None, keyframe:
         time.sleep(STATUS_PERIOD_S)
 
 
-def watch(lc: lcm.LCM, vehicle: int, seconds: float) -> list[dict[str, float]]:
+def watch(lc: lcm.LCM, vehicle: int, seconds: float | None,
+          until_sensor: tuple[int, int] | None) -> list[dict[str, float]]:
     start = time.monotonic()
     timeline: list[dict[str, float]] = []
+    stopping: list[bool] = []
+    signal.signal(signal.SIGTERM, lambda *_: stopping.append(True))
 
     def on_status(_channel: str, data: bytes) -> None:
         s = decode(status_t, data)
         timeline.append({"t_s": round(time.monotonic() - start, 3),
                          **{field: getattr(s, field) for field in status_t.__slots__}})
+        if (s.sensor_state, s.sensor_connects) == until_sensor:
+            stopping.append(True)
 
     lc.subscribe(channel_name(Channel.STATUS, vehicle), on_status)
-    while time.monotonic() - start < seconds:
+    print("watching", file=sys.stderr, flush=True)
+    while not stopping and (seconds is None or time.monotonic() - start < seconds):
         ready, _, _ = select.select([lc.fileno()], [], [], 0.05)
         if ready:
             lc.handle()
+    # What had arrived when told to stop (a drone's last status, sent as it exited) still counts.
+    drained = time.monotonic() + DRAIN_S
+    while select.select([lc.fileno()], [], [], max(0.0, drained - time.monotonic()))[0]:
+        lc.handle()
     return timeline
 
 
@@ -65,15 +79,22 @@ def main() -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("role", choices=("beacon", "watch"))
     parser.add_argument("--vehicle", type=int, default=7)
-    parser.add_argument("--seconds", type=float, required=True)
+    parser.add_argument("--seconds", type=float,
+                        help="how long to beacon or watch (watch: until SIGTERM without it)")
+    parser.add_argument("--until-sensor", metavar="STATE:CONNECTS",
+                        type=lambda v: tuple(int(x) for x in v.split(":")),
+                        help="watch: stop once a status reports this sensor_state and "
+                             "sensor_connects")
     parser.add_argument("--key", help="beacon: send one signed correction with this key first")
     parser.add_argument("--correct", type=int, default=0, help="beacon: the keyframe corrected")
     args = parser.parse_args()
     lc = lcm.LCM()
     if args.role == "beacon":
+        if args.seconds is None:
+            parser.error("beacon needs --seconds")
         beacon(lc, args.vehicle, args.seconds, args.key, args.correct)
         return 0
-    timeline = watch(lc, args.vehicle, args.seconds)
+    timeline = watch(lc, args.vehicle, args.seconds, args.until_sensor)
     print(json.dumps(timeline))
     return 0 if timeline else 1
 

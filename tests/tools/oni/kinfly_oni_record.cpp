@@ -60,7 +60,6 @@ Replay replay(const std::string& path) {
     r.problem = std::string("OpenNI2 cannot open it: ") + openni::OpenNI::getExtendedError();
     return r;
   }
-  file.getPlaybackControl()->setRepeatEnabled(false);
   file.getPlaybackControl()->setSpeed(-1.0f);
   if (stream.create(file, openni::SENSOR_DEPTH) != openni::STATUS_OK ||
       stream.start() != openni::STATUS_OK) {
@@ -68,6 +67,10 @@ Replay replay(const std::string& path) {
     return r;
   }
   r.recorded = file.getPlaybackControl()->getNumberOfFrames(stream);
+  // The loop below stops at the count, so the driver may go round: at the end it then waits for
+  // the next read instead of spinning over its streams, which it walks unlocked while destroy()
+  // changes them (kinfly-fw's openni_source.cpp says more). Without a count nothing is read.
+  file.getPlaybackControl()->setRepeatEnabled(true);
   PixelDigest digest;
   openni::VideoFrameRef frame;
   Clock::time_point last_frame = Clock::now();

@@ -398,3 +398,25 @@ def test_mavlink_autopilot_sees_the_corrected_poses(tmp_path: Path, netns: list[
     assert mav["sent"] >= heard["poses"]
     assert mav["autopilot"]["armed"] is True
     assert mav["autopilot"]["roll_rad"] == pytest.approx(0.1, abs=1e-6)
+
+
+def test_a_receive_buffer_the_kernel_caps_is_reported_with_the_fix(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    """kinfly-ground asks LCM for a 4 MB receive buffer; below that cap (a fresh Debian 12 has
+    212 992 bytes) it says so at start, with the command that raises it, and not otherwise."""
+    from kinfly_ground import cli
+
+    url = cli.with_receive_buffer("udpm://239.255.76.67:7667?ttl=1")
+    assert url == f"udpm://239.255.76.67:7667?ttl=1&recv_buf_size={cli.RECV_BUFFER_BYTES}"
+    assert cli.with_receive_buffer("memq://") == "memq://"
+    assert cli.with_receive_buffer(url + "0") == url + "0"  # the URL's own size is kept
+    rmem_max = tmp_path / "rmem_max"
+    monkeypatch.setattr(cli, "RMEM_MAX", rmem_max)
+    rmem_max.write_text("212992\n")
+    cli.check_receive_buffer(url)
+    warning = capsys.readouterr().err
+    assert "net.core.rmem_max" in warning and "208 KB" in warning
+    assert f"sudo sysctl -w net.core.rmem_max={cli.RECV_BUFFER_BYTES}" in warning
+    rmem_max.write_text(f"{cli.RECV_BUFFER_BYTES}\n")
+    cli.check_receive_buffer(url)
+    assert capsys.readouterr().err == ""

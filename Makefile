@@ -18,6 +18,8 @@
 #                   network namespace; outputs in out/demo
 #   make demo-runs  deps demo; make demo's flight DEMO_RUNS times (20) on the machine as it is,
 #                   then DEMO_BUSY_RUNS times (10) beside two busy loops; out/bench/demo_runs_*.json
+#   make test-runs  make test, then its tests TEST_RUNS times (3) beside two busy loops;
+#                   out/bench/make_test_runs.json
 #   make eval       deps demo; accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      deps bench; depth codec and keyframe delivery over LCM on the TUM sequence; the
 #                   drone's figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions
@@ -75,7 +77,7 @@ DEPS_GROUPS := demo unit test fuzz aarch64 image bench
 DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
 
 .PHONY: deps $(DEPS_TARGETS) build test unit-test integration-test test-asan fuzz fuzz-corpus demo \
-        demo-runs eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
+        demo-runs test-runs eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
 	@$(REPO_ROOT)/scripts/install-deps.sh all
@@ -152,6 +154,12 @@ demo-runs: deps-demo
 	$(PY) $(REPO_ROOT)/tests/bench/demo_runs.py --runs $(DEMO_RUNS) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/demo_runs.py --runs $(DEMO_BUSY_RUNS) --busy 2 \
 	  --out $(REPO_ROOT)/out/bench
+
+# make test's own steps TEST_RUNS times (3) with both cores of a 2-core machine busy with other
+# work; out/bench/make_test_runs.json.
+TEST_RUNS ?= 3
+test-runs: test
+	$(PY) $(REPO_ROOT)/tests/bench/make_test_runs.py --runs $(TEST_RUNS) --out $(REPO_ROOT)/out/bench
 
 eval: deps-demo
 	@test -d $(KINFLY_DATA) || { echo "no shared data at $(KINFLY_DATA) (set KINFLY_DATA)"; exit 1; }

@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import lcm
-import pytest
 from netns import MULTICAST_ROUTE
 
 from conftest import REPO_ROOT, built

@@ -35,3 +35,21 @@ function(kinfly_add_test)
   gtest_discover_tests(${ARG_NAME} DISCOVERY_TIMEOUT 60
                        PROPERTIES ENVIRONMENT "OMP_NUM_THREADS=2")
 endfunction()
+
+# kinfly_add_library(NAME name SOURCES a.cpp ... [PUBLIC dep ...] [PRIVATE dep ...])
+# One of shared/'s libraries: static kinfly_<name>, used as kinfly::<name>, headers in the calling
+# folder's include/. Position-independent, because shared objects link them too (the ground
+# package's Python module, the OpenNI2 test driver). -fno-semantic-interposition: nothing ever
+# interposes these functions, and without it -fPIC would stop GCC inlining a library's own
+# functions into its loops.
+function(kinfly_add_library)
+  cmake_parse_arguments(ARG "" "NAME" "SOURCES;PUBLIC;PRIVATE" ${ARGN})
+  set(target kinfly_${ARG_NAME})
+  add_library(${target} STATIC ${ARG_SOURCES})
+  add_library(kinfly::${ARG_NAME} ALIAS ${target})
+  set_target_properties(${target} PROPERTIES POSITION_INDEPENDENT_CODE ON)
+  target_compile_options(${target} PRIVATE -fno-semantic-interposition)
+  target_include_directories(${target} PUBLIC ${CMAKE_CURRENT_SOURCE_DIR}/include)
+  target_link_libraries(${target} PUBLIC ${ARG_PUBLIC} PRIVATE ${ARG_PRIVATE})
+  kinfly_target_defaults(${target})
+endfunction()

@@ -4,11 +4,11 @@
 
 #include <cstdint>
 
-#include "kinfly/camera.h"
-#include "kinfly/depth_codec.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/codec/depth_codec.h"
 #include "kinfly/depth_keyframe_t.hpp"
-#include "kinfly/image.h"
-#include "kinfly/se3.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly::link {
 

@@ -1,0 +1,26 @@
+// Data only: the Raycaster fills level 0 (and buildPyramid the rest), the tracker reads every
+// level.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+
+#include "kinfly/core/camera.h"
+#include "kinfly/core/image.h"
+#include "kinfly/frame/depth_frame.h"
+
+namespace kinfly {
+
+// The model prediction: raycast vertex and normal maps in the reference camera frame
+// (the camera that was raycast), one per pyramid level.
+struct ModelMaps {
+  explicit ModelMaps(const PinholeCamera& level0_camera);
+  std::array<PinholeCamera, kPyramidLevels> camera;
+  std::array<Image<Eigen::Vector3f>, kPyramidLevels> vertex_ref;  // [m]
+  std::array<Image<Eigen::Vector3f>, kPyramidLevels> normal_ref;  // unit, facing the camera
+  // Fills levels 1.. from level 0 by taking every second pixel, matching the depth pyramid's
+  // pixel-centre convention.
+  void buildPyramid();
+};
+
+}  // namespace kinfly

@@ -1,0 +1,108 @@
+// The loop: preprocess -> track -> integrate -> raycast, once per frame. Stage loops use the
+// OpenMP thread count set by the caller (omp_set_num_threads / OMP_NUM_THREADS). The map (volume) is
+// passed in, not owned, so the same pipeline runs onboard (dense) and on the ground (hashed).
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "kinfly/core/camera.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/se3.h"
+#include "kinfly/frame/depth_frame.h"
+#include "kinfly/frame/model_maps.h"
+#include "kinfly/frame/tracking_status.h"
+#include "kinfly/preprocessing/depth_preprocessor.h"
+#include "kinfly/raycast/raycaster.h"
+#include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/volume/tsdf_integrator.h"
+#include "kinfly/volume/tsdf_volume.h"
+
+namespace kinfly {
+
+struct StageTimesMs {
+  double preprocess = 0, track = 0, integrate = 0, raycast = 0, total = 0;
+};
+
+struct FrameResult {
+  int64_t utime = 0;                   // [us] capture time, carried through unchanged
+  Pose T_world_cam = Pose::Identity();
+  TrackingStatus status = TrackingStatus::kLost;
+  float inlier_fraction = 0.f;
+  float rmse_m = 0.f;
+  float valid_depth_fraction = 0.f;
+  std::string lost_reason;
+  StageTimesMs ms;
+};
+
+class FusionPipeline {
+ public:
+  struct Params {
+    DepthPreprocessor::Params preprocess;
+    IcpTracker::Params icp;
+    TsdfIntegrator::Params integrate;
+    Raycaster::Params raycast;
+    // Frames with fewer valid depth pixels than this are not tracked or integrated.
+    float min_valid_depth_fraction = 0.05f;  // [0, 1)
+    std::string validate(float voxel_size_m) const;
+  };
+
+  // `input_camera` describes the raw depth images; `volume` must outlive the pipeline.
+  FusionPipeline(const PinholeCamera& input_camera, const Params& params, TsdfVolume* volume);
+
+  // Tracks the frame against the model, then fuses it.
+  FrameResult processFrame(ImageView<const uint16_t> raw_depth, int64_t utime);
+  // Tracks the frame against the model as seen from a pose guess, then fuses it: the ground
+  // station refines a keyframe starting from the drone's onboard pose. Keyframes are far apart,
+  // so the model is raycast from the guess rather than from the last fused pose, which would
+  // overlap the new view less. The first frame is fused at the guess.
+  FrameResult processFrameFromGuess(ImageView<const uint16_t> raw_depth, int64_t utime,
+                                    const Pose& T_world_cam_guess);
+  // Fuses the frame at a given pose (motion capture, or a ground-station correction).
+  FrameResult processFrameAtPose(ImageView<const uint16_t> raw_depth, int64_t utime,
+                                 const Pose& T_world_cam);
+
+  const Pose& pose() const { return T_world_cam_; }
+  const PinholeCamera& camera() const { return preprocessor_.camera(); }
+  // The raw depth images' camera, before any downsampling.
+  const PinholeCamera& inputCamera() const { return preprocessor_.inputCamera(); }
+  const DepthFrame& frame() const { return frame_; }
+  const ModelMaps& model() const { return model_; }
+  // Lambertian render of the model from the latest pose: a full raycast, every pixel, on demand
+  // (the per-frame model maps only cover the pixels measured).
+  void renderShaded(ImageView<uint8_t> out);
+  // The same from the per-frame model maps, only where the latest frame measured depth but
+  // without another raycast. After processFrameFromGuess these maps are the prediction from
+  // that frame's guess, which the frame was registered against.
+  void shadeModel(ImageView<uint8_t> out) const;
+
+ private:
+  // Fills the result's first fields; false when the frame has too little depth to use.
+  bool preprocess(ImageView<const uint16_t> raw_depth, int64_t utime, const Pose& T_world_cam,
+                  FrameResult* result);
+  // Raycasts model_ from a pose, masked by the current frame's depth.
+  void predict(const Pose& T_world_cam, FrameResult* result);
+  // ICP against model_, which was raycast from T_world_ref; fuses on success.
+  FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref, bool predict_from_pose);
+  // Integrates at result.T_world_cam; with predict_from_pose, raycasts model_ from there for
+  // the next frame to track against.
+  FrameResult fuse(FrameResult result, bool predict_from_pose);
+
+  Params params_;
+  TsdfVolume* volume_;
+  DepthPreprocessor preprocessor_;
+  IcpTracker tracker_;
+  TsdfIntegrator integrator_;
+  Raycaster raycaster_;
+  DepthFrame frame_;
+  ModelMaps model_;
+  std::unique_ptr<ModelMaps> render_maps_;  // allocated by the first renderShaded()
+  bool has_model_ = false;
+  bool model_at_pose_ = false;  // model_ was raycast from T_world_cam_
+  // Latest fused pose; the model maps are always raycast from it, since lost frames change
+  // neither.
+  Pose T_world_cam_ = Pose::Identity();
+};
+
+}  // namespace kinfly

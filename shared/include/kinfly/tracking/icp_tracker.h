@@ -1,0 +1,84 @@
+// Stage 5: frame-to-model tracking. Projective data association against the raycast model maps,
+// point-to-plane error linearised with small angles (Low 2004), 6x6 normal equations summed in
+// parallel and solved by Cholesky, coarse to fine.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <string>
+
+#include "kinfly/core/se3.h"
+#include "kinfly/frame/depth_frame.h"
+#include "kinfly/frame/model_maps.h"
+#include "kinfly/frame/tracking_status.h"
+
+namespace kinfly {
+
+struct IcpResult {
+  Pose T_ref_cur = Pose::Identity();  // current camera in the reference (model) camera frame
+  TrackingStatus status = TrackingStatus::kLost;
+  float inlier_fraction = 0.f;  // finest level: inliers / valid current pixels
+  float rmse_m = 0.f;           // finest level point-to-plane RMS over inliers
+  int iterations = 0;           // total over all levels
+  std::string reason;           // why the status is kLost (empty otherwise)
+};
+
+// One 6x6 system: A = sum w J^T J, b = -sum w J^T e, with J = [p x n, n] and w the residual's
+// weight. Upper triangle packed.
+struct IcpSystem {
+  std::array<double, 21> ata{};
+  std::array<double, 6> atb{};
+  double error_sq = 0.0;   // [m^2] sum of squared point-to-plane residuals over inliers
+  int inliers = 0;
+  int valid_points = 0;    // current pixels with a vertex and a normal
+  void add(const IcpSystem& other);
+};
+
+class IcpTracker {
+ public:
+  struct Params {
+    // Iterations per pyramid level, listed coarse to fine (level 2, 1, 0), as the seed gives them.
+    std::array<int, kPyramidLevels> iterations_coarse_to_fine{10, 5, 4};  // each >= 0
+    float distance_gate_m = 0.10f;        // [m] > 0: correspondence rejected beyond this
+    float normal_angle_gate_rad = 0.349066f;  // [rad] (0, pi/2]: 20 degrees
+    float min_inlier_fraction = 0.10f;    // (0, 1]: fewer inliers at the finest level -> lost
+    int min_inliers = 100;                // >= 6: absolute floor per level, guards tiny images
+    // A system whose smallest/largest eigenvalue ratio falls below this is degenerate
+    // (e.g. a single plane leaves three directions unconstrained) -> lost.
+    double min_eigenvalue_ratio = 1e-6;   // (0, 1)
+    float max_translation_m = 0.20f;      // [m] per frame: a larger jump is a divergence -> lost
+    float max_rotation_rad = 0.35f;       // [rad] per frame (20 degrees)
+    float max_rmse_m = 0.02f;             // [m] finest-level residual above this -> lost
+    // Weight each residual by the inverse variance of the sensor's depth noise at its range
+    // (noise_model.h), normalised to 1 at 1 m: the maximum-likelihood estimate under the seed's
+    // noise model. Without it the few far, noisy points (sigma ~ z^2) pull the pose off.
+    bool noise_weighting = true;
+    // Huber threshold in units of that noise sigma: residuals beyond it (pairs across depth
+    // edges, moved objects) get weight k/|r| instead of 1, so they cannot drag the solve.
+    // 0 disables the robust weight.
+    float huber_sigmas = 3.f;  // >= 0
+    // Stop a level early when the update is this small (metres and radians alike).
+    double convergence_epsilon = 1e-5;    // >= 0
+
+    std::string validate() const;
+  };
+
+  explicit IcpTracker(const Params& params);
+  const Params& params() const { return params_; }
+
+  // Estimates the pose of `current` relative to the reference camera of `model`, starting from
+  // `T_ref_cur_guess`. On failure the result keeps the guess and says why.
+  IcpResult track(const DepthFrame& current, const ModelMaps& model,
+                  const Pose& T_ref_cur_guess) const;
+
+  // Builds one level's system; serial and threaded loops use the same per-pixel kernel.
+  static IcpSystem buildSystem(const DepthFrame& current, const ModelMaps& model, int level,
+                               const Eigen::Matrix3f& R_ref_cur, const Eigen::Vector3f& t_ref_cur,
+                               float distance_gate_m, float cos_angle_gate, bool noise_weighting,
+                               float huber_sigmas, bool parallel);
+
+ private:
+  Params params_;
+};
+
+}  // namespace kinfly

@@ -1,0 +1,143 @@
+#include "kinfly/pipeline/fusion_pipeline.h"
+
+#include <chrono>
+#include <sstream>
+
+namespace kinfly {
+
+namespace {
+double msSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+}  // namespace
+
+std::string FusionPipeline::Params::validate(float voxel_size_m) const {
+  for (const std::string& why : {preprocess.validate(), icp.validate(),
+                                 integrate.validate(voxel_size_m), raycast.validate()})
+    if (!why.empty()) return why;
+  if (!(min_valid_depth_fraction >= 0.f && min_valid_depth_fraction < 1.f))
+    return "min_valid_depth_fraction must be in [0, 1)";
+  return {};
+}
+
+FusionPipeline::FusionPipeline(const PinholeCamera& input_camera, const Params& params,
+                               TsdfVolume* volume)
+    : params_(params),
+      volume_(volume),
+      preprocessor_(input_camera, params.preprocess),
+      tracker_(params.icp),
+      integrator_(params.integrate),
+      raycaster_(preprocessor_.camera(), params.raycast),
+      frame_(preprocessor_.camera()),
+      model_(preprocessor_.camera()) {
+  integrator_.reserve(preprocessor_.camera().width, preprocessor_.camera().height, *volume);
+}
+
+bool FusionPipeline::preprocess(ImageView<const uint16_t> raw_depth, int64_t utime,
+                                const Pose& T_world_cam, FrameResult* result) {
+  const auto start = std::chrono::steady_clock::now();
+  const PreprocessResult pre = preprocessor_.process(raw_depth, &frame_);
+  result->utime = utime;
+  result->T_world_cam = T_world_cam;
+  result->valid_depth_fraction = pre.valid_fraction;
+  result->ms.preprocess = result->ms.total = msSince(start);
+  if (pre.valid_fraction >= params_.min_valid_depth_fraction) return true;
+  result->status = TrackingStatus::kLost;
+  std::ostringstream why;
+  why << "only " << pre.valid_fraction * 100.f << "% of pixels have valid depth";
+  result->lost_reason = why.str();
+  return false;
+}
+
+FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, int64_t utime) {
+  FrameResult result;
+  if (!preprocess(raw_depth, utime, T_world_cam_, &result)) return result;
+  if (!has_model_) {
+    result.status = TrackingStatus::kFirstFrame;
+    return fuse(result, /*predict_from_pose=*/true);
+  }
+  if (!model_at_pose_) predict(T_world_cam_, &result);
+  // The model was raycast from the last pose, so the guess relative to it is the identity.
+  return trackAndFuse(result, T_world_cam_, /*predict_from_pose=*/true);
+}
+
+FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_depth,
+                                                  int64_t utime, const Pose& T_world_cam_guess) {
+  FrameResult result;
+  if (!preprocess(raw_depth, utime, T_world_cam_guess, &result)) {
+    if (has_model_) result.T_world_cam = T_world_cam_;  // lost: the last fused pose, as below
+    return result;
+  }
+  // The next frame brings its own guess to raycast from: no prediction after fusing.
+  if (!has_model_) {
+    result.status = TrackingStatus::kFirstFrame;
+    return fuse(result, /*predict_from_pose=*/false);
+  }
+  model_at_pose_ = false;
+  predict(T_world_cam_guess, &result);
+  return trackAndFuse(result, T_world_cam_guess, /*predict_from_pose=*/false);
+}
+
+void FusionPipeline::predict(const Pose& T_world_cam, FrameResult* result) {
+  const auto t0 = std::chrono::steady_clock::now();
+  raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam, &model_,
+                     frame_.depth_m[0].view());
+  model_.buildPyramid();
+  result->ms.raycast += msSince(t0);
+}
+
+FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world_ref,
+                                         bool predict_from_pose) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const IcpResult icp = tracker_.track(frame_, model_, Pose::Identity());
+  result.ms.track = msSince(t0);
+  result.status = icp.status;
+  result.inlier_fraction = icp.inlier_fraction;
+  result.rmse_m = icp.rmse_m;
+  if (icp.status != TrackingStatus::kOk) {
+    // Keep the previous pose and leave the map untouched: fusing a frame at a wrong pose
+    // would corrupt the model that the next frames track against.
+    result.T_world_cam = T_world_cam_;
+    result.lost_reason = icp.reason;
+    result.ms.total = result.ms.preprocess + result.ms.track + result.ms.raycast;
+    return result;
+  }
+  result.T_world_cam = orthonormalized(T_world_ref * icp.T_ref_cur);
+  return fuse(result, predict_from_pose);
+}
+
+FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_depth, int64_t utime,
+                                               const Pose& T_world_cam) {
+  FrameResult result;
+  preprocess(raw_depth, utime, T_world_cam, &result);
+  // A given pose is fused whatever the depth holds: the caller vouches for it.
+  result.status = TrackingStatus::kGivenPose;
+  result.lost_reason.clear();
+  return fuse(result, /*predict_from_pose=*/true);
+}
+
+FrameResult FusionPipeline::fuse(FrameResult result, bool predict_from_pose) {
+  T_world_cam_ = result.T_world_cam;
+  volume_->followCamera(T_world_cam_);
+
+  const auto t0 = std::chrono::steady_clock::now();
+  integrator_.integrate(frame_.raw_depth_m.view(), frame_.camera[0], T_world_cam_, volume_);
+  result.ms.integrate = msSince(t0);
+  has_model_ = true;
+  model_at_pose_ = predict_from_pose;
+  if (predict_from_pose) predict(T_world_cam_, &result);
+  result.ms.total = result.ms.preprocess + result.ms.track + result.ms.integrate + result.ms.raycast;
+  return result;
+}
+
+void FusionPipeline::renderShaded(ImageView<uint8_t> out) {
+  if (!render_maps_) render_maps_ = std::make_unique<ModelMaps>(camera());
+  raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_, render_maps_.get());
+  Raycaster::shade(render_maps_->vertex_ref[0].view(), render_maps_->normal_ref[0].view(), out);
+}
+
+void FusionPipeline::shadeModel(ImageView<uint8_t> out) const {
+  Raycaster::shade(model_.vertex_ref[0].view(), model_.normal_ref[0].view(), out);
+}
+
+}  // namespace kinfly

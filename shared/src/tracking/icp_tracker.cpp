@@ -1,0 +1,321 @@
+#include "kinfly/tracking/icp_tracker.h"
+
+#include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+#include "kinfly/core/noise_model.h"
+#include "parallel.h"
+
+namespace kinfly {
+
+void IcpSystem::add(const IcpSystem& other) {
+  for (size_t i = 0; i < ata.size(); ++i) ata[i] += other.ata[i];
+  for (size_t i = 0; i < atb.size(); ++i) atb[i] += other.atb[i];
+  error_sq += other.error_sq;
+  inliers += other.inliers;
+  valid_points += other.valid_points;
+}
+
+std::string IcpTracker::Params::validate() const {
+  std::ostringstream why;
+  for (int it : iterations_coarse_to_fine)
+    if (it < 0) why << "iterations must be >= 0; ";
+  if (!(distance_gate_m > 0.f)) why << "distance_gate_m must be > 0; ";
+  if (!(normal_angle_gate_rad > 0.f && normal_angle_gate_rad <= 1.5707964f))
+    why << "normal_angle_gate_rad must be in (0, pi/2]; ";
+  if (!(min_inlier_fraction > 0.f && min_inlier_fraction <= 1.f)) why << "min_inlier_fraction must be in (0, 1]; ";
+  if (min_inliers < 6) why << "min_inliers must be >= 6; ";
+  if (!(min_eigenvalue_ratio > 0.0 && min_eigenvalue_ratio < 1.0)) why << "min_eigenvalue_ratio must be in (0, 1); ";
+  if (!(max_translation_m > 0.f)) why << "max_translation_m must be > 0; ";
+  if (!(max_rotation_rad > 0.f)) why << "max_rotation_rad must be > 0; ";
+  if (!(max_rmse_m > 0.f)) why << "max_rmse_m must be > 0; ";
+  if (!(huber_sigmas >= 0.f)) why << "huber_sigmas must be >= 0; ";
+  if (!(convergence_epsilon >= 0.0)) why << "convergence_epsilon must be >= 0; ";
+  return why.str();
+}
+
+IcpTracker::IcpTracker(const Params& params) : params_(params) {}
+
+namespace {
+
+// The system is built four points at a time (lanes::Floats, see lanes.h).
+using lanes::Floats;
+using lanes::Ints;
+using lanes::kWidth;
+using lanes::load;
+static_assert(PackedPoints::kRowPadding % kWidth == 0, "point loads must stay inside a row");
+
+// Four 3-vectors, one coordinate per register.
+struct Vec3s {
+  Floats x, y, z;
+};
+// Sums in Eigen's order for 3-vectors (x + (y + z)), so the gates see the same floats as
+// Eigen's scalar expressions would.
+inline Floats dot(const Vec3s& a, const Vec3s& b) { return a.x * b.x + (a.y * b.y + a.z * b.z); }
+inline Vec3s rotate(const Eigen::Matrix3f& R, const Vec3s& v) {
+  return {R(0, 0) * v.x + (R(0, 1) * v.y + R(0, 2) * v.z),
+          R(1, 0) * v.x + (R(1, 1) * v.y + R(1, 2) * v.z),
+          R(2, 0) * v.x + (R(2, 1) * v.y + R(2, 2) * v.z)};
+}
+inline Vec3s gather(const Eigen::Vector3f* map, Ints pixel) {
+  const Eigen::Vector3f &p0 = map[pixel[0]], &p1 = map[pixel[1]], &p2 = map[pixel[2]],
+                        &p3 = map[pixel[3]];
+  return {Floats{p0.x(), p1.x(), p2.x(), p3.x()}, Floats{p0.y(), p1.y(), p2.y(), p3.y()},
+          Floats{p0.z(), p1.z(), p2.z(), p3.z()}};
+}
+
+// Everything the kernels need that is fixed for one system.
+struct Association {
+  Eigen::Matrix3f R;
+  Eigen::Vector3f t;
+  float fx, fy, cx, cy;
+  int width, height;
+  float gate_sq;  // [m^2]
+  float cos_gate;
+  bool noise_weighting;
+  float huber_k;  // Huber threshold in noise sigmas; infinite when the robust weight is off
+};
+
+// Current points in the reference frame.
+inline Vec3s transform(const Association& a, const Vec3s& v_cur) {
+  const Vec3s r = rotate(a.R, v_cur);
+  return {r.x + a.t.x(), r.y + a.t.y(), r.z + a.t.z()};
+}
+
+// Model pixels (row-major index) onto which points p (reference frame) project; `inside` says which
+// land in the image in front of the camera, and the others get pixel 0 so any lookup is safe.
+inline Ints modelPixel(const Vec3s& p, const Association& a, Ints* inside) {
+  const Floats inv_z = 1.f / p.z;
+  const Floats u = a.fx * p.x * inv_z + a.cx;
+  const Floats v = a.fy * p.y * inv_z + a.cy;
+  // Only (-0.5, size) can round into the image; converting nothing else keeps the cast defined.
+  const Ints near = (p.z > 0.f) & (u > -0.5f) & (v > -0.5f) &
+                    (u < static_cast<float>(a.width)) & (v < static_cast<float>(a.height));
+  // Non-negative after the +0.5, so truncation rounds half away from zero (as roundToInt).
+  const Ints iu = __builtin_convertvector((near ? u : 0.f) + 0.5f, Ints);
+  const Ints iv = __builtin_convertvector((near ? v : 0.f) + 0.5f, Ints);
+  *inside = near & (iu < a.width) & (iv < a.height);
+  return *inside ? iv * a.width + iu : 0;
+}
+
+// Columns of one point-to-plane row: J, the residual e, and the residual's weight (zero for a
+// rejected pair). The system sums w J J^T, w J e and, for the reported error, e^2.
+constexpr int kColumns = 8;
+constexpr int kResidual = 6, kWeight = 7;
+constexpr int kSums = 28;  // 21 upper-triangle A, 6 b, 1 squared error
+
+// The rows of current points (p in the reference frame, depth z_cur, normal n_cur) against model
+// points (q, nq) where `found`; rejected pairs give zero rows. Returns the inlier mask.
+inline Ints pointToPlane(const Vec3s& p, Floats z_cur, const Vec3s& n_cur, const Vec3s& q,
+                         const Vec3s& nq, Ints found, const Association& a, Floats row[kColumns]) {
+  const Vec3s d{p.x - q.x, p.y - q.y, p.z - q.z};
+  const Ints inlier =
+      found & ~(dot(d, d) > a.gate_sq) & ~(dot(rotate(a.R, n_cur), nq) < a.cos_gate);
+  const Floats e = dot(nq, d);
+  // Noise weight (sigma_1m / sigma)^2, normalised to 1 at 1 m, times the Huber weight k / |r|
+  // beyond k sigmas. Using the weight itself, not its square root on both factors, saves a
+  // square root; one reciprocal of sigma saves two divisions.
+  const Floats inv_sigma = 1.f / lanes::lanewise(kinectNoiseSigmaM, z_cur);
+  const Floats noise_sqrt = kinectNoiseSigmaM(1.f) * inv_sigma;
+  const Floats noise = a.noise_weighting ? noise_sqrt * noise_sqrt : lanes::splat(1.f);
+  const Floats abs_r = lanes::abs(e) * inv_sigma;
+  const Floats weight = abs_r > a.huber_k ? noise * (a.huber_k / abs_r) : noise;
+  const Floats values[kColumns] = {p.y * nq.z - p.z * nq.y,  // p x nq
+                                   p.z * nq.x - p.x * nq.z,
+                                   p.x * nq.y - p.y * nq.x,
+                                   nq.x, nq.y, nq.z, e, weight};
+  for (int k = 0; k < kColumns; ++k) row[k] = inlier ? values[k] : 0.f;
+  return inlier;
+}
+
+// Rows are gathered a block at a time into columns, one register of four lanes per entry, and
+// their products summed down the columns with the accumulators in registers; summing each row's
+// 28 products into memory as it comes would make the loop wait on loads and stores.
+constexpr int kBlockGroups = 32;  // groups of four points per block: the columns stay in L1
+struct Columns {
+  Floats c[kColumns][kBlockGroups];
+  int groups;
+};
+
+// Adds the weighted products of the block's rows with row I of [J e]'s upper triangle
+// (w J_I J_b for b >= I, then w J_I e) to sums[0 .. 7 - I). A template so that the short loops
+// unroll and the accumulators live in registers.
+template <int I>
+inline void accumulateRow(const Columns& cols, Floats* sums) {
+  Floats acc[7 - I] = {};
+  for (int g = 0; g < cols.groups; ++g) {
+    const Floats weighted = cols.c[kWeight][g] * cols.c[I][g];
+    for (int j = 0; j < 7 - I; ++j) acc[j] += weighted * cols.c[I + j][g];
+  }
+  for (int j = 0; j < 7 - I; ++j) sums[j] += acc[j];
+}
+
+// Adds the block's rows to `sums`: row by row of [J e]'s weighted upper triangle, then the
+// squared error.
+inline void accumulate(const Columns& cols, Floats sums[kSums]) {
+  accumulateRow<0>(cols, sums);
+  accumulateRow<1>(cols, sums + 7);
+  accumulateRow<2>(cols, sums + 13);
+  accumulateRow<3>(cols, sums + 18);
+  accumulateRow<4>(cols, sums + 22);
+  accumulateRow<5>(cols, sums + 25);
+  Floats acc = {};
+  for (int g = 0; g < cols.groups; ++g) acc += cols.c[kResidual][g] * cols.c[kResidual][g];
+  sums[kSums - 1] += acc;
+}
+
+// Rows are summed in fixed chunks and the chunks added in order, so the result does not depend
+// on the number of threads (serial and parallel loops agree to the last bit).
+constexpr int kChunks = 64;
+
+}  // namespace
+
+IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& model, int level,
+                                  const Eigen::Matrix3f& R_ref_cur,
+                                  const Eigen::Vector3f& t_ref_cur, float distance_gate_m,
+                                  float cos_angle_gate, bool noise_weighting, float huber_sigmas,
+                                  bool parallel) {
+  const PackedPoints& points = current.points[level];
+  const Eigen::Vector3f* vmodel = model.vertex_ref[level].data();
+  const Eigen::Vector3f* nmodel = model.normal_ref[level].data();
+  const PinholeCamera& cam = model.camera[level];
+  const float huber_k = huber_sigmas > 0.f ? huber_sigmas : std::numeric_limits<float>::infinity();
+  const Association assoc{R_ref_cur, t_ref_cur, cam.fx, cam.fy, cam.cx, cam.cy, cam.width,
+                          cam.height, distance_gate_m * distance_gate_m, cos_angle_gate,
+                          noise_weighting, huber_k};
+  const int h = points.vx.height();
+  std::array<IcpSystem, kChunks> chunks;
+  forEachDynamic(kChunks, 1, parallel, [&](int c) {
+    IcpSystem& s = chunks[c];
+    s = IcpSystem();
+    const int y0 = h * c / kChunks, y1 = h * (c + 1) / kChunks;
+    for (int y = y0; y < y1; ++y) {
+      const float *vx = points.vx.view().row(y), *vy = points.vy.view().row(y),
+                  *vz = points.vz.view().row(y), *nx = points.nx.view().row(y),
+                  *ny = points.ny.view().row(y), *nz = points.nz.view().row(y);
+      const int count = points.row_count[y];
+      s.valid_points += count;
+      // A row sums in float (at most a few thousand terms of similar size), the chunk in double.
+      Floats sums[kSums] = {};
+      Ints inliers = {};
+      Columns cols;
+      for (int b = 0; b < count; b += kWidth * kBlockGroups) {
+        cols.groups = (std::min(count - b, kWidth * kBlockGroups) + kWidth - 1) / kWidth;
+        // All of the block's projections first, so that the lookups do not wait on each one.
+        Vec3s p[kBlockGroups];
+        Ints pixel[kBlockGroups], inside[kBlockGroups];
+        for (int g = 0; g < cols.groups; ++g) {
+          const int i = b + kWidth * g;
+          p[g] = transform(assoc,
+                           {load<Floats>(vx + i), load<Floats>(vy + i), load<Floats>(vz + i)});
+          pixel[g] = modelPixel(p[g], assoc, &inside[g]);
+        }
+        for (int g = 0; g < cols.groups; ++g) {
+          const int i = b + kWidth * g;
+          const Vec3s q = gather(vmodel, pixel[g]), nq = gather(nmodel, pixel[g]);
+          // Padding past the row's last point takes part in nothing; NaN marks no model point.
+          const Ints found =
+              (i + Ints{0, 1, 2, 3} < count) & inside[g] & (q.x == q.x) & (nq.x == nq.x);
+          Floats row[kColumns];
+          const Ints inlier = pointToPlane(
+              p[g], load<Floats>(vz + i),
+              {load<Floats>(nx + i), load<Floats>(ny + i), load<Floats>(nz + i)}, q, nq, found,
+              assoc, row);
+          inliers -= inlier;  // true lanes are -1
+          for (int k = 0; k < kColumns; ++k) cols.c[k][g] = row[k];
+        }
+        accumulate(cols, sums);
+      }
+      s.inliers += (inliers[0] + inliers[1]) + (inliers[2] + inliers[3]);
+      std::array<float, kSums> row;
+      for (int k = 0; k < kSums; ++k)
+        row[k] = (sums[k][0] + sums[k][1]) + (sums[k][2] + sums[k][3]);
+      // Back from row by row of [J e]'s upper triangle to A and b.
+      int k = 0, ata = 0;
+      for (int i = 0; i < 6; ++i) {
+        for (int j = i; j < 6; ++j) s.ata[ata++] += row[k++];
+        s.atb[i] -= row[k++];
+      }
+      s.error_sq += row[kSums - 1];
+    }
+  });
+  IcpSystem total;
+  for (const IcpSystem& s : chunks) total.add(s);
+  return total;
+}
+
+IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
+                            const Pose& T_ref_cur_guess) const {
+  IcpResult result;
+  result.T_ref_cur = T_ref_cur_guess;
+  const float cos_gate = std::cos(params_.normal_angle_gate_rad);
+  auto fail = [&](const std::string& why) {
+    result.status = TrackingStatus::kLost;
+    result.T_ref_cur = T_ref_cur_guess;
+    result.reason = why;
+    return result;
+  };
+
+  Pose T = T_ref_cur_guess;
+  IcpSystem last;
+  for (int step = 0; step < kPyramidLevels; ++step) {
+    const int level = kPyramidLevels - 1 - step;
+    const int iterations = params_.iterations_coarse_to_fine[step];
+    for (int it = 0; it < iterations; ++it) {
+      const Eigen::Matrix3f R = T.linear().cast<float>();
+      const Eigen::Vector3f t = T.translation().cast<float>();
+      last = buildSystem(current, model, level, R, t, params_.distance_gate_m, cos_gate,
+                         params_.noise_weighting, params_.huber_sigmas, true);
+      ++result.iterations;
+      if (last.inliers < params_.min_inliers) {
+        std::ostringstream why;
+        why << "too few correspondences at level " << level << " (" << last.inliers << ")";
+        return fail(why.str());
+      }
+      Eigen::Matrix<double, 6, 6> A;
+      int k = 0;
+      for (int i = 0; i < 6; ++i)
+        for (int j = i; j < 6; ++j) A(i, j) = A(j, i) = last.ata[k++];
+      const Eigen::Matrix<double, 6, 1> b(last.atb.data());
+      const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eig(A, Eigen::EigenvaluesOnly);
+      const double max_ev = eig.eigenvalues()(5), min_ev = eig.eigenvalues()(0);
+      if (!(max_ev > 0.0) || !(min_ev / max_ev >= params_.min_eigenvalue_ratio))
+        return fail("degenerate geometry (the scene does not constrain all six degrees of freedom)");
+      const Eigen::LLT<Eigen::Matrix<double, 6, 6>> llt(A);
+      if (llt.info() != Eigen::Success) return fail("Cholesky factorisation failed");
+      const Eigen::Matrix<double, 6, 1> xi = llt.solve(b);
+      if (!xi.allFinite()) return fail("non-finite ICP update");
+      T = orthonormalized(expTwist(xi) * T);
+      if (xi.norm() < params_.convergence_epsilon) break;
+    }
+  }
+  if (!isFinite(T)) return fail("non-finite pose");
+
+  // Statistics of the finest level from its last iteration (one update before the final pose,
+  // which after convergence differs by less than the update tolerance).
+  result.inlier_fraction =
+      last.valid_points > 0 ? static_cast<float>(last.inliers) / static_cast<float>(last.valid_points) : 0.f;
+  result.rmse_m = last.inliers > 0 ? static_cast<float>(std::sqrt(last.error_sq / last.inliers)) : 0.f;
+
+  const Pose jump = T_ref_cur_guess.inverse() * T;
+  std::ostringstream why;
+  if (jump.translation().norm() > params_.max_translation_m)
+    why << "jump of " << jump.translation().norm() << " m exceeds max_translation_m";
+  else if (rotationAngleRad(jump) > params_.max_rotation_rad)
+    why << "rotation of " << rotationAngleRad(jump) << " rad exceeds max_rotation_rad";
+  else if (result.inlier_fraction < params_.min_inlier_fraction)
+    why << "inlier fraction " << result.inlier_fraction << " below min_inlier_fraction";
+  else if (result.rmse_m > params_.max_rmse_m)
+    why << "residual " << result.rmse_m << " m exceeds max_rmse_m";
+  if (!why.str().empty()) return fail(why.str());  // keeps the measured inliers and residual
+  result.T_ref_cur = T;
+  result.status = TrackingStatus::kOk;
+  return result;
+}
+
+}  // namespace kinfly

@@ -115,20 +115,20 @@ unit-test:
 integration-test:
 	$(PY) -m pytest $(REPO_ROOT)/tests/integration -v -m "not aarch64"
 
-# Sanitizers slow everything down, so only the unit tests (synthetic, small) run here; the
-# micro-benchmarks are left out of this build.
+# Sanitizers slow everything down, so only the unit tests (synthetic, small) run here.
 test-asan: deps-unit
 	cmake -S $(REPO_ROOT) -B $(ASAN_DIR) -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
-	  -DKINFLY_SANITIZE=ON -DKINFLY_BUILD_BENCH=OFF
+	  -DKINFLY_SANITIZE=ON
 	cmake --build $(ASAN_DIR) -j $(JOBS)
 	ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1 \
 	  ctest --test-dir $(ASAN_DIR) --output-on-failure -j $(JOBS)
 
 # The committed seeds stay read-only: what libFuzzer finds goes to build-fuzz/corpus, and a crash
-# to build-fuzz/crash-*. Only the codec library is compiled for this build.
+# to build-fuzz/crash-*. Only the codec library and the core types under it are compiled for this
+# build.
 fuzz: deps-fuzz
 	CC=clang CXX=clang++ cmake -S $(REPO_ROOT) -B $(FUZZ_DIR) -G Ninja \
-	  -DCMAKE_BUILD_TYPE=RelWithDebInfo -DKINFLY_FUZZ=ON -DKINFLY_SANITIZE=ON -DKINFLY_BUILD_BENCH=OFF
+	  -DCMAKE_BUILD_TYPE=RelWithDebInfo -DKINFLY_FUZZ=ON -DKINFLY_SANITIZE=ON
 	cmake --build $(FUZZ_DIR) --target fuzz_depth_decode
 	mkdir -p $(FUZZ_DIR)/corpus
 	$(FUZZ_DIR)/tests/fuzz_depth_decode -max_total_time=$(FUZZ_SECONDS) -print_final_stats=1 \
@@ -186,7 +186,7 @@ firmware-aarch64: deps-aarch64
 	$(REPO_ROOT)/scripts/aarch64-sysroot.sh $(AARCH64_SYSROOT)
 	cmake -S $(REPO_ROOT) -B $(AARCH64_BUILD) -G Ninja -DCMAKE_BUILD_TYPE=Release \
 	  -DCMAKE_TOOLCHAIN_FILE=$(REPO_ROOT)/cmake/aarch64-linux-gnu.cmake \
-	  -DKINFLY_SYSROOT=$(AARCH64_SYSROOT) -DKINFLY_BUILD_BENCH=OFF
+	  -DKINFLY_SYSROOT=$(AARCH64_SYSROOT)
 	cmake --build $(AARCH64_BUILD) -j $(JOBS)
 
 package-aarch64: firmware-aarch64

@@ -42,8 +42,7 @@ demo_packages=(
 
 # unit (make test-asan, and the unit tests of make test): GoogleTest (CMake's
 # KINFLY_BUILD_TESTS). No gmock: nothing uses it, and GTestConfig.cmake includes its targets only
-# if present. No Google Benchmark: KINFLY_BUILD_BENCH adds tests/bench/CMakeLists.txt, which does
-# not exist yet; whoever writes it adds libbenchmark-dev here.
+# if present. No Google Benchmark: the benchmarks (tests/bench) are Python over the programs.
 unit_packages=(
   libgtest-dev
 )

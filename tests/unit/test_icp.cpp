@@ -151,17 +151,19 @@ TEST_F(IcpFixture, EmptyFrameIsLost) {
 }
 
 // Every pyramid level, with plain least squares and with the default noise-weighted Huber solve.
+// The gates are the tracker's defaults.
 struct SystemConfig {
   int level;
-  bool weighting;
-  float huber_sigmas;
+  IcpTracker::SystemParams system;
 };
 std::vector<SystemConfig> systemConfigs() {
+  const IcpTracker::SystemParams defaults = IcpTracker(IcpTracker::Params()).systemParams();
   std::vector<SystemConfig> configs;
   for (int config = 0; config < 2 * kPyramidLevels; ++config) {
-    const bool weighting = config >= kPyramidLevels;
-    configs.push_back({config % kPyramidLevels, weighting,
-                       weighting ? IcpTracker::Params().huber_sigmas : 0.f});
+    IcpTracker::SystemParams system = defaults;
+    system.noise_weighting = config >= kPyramidLevels;
+    if (!system.noise_weighting) system.huber_sigmas = 0.f;
+    configs.push_back({config % kPyramidLevels, system});
   }
   return configs;
 }
@@ -183,12 +185,14 @@ TEST_F(IcpFixture, SerialAndParallelSystemsAgree) {
   Eigen::Matrix3f R;
   Eigen::Vector3f t;
   buildOffsetPair(9, &R, &t);
-  const float cos_gate = std::cos(IcpTracker::Params().normal_angle_gate_rad);
   for (const SystemConfig& c : systemConfigs()) {
-    const IcpSystem serial = IcpTracker::buildSystem(current, model, c.level, R, t, 0.1f, cos_gate,
-                                                     c.weighting, c.huber_sigmas, false);
-    const IcpSystem parallel = IcpTracker::buildSystem(current, model, c.level, R, t, 0.1f,
-                                                       cos_gate, c.weighting, c.huber_sigmas, true);
+    IcpTracker::SystemParams serial_params = c.system;
+    serial_params.parallel = false;
+    IcpTracker::SystemParams parallel_params = c.system;
+    parallel_params.parallel = true;
+    const IcpSystem serial = IcpTracker::buildSystem(current, model, c.level, R, t, serial_params);
+    const IcpSystem parallel =
+        IcpTracker::buildSystem(current, model, c.level, R, t, parallel_params);
     ASSERT_GT(serial.inliers, 100);
     EXPECT_EQ(serial.inliers, parallel.inliers);
     // Rows are summed in double; a different summation order over ~3e5 rows could change a sum
@@ -201,8 +205,11 @@ TEST_F(IcpFixture, SerialAndParallelSystemsAgree) {
 // The system as the seed's equations say, one point at a time from the frame's points,
 // summed in double: what the vectorised builder must reproduce.
 IcpSystem referenceSystem(const DepthFrame& current, const ModelMaps& model, int level,
-                          const Eigen::Matrix3f& R, const Eigen::Vector3f& t, float gate_m,
-                          float cos_gate, bool noise_weighting, float huber_sigmas) {
+                          const Eigen::Matrix3f& R, const Eigen::Vector3f& t,
+                          const IcpTracker::SystemParams& params) {
+  const float gate_m = params.distance_gate_m, cos_gate = params.cos_angle_gate,
+              huber_sigmas = params.huber_sigmas;
+  const bool noise_weighting = params.noise_weighting;
   const PinholeCamera& cam = model.camera[level];
   const float sigma_1m = kinectNoiseSigmaM(1.f);
   IcpSystem s;
@@ -246,12 +253,9 @@ TEST_F(IcpFixture, SystemMatchesPerPixelReference) {
   Eigen::Matrix3f R;
   Eigen::Vector3f t;
   buildOffsetPair(10, &R, &t);
-  const float cos_gate = std::cos(IcpTracker::Params().normal_angle_gate_rad);
   for (const SystemConfig& c : systemConfigs()) {
-    const IcpSystem fast = IcpTracker::buildSystem(current, model, c.level, R, t, 0.1f, cos_gate,
-                                                   c.weighting, c.huber_sigmas, true);
-    const IcpSystem ref = referenceSystem(current, model, c.level, R, t, 0.1f, cos_gate,
-                                          c.weighting, c.huber_sigmas);
+    const IcpSystem fast = IcpTracker::buildSystem(current, model, c.level, R, t, c.system);
+    const IcpSystem ref = referenceSystem(current, model, c.level, R, t, c.system);
     // The same gates on the same float geometry pick the same pairs.
     ASSERT_GT(ref.inliers, 100);
     EXPECT_EQ(fast.valid_points, ref.valid_points) << "level " << c.level;

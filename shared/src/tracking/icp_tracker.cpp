@@ -41,6 +41,16 @@ std::string IcpTracker::Params::validate() const {
 
 IcpTracker::IcpTracker(const Params& params) : params_(params) {}
 
+IcpTracker::SystemParams IcpTracker::systemParams() const {
+  SystemParams system;
+  system.distance_gate_m = params_.distance_gate_m;
+  system.cos_angle_gate = std::cos(params_.normal_angle_gate_rad);
+  system.noise_weighting = params_.noise_weighting;
+  system.huber_sigmas = params_.huber_sigmas;
+  system.parallel = true;
+  return system;
+}
+
 namespace {
 
 // The system is built four points at a time (lanes::Floats, see lanes.h).
@@ -177,9 +187,11 @@ constexpr int kChunks = 64;
 
 IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& model, int level,
                                   const Eigen::Matrix3f& R_ref_cur,
-                                  const Eigen::Vector3f& t_ref_cur, float distance_gate_m,
-                                  float cos_angle_gate, bool noise_weighting, float huber_sigmas,
-                                  bool parallel) {
+                                  const Eigen::Vector3f& t_ref_cur,
+                                  const SystemParams& params) {
+  const float distance_gate_m = params.distance_gate_m, cos_angle_gate = params.cos_angle_gate,
+              huber_sigmas = params.huber_sigmas;
+  const bool noise_weighting = params.noise_weighting, parallel = params.parallel;
   const PackedPoints& points = current.points[level];
   const Eigen::Vector3f* vmodel = model.vertex_ref[level].data();
   const Eigen::Vector3f* nmodel = model.normal_ref[level].data();
@@ -253,7 +265,7 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
                             const Pose& T_ref_cur_guess) const {
   IcpResult result;
   result.T_ref_cur = T_ref_cur_guess;
-  const float cos_gate = std::cos(params_.normal_angle_gate_rad);
+  const SystemParams system = systemParams();
   auto fail = [&](const std::string& why) {
     result.status = TrackingStatus::kLost;
     result.T_ref_cur = T_ref_cur_guess;
@@ -269,8 +281,7 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
     for (int it = 0; it < iterations; ++it) {
       const Eigen::Matrix3f R = T.linear().cast<float>();
       const Eigen::Vector3f t = T.translation().cast<float>();
-      last = buildSystem(current, model, level, R, t, params_.distance_gate_m, cos_gate,
-                         params_.noise_weighting, params_.huber_sigmas, true);
+      last = buildSystem(current, model, level, R, t, system);
       ++result.iterations;
       if (last.inliers < params_.min_inliers) {
         std::ostringstream why;

@@ -63,8 +63,20 @@ class IcpTracker {
     std::string validate() const;
   };
 
+  // How buildSystem associates and weighs one level's pairs: the part of Params the system
+  // needs, with the angle gate as its cosine. Defaults are Params' defaults.
+  struct SystemParams {
+    float distance_gate_m = 0.10f;        // [m] > 0
+    float cos_angle_gate = 0.9396926f;    // (0, 1]: cos of normal_angle_gate_rad (20 degrees)
+    bool noise_weighting = true;
+    float huber_sigmas = 3.f;             // >= 0; 0 disables the robust weight
+    bool parallel = true;                 // threads over fixed row chunks: the same result
+  };
+
   explicit IcpTracker(const Params& params);
   const Params& params() const { return params_; }
+  // What track() builds its systems with.
+  SystemParams systemParams() const;
 
   // Estimates the pose of `current` relative to the reference camera of `model`, starting from
   // `T_ref_cur_guess`. On failure the result keeps the guess and says why.
@@ -74,8 +86,7 @@ class IcpTracker {
   // Builds one level's system; serial and threaded loops use the same per-pixel kernel.
   static IcpSystem buildSystem(const DepthFrame& current, const ModelMaps& model, int level,
                                const Eigen::Matrix3f& R_ref_cur, const Eigen::Vector3f& t_ref_cur,
-                               float distance_gate_m, float cos_angle_gate, bool noise_weighting,
-                               float huber_sigmas, bool parallel);
+                               const SystemParams& params);
 
  private:
   Params params_;

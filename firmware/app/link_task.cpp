@@ -16,9 +16,13 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
       codec_(DepthCodec::Params()), job_(withDepthImage<KeyframeJob>(camera)),
       watch_(config.source.watch),
       publisher_("link", config.link.lcm_url, config.vehicle.id, [this](lcm::LCM& lcm) {
-        lcm_subscribe(lcm.getUnderlyingLCM(),
-                      link::vehicleChannelsRegex(config_.vehicle.id).c_str(), &LinkTask::onMessage,
-                      this);
+        // Every channel of this vehicle but its own keyframes, which multicast loops back: LCM
+        // reassembles a fragmented message (an allocation the size of a keyframe) only on a
+        // channel someone subscribed to. LCM's patterns are GLib (PCRE) regular expressions.
+        const std::string channels =
+            "(?!" + link::channelName(link::Channel::kKeyframe, config_.vehicle.id) + "$)" +
+            link::vehicleChannelsRegex(config_.vehicle.id);
+        lcm_subscribe(lcm.getUnderlyingLCM(), channels.c_str(), &LinkTask::onMessage, this);
       }) {
   if (key) {
     corrections_.emplace(*key, config.vehicle.id, config.link.signing, link::DecodeBounds());

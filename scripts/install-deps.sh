@@ -29,7 +29,8 @@ cxx_packages=(
   # proto/ (lcm-gen: cmake/FindLCM.cmake) and firmware/link/ (signing); liblcm-bin also has the
   # lcm-logger that records the demo's flight
   liblcm-dev liblcm-bin libsodium-dev
-  # firmware/app/ (kinfly-fw): logging, the OpenNI2 sensor source and libusb for its hot-plug;
+  # firmware/sources/ and app/ (kinfly-fw): logging, the OpenNI2 sensor source and libusb for
+  # its hot-plug;
   # tests/tools/oni/ (the OpenNI2 test driver) finds the same OpenNI2
   libspdlog-dev libopenni2-dev libusb-1.0-0-dev
 )

@@ -10,8 +10,8 @@
 
 namespace kinfly::fw {
 
-void runCapture(const FirmwareConfig& config, DepthSource* source,
-                BoundedQueue<DepthCapture>* queue, Counters* counters) {
+void runCapture(const SourceConfig& config, DepthSource* source,
+                BoundedQueue<DepthCapture>* queue, Counters* counters, const StopToken* stop) {
   using namespace std::chrono_literals;
   DepthCapture capture = withDepthImage<DepthCapture>(source->camera());
   // Pacing: the first frame's capture time and the wall time it was due, re-anchored whenever
@@ -21,8 +21,8 @@ void runCapture(const FirmwareConfig& config, DepthSource* source,
   LogThrottle skipped_log, dropped_log;
   std::string why, last_waiting_why;
   bool waiting = false;
-  while (!g_stop) {
-    if (config.source_max_frames > 0 && counters->frames_captured >= config.source_max_frames)
+  while (!stop->stopRequested()) {
+    if (config.max_frames > 0 && counters->frames_captured >= config.max_frames)
       break;
     const SourceStatus status = source->next(&capture, &why);
     counters->sensor_connects = source->connects();
@@ -49,12 +49,12 @@ void runCapture(const FirmwareConfig& config, DepthSource* source,
                      skipped_log.suppressed());
       continue;
     }
-    if (config.source_realtime) {
+    if (config.realtime) {
       if (!start || capture.utime < start->first) start.emplace(capture.utime, Clock::now());
       const auto due = start->second + std::chrono::microseconds(static_cast<int64_t>(
                                            static_cast<double>(capture.utime - start->first) /
-                                           config.source_speed));
-      while (!g_stop && Clock::now() < due)
+                                           config.speed));
+      while (!stop->stopRequested() && Clock::now() < due)
         std::this_thread::sleep_for(std::min<Clock::duration>(kPollPeriod, due - Clock::now()));
     }
     capture.frame_id = counters->frames_captured;
@@ -67,7 +67,7 @@ void runCapture(const FirmwareConfig& config, DepthSource* source,
                    queue->dropped());
     // Without pacing the odometry sets the rate: wait for room rather than drop what a
     // replay can simply deliver later.
-    while (!config.source_realtime && !g_stop && queue->size() >= queue->capacity())
+    while (!config.realtime && !stop->stopRequested() && queue->size() >= queue->capacity())
       std::this_thread::sleep_for(1ms);
   }
   counters->capture_done = true;

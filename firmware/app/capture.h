@@ -4,14 +4,15 @@
 #pragma once
 
 #include "config.h"
-#include "depth_source.h"
 #include "kinfly/fw/bounded_queue.h"
+#include "kinfly/sources/depth_source.h"
 #include "runtime.h"
 
 namespace kinfly::fw {
 
-// Runs until the source ends, source.max_frames is reached or g_stop; then closes the queue.
-void runCapture(const FirmwareConfig& config, DepthSource* source,
-                BoundedQueue<DepthCapture>* queue, Counters* counters);
+// Runs until the source ends, source.max_frames is reached or a stop is requested; then closes
+// the queue.
+void runCapture(const SourceConfig& config, DepthSource* source,
+                BoundedQueue<DepthCapture>* queue, Counters* counters, const StopToken* stop);
 
 }  // namespace kinfly::fw

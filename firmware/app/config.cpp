@@ -1,7 +1,11 @@
 #include "config.h"
 
-#include <sstream>
+#include <initializer_list>
+#include <string_view>
+#include <utility>
+#include <vector>
 
+#include "kinfly/fw/range_check.h"
 #include "kinfly/link/channels.h"
 
 namespace kinfly::fw {
@@ -26,64 +30,114 @@ class SectionedConfig : public CLI::ConfigTOML {
   }
 };
 
+// A key that several sources read (source.path, ...): each value given sets it in all their
+// Params. Its default is theirs (the same in each).
+template <class T>
+CLI::Option* addSharedOption(CLI::App* app, const std::string& name, std::vector<T*> fields,
+                             const std::string& help) {
+  const T first = *fields.front();
+  CLI::Option* option = app->add_option_function<T>(
+      name, [fields](const T& value) { for (T* field : fields) *field = value; }, help);
+  if constexpr (std::is_same_v<T, std::string>) {
+    option->run_callback_for_default();  // --print-config writes an empty default as ""
+    option->default_str(first);
+  } else {
+    option->default_str(std::to_string(first));
+  }
+  return option;
+}
+
+// The engine's and the link's Params name their fields as those libraries do; kinfly-fw's keys
+// for some of them are older (and users' config files have them): a message that starts with
+// such a field's name is given the key instead.
+std::string namingKeys(std::string why,
+                       std::initializer_list<std::pair<std::string_view, std::string_view>> keys) {
+  for (const auto& [field, key] : keys)
+    if (why.size() > field.size() && why.compare(0, field.size(), field) == 0 &&
+        why[field.size()] == ' ')
+      return std::string(key) + why.substr(field.size());
+  return why;
+}
+
+bool oneOf(const std::string& value, std::initializer_list<const char*> allowed) {
+  for (const char* a : allowed)
+    if (value == a) return true;
+  return false;
+}
+
 }  // namespace
 
 void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->config_formatter(std::make_shared<SectionedConfig>());
   // A misspelt key would otherwise leave its default in force unnoticed.
   app->allow_config_extras(CLI::config_extras_mode::error);
-  app->add_option("--vehicle.id", c->vehicle_id, "vehicle id [0, 65535]")->capture_default_str();
-  app->add_option("--vehicle.key_file", c->key_file, "signing key (kinfly-keygen), mode 0600")
+  app->add_option("--vehicle.id", c->vehicle.id, "vehicle id [0, 65535]")->capture_default_str();
+  app->add_option("--vehicle.key_file", c->vehicle.key_file,
+                  "signing key (kinfly-keygen), mode 0600")
       ->capture_default_str();
-  app->add_option("--source.kind", c->source_kind, "log | dataset | openni | synthetic")
+  SourceConfig& s = c->source;
+  app->add_option("--source.kind", s.kind, "log | dataset | openni | synthetic")
       ->capture_default_str();
-  app->add_option("--source.path", c->source_path,
-                  "LCM log (log), TUM folder (dataset), device URI or .oni file (openni; empty: "
-                  "the first sensor found)");
-  app->add_option("--source.realtime", c->source_realtime,
+  addSharedOption<std::string>(app, "--source.path", {&s.log.path, &s.dataset.tum_dir, &s.openni.uri},
+                               "LCM log (log), TUM folder (dataset), device URI or .oni file "
+                               "(openni; empty: the first sensor found)");
+  app->add_option("--source.realtime", s.realtime,
                   "replay at the recorded rate (false: as fast as possible)")
       ->capture_default_str();
-  app->add_option("--source.speed", c->source_speed, "replay rate factor when realtime")
+  app->add_option("--source.speed", s.speed, "replay rate factor when realtime")
       ->capture_default_str();
-  app->add_option("--source.intrinsics", c->source_intrinsics,
-                  "fx,fy,cx,cy (empty: the source's own)");
-  app->add_option("--source.depth_units_per_m", c->source_depth_units_per_m,
-                  "dataset: raw depth units per metre")
+  addSharedOption<std::string>(app, "--source.intrinsics",
+                               {&s.dataset.intrinsics, &s.openni.intrinsics,
+                                &s.synthetic.intrinsics},
+                               "fx,fy,cx,cy (empty: the source's own)");
+  // Before its replacement, so that the new key wins when a file or command line has both.
+  app->add_option_function<double>(
+         "--source.depth_units_per_m",
+         [&s](double units_per_m) {
+           s.deprecated_depth_units_per_m = units_per_m;
+           if (units_per_m > 0.0) s.dataset.depth_scale_m = 1.0 / units_per_m;
+         },
+         "deprecated: raw depth units per metre; use source.depth_scale_m = 1 / this")
+      ->group("Deprecated");
+  app->add_option("--source.depth_scale_m", s.dataset.depth_scale_m,
+                  "dataset: metres per raw depth unit (TUM 0.0002)")
       ->capture_default_str();
-  app->add_option("--source.width", c->source_width_px, "openni, synthetic: image width [px]")
+  addSharedOption<int>(app, "--source.width", {&s.openni.width_px, &s.synthetic.width_px},
+                       "openni, synthetic: image width [px]");
+  addSharedOption<int>(app, "--source.height", {&s.openni.height_px, &s.synthetic.height_px},
+                       "openni, synthetic: image height [px]");
+  app->add_option("--source.rate_hz", s.synthetic.rate_hz, "synthetic: frame rate [Hz]")
       ->capture_default_str();
-  app->add_option("--source.height", c->source_height_px, "openni, synthetic: image height [px]")
+  app->add_option("--source.seed", s.synthetic.seed, "synthetic: noise seed")
       ->capture_default_str();
-  app->add_option("--source.rate_hz", c->source_rate_hz, "synthetic: frame rate [Hz]")
+  app->add_option("--source.max_frames", s.max_frames, "stop after N frames (0: never)")
       ->capture_default_str();
-  app->add_option("--source.seed", c->source_seed, "synthetic: noise seed")->capture_default_str();
-  app->add_option("--source.max_frames", c->source_max_frames, "stop after N frames (0: never)")
-      ->capture_default_str();
-  app->add_option("--source.reconnect_min_s", c->source_reconnect_min_s,
+  app->add_option("--source.reconnect_min_s", s.openni.reconnect_min_s,
                   "openni: first retry after losing the sensor [s]; doubles up to the max")
       ->capture_default_str();
-  app->add_option("--source.reconnect_max_s", c->source_reconnect_max_s,
+  app->add_option("--source.reconnect_max_s", s.openni.reconnect_max_s,
                   "openni: longest interval between retries [s]")
       ->capture_default_str();
-  app->add_option("--source.stall_timeout_s", c->sensor.stall_timeout_s,
+  app->add_option("--source.stall_timeout_s", s.watch.stall_timeout_s,
                   "no frame this long: the sensor counts as stalled [s]")
       ->capture_default_str();
-  app->add_option("--odometry.downsample", c->odometry_downsample, "1, 2 or 4")
+  OdometryConfig& o = c->odometry;
+  app->add_option("--odometry.downsample", o.downsample, "1, 2 or 4")->capture_default_str();
+  app->add_option("--odometry.volume_vox", o.volume.resolution_vox,
+                  "dense volume edge in voxels")
       ->capture_default_str();
-  app->add_option("--odometry.volume_vox", c->odometry_volume_vox, "dense volume edge in voxels")
+  app->add_option("--odometry.voxel_m", o.volume.voxel_size_m, "voxel size [m]")
       ->capture_default_str();
-  app->add_option("--odometry.voxel_m", c->odometry_voxel_m, "voxel size [m]")
-      ->capture_default_str();
-  app->add_option("--odometry.lookahead_m", c->odometry_lookahead_m,
+  app->add_option("--odometry.lookahead_m", o.volume.lookahead_m,
                   "the volume follows the drone, centred this far ahead of the camera [m]")
       ->capture_default_str();
-  app->add_option("--odometry.shift_blocks", c->odometry_shift_blocks,
+  app->add_option("--odometry.shift_blocks", o.volume.shift_threshold_blocks,
                   "it shifts when its wanted centre has moved this many 8-voxel blocks")
       ->capture_default_str();
-  app->add_option("--odometry.threads", c->odometry_threads,
+  app->add_option("--odometry.threads", o.threads,
                   "engine threads (1: no OpenMP region at all, no allocation per frame)")
       ->capture_default_str();
-  app->add_option("--odometry.capture_queue", c->capture_queue, "frames queued before odometry")
+  app->add_option("--odometry.capture_queue", o.capture_queue, "frames queued before odometry")
       ->capture_default_str();
   KeyframeSelector::Params& k = c->keyframe;
   app->add_option("--keyframe.min_translation_m", k.min_translation_m,
@@ -100,86 +154,83 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--keyframe.min_inlier_fraction", k.min_inlier_fraction,
                   "only from frames tracked at least this well (ICP inlier fraction)")
       ->capture_default_str();
-  app->add_option("--link.lcm_url", c->lcm_url, "LCM URL (empty: LCM_DEFAULT_URL or default)");
-  app->add_option("--link.signing_window_s", c->signing_window_s,
+  LinkConfig& l = c->link;
+  app->add_option("--link.lcm_url", l.lcm_url, "LCM URL (empty: LCM_DEFAULT_URL or default)");
+  app->add_option("--link.signing_window_s", l.signing.window_s,
                   "accepted age of a signed correction [s]; both clocks must agree this well")
       ->capture_default_str();
-  app->add_option("--link.keyframe_queue", c->keyframe_queue,
+  app->add_option("--link.keyframe_queue", l.keyframe_queue,
                   "keyframes waiting for the link (oldest dropped when full)")
       ->capture_default_str();
-  app->add_option("--link.status_rate_hz", c->status_rate_hz, "status_t rate [Hz]")
+  app->add_option("--link.status_rate_hz", l.status_rate_hz, "status_t rate [Hz]")
       ->capture_default_str();
-  app->add_option("--link.timeout_s", c->link_timeout_s,
+  app->add_option("--link.timeout_s", l.timeout_s,
                   "ground station unheard this long: link stale [s]")
       ->capture_default_str();
-  app->add_option("--link.final_wait_s", c->final_wait_s,
+  app->add_option("--link.final_wait_s", l.final_wait_s,
                   "when the source ends: the longest wait for the ground's last corrections [s]")
       ->capture_default_str();
   app->add_option("--corrections.history_keyframes", c->corrections.history_keyframes,
                   "keyframes whose onboard pose is kept for corrections")
       ->capture_default_str();
-  app->add_option("--output.trajectory", c->trajectory_out, "TUM trajectory written at exit");
-  app->add_option("--output.ground_truth", c->ground_truth_out,
+  app->add_option("--output.trajectory", c->output.trajectory, "TUM trajectory written at exit");
+  app->add_option("--output.ground_truth", c->output.ground_truth,
                   "TUM file of the source's true poses, written at exit (synthetic)");
-  app->add_option("--output.log_level", c->log_level, "trace | debug | info | warn | error")
+  app->add_option("--output.log_level", c->output.log_level,
+                  "trace | debug | info | warn | error")
       ->capture_default_str();
 }
 
+std::string VehicleConfig::validate() const {
+  return outOfRange("vehicle.id", id, 0, link::kMaxVehicleId);
+}
+
+std::string SourceConfig::validate() const {
+  if (!oneOf(kind, {"log", "dataset", "openni", "synthetic"}))
+    return "source.kind must be log, dataset, openni or synthetic (got \"" + kind + "\")";
+  if ((kind == "log" && log.path.empty()) || (kind == "dataset" && dataset.tum_dir.empty()))
+    return "source.path is required for source.kind = " + kind;
+  std::string deprecated;
+  if (deprecated_depth_units_per_m)
+    deprecated = outOfRange("source.depth_units_per_m", *deprecated_depth_units_per_m, 0, 1e6,
+                            Bound::kOpen);
+  return firstProblem(outOfRange("source.speed", speed, 0, 100, Bound::kOpen),
+                      std::move(deprecated), dataset.validate(), synthetic.validate(),
+                      outOfRange("source.max_frames", max_frames, 0, 1e9), openni.validate(),
+                      watch.validate());
+}
+
+std::string OdometryConfig::validate() const {
+  if (!(downsample == 1 || downsample == 2 || downsample == 4))
+    return "odometry.downsample must be 1, 2 or 4 (got " + std::to_string(downsample) + ")";
+  return firstProblem(namingKeys(volume.validate(), {{"resolution_vox", "odometry.volume_vox"},
+                                                     {"voxel_size_m", "odometry.voxel_m"},
+                                                     {"lookahead_m", "odometry.lookahead_m"},
+                                                     {"shift_threshold_blocks",
+                                                      "odometry.shift_blocks"}}),
+                      outOfRange("odometry.threads", threads, 1, 64),
+                      outOfRange("odometry.capture_queue", capture_queue, 1, 64));
+}
+
+std::string LinkConfig::validate() const {
+  return firstProblem(namingKeys(signing.validate(), {{"window_s", "link.signing_window_s"}}),
+                      outOfRange("link.keyframe_queue", keyframe_queue, 1, 64),
+                      outOfRange("link.status_rate_hz", status_rate_hz, 1, 100),
+                      outOfRange("link.timeout_s", timeout_s, 0, 60, Bound::kOpen),
+                      outOfRange("link.final_wait_s", final_wait_s, 0, 60));
+}
+
+std::string OutputConfig::validate() const {
+  if (!oneOf(log_level, {"trace", "debug", "info", "warn", "error"}))
+    return "output.log_level must be trace, debug, info, warn or error (got \"" + log_level +
+           "\")";
+  return {};
+}
+
 std::string FirmwareConfig::validate() const {
-  std::ostringstream why;
-  const auto range = [&](const char* name, double value, double lo, double hi, bool lo_open) {
-    if (why.tellp() > 0) return;
-    if (!(lo_open ? value > lo : value >= lo) || !(value <= hi))
-      why << name << " must be in " << (lo_open ? "(" : "[") << lo << ", " << hi << "] (got "
-          << value << ")";
-  };
-  range("vehicle.id", vehicle_id, 0, link::kMaxVehicleId, false);
-  if (why.tellp() == 0 && source_kind != "log" && source_kind != "dataset" &&
-      source_kind != "openni" && source_kind != "synthetic")
-    why << "source.kind must be log, dataset, openni or synthetic (got \"" << source_kind
-        << "\")";
-  if (why.tellp() == 0 && source_path.empty() &&
-      (source_kind == "log" || source_kind == "dataset"))
-    why << "source.path is required for source.kind = " << source_kind;
-  range("source.speed", source_speed, 0, 100, true);
-  range("source.depth_units_per_m", source_depth_units_per_m, 0, 1e6, true);
-  range("source.width", source_width_px, 16, 4096, false);
-  range("source.height", source_height_px, 16, 4096, false);
-  range("source.rate_hz", source_rate_hz, 0, 1000, true);
-  range("source.seed", source_seed, 0, 2147483647, false);
-  range("source.max_frames", source_max_frames, 0, 1e9, false);
-  range("source.reconnect_min_s", source_reconnect_min_s, 0.01, 60, false);
-  range("source.reconnect_max_s", source_reconnect_max_s, source_reconnect_min_s, 600, false);
-  if (why.tellp() == 0) {
-    if (std::string w = sensor.validate(); !w.empty()) why << w;
-  }
-  if (why.tellp() == 0 && odometry_downsample != 1 && odometry_downsample != 2 &&
-      odometry_downsample != 4)
-    why << "odometry.downsample must be 1, 2 or 4 (got " << odometry_downsample << ")";
-  if (why.tellp() == 0 && (odometry_volume_vox % 8 != 0))
-    why << "odometry.volume_vox must be a multiple of 8 (got " << odometry_volume_vox << ")";
-  range("odometry.volume_vox", odometry_volume_vox, 16, 512, false);
-  range("odometry.voxel_m", odometry_voxel_m, 0, 0.2, true);
-  range("odometry.lookahead_m", odometry_lookahead_m, 0, 10, false);
-  range("odometry.shift_blocks", odometry_shift_blocks, 1, 64, false);
-  range("odometry.threads", odometry_threads, 1, 64, false);
-  range("odometry.capture_queue", capture_queue, 1, 64, false);
-  range("link.signing_window_s", signing_window_s, 0, 3600, true);
-  range("link.keyframe_queue", keyframe_queue, 1, 64, false);
-  range("link.status_rate_hz", status_rate_hz, 1, 100, false);
-  range("link.timeout_s", link_timeout_s, 0, 60, true);
-  range("link.final_wait_s", final_wait_s, 0, 60, false);
-  if (why.tellp() == 0) {
-    if (std::string k = keyframe.validate(); !k.empty()) why << k;
-  }
-  if (why.tellp() == 0) {
-    if (std::string h = corrections.validate(); !h.empty()) why << h;
-  }
-  if (why.tellp() == 0 && log_level != "trace" && log_level != "debug" && log_level != "info" &&
-      log_level != "warn" && log_level != "error")
-    why << "output.log_level must be trace, debug, info, warn or error (got \"" << log_level
-        << "\")";
-  return why.str();
+  return firstProblem(vehicle.validate(), source.validate(), odometry.validate(),
+                      link.validate(), keyframe.validate(), corrections.validate(),
+                      output.validate());
 }
 
 }  // namespace kinfly::fw

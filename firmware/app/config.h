@@ -1,65 +1,92 @@
-// kinfly-fw's configuration: one struct, read from a config file (INI/TOML sections, CLI11) with
-// command-line overrides of the same names (`[source] path = ...` is `--source.path ...`).
-// Defaults ship in firmware/config/kinfly-fw.toml; validate() names any wrong value and its range.
+// kinfly-fw's configuration: one section per stage, each the stage's own Params where it has one
+// (the sources', the dense volume's, the keyframe selector's, the signature check's ...), so a
+// value's unit, default and range are written once, at its field, and checked by that Params'
+// validate(). Read from a config file (INI/TOML sections, CLI11) with command-line overrides of
+// the same names (`[source] path = ...` is `--source.path ...`); defaults ship in
+// firmware/config/kinfly-fw.toml. validate() names the first wrong value's key and its range.
 #pragma once
 
 #include <CLI/CLI.hpp>
 
+#include <optional>
 #include <string>
 
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/sensor_watch.h"
+#include "kinfly/link/signing.h"
+#include "kinfly/sources/dataset_source.h"
+#include "kinfly/sources/log_source.h"
+#include "kinfly/sources/openni_source.h"
+#include "kinfly/sources/synthetic_source.h"
+#include "kinfly/volume/tsdf_volume.h"
 
 namespace kinfly::fw {
 
-struct FirmwareConfig {
-  // [vehicle]
-  int vehicle_id = 1;                              // [0, 65535], in every channel name
-  std::string key_file = "/etc/kinfly/vehicle.key";  // kinfly-keygen; mode 0600
-  // [source]
-  std::string source_kind = "log";      // log | dataset | openni | synthetic
-  // log: LCM log; dataset: TUM folder (both required); openni: a device URI or an .oni
-  // recording ("": the first sensor found); synthetic: unused
-  std::string source_path;
-  bool source_realtime = true;          // replay at capture rate; false: as fast as possible
-  double source_speed = 1.0;            // (0, 100] replay rate factor when realtime
-  std::string source_intrinsics;        // "fx,fy,cx,cy" (empty: the source's own)
-  double source_depth_units_per_m = 5000.0;  // dataset: raw units per metre (TUM 5000)
-  int source_width_px = 640;            // openni, synthetic: [16, 4096] image size the
-  int source_height_px = 480;           //   engine is built for
-  double source_rate_hz = 30.0;         // synthetic: (0, 1000] frame rate
-  int source_seed = 1;                  // synthetic: [0, 2^31) noise seed
-  int source_max_frames = 0;            // stop after this many frames (0: never)
-  double source_reconnect_min_s = 0.5;  // openni: [0.01, 60] first retry after a loss; doubles
-  double source_reconnect_max_s = 8.0;  // openni: [reconnect_min_s, 600] longest retry interval
-  SensorWatch::Params sensor;           // stall_timeout_s
-  // [odometry]
-  int odometry_downsample = 2;          // {1, 2, 4}: 640x480 sensors run at 320x240
-  int odometry_volume_vox = 128;        // dense volume edge [16, 512], multiple of 8
-  double odometry_voxel_m = 0.03;       // [m] (0, 0.2]
-  double odometry_lookahead_m = 1.5;    // [m] [0, 10] volume centred this far ahead of the camera
-  int odometry_shift_blocks = 2;        // [1, 64] re-centre when the centre moved this many blocks
-  int odometry_threads = 1;             // [1, 64]
-  int capture_queue = 4;                // [1, 64] frames between capture and odometry
-  // [keyframe]
-  KeyframeSelector::Params keyframe;
-  // [link]
-  std::string lcm_url;                  // empty: LCM_DEFAULT_URL or LCM's default
-  double signing_window_s = 2.0;        // [s] (0, 3600] accepted age of a signed correction
-  int keyframe_queue = 4;               // [1, 64] keyframes waiting for the link
-  double status_rate_hz = 10.0;         // [Hz] [1, 100]
-  double link_timeout_s = 2.0;          // [s] (0, 60] ground unheard this long: link stale
-  // [s] [0, 60] when the source ends (a replayed flight), how long at most to wait for the
-  // ground's corrections of the last keyframes before exiting
-  double final_wait_s = 5.0;
-  CorrectionAnchor::Params corrections;
-  // [output]
-  std::string trajectory_out;           // TUM file of the published poses, written at exit
-  std::string ground_truth_out;         // TUM file of the source's true poses (synthetic)
-  std::string log_level = "info";       // trace | debug | info | warn | error
+struct VehicleConfig {                           // [vehicle]
+  int id = 1;                                    // id [0, 65535], in every channel name
+  std::string key_file = "/etc/kinfly/vehicle.key";  // key_file: kinfly-keygen; mode 0600
+  std::string validate() const;
+};
 
-  // Empty when valid, else the first wrong value, its name in the config, and the allowed range.
+struct SourceConfig {                            // [source]
+  std::string kind = "log";                      // kind: log | dataset | openni | synthetic
+  bool realtime = true;          // realtime: replay at capture rate; false: as fast as possible
+  double speed = 1.0;            // speed (0, 100]: replay rate factor when realtime
+  int max_frames = 0;            // max_frames [0, 1e9]: stop after this many frames (0: never)
+  // Each source's own Params, whatever the kind: every value is checked, so a config file
+  // stays valid when its kind changes. Keys that several sources read (path, intrinsics, width,
+  // height) set the field in each of them.
+  LogSourceParams log;
+  DatasetSourceParams dataset;
+  OpenniSourceParams openni;
+  SyntheticSourceParams synthetic;
+  SensorWatch::Params watch;     // stall_timeout_s
+  // Given only by the deprecated key source.depth_units_per_m (raw units per metre), which sets
+  // dataset.depth_scale_m to its inverse; main warns when it is there.
+  std::optional<double> deprecated_depth_units_per_m;
+  std::string validate() const;
+};
+
+struct OdometryConfig {                          // [odometry]
+  int downsample = 2;            // downsample {1, 2, 4}: 640x480 sensors run at 320x240
+  // volume_vox (resolution_vox), voxel_m (voxel_size_m), lookahead_m, shift_blocks
+  // (shift_threshold_blocks): the volume that follows the drone.
+  DenseVolume::Params volume;
+  int threads = 1;               // threads [1, 64]: the engine's OpenMP threads
+  int capture_queue = 4;         // capture_queue [1, 64]: frames between capture and odometry
+  std::string validate() const;
+};
+
+struct LinkConfig {                              // [link]
+  std::string lcm_url;           // lcm_url; empty: LCM_DEFAULT_URL or LCM's default
+  link::VerifierParams signing;  // signing_window_s (window_s): accepted age of a correction
+  int keyframe_queue = 4;        // keyframe_queue [1, 64]: keyframes waiting for the link
+  double status_rate_hz = 10.0;  // status_rate_hz [Hz] [1, 100]
+  double timeout_s = 2.0;        // timeout_s [s] (0, 60]: ground unheard this long: link stale
+  // final_wait_s [s] [0, 60]: when the source ends (a replayed flight), how long at most to
+  // wait for the ground's corrections of the last keyframes before exiting
+  double final_wait_s = 5.0;
+  std::string validate() const;
+};
+
+struct OutputConfig {                            // [output]
+  std::string trajectory;        // trajectory: TUM file of the published poses, written at exit
+  std::string ground_truth;      // ground_truth: TUM file of the source's true poses
+  std::string log_level = "info";  // log_level: trace | debug | info | warn | error
+  std::string validate() const;
+};
+
+struct FirmwareConfig {
+  VehicleConfig vehicle;
+  SourceConfig source;
+  OdometryConfig odometry;
+  KeyframeSelector::Params keyframe;             // [keyframe]
+  LinkConfig link;
+  CorrectionAnchor::Params corrections;          // [corrections]
+  OutputConfig output;
+
+  // Empty when valid, else the first wrong value, its key in the config, and the allowed range.
   std::string validate() const;
 };
 

@@ -10,23 +10,25 @@ namespace kinfly::fw {
 LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
                    SharedAnchor* anchor, Counters* counters, BoundedQueue<KeyframeJob>* keyframes,
                    const BoundedQueue<DepthCapture>* capture_queue, const PinholeCamera& camera,
-                   double depth_scale_m)
+                   double depth_scale_m, const StopToken* stop)
     : config_(config), anchor_(anchor), counters_(counters), keyframes_(keyframes),
-      capture_queue_(capture_queue), camera_(camera), depth_scale_m_(depth_scale_m),
+      capture_queue_(capture_queue), stop_token_(stop), camera_(camera), depth_scale_m_(depth_scale_m),
       codec_(DepthCodec::Params()), job_(withDepthImage<KeyframeJob>(camera)),
-      watch_(config.sensor),
-      publisher_("link", config.lcm_url, config.vehicle_id, [this](lcm::LCM& lcm) {
-        lcm_subscribe(lcm.getUnderlyingLCM(),
-                      link::vehicleChannelsRegex(config_.vehicle_id).c_str(), &LinkTask::onMessage,
-                      this);
+      watch_(config.source.watch),
+      publisher_("link", config.link.lcm_url, config.vehicle.id, [this](lcm::LCM& lcm) {
+        // Every channel of this vehicle but its own keyframes, which multicast loops back: LCM
+        // reassembles a fragmented message (an allocation the size of a keyframe) only on a
+        // channel someone subscribed to. LCM's patterns are GLib (PCRE) regular expressions.
+        const std::string channels =
+            "(?!" + link::channelName(link::Channel::kKeyframe, config_.vehicle.id) + "$)" +
+            link::vehicleChannelsRegex(config_.vehicle.id);
+        lcm_subscribe(lcm.getUnderlyingLCM(), channels.c_str(), &LinkTask::onMessage, this);
       }) {
   if (key) {
-    link::VerifierParams verifier;
-    verifier.window_s = config.signing_window_s;
-    corrections_.emplace(*key, config.vehicle_id, verifier, link::DecodeBounds());
+    corrections_.emplace(*key, config.vehicle.id, config.link.signing, link::DecodeBounds());
   }
   codec_.reserve(camera.width, camera.height, &message_.payload);
-  status_.vehicle_id = config.vehicle_id;
+  status_.vehicle_id = config.vehicle.id;
   status_.source = status_t::SOURCE_DRONE;
 }
 
@@ -53,24 +55,24 @@ void LinkTask::serve(Clock::time_point* next_status) {
     watchSensor();
     publishStatus();
     *next_status += std::chrono::duration_cast<Clock::duration>(
-        std::chrono::duration<double>(1.0 / config_.status_rate_hz));
+        std::chrono::duration<double>(1.0 / config_.link.status_rate_hz));
   }
 }
 
 bool LinkTask::groundHeard() const {
   return ground_status_heard_ && Clock::now() - last_ground_heard_ <=
-                                     std::chrono::duration<double>(config_.link_timeout_s);
+                                     std::chrono::duration<double>(config_.link.timeout_s);
 }
 
 void LinkTask::awaitCorrections() {
   const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
-                                           std::chrono::duration<double>(config_.final_wait_s));
+                                           std::chrono::duration<double>(config_.link.final_wait_s));
   // Only for a ground station that is there: one never heard, or gone quiet, sends nothing.
   if (last_keyframe_sent_ < 0 || !groundHeard()) return;
   spdlog::info("link: waiting up to {:.1f} s for the ground's corrections of the last keyframes",
-               config_.final_wait_s);
+               config_.link.final_wait_s);
   Clock::time_point next_status = Clock::now();
-  while (!g_signalled && Clock::now() < deadline && groundHeard() &&
+  while (!stop_token_->interrupted() && Clock::now() < deadline && groundHeard() &&
          ground_status_.last_keyframe_id < last_keyframe_sent_)
     serve(&next_status);
   if (ground_status_.last_keyframe_id < last_keyframe_sent_)
@@ -141,17 +143,17 @@ void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {
   const link::DecodeResult r =
       link::decodeMessage(rbuf->data, rbuf->data_size, link::DecodeBounds(), &ground_status_);
   ground_status_heard_ = r.ok() && ground_status_.source == status_t::SOURCE_GROUND &&
-                         ground_status_.vehicle_id == config_.vehicle_id;
+                         ground_status_.vehicle_id == config_.vehicle.id;
   if (!r.ok() || ground_status_.source != status_t::SOURCE_GROUND)
     ++rejects_.malformed;
-  else if (ground_status_.vehicle_id != config_.vehicle_id)
+  else if (ground_status_.vehicle_id != config_.vehicle.id)
     ++rejects_.wrong_vehicle;
 }
 
 void LinkTask::send(const KeyframeJob& job) {
   depth_keyframe_t& m = message_;
   m.utime = job.utime;
-  m.vehicle_id = config_.vehicle_id;
+  m.vehicle_id = config_.vehicle.id;
   m.frame_id = job.frame_id;
   m.keyframe_id = job.keyframe_id;
   link::writePose(job.T_world_cam, m.position_m, m.orientation_xyzw);
@@ -182,7 +184,7 @@ void LinkTask::watchSensor() {
   switch (watch_.update(now_s, last_s, counters_->sensor_waiting, counters_->capture_done)) {
     case SensorWatch::Change::kStalled:
       spdlog::warn("sensor: no depth frame for {:.1f} s (stall {})",
-                   config_.sensor.stall_timeout_s, watch_.stalls());
+                   config_.source.watch.stall_timeout_s, watch_.stalls());
       break;
     case SensorWatch::Change::kResumed:
       spdlog::info("sensor: frames again after a {:.1f} s stall", watch_.lastStallS());
@@ -220,7 +222,7 @@ void LinkTask::publishStatus(int8_t run_state) {
   const auto since = Clock::now() - last_ground_heard_;
   s.link_state = last_ground_heard_ == Clock::time_point()
                      ? status_t::LINK_UNKNOWN
-                     : (since <= std::chrono::duration<double>(config_.link_timeout_s)
+                     : (since <= std::chrono::duration<double>(config_.link.timeout_s)
                             ? status_t::LINK_UP
                             : status_t::LINK_STALE);
   switch (watch_.state()) {

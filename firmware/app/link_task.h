@@ -6,7 +6,6 @@
 #include <optional>
 
 #include "config.h"
-#include "depth_source.h"
 #include "kinfly/codec/depth_codec.h"
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/log_throttle.h"
@@ -14,6 +13,7 @@
 #include "kinfly/link/counters.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
+#include "kinfly/sources/depth_source.h"
 #include "kinfly/status_t.hpp"
 #include "publisher.h"
 #include "runtime.h"
@@ -25,7 +25,7 @@ class LinkTask {
   LinkTask(const FirmwareConfig& config, std::optional<link::Key> key, SharedAnchor* anchor,
            Counters* counters, BoundedQueue<KeyframeJob>* keyframes,
            const BoundedQueue<DepthCapture>* capture_queue, const PinholeCamera& camera,
-           double depth_scale_m);
+           double depth_scale_m, const StopToken* stop);
 
   // Until stop(); then sends what is still queued, waits for the ground's last corrections when
   // asked to, and sends a last status (status_t.RUN_FINAL).
@@ -65,6 +65,7 @@ class LinkTask {
   Counters* counters_;
   BoundedQueue<KeyframeJob>* keyframes_;
   const BoundedQueue<DepthCapture>* capture_queue_;
+  const StopToken* stop_token_;  // its interruption cuts the final wait short
   PinholeCamera camera_;
   double depth_scale_m_;
   DepthCodec codec_;

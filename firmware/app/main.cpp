@@ -15,61 +15,53 @@
 #include <memory>
 #include <optional>
 #include <thread>
+#include <utility>
 
 #include "capture.h"
 #include "config.h"
-#include "depth_source.h"
 #include "kinfly/link/signing.h"
 #include "link_task.h"
 #include "odometry_task.h"
 #include "publisher.h"
 #include "runtime.h"
+#include "kinfly/sources/dataset_source.h"
+#include "kinfly/sources/log_source.h"
+#include "kinfly/sources/openni_source.h"
+#include "kinfly/sources/synthetic_source.h"
 
 namespace kinfly::fw {
-
-std::atomic<bool> g_stop{false};
-std::atomic<bool> g_signalled{false};
-
 namespace {
 
 constexpr const char* kVersion = "0.1.0";
 
-void onSignal(int) {
-  g_signalled = true;
-  g_stop = true;
+// Set by SIGINT/SIGTERM, the one thing a handler may safely do; main's thread passes it on to
+// the tasks' StopToken while it waits for them.
+volatile std::sig_atomic_t g_signal_received = 0;
+
+void onSignal(int) { g_signal_received = 1; }
+
+// Waits for a task's thread to end (`finished` set as its last act), meanwhile passing a signal
+// on to the tasks.
+void awaitTask(std::thread* thread, const std::atomic<bool>& finished, StopToken* stop) {
+  while (!finished) {
+    if (g_signal_received && !stop->interrupted()) stop->interrupt();
+    std::this_thread::sleep_for(kPollPeriod);
+  }
+  thread->join();
+  if (g_signal_received) stop->interrupt();
 }
 
 std::unique_ptr<DepthSource> openSource(const FirmwareConfig& config, std::string* why) {
-  if (config.source_kind == "dataset") {
-    DatasetSourceParams p;
-    p.tum_dir = config.source_path;
-    p.intrinsics = config.source_intrinsics;
-    p.depth_units_per_m = config.source_depth_units_per_m;
-    return openDatasetSource(p, why);
-  }
-  if (config.source_kind == "synthetic") {
-    SyntheticSourceParams p;
-    p.intrinsics = config.source_intrinsics;
-    p.width_px = config.source_width_px;
-    p.height_px = config.source_height_px;
-    p.rate_hz = config.source_rate_hz;
-    p.seed = static_cast<uint32_t>(config.source_seed);
+  const SourceConfig& source = config.source;
+  if (source.kind == "dataset") return openDatasetSource(source.dataset, why);
+  if (source.kind == "synthetic") {
+    SyntheticSourceParams p = source.synthetic;
     p.first_utime = link::wallClockUtime();
     return openSyntheticSource(p, why);
   }
-  if (config.source_kind == "openni") {
-    OpenniSourceParams p;
-    p.uri = config.source_path;
-    p.intrinsics = config.source_intrinsics;
-    p.width_px = config.source_width_px;
-    p.height_px = config.source_height_px;
-    p.reconnect_min_s = config.source_reconnect_min_s;
-    p.reconnect_max_s = config.source_reconnect_max_s;
-    return openOpenniSource(p, why);
-  }
-  LogSourceParams p;
-  p.path = config.source_path;
-  p.vehicle_id = config.vehicle_id;
+  if (source.kind == "openni") return openOpenniSource(source.openni, why);
+  LogSourceParams p = source.log;
+  p.vehicle_id = config.vehicle.id;
   return openLogSource(p, why);
 }
 
@@ -139,17 +131,21 @@ int run(int argc, char** argv) {
     spdlog::critical("invalid configuration: {}", why);
     return 2;
   }
-  spdlog::set_level(spdlog::level::from_str(config.log_level));
+  spdlog::set_level(spdlog::level::from_str(config.output.log_level));
+  if (config.source.deprecated_depth_units_per_m)
+    spdlog::warn("source.depth_units_per_m is deprecated and will go: write source.depth_scale_m "
+                 "= {} (metres per raw unit) instead of source.depth_units_per_m = {}",
+                 config.source.dataset.depth_scale_m, *config.source.deprecated_depth_units_per_m);
   // A URL LCM cannot use is a configuration error; a network that is not up yet is not.
-  if (std::string problem = Publisher::urlProblem(config.lcm_url); !problem.empty()) {
+  if (std::string problem = Publisher::urlProblem(config.link.lcm_url); !problem.empty()) {
     spdlog::critical("invalid configuration: {}", problem);
     return 2;
   }
 
   std::string why;
   std::optional<link::Key> key;
-  if (!config.key_file.empty()) {
-    key = link::loadKeyFile(config.key_file, &why);
+  if (!config.vehicle.key_file.empty()) {
+    key = link::loadKeyFile(config.vehicle.key_file, &why);
     if (!key) {
       spdlog::critical("{} (vehicle.key_file; empty to run without corrections)", why);
       return 2;
@@ -174,9 +170,9 @@ int run(int argc, char** argv) {
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   spdlog::info("kinfly-fw {} vehicle {}: {}, {}x{} -> {}x{} odometry", kVersion,
-               config.vehicle_id, source->describe(), camera.width, camera.height,
-               camera.width / config.odometry_downsample,
-               camera.height / config.odometry_downsample);
+               config.vehicle.id, source->describe(), camera.width, camera.height,
+               camera.width / config.odometry.downsample,
+               camera.height / config.odometry.downsample);
 
   SharedAnchor anchor(config.corrections);
   Counters counters;
@@ -184,39 +180,43 @@ int run(int argc, char** argv) {
   // sensor that is not there.
   counters.sensor_waiting = source->waiting();
   counters.sensor_connects = source->connects();
-  BoundedQueue<DepthCapture> capture_queue(static_cast<size_t>(config.capture_queue),
+  BoundedQueue<DepthCapture> capture_queue(static_cast<size_t>(config.odometry.capture_queue),
                                            [&] { return withDepthImage<DepthCapture>(camera); });
-  BoundedQueue<KeyframeJob> keyframe_queue(static_cast<size_t>(config.keyframe_queue),
+  BoundedQueue<KeyframeJob> keyframe_queue(static_cast<size_t>(config.link.keyframe_queue),
                                            [&] { return withDepthImage<KeyframeJob>(camera); });
   // Each task owns its LCM instance (publisher.h says why); neither needs the network to start.
+  StopToken stop;
   OdometryTask odometry(config, camera, volume_params, pipeline_params, &anchor, &counters,
-                        &capture_queue, &keyframe_queue);
+                        &capture_queue, &keyframe_queue, &stop);
   LinkTask link(config, key, &anchor, &counters, &keyframe_queue, &capture_queue, camera,
-                source->depthScaleM());
+                source->depthScaleM(), &stop);
 
   std::thread capture_thread([&] {
     nameThisThread("kfw-capture");
-    runCapture(config, source.get(), &capture_queue, &counters);
+    runCapture(config.source, source.get(), &capture_queue, &counters, &stop);
   });
+  std::atomic<bool> link_finished{false}, odometry_finished{false};
   std::thread link_thread([&] {
     nameThisThread("kfw-link");
     link.run();
+    link_finished = true;
   });
   std::thread odometry_thread([&] {
     nameThisThread("kfw-odometry");
     odometry.run();
+    odometry_finished = true;
   });
-  odometry_thread.join();
-  g_stop = true;
-  const bool interrupted = g_signalled;
+  awaitTask(&odometry_thread, odometry_finished, &stop);
+  stop.requestStop();
+  const bool interrupted = stop.interrupted();
   capture_queue.close();
   capture_thread.join();
   link.stop(/*await_corrections=*/!interrupted);
-  link_thread.join();
+  awaitTask(&link_thread, link_finished, &stop);
 
   const bool written =
-      writeIfAsked(config.trajectory_out, odometry.trajectory(), "output.trajectory") &&
-      writeIfAsked(config.ground_truth_out, odometry.groundTruth(), "output.ground_truth");
+      writeIfAsked(config.output.trajectory, odometry.trajectory(), "output.trajectory") &&
+      writeIfAsked(config.output.ground_truth, odometry.groundTruth(), "output.ground_truth");
   const link::RejectCounters rejects = link.rejects();
   const auto n = [](int64_t v) { return static_cast<long long>(v); };
   std::printf(

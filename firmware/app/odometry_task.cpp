@@ -20,17 +20,14 @@ int8_t trackingCode(TrackingStatus status) {
 std::string OdometryTask::engineParams(const FirmwareConfig& config, const PinholeCamera& camera,
                                        double depth_scale_m, DenseVolume::Params* volume,
                                        FusionPipeline::Params* pipeline) {
-  if (camera.width % config.odometry_downsample != 0 ||
-      camera.height % config.odometry_downsample != 0)
-    return "odometry.downsample " + std::to_string(config.odometry_downsample) +
+  if (camera.width % config.odometry.downsample != 0 ||
+      camera.height % config.odometry.downsample != 0)
+    return "odometry.downsample " + std::to_string(config.odometry.downsample) +
            " does not divide the " + std::to_string(camera.width) + "x" +
            std::to_string(camera.height) + " image";
-  volume->resolution_vox = config.odometry_volume_vox;
-  volume->voxel_size_m = static_cast<float>(config.odometry_voxel_m);
-  volume->lookahead_m = static_cast<float>(config.odometry_lookahead_m);
-  volume->shift_threshold_blocks = config.odometry_shift_blocks;
+  *volume = config.odometry.volume;
   pipeline->preprocess.depth_scale_m = depth_scale_m;
-  pipeline->preprocess.downsample = config.odometry_downsample;
+  pipeline->preprocess.downsample = config.odometry.downsample;
   pipeline->integrate.truncation_m = 4.f * volume->voxel_size_m;
   if (std::string why = volume->validate(); !why.empty()) return why;
   return pipeline->validate(volume->voxel_size_m);
@@ -41,21 +38,21 @@ OdometryTask::OdometryTask(const FirmwareConfig& config, const PinholeCamera& ca
                            const FusionPipeline::Params& pipeline, SharedAnchor* anchor,
                            Counters* counters,
                            BoundedQueue<DepthCapture>* frames,
-                           BoundedQueue<KeyframeJob>* keyframes)
+                           BoundedQueue<KeyframeJob>* keyframes, const StopToken* stop)
     : config_(config), volume_(volume), pipeline_(camera, pipeline, &volume_),
-      selector_(config.keyframe), publisher_("odometry", config.lcm_url, config.vehicle_id),
+      selector_(config.keyframe), publisher_("odometry", config.link.lcm_url, config.vehicle.id),
       anchor_(anchor), counters_(counters),
-      frames_(frames), keyframes_(keyframes), job_(withDepthImage<KeyframeJob>(camera)) {
-  odometry_.vehicle_id = config.vehicle_id;
-  truth_.vehicle_id = config.vehicle_id;
+      frames_(frames), keyframes_(keyframes), stop_(stop), job_(withDepthImage<KeyframeJob>(camera)) {
+  odometry_.vehicle_id = config.vehicle.id;
+  truth_.vehicle_id = config.vehicle.id;
 }
 
 void OdometryTask::run() {
   // OpenMP's thread count is a per-thread setting: a new thread starts from OMP_NUM_THREADS or
   // the core count, not from what main() set.
-  omp_set_num_threads(config_.odometry_threads);
+  omp_set_num_threads(config_.odometry.threads);
   DepthCapture capture = withDepthImage<DepthCapture>(pipeline_.inputCamera());
-  while (!g_stop) {
+  while (!stop_->stopRequested()) {
     if (!frames_->pop(&capture, kPollPeriod)) {
       if (counters_->capture_done && frames_->size() == 0) break;
       continue;
@@ -94,10 +91,10 @@ void OdometryTask::process(const DepthCapture& capture) {
     truth_.utime = capture.utime;
     link::writePose(capture.T_world_cam_truth, truth_.position_m, truth_.orientation_xyzw);
     publisher_.publish(link::Channel::kGroundTruth, truth_);
-    if (!config_.ground_truth_out.empty())
+    if (!config_.output.ground_truth.empty())
       ground_truth_.push_back({static_cast<double>(r.utime) * 1e-6, capture.T_world_cam_truth});
   }
-  if (!config_.trajectory_out.empty())
+  if (!config_.output.trajectory.empty())
     trajectory_.push_back({static_cast<double>(r.utime) * 1e-6, T_world_cam});
   if (!keyframe) return;
   // Sources deliver every frame at their camera's size, the size every image was made with.

@@ -8,12 +8,12 @@
 #include <vector>
 
 #include "config.h"
-#include "depth_source.h"
 #include "kinfly/pipeline/fusion_pipeline.h"
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/pose_t.hpp"
+#include "kinfly/sources/depth_source.h"
 #include "kinfly/volume/tsdf_volume.h"
 #include "kinfly/io/tum_dataset.h"
 #include "publisher.h"
@@ -33,9 +33,10 @@ class OdometryTask {
   OdometryTask(const FirmwareConfig& config, const PinholeCamera& camera,
                const DenseVolume::Params& volume, const FusionPipeline::Params& pipeline,
                SharedAnchor* anchor, Counters* counters,
-               BoundedQueue<DepthCapture>* frames, BoundedQueue<KeyframeJob>* keyframes);
+               BoundedQueue<DepthCapture>* frames, BoundedQueue<KeyframeJob>* keyframes,
+               const StopToken* stop);
 
-  // Until g_stop, or the frame queue is closed and empty.
+  // Until a stop is requested, or the frame queue is closed and empty.
   void run();
 
   // Kept only when the configuration asks for them (in flight they would grow without bound).
@@ -54,6 +55,7 @@ class OdometryTask {
   Counters* counters_;
   BoundedQueue<DepthCapture>* frames_;
   BoundedQueue<KeyframeJob>* keyframes_;
+  const StopToken* stop_;
   odometry_t odometry_{};
   pose_t truth_{};
   KeyframeJob job_;

@@ -1,5 +1,5 @@
 // What kinfly-fw's threads share: counters (each written by one thread, read by the link for the
-// status), the keyframe hand-over, the re-anchoring, and the stop flag.
+// status), the keyframe hand-over, the re-anchoring, and the stop token.
 #pragma once
 
 #include <atomic>
@@ -55,10 +55,24 @@ Item withDepthImage(const PinholeCamera& camera) {
   return item;
 }
 
-// Set by SIGINT/SIGTERM (and by main when the source ends); every loop checks it.
-extern std::atomic<bool> g_stop;
-// Set by SIGINT/SIGTERM only: the drone was told to stop, as opposed to a source that ended.
-extern std::atomic<bool> g_signalled;
+// Asks the tasks to finish. main owns it and hands it to each task; every loop checks it at
+// least every kPollPeriod. Why they stop matters at the end: a flight whose source ended waits
+// for the ground's last corrections, one the drone was told to end (SIGINT, SIGTERM) does not.
+class StopToken {
+ public:
+  // The source ended, or main is done: finish what is under way.
+  void requestStop() { stop_ = true; }
+  // The drone was told to stop: finish, and wait for nothing.
+  void interrupt() {
+    interrupted_ = true;
+    stop_ = true;
+  }
+  bool stopRequested() const { return stop_; }
+  bool interrupted() const { return interrupted_; }
+
+ private:
+  std::atomic<bool> stop_{false}, interrupted_{false};
+};
 
 inline double secondsSince(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();

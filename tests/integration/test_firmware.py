@@ -76,6 +76,10 @@ def test_dataset_replay_matches_the_log_replay(sample_log: Path, sample_dir: Pat
      "source.reconnect_max_s must be in [2, 600]"),
     (["--source.kind", "synthetic", "--source.width", "8"], "source.width must be in [16, 4096]"),
     (["--odometry.volume_vox", "100"], "odometry.volume_vox must be a multiple of 8"),
+    (["--odometry.voxel_m", "0.5"], "odometry.voxel_m must be in (0, 0.2]"),
+    (["--link.signing_window_s", "0"], "link.signing_window_s must be in (0, 3600]"),
+    (["--source.depth_scale_m", "0"], "source.depth_scale_m must be in [1e-06, 1]"),
+    (["--source.depth_units_per_m", "0"], "source.depth_units_per_m must be in (0, 1e+06]"),
 ])
 def test_bad_configuration_refuses_to_start(sample_log: Path, args: list[str],
                                             message: str) -> None:
@@ -83,6 +87,26 @@ def test_bad_configuration_refuses_to_start(sample_log: Path, args: list[str],
                          text=True, timeout=30)
     assert run.returncode == 2
     assert message in run.stdout + run.stderr
+
+
+def test_the_deprecated_depth_units_key_still_works_and_says_so(sample_dir: Path,
+                                                               tmp_path: Path) -> None:
+    """Config files written before source.depth_scale_m (an installed conffile a user edited)
+    keep working: source.depth_units_per_m = 5000 is source.depth_scale_m = 0.0002."""
+    config = tmp_path / "old.toml"
+    config.write_text(CONFIG.read_text().replace("depth_scale_m = 0.0002 ",
+                                                 "depth_units_per_m = 5000 "))
+    trajectories = []
+    for name, extra in (("old", ["--config", str(config)]), ("new", [])):
+        out = tmp_path / f"{name}.tum"
+        run = subprocess.run(firmware("--source.kind", "dataset", "--source.path", sample_dir,
+                                      "--source.realtime", "false", "--source.max_frames", 10,
+                                      "--output.trajectory", out) + extra,
+                             capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0, run.stderr
+        assert ("source.depth_units_per_m is deprecated" in run.stderr) == (name == "old")
+        trajectories.append(out.read_text())
+    assert trajectories[0] == trajectories[1]
 
 
 def test_config_file_with_a_wrong_type_names_the_key(sample_log: Path, tmp_path: Path) -> None:

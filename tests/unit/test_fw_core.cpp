@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cmath>
 #include <chrono>
 #include <thread>
 #include <vector>
@@ -12,6 +13,7 @@
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/log_throttle.h"
+#include "kinfly/fw/range_check.h"
 #include "kinfly/fw/sensor_watch.h"
 #include "kinfly/core/image.h"
 #include "test_util.h"
@@ -231,6 +233,21 @@ TEST(Backoff, DoublesUpToTheCeilingAndStartsOverAfterAReset) {
   EXPECT_DOUBLE_EQ(backoff.next(), 3.0);
   backoff.reset();
   EXPECT_DOUBLE_EQ(backoff.next(), 0.5);
+}
+
+TEST(RangeCheck, NamesTheKeyTheRangeAndTheValue) {
+  EXPECT_EQ(outOfRange("source.speed", 1.0, 0, 100, Bound::kOpen), "");
+  EXPECT_EQ(outOfRange("source.speed", 0.0, 0, 100, Bound::kOpen),
+            "source.speed must be in (0, 100] (got 0)");
+  EXPECT_EQ(outOfRange("link.final_wait_s", 0.0, 0, 60), "");
+  EXPECT_EQ(outOfRange("link.final_wait_s", 61.0, 0, 60),
+            "link.final_wait_s must be in [0, 60] (got 61)");
+  EXPECT_NE(outOfRange("odometry.threads", std::nan(""), 1, 64), "");
+}
+
+TEST(RangeCheck, FirstProblemIsTheFirstNonEmptyOne) {
+  EXPECT_EQ(firstProblem(std::string(), std::string("b"), std::string("c")), "b");
+  EXPECT_EQ(firstProblem(std::string(), std::string()), "");
 }
 
 }  // namespace

@@ -1,5 +1,6 @@
 #include "kinfly/codec/depth_codec.h"
 
+#define ZSTD_STATIC_LINKING_ONLY  // ZSTD_initStaticCCtx, ZSTD_estimateCCtxSize: a fixed workspace
 #include <zstd.h>
 #include <zstd_errors.h>
 
@@ -321,11 +322,19 @@ void DepthCodec::reserve(int width_px, int height_px, std::vector<uint8_t>* payl
   const size_t raw_bytes = 2 * static_cast<size_t>(width_px) * static_cast<size_t>(height_px);
   inner_.reserve(raw_bytes);
   payload->reserve(std::max(raw_bytes, ZSTD_compressBound(raw_bytes)));
+  // zstd sizes its tables to each input's size class and reallocates its workspace when a frame
+  // needs more than it has (or has long needed much less). A workspace made once, big enough for
+  // any input at this level, never changes: a static context in it compresses to the same bytes.
+  if (static_cctx_ == nullptr) {
+    cctx_workspace_.resize((ZSTD_estimateCCtxSize(params_.zstd_level) + 7) / 8);
+    static_cctx_ = ZSTD_initStaticCCtx(cctx_workspace_.data(), 8 * cctx_workspace_.size());
+  }
 }
 
 CodecResult DepthCodec::compressInner(size_t inner_size, std::vector<uint8_t>* payload) {
   payload->resize(ZSTD_compressBound(inner_size));
-  const size_t written = ZSTD_compressCCtx(cctx_.get(), payload->data(), payload->size(),
+  ZSTD_CCtx_s* cctx = static_cctx_ != nullptr ? static_cctx_ : cctx_.get();
+  const size_t written = ZSTD_compressCCtx(cctx, payload->data(), payload->size(),
                                            inner_.data(), inner_size, params_.zstd_level);
   if (ZSTD_isError(written)) {
     payload->clear();

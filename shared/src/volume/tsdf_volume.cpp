@@ -18,9 +18,12 @@ std::string DenseVolume::Params::validate() const {
   std::ostringstream why;
   if (resolution_vox < 16 || resolution_vox > 512 || resolution_vox % kBlockSide != 0)
     why << "resolution_vox must be a multiple of 8 in [16, 512] (got " << resolution_vox << ")";
-  else if (!(voxel_size_m > 0.f)) why << "voxel_size_m must be > 0";
-  else if (!(lookahead_m >= 0.f)) why << "lookahead_m must be >= 0";
-  else if (shift_threshold_blocks < 1) why << "shift_threshold_blocks must be >= 1";
+  else if (!(voxel_size_m > 0.f && voxel_size_m <= 0.2f))
+    why << "voxel_size_m must be in (0, 0.2] (got " << voxel_size_m << ")";
+  else if (!(lookahead_m >= 0.f && lookahead_m <= 10.f))
+    why << "lookahead_m must be in [0, 10] (got " << lookahead_m << ")";
+  else if (shift_threshold_blocks < 1 || shift_threshold_blocks > 64)
+    why << "shift_threshold_blocks must be in [1, 64] (got " << shift_threshold_blocks << ")";
   return why.str();
 }
 

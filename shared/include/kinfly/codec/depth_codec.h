@@ -109,6 +109,8 @@ class DepthCodec {
 
   Params params_;
   std::unique_ptr<ZSTD_CCtx_s, ZstdDeleter> cctx_;
+  std::vector<uint64_t> cctx_workspace_;   // reserve(): zstd's fixed workspace, 8-byte aligned
+  ZSTD_CCtx_s* static_cctx_ = nullptr;     // ... and the context in it (freed with it)
   std::unique_ptr<ZSTD_DCtx_s, ZstdDeleter> dctx_;
   std::vector<uint8_t> inner_;           // the stream inside the zstd frame, either direction
   std::vector<uint16_t> index_of_value_; // encoder: palette index + 1 per depth value, else 0

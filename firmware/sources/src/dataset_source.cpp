@@ -1,7 +1,9 @@
 #include <cmath>
 #include <vector>
 
-#include "depth_source.h"
+#include "kinfly/sources/dataset_source.h"
+
+#include "kinfly/fw/range_check.h"
 #include "kinfly/io/png_io.h"
 #include "kinfly/io/tum_dataset.h"
 
@@ -47,8 +49,13 @@ class DatasetSource : public DepthSource {
 
 }  // namespace
 
+std::string DatasetSourceParams::validate() const {
+  return outOfRange("source.depth_scale_m", depth_scale_m, 1e-6, 1.0);
+}
+
 std::unique_ptr<DepthSource> openDatasetSource(const DatasetSourceParams& params,
                                                std::string* why) {
+  if (*why = params.validate(); !why->empty()) return nullptr;
   std::vector<TumDepthEntry> entries;
   if (*why = readTumDepthList(params.tum_dir, &entries); !why->empty()) return nullptr;
   if (entries.empty()) {
@@ -63,12 +70,8 @@ std::unique_ptr<DepthSource> openDatasetSource(const DatasetSourceParams& params
   camera.width = first.width();
   camera.height = first.height();
   if (*why = camera.validate(); !why->empty()) return nullptr;
-  if (!(params.depth_units_per_m > 0.0)) {
-    *why = "source.depth_units_per_m must be positive";
-    return nullptr;
-  }
-  return std::make_unique<DatasetSource>(std::move(entries), camera,
-                                         1.0 / params.depth_units_per_m, params.tum_dir);
+  return std::make_unique<DatasetSource>(std::move(entries), camera, params.depth_scale_m,
+                                         params.tum_dir);
 }
 
 }  // namespace kinfly::fw

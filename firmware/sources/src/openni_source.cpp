@@ -19,8 +19,9 @@
 #include <system_error>
 #include <thread>
 
-#include "depth_source.h"
 #include "kinfly/fw/backoff.h"
+#include "kinfly/fw/range_check.h"
+#include "kinfly/sources/openni_source.h"
 #include "kinfly/link/signing.h"
 
 namespace kinfly::fw {
@@ -434,8 +435,15 @@ class OpenniSource : public DepthSource,
 
 }  // namespace
 
+std::string OpenniSourceParams::validate() const {
+  return firstProblem(sourceSizeProblem(width_px, height_px),
+                      outOfRange("source.reconnect_min_s", reconnect_min_s, 0.01, 60),
+                      outOfRange("source.reconnect_max_s", reconnect_max_s, reconnect_min_s, 600));
+}
+
 std::unique_ptr<DepthSource> openOpenniSource(const OpenniSourceParams& params,
                                               std::string* why) {
+  if (*why = params.validate(); !why->empty()) return nullptr;
   PinholeCamera camera;
   if (!sourceCamera(kPrimeSenseFxAt640, params.width_px, params.height_px, params.intrinsics,
                     &camera, why))

@@ -1,4 +1,6 @@
-#include "depth_source.h"
+#include "kinfly/sources/depth_source.h"
+
+#include "kinfly/fw/range_check.h"
 
 namespace kinfly::fw {
 
@@ -12,6 +14,11 @@ bool sourceCamera(float fx_at_640_px, int width_px, int height_px, const std::st
   camera->height = height_px;
   *why = camera->validate();
   return why->empty();
+}
+
+std::string sourceSizeProblem(int width_px, int height_px) {
+  return firstProblem(outOfRange("source.width", width_px, 16, 4096),
+                      outOfRange("source.height", height_px, 16, 4096));
 }
 
 }  // namespace kinfly::fw

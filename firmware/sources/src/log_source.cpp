@@ -4,7 +4,7 @@
 #include <filesystem>
 #include <memory>
 
-#include "depth_source.h"
+#include "kinfly/sources/log_source.h"
 #include "kinfly/codec/depth_codec.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"

@@ -1,10 +1,11 @@
-// A flight without hardware: the corner room of shared/ seen from a camera that swings around
-// the objects in it and bobs up and down, as a hovering drone would, rendered with the seed's
-// Kinect noise model. Each frame's true pose comes with it.
+// The camera swings around the objects of the corner room and bobs up and down, as a hovering
+// drone would.
 #include <cmath>
 #include <random>
 
-#include "depth_source.h"
+#include "kinfly/sources/synthetic_source.h"
+
+#include "kinfly/fw/range_check.h"
 #include "kinfly/synthetic/synthetic_scene.h"
 
 namespace kinfly::fw {
@@ -23,7 +24,7 @@ class SyntheticSource : public DepthSource {
  public:
   SyntheticSource(const SyntheticSourceParams& params, const PinholeCamera& camera)
       : params_(params), camera_(camera), scene_(SyntheticScene::cornerRoom()),
-        rng_(params.seed), T_first_world_(poseAt(0.0).inverse()) {}
+        rng_(static_cast<uint32_t>(params.seed)), T_first_world_(poseAt(0.0).inverse()) {}
 
   const PinholeCamera& camera() const override { return camera_; }
   double depthScaleM() const override { return kDepthScaleM; }
@@ -68,16 +69,19 @@ class SyntheticSource : public DepthSource {
 
 }  // namespace
 
+std::string SyntheticSourceParams::validate() const {
+  return firstProblem(sourceSizeProblem(width_px, height_px),
+                      outOfRange("source.rate_hz", rate_hz, 0, 1000, Bound::kOpen),
+                      outOfRange("source.seed", seed, 0, 2147483647));
+}
+
 std::unique_ptr<DepthSource> openSyntheticSource(const SyntheticSourceParams& params,
                                                  std::string* why) {
+  if (*why = params.validate(); !why->empty()) return nullptr;
   PinholeCamera camera;
   if (!sourceCamera(kKinectFxAt640, params.width_px, params.height_px, params.intrinsics,
                     &camera, why))
     return nullptr;
-  if (!(params.rate_hz > 0.0 && params.rate_hz <= 1000.0)) {
-    *why = "source.rate_hz must be in (0, 1000] (got " + std::to_string(params.rate_hz) + ")";
-    return nullptr;
-  }
   return std::make_unique<SyntheticSource>(params, camera);
 }
 

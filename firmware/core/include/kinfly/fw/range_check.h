@@ -1,0 +1,33 @@
+// The one wording of an out-of-range value, for the Params::validate() of the firmware's stages:
+// "source.speed must be in (0, 100] (got 0)", naming the configuration key, so a refused
+// configuration says which key to change and what it may be.
+#pragma once
+
+#include <sstream>
+#include <string>
+
+namespace kinfly::fw {
+
+enum class Bound { kClosed, kOpen };
+
+// Empty when lo <= value <= hi (lo < value with Bound::kOpen), else the message; NaN is out of
+// every range.
+inline std::string outOfRange(const std::string& key, double value, double lo, double hi,
+                              Bound lower = Bound::kClosed) {
+  const bool open = lower == Bound::kOpen;
+  if ((open ? value > lo : value >= lo) && value <= hi) return {};
+  std::ostringstream why;
+  why << key << " must be in " << (open ? "(" : "[") << lo << ", " << hi << "] (got " << value
+      << ")";
+  return why.str();
+}
+
+// The first non-empty of several checks, in order: validate() reports one problem at a time.
+template <class... Problems>
+std::string firstProblem(Problems&&... problems) {
+  std::string first;
+  ((first.empty() ? void(first = std::forward<Problems>(problems)) : void()), ...);
+  return first;
+}
+
+}  // namespace kinfly::fw

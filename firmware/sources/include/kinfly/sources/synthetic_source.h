@@ -1,0 +1,28 @@
+// A flight without hardware: the corner room of shared/ (SyntheticScene::cornerRoom) seen from a
+// drone swinging around the objects in it, rendered with the Kinect noise model; each frame
+// comes with its true pose. It never ends (source.max_frames stops it).
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "kinfly/sources/depth_source.h"
+
+namespace kinfly::fw {
+
+struct SyntheticSourceParams {
+  std::string intrinsics;      // source.intrinsics: "fx,fy,cx,cy"; empty: a Kinect's at this size
+  int width_px = 640;          // source.width [px] [16, 4096]
+  int height_px = 480;         // source.height [px] [16, 4096]
+  double rate_hz = 30.0;       // source.rate_hz [Hz] (0, 1000]: frame times 1 / rate_hz apart
+  int seed = 1;                // source.seed [0, 2^31): the same seed gives the same frames
+  int64_t first_utime = 0;     // [us] capture time of frame 0 (kinfly-fw: the wall clock)
+  std::string validate() const;  // empty when valid, else the key, its range and the value
+};
+
+// nullptr and *why when the parameters do not make a camera.
+std::unique_ptr<DepthSource> openSyntheticSource(const SyntheticSourceParams& params,
+                                                 std::string* why);
+
+}  // namespace kinfly::fw

@@ -23,8 +23,9 @@
 #   make eval       deps demo; accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      deps bench; depth codec and keyframe delivery over LCM on the TUM sequence; the
 #                   drone's figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions
-#                   per frame); kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never
-#                   fails on timings
+#                   per frame); incremental meshing against a full re-mesh (out/bench/mesh.json);
+#                   kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never fails on
+#                   timings
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
 #   make test-aarch64  deps demo, unit, image; the above + the image; unit tests and a replay
@@ -56,6 +57,7 @@ FUZZ_SECONDS ?= 60
 FUZZ_SEEDS := $(REPO_ROOT)/tests/fuzz/corpus/depth_decode
 FUSE := $(BUILD_DIR)/bin/kinfly-fuse
 CODEC_BENCH := $(BUILD_DIR)/bin/kinfly-codec-bench
+MESH_BENCH := $(BUILD_DIR)/bin/kinfly-mesh-bench
 TUM_SEQUENCE := $(KINFLY_DATA)/tum_rgbd_freiburg3_teddy_first200/rgbd_dataset_freiburg3_teddy
 PY := $(REPO_ROOT)/.venv/bin/python
 BENCH_PY := $(REPO_ROOT)/.venv-bench/bin/python
@@ -103,7 +105,7 @@ endef
 # What scripts/demo.py runs from build/bin (the ground station comes from .venv).
 DEMO_PROGRAMS := kinfly-fw kinfly-keygen
 # What the benchmarks run from build/bin (tests/bench/*.py; bench_ground flies the demo's way).
-BENCH_PROGRAMS := kinfly-codec-bench kinfly-link-bench kinfly-fuse kinfly-tum-to-log \
+BENCH_PROGRAMS := kinfly-codec-bench kinfly-mesh-bench kinfly-link-bench kinfly-fuse kinfly-tum-to-log \
                   $(DEMO_PROGRAMS)
 
 test: deps-test build unit-test integration-test
@@ -174,6 +176,7 @@ bench: deps-bench
 	$(call build_programs,$(BENCH_PROGRAMS))
 	mkdir -p $(REPO_ROOT)/out/bench
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
+	$(MESH_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/mesh.json
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_ground.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

@@ -5,8 +5,9 @@ classifies them (duplicate, out of order, a restarted drone) and puts them in a 
 nothing slow runs there (no viewer, no files, no fusion), or the next keyframes would wait in
 LCM's buffers until they overflow. One worker thread refines and fuses them (the native code
 releases the GIL), publishes the signed correction at once and only then logs to the viewer; a
-low-priority mesher thread meshes copies of the map every few seconds, so marching cubes never
-holds up a correction. `replay` runs the same steps on the caller's thread (`inline=True`):
+low-priority mesher thread meshes the map every few seconds (only the blocks changed since its last
+mesh and their neighbours, copied on the fusion thread), so marching cubes never holds up a
+correction. `replay` runs the same steps on the caller's thread (`inline=True`):
 every keyframe, nothing dropped.
 
 Losses are counted where they happen: the drone's own (its status: frames its odometry could not
@@ -109,7 +110,7 @@ class Segment:
     # how many of its poses have been drawn.
     T_map_truth: np.ndarray | None = None
     truth_drawn: int = 0
-    snapshot: MapSnapshot | None = None  # the final map's copy, meshed once for viewer and file
+    snapshot: MapSnapshot | None = None  # the final map, meshed once for viewer and file
     # The final ATE of each trajectory (outputs.evaluate), made once for viewer and summary.
     evaluation: dict[str, dict[str, Any]] | None = None
 

@@ -11,13 +11,15 @@
 #include <cstdint>
 #include <cstring>
 #include <memory>
+#include <mutex>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "kinfly/core/camera.h"
 #include "kinfly/codec/depth_codec.h"
 #include "kinfly/pipeline/fusion_pipeline.h"
-#include "kinfly/mesh/marching_cubes.h"
+#include "kinfly/mesh/incremental_mesher.h"
 #include "kinfly/mesh/mesh.h"
 #include "kinfly/volume/tsdf_volume.h"
 
@@ -114,15 +116,29 @@ class PyDepthCodec {
   kinfly::Image<uint16_t> depth_;
 };
 
-// A copy of a hashed volume, meshed on its own while the original goes on fusing. The mesh is
-// extracted once (the viewer and the PLY file share it) and handed out as views owned by the
-// snapshot.
+// A map's mesh, kept per block and brought up to date with the blocks changed since the last
+// snapshot (kinfly::IncrementalMesher), shared by a Fusion and the snapshots it handed out.
+// Fusion.snapshot(), on the thread that fuses (the map does not change meanwhile), copies only
+// the changed blocks and the neighbours meshing them reads (collect) under `delta_mutex`;
+// MapSnapshot.mesh(), on any thread, takes what was collected and meshes it under `mesh_mutex`
+// alone, so fusion never waits for marching cubes. A snapshot never meshed leaves its blocks to
+// the next one: nothing collected is lost, and deltas are meshed in the order collected.
+struct MeshState {
+  std::mutex delta_mutex;
+  kinfly::MeshChangeTracker tracker;  // under delta_mutex
+  kinfly::MeshDelta pending;          // under delta_mutex: collected, not meshed yet
+  std::mutex mesh_mutex;
+  kinfly::IncrementalMesher mesher{kinfly::IncrementalMesher::Params()};  // under mesh_mutex
+};
+
+// The map at a snapshot, meshed on its own while the original goes on fusing. The mesh is
+// assembled once (the viewer and the PLY file share it) and handed out as views owned by the
+// snapshot. It is the map as of this snapshot, or of a later one taken before this one was
+// meshed (the station's mesher skips to the newest).
 class PyMapSnapshot {
  public:
-  explicit PyMapSnapshot(const kinfly::HashedVolume& source) : volume_(paramsOf(source)) {
-    for (const kinfly::VoxelBlock* block : source.allocatedBlocks())
-      volume_.allocateBlock(block->index)->voxels = block->voxels;
-  }
+  PyMapSnapshot(std::shared_ptr<MeshState> state, size_t num_blocks)
+      : state_(std::move(state)), num_blocks_(num_blocks) {}
 
   nb::tuple mesh(nb::handle self) {
     {
@@ -148,23 +164,40 @@ class PyMapSnapshot {
     return mesh_.triangles.size();
   }
 
-  size_t numBlocks() const { return volume_.numAllocatedBlocks(); }
+  size_t numBlocks() const { return num_blocks_; }
+
+  // How the mesh was brought up to date (None before mesh() or write_ply()).
+  nb::object update() const {
+    if (!extracted_) return nb::none();
+    nb::dict d;
+    d["map_blocks"] = update_.map_blocks;
+    d["blocks_changed"] = update_.blocks_changed;
+    d["blocks_remeshed"] = update_.blocks_remeshed;
+    d["blocks_kept"] = update_.blocks_kept;
+    d["collect_ms"] = update_.collect_ms;
+    d["mesh_ms"] = update_.mesh_ms;
+    return d;
+  }
 
  private:
-  static kinfly::HashedVolume::Params paramsOf(const kinfly::HashedVolume& source) {
-    kinfly::HashedVolume::Params params;
-    params.voxel_size_m = source.voxelSizeM();
-    // One chunk for all the blocks: a snapshot never grows.
-    params.chunk_blocks = static_cast<int>(std::max<size_t>(1, source.numAllocatedBlocks()));
-    return params;
-  }
   void extract() {
-    if (!extracted_) mesh_ = kinfly::MarchingCubes(kinfly::MarchingCubes::Params()).extract(volume_);
+    if (extracted_) return;
+    kinfly::MeshDelta delta;
+    std::lock_guard<std::mutex> meshing(state_->mesh_mutex);
+    {
+      std::lock_guard<std::mutex> collecting(state_->delta_mutex);
+      std::swap(delta, state_->pending);
+    }
+    // One thread, at the mesher thread's low priority: fusion keeps the cores.
+    update_ = state_->mesher.apply(&delta, /*parallel=*/false);
+    state_->mesher.assemble(&mesh_);
     extracted_ = true;
   }
 
-  kinfly::HashedVolume volume_;
+  std::shared_ptr<MeshState> state_;
+  size_t num_blocks_;
   kinfly::TriangleMesh mesh_;
+  kinfly::MeshUpdateResult update_;
   bool extracted_ = false;
 };
 
@@ -246,10 +279,13 @@ class PyFusion {
                    ownerOf(image));
   }
 
-  // A copy of the map, so that meshing it (hundreds of ms) can run beside the fusion.
-  PyMapSnapshot* snapshot() const {
-    nb::gil_scoped_release unlocked;  // a copy of every block; only this thread changes the map
-    return new PyMapSnapshot(*volume_);
+  // The map to mesh beside the fusion: copies the blocks changed since the last snapshot and
+  // their neighbours (call it where the map is not being changed: the fusing thread).
+  PyMapSnapshot* snapshot() {
+    nb::gil_scoped_release unlocked;
+    std::lock_guard<std::mutex> collecting(mesh_->delta_mutex);
+    mesh_->tracker.collect(*volume_, /*copy=*/true, &mesh_->pending);
+    return new PyMapSnapshot(mesh_, volume_->numAllocatedBlocks());
   }
 
   size_t numBlocks() const { return volume_->numAllocatedBlocks(); }
@@ -273,6 +309,7 @@ class PyFusion {
   int threads_;
   std::unique_ptr<kinfly::HashedVolume> volume_;
   std::unique_ptr<kinfly::FusionPipeline> pipeline_;
+  std::shared_ptr<MeshState> mesh_ = std::make_shared<MeshState>();
 };
 
 }  // namespace
@@ -295,13 +332,16 @@ NB_MODULE(_native, m) {
            nb::arg("width"), nb::arg("height"),
            "payload bytes -> uint16 (height, width) array; ValueError naming what is malformed");
 
-  nb::class_<PyMapSnapshot>(m, "MapSnapshot", "A copy of a map (Fusion.snapshot()).")
+  nb::class_<PyMapSnapshot>(m, "MapSnapshot", "A map to mesh beside the fusion (Fusion.snapshot()).")
       .def("mesh", [](nb::handle self) { return nb::cast<PyMapSnapshot&>(self).mesh(self); },
            "Marching cubes: (vertices float32 Nx3 [m], triangles int32 Mx3, normals float32 Nx3), "
            "views that keep the snapshot alive")
       .def("write_ply", &PyMapSnapshot::writePly, nb::arg("path"),
            "Meshes the map and writes binary PLY; returns the triangle count")
-      .def_prop_ro("num_blocks", &PyMapSnapshot::numBlocks);
+      .def_prop_ro("num_blocks", &PyMapSnapshot::numBlocks)
+      .def_prop_ro("update", &PyMapSnapshot::update,
+                   "How mesh() brought the kept mesh up to date: map_blocks, blocks_changed, "
+                   "blocks_remeshed, blocks_kept, collect_ms, mesh_ms; None before");
 
   nb::class_<RefineResult>(m, "RefineResult", "What refining one keyframe gave (FrameResult).")
       .def_ro("status", &RefineResult::status, "first, ok, lost or given")
@@ -341,7 +381,8 @@ NB_MODULE(_native, m) {
            "The map shaded from the last fused pose (uint8): full=True raycasts every pixel, "
            "otherwise only where the last keyframe measured depth (no extra raycast)")
       .def("snapshot", &PyFusion::snapshot, nb::rv_policy::take_ownership,
-           "A copy of the map to mesh while fusion goes on")
+           "The map to mesh while fusion goes on: copies the blocks changed since the last "
+           "snapshot; meshing re-meshes only those and their neighbours")
       .def_prop_ro("num_blocks", &PyFusion::numBlocks)
       .def_prop_ro("memory_bytes", &PyFusion::memoryBytes)
       .def_prop_ro("voxel_size_m", &PyFusion::voxelSizeM);

@@ -181,6 +181,35 @@ def test_snapshot_mesh_is_well_formed_and_independent(frames) -> None:
     assert np.array_equal(vertices[0], first_vertex)
 
 
+def test_snapshots_mesh_only_what_changed_and_equal_one_full_mesh(frames) -> None:
+    # Snapshots re-mesh only the blocks changed since the last one (and their neighbours); one
+    # taken but never meshed hands its blocks on to the next. The result is the mesh of a map
+    # fused the same way and meshed once.
+    keyframes = _keyframes(frames, count=7)
+    incremental = _fusion()
+    guess = _refine_all(incremental, keyframes[:3], np.eye(4))[-1].T_world_cam
+    first = incremental.snapshot()
+    assert first.update is None
+    first.mesh()
+    assert first.update["blocks_remeshed"] == first.num_blocks
+    guess = _refine_all(incremental, keyframes[3:5], guess)[-1].T_world_cam
+    incremental.snapshot()  # dropped unmeshed, as the station's mesher skips to the newest
+    _refine_all(incremental, keyframes[5:], guess)
+    last = incremental.snapshot()
+    vertices, triangles, normals = last.mesh()
+    update = last.update
+    assert update["map_blocks"] == incremental.num_blocks == last.num_blocks
+    assert update["blocks_kept"] > 0
+    assert update["blocks_remeshed"] + update["blocks_kept"] == update["map_blocks"]
+
+    once = _fusion()
+    _refine_all(once, keyframes, np.eye(4))
+    full = once.snapshot().mesh()
+    assert np.array_equal(vertices, full[0])
+    assert np.array_equal(triangles, full[1])
+    assert np.array_equal(normals, full[2])
+
+
 def test_write_ply(frames, tmp_path: Path) -> None:
     fusion = _fusion()
     _refine_all(fusion, _keyframes(frames, count=2), np.eye(4))

@@ -12,12 +12,13 @@
 // (tests/unit check all of this on a random field that exercises all 256 cases).
 #include "kinfly/mesh/marching_cubes.h"
 
+#include <algorithm>
 #include <array>
 #include <cassert>
 #include <cmath>
 #include <cstdint>
-#include <unordered_map>
 
+#include "block_mesh.h"
 #include "kinfly/volume/voxel_reader.h"
 
 namespace kinfly {
@@ -260,39 +261,21 @@ Eigen::Vector3f voxelGradient(VoxelReader* reader, const Eigen::Vector3i& g, flo
   return grad;
 }
 
-// A mesh vertex is identified by the cube edge it lies on: the edge's lower corner (global voxel
-// index) and its axis. Cubes sharing the edge find the same vertex.
-struct EdgeKey {
-  Eigen::Vector3i lower;
-  int axis;
-  bool operator==(const EdgeKey& o) const { return axis == o.axis && lower == o.lower; }
-};
-struct EdgeKeyHash {
-  size_t operator()(const EdgeKey& k) const {
-    return hashBlockIndex(k.lower) * 3u + static_cast<size_t>(k.axis);
-  }
-};
-
 // One block's voxels plus the first layer of its +x/+y/+z neighbours, so every cube whose lower
 // corner lies in the block can be read locally.
-constexpr int kSpan = kBlockSide + 1;
-struct BlockSamples {
-  std::array<float, kSpan * kSpan * kSpan> tsdf;
-  std::array<float, kSpan * kSpan * kSpan> weight;  // -1 where the block is missing
-  static int index(int x, int y, int z) { return (z * kSpan + y) * kSpan + x; }
-};
+int sampleIndex(int x, int y, int z) { return (z * detail::kCornerSpan + y) * detail::kCornerSpan + x; }
 
-void gatherBlock(const TsdfVolume& volume, const VoxelBlock& block, BlockSamples* s) {
+void gatherBlock(const TsdfVolume& volume, const VoxelBlock& block, detail::BlockMesherScratch* s) {
   std::array<const VoxelBlock*, 8> neighbours;  // bit 0: +x, bit 1: +y, bit 2: +z
   for (int n = 0; n < 8; ++n) {
     const BlockIndex offset(n & 1, (n >> 1) & 1, (n >> 2) & 1);
     neighbours[n] = n == 0 ? &block : volume.findBlock(block.index + offset);
   }
-  for (int z = 0; z < kSpan; ++z) {
-    for (int y = 0; y < kSpan; ++y) {
-      for (int x = 0; x < kSpan; ++x) {
+  for (int z = 0; z < detail::kCornerSpan; ++z) {
+    for (int y = 0; y < detail::kCornerSpan; ++y) {
+      for (int x = 0; x < detail::kCornerSpan; ++x) {
         const int n = (x / kBlockSide) | ((y / kBlockSide) << 1) | ((z / kBlockSide) << 2);
-        const int i = BlockSamples::index(x, y, z);
+        const int i = sampleIndex(x, y, z);
         const VoxelBlock* b = neighbours[n];
         if (b == nullptr) {
           s->tsdf[i] = 1.f;
@@ -318,23 +301,45 @@ std::string MarchingCubes::Params::validate() const {
 MarchingCubes::MarchingCubes(const Params& params) : params_(params) {}
 
 TriangleMesh MarchingCubes::extract(const TsdfVolume& volume) const {
+  TriangleMesh mesh;
+  detail::MeshAssembler assembler;
+  assembler.begin(&mesh);
+  detail::BlockMesherScratch scratch;
+  detail::BlockMesh piece;
+  for (const VoxelBlock* block : volume.allocatedBlocks()) {
+    detail::meshBlock(volume, *block, params_.min_weight, &scratch, &piece);
+    assembler.append(piece);
+  }
+  return mesh;
+}
+
+namespace detail {
+
+void meshBlock(const TsdfVolume& volume, const VoxelBlock& block, float min_weight,
+               BlockMesherScratch* scratch, BlockMesh* out) {
   const CaseTable& table = caseTable();
   const float voxel_m = volume.voxelSizeM();
-  TriangleMesh mesh;
-  std::unordered_map<EdgeKey, int, EdgeKeyHash> vertex_of_edge;
+  out->clear();
+  out->index = block.index;
+  gatherBlock(volume, block, scratch);
+  if (++scratch->stamp == 0) {  // wrapped: forget every edge once
+    std::fill(scratch->edge_stamp.begin(), scratch->edge_stamp.end(), 0u);
+    scratch->stamp = 1;
+  }
   VoxelReader reader(volume);
-  BlockSamples samples;
+  const Eigen::Vector3i block_origin = block.index * kBlockSide;
 
-  // Returns the mesh vertex on cube edge `e` of the cube whose lower corner is global voxel
-  // `cube`, creating it on first use.
+  // Returns the block's vertex on cube edge `e` of the cube whose lower corner is local voxel
+  // `cube`, creating it on first use. A vertex depends only on the voxels at and around its
+  // edge, so a neighbouring block that makes the same vertex makes it bit for bit the same.
   const auto vertexOn = [&](const Eigen::Vector3i& cube, int e,
                             const std::array<float, 8>& corner_tsdf) {
     const CubeEdge& edge = table.edges[e];
-    const Eigen::Vector3i g0 = cube + cornerPos(edge.lo).cast<int>();
-    const EdgeKey key{g0, edge.axis};
-    const auto found = vertex_of_edge.find(key);
-    if (found != vertex_of_edge.end()) return found->second;
+    const Eigen::Vector3i local = cube + cornerPos(edge.lo).cast<int>();
+    const int id = localEdgeId(local, edge.axis);
+    if (scratch->edge_stamp[id] == scratch->stamp) return scratch->vertex_of_edge[id];
 
+    const Eigen::Vector3i g0 = block_origin + local;
     Eigen::Vector3i g1 = g0;
     g1[edge.axis] += 1;
     const float f0 = corner_tsdf[edge.lo];
@@ -352,42 +357,93 @@ TriangleMesh MarchingCubes::extract(const TsdfVolume& volume) const {
       normal = Eigen::Vector3f::Zero();
       normal[edge.axis] = f1 > f0 ? 1.f : -1.f;
     }
-    const int id = static_cast<int>(mesh.vertices.size());
-    mesh.vertices.push_back(p0 + t * (p1 - p0));
-    mesh.normals.push_back(normal);
-    vertex_of_edge.emplace(key, id);
-    return id;
+    const int vertex = static_cast<int>(out->vertices.size());
+    out->vertices.push_back(p0 + t * (p1 - p0));
+    out->normals.push_back(normal);
+    out->edges.push_back(static_cast<uint16_t>(id));
+    scratch->edge_stamp[id] = scratch->stamp;
+    scratch->vertex_of_edge[id] = vertex;
+    return vertex;
   };
 
-  for (const VoxelBlock* block : volume.allocatedBlocks()) {
-    gatherBlock(volume, *block, &samples);
-    const Eigen::Vector3i block_origin = block->index * kBlockSide;
-    for (int z = 0; z < kBlockSide; ++z) {
-      for (int y = 0; y < kBlockSide; ++y) {
-        for (int x = 0; x < kBlockSide; ++x) {
-          std::array<float, 8> corner_tsdf;
-          int mask = 0;
-          bool observed = true;
-          for (int c = 0; c < 8; ++c) {
-            const int i = BlockSamples::index(x + (c & 1), y + ((c >> 1) & 1), z + ((c >> 2) & 1));
-            corner_tsdf[c] = samples.tsdf[i];
-            observed = observed && samples.weight[i] >= params_.min_weight;
-            mask |= (samples.tsdf[i] < 0.f) << c;
-          }
-          if (mask == 0 || mask == 255 || !observed) continue;
+  for (int z = 0; z < kBlockSide; ++z) {
+    for (int y = 0; y < kBlockSide; ++y) {
+      for (int x = 0; x < kBlockSide; ++x) {
+        std::array<float, 8> corner_tsdf;
+        int mask = 0;
+        bool observed = true;
+        for (int c = 0; c < 8; ++c) {
+          const int i = sampleIndex(x + (c & 1), y + ((c >> 1) & 1), z + ((c >> 2) & 1));
+          corner_tsdf[c] = scratch->tsdf[i];
+          observed = observed && scratch->weight[i] >= min_weight;
+          mask |= (scratch->tsdf[i] < 0.f) << c;
+        }
+        if (mask == 0 || mask == 255 || !observed) continue;
 
-          const Eigen::Vector3i cube = block_origin + Eigen::Vector3i(x, y, z);
-          const auto& tris = table.triangles[mask];
-          for (int k = 0; tris[k] >= 0; k += 3) {
-            mesh.triangles.emplace_back(vertexOn(cube, tris[k], corner_tsdf),
-                                        vertexOn(cube, tris[k + 1], corner_tsdf),
-                                        vertexOn(cube, tris[k + 2], corner_tsdf));
-          }
+        const Eigen::Vector3i cube(x, y, z);
+        const auto& tris = table.triangles[mask];
+        for (int k = 0; tris[k] >= 0; k += 3) {
+          out->triangles.emplace_back(vertexOn(cube, tris[k], corner_tsdf),
+                                      vertexOn(cube, tris[k + 1], corner_tsdf),
+                                      vertexOn(cube, tris[k + 2], corner_tsdf));
         }
       }
     }
   }
-  return mesh;
 }
 
+void MeshAssembler::begin(TriangleMesh* mesh) {
+  mesh_ = mesh;
+  if (slots_.empty()) slots_.resize(1024);
+  std::fill(slots_.begin(), slots_.end(), Slot());
+  used_ = 0;
+}
+
+void MeshAssembler::append(const BlockMesh& piece) {
+  TriangleMesh& mesh = *mesh_;
+  const Eigen::Vector3i block_origin = piece.index * kBlockSide;
+  remap_.resize(piece.vertices.size());
+  for (size_t k = 0; k < piece.vertices.size(); ++k) {
+    const int next = static_cast<int>(mesh.vertices.size());
+    const int id = piece.edges[k];
+    if (edgeOnBlockBorder(id)) {
+      const int existing = findOrAdd(block_origin + edgeLower(id), edgeAxis(id), next);
+      if (existing >= 0) {
+        remap_[k] = existing;
+        continue;
+      }
+    }
+    remap_[k] = next;
+    mesh.vertices.push_back(piece.vertices[k]);
+    mesh.normals.push_back(piece.normals[k]);
+  }
+  for (const Eigen::Vector3i& t : piece.triangles)
+    mesh.triangles.emplace_back(remap_[t.x()], remap_[t.y()], remap_[t.z()]);
+}
+
+int MeshAssembler::findOrAdd(const Eigen::Vector3i& lower, int axis, int vertex) {
+  if (2 * (used_ + 1) > slots_.size()) grow();
+  const size_t mask = slots_.size() - 1;
+  for (size_t h = (hashBlockIndex(lower) * 3u + static_cast<size_t>(axis)) & mask;;
+       h = (h + 1) & mask) {
+    Slot& slot = slots_[h];
+    if (slot.axis < 0) {
+      slot = {lower, axis, vertex};
+      ++used_;
+      return -1;
+    }
+    if (slot.axis == axis && slot.lower == lower) return slot.vertex;
+  }
+}
+
+void MeshAssembler::grow() {
+  std::vector<Slot> old(2 * slots_.size());
+  old.swap(slots_);
+  used_ = 0;
+  for (const Slot& s : old) {
+    if (s.axis >= 0) findOrAdd(s.lower, s.axis, s.vertex);
+  }
+}
+
+}  // namespace detail
 }  // namespace kinfly

@@ -13,7 +13,7 @@
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/log_throttle.h"
-#include "kinfly/pose_t.hpp"
+#include "kinfly/ground_truth_t.hpp"
 #include "kinfly/tsdf_volume.h"
 #include "kinfly/tum_dataset.h"
 #include "publisher.h"
@@ -55,7 +55,7 @@ class OdometryTask {
   BoundedQueue<DepthCapture>* frames_;
   BoundedQueue<KeyframeJob>* keyframes_;
   odometry_t odometry_{};
-  pose_t truth_{};
+  ground_truth_t truth_{};
   KeyframeJob job_;
   int64_t next_keyframe_id_ = 0;
   Clock::time_point began_ = Clock::now();
@@ -63,6 +63,5 @@ class OdometryTask {
   std::vector<StampedPose> trajectory_, ground_truth_;
 };
 
-int8_t trackingCode(TrackingStatus status);
 
 }  // namespace kinfly::fw

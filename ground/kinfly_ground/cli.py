@@ -21,19 +21,19 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from kinfly import status_t
+from kinfly import ground_status_t
 
 from . import __version__
-from .channels import MAX_VEHICLE_ID, Channel, channel_name, channels_regex
+from ._native import (MAX_VEHICLE_ID, Channel, KeyFileError, Signer, channel_name,
+                      ground_subscriptions, load_key_file, parse_channel)
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
 from .outputs import (OutputError, ate_figures, check_writable, evaluate, memory, read_tum,
                       write_atomically, write_error_plot, write_json, write_tum)
-from .signing import KeyFileError, Signer, load_key_file
 from .station import Segment, Station, StationParams, VehicleState, percentile
 from .viewer import Viewer, ViewerError
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=1"  # LCM's default group; ttl 1: one hop (Wi-Fi)
-STATUS_PERIOD_S = 0.1      # the ground's status_t at 10 Hz, as the drone's
+STATUS_PERIOD_S = 0.1      # the ground_status_t at 10 Hz, as the drone's status
 LINK_TIMEOUT_S = 1.0       # the drone is STALE after this long unheard (as kinfly-fw's default)
 PROGRESS_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 30.0     # at exit, the longest wait for queued keyframes to be fused
@@ -247,7 +247,7 @@ def _vehicle_summary(state: VehicleState, out: Path, truth: list | None) -> dict
     d = state.drone_status
     if d is not None:
         summary["drone_reported"] = {
-            "final": d.run_state == status_t.RUN_FINAL,
+            "final": d.final,
             "frames_captured": d.frames_captured, "queue_drops": d.queue_drops,
             "frames_lost": d.frames_lost, "keyframes_sent": d.keyframes_sent,
             "last_keyframe_id": d.last_keyframe_id, "keyframes_dropped": d.keyframes_dropped,
@@ -266,7 +266,9 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
     for vid, state in sorted(list(station.vehicles.items())):
         where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
         vehicles[str(vid)] = {"directory": str(where), **_vehicle_summary(state, where, truth)}
-    rejects = dataclasses.asdict(station.receiver.rejects)
+    received = station.receiver.rejects  # what the ground can reject (the rest are the drone's)
+    rejects = {"malformed": received.malformed, "unknown_channel": received.unknown_channel,
+               "wrong_vehicle": received.wrong_vehicle}
     rejects["too_many_vehicles"] = station.rejected_too_many_vehicles
     rejects["handler_errors"] = station.handler_errors
     summary = {
@@ -377,7 +379,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     station = Station(params, viewer, vehicle_id=args.vehicle, signers=signers,
                       publish=lc.publish, forward=bridge.send_pose if bridge else None, log=log)
-    keyframes, others = channels_regex(args.vehicle)
+    keyframes, others = ground_subscriptions(args.vehicle)
     lc.subscribe(keyframes, station.on_message).set_queue_capacity(KEYFRAME_QUEUE_MESSAGES)
     lc.subscribe(others, station.on_message).set_queue_capacity(SMALL_QUEUE_MESSAGES)
 
@@ -410,7 +412,7 @@ def run(args: argparse.Namespace) -> int:
         log(f"{station.queue_length()} keyframes still queued after {DRAIN_TIMEOUT_S:.0f} s: "
             "left out")
     station.stop()
-    _publish_status(lc, station, status_t.RUN_FINAL)
+    _publish_status(lc, station, ground_status_t.RUN_FINAL)
     extra = {}
     if bridge is not None:
         extra["mavlink"] = {"url": args.mavlink, **dataclasses.asdict(bridge.counters),
@@ -443,7 +445,7 @@ def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, sta
                                                           bridge.state.as_metrics())
         if now >= next_status:
             next_status = now + STATUS_PERIOD_S
-            _publish_status(lc, station, status_t.RUN_ACTIVE)
+            _publish_status(lc, station, ground_status_t.RUN_ACTIVE)
         if now >= next_progress:
             next_progress = now + PROGRESS_PERIOD_S
             _progress(station, now - started)
@@ -532,10 +534,10 @@ def replay(args: argparse.Namespace) -> int:
                       inline=True, log=log)
     size = max(1, log_file.size())
     next_progress = started
-    keyframe_suffix = "_" + Channel.KEYFRAME.value
     keyframes = 0
     for event in log_file:
-        if event.channel.endswith(keyframe_suffix):
+        parsed = parse_channel(event.channel)
+        if parsed is not None and parsed[0] is Channel.KEYFRAME:
             keyframes += 1
         station.on_message(event.channel, event.data)
         now = time.monotonic()

@@ -33,14 +33,12 @@ from typing import Any
 
 import numpy as np
 
-from kinfly import depth_keyframe_t, odometry_t, status_t
+from kinfly import ground_status_t
 
-from ._native import Fusion, MapSnapshot
-from .channels import Channel, channel_name
-from .conversions import correction_message, pose_to_matrix
-from .link import Received, Receiver
+from ._native import (Channel, DroneStatus, Fusion, Keyframe, MapSnapshot, Receiver, Signer,
+                      StampedPose as ReceivedPose, channel_name)
+from .conversions import ground_status
 from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
-from .signing import Signer
 from .viewer import VehicleView, Viewer
 
 Publish = Callable[[str, bytes], None]
@@ -118,8 +116,7 @@ class Segment:
 class _Job:
     vehicle_id: int
     session: int
-    message: depth_keyframe_t
-    depth: np.ndarray
+    message: Keyframe
     arrival_ns: int  # time.monotonic_ns() when the message came off the socket
 
 
@@ -168,7 +165,7 @@ class VehicleState:
         self.worker_session = 0
         self.drone_heard_s: float | None = None
         # The drone's latest status in this session, and what the link lost in earlier ones.
-        self.drone_status: status_t | None = None
+        self.drone_status: DroneStatus | None = None
         self.session_keyframe_ids: set[int] = set()
         self.lost_on_link_before = 0
         # The highest keyframe id of this session the worker is done with (fused, lost or
@@ -246,7 +243,7 @@ class Station:
         self.vehicles: dict[int, VehicleState] = {}
         self.rejected_too_many_vehicles = 0
         self.handler_errors = 0
-        self.receiver = Receiver(self._on_received)
+        self.receiver = Receiver()
         self._arrival_ns = 0
         self._queue: collections.deque[_Job] = collections.deque()
         self._cv = threading.Condition()
@@ -275,7 +272,9 @@ class Station:
         # before that is not in the latency.
         self._arrival_ns = time.monotonic_ns()
         try:
-            self.receiver.on_message(channel, data)
+            received = self.receiver.receive(channel, data)
+            if received is not None:
+                self._on_received(*received)
         except Exception as error:  # a message that passed decoding but broke a handler
             self.handler_errors += 1
             self._log(f"{channel}: message not handled: {type(error).__name__}: {error}")
@@ -298,28 +297,27 @@ class Station:
         self.vehicles[vehicle_id] = state
         return state
 
-    def _on_received(self, received: Received) -> None:
-        message = received.message
-        state = self._vehicle(message.vehicle_id)
+    def _on_received(self, channel: Channel, vehicle_id: int, message: Any) -> None:
+        """What the native Receiver let through: a Keyframe, the drone's status, a pose
+        (odometry, ground truth) or None (an IMU sample)."""
+        state = self._vehicle(vehicle_id)
         if state is None:
             return
         now_s = time.monotonic()
-        if received.channel is Channel.KEYFRAME:
-            self._on_keyframe(state, message, received.depth, now_s)
-        elif received.channel is Channel.STATUS:
+        if channel is Channel.KEYFRAME:
+            self._on_keyframe(state, message, now_s)
+        elif channel is Channel.STATUS:
             state.drone_heard_s = now_s
             self._on_drone_status(state, message)
-        elif received.channel is Channel.GROUND_TRUTH:
+        elif channel is Channel.GROUND_TRUTH:
             with state.lock:
-                state.pending_truth.append(
-                    (state.session, message.utime,
-                     pose_to_matrix(message.position_m, message.orientation_xyzw)))
-        elif received.channel in (Channel.ODOMETRY, Channel.IMU, Channel.DEPTH):
+                state.pending_truth.append((state.session, message.utime, message.T_world_cam))
+        elif channel in (Channel.ODOMETRY, Channel.IMU, Channel.DEPTH):
             state.drone_heard_s = now_s
-            if received.channel is Channel.ODOMETRY and self._forward is not None:
+            if channel is Channel.ODOMETRY and self._forward is not None:
                 self._forward_odometry(state, message)
 
-    def _on_drone_status(self, state: VehicleState, message: status_t) -> None:
+    def _on_drone_status(self, state: VehicleState, message: DroneStatus) -> None:
         last = state.drone_status
         if last is not None and message.keyframes_sent < last.keyframes_sent:
             # A restarted drone, before its first keyframe has started a new session here: its
@@ -327,27 +325,25 @@ class Station:
             return
         state.drone_status = message
         state.counters.lost_on_link = state.lost_on_link_now()
-        if message.run_state == status_t.RUN_FINAL and (last is None
-                                                        or last.run_state != status_t.RUN_FINAL):
+        if message.final and (last is None or not last.final):
             self._log(f"vehicle {state.vehicle_id}: the drone stopped: it sent "
                       f"{message.keyframes_sent} keyframes (ids up to "
                       f"{message.last_keyframe_id}); {state.counters.lost_on_link} lost on the "
                       f"link; {message.queue_drops} frames its odometry could not keep up with, "
                       f"{message.keyframes_dropped} keyframes its link could not send")
 
-    def _forward_odometry(self, state: VehicleState, message: odometry_t) -> None:
+    def _forward_odometry(self, state: VehicleState, message: ReceivedPose) -> None:
         """The drone's pose at the camera's rate, corrected: a drone that applies the ground's
         corrections (its status says so) already sends it re-anchored; for one that does not
         (no key, a wrong one) the ground's latest correction is applied here."""
-        T = pose_to_matrix(message.position_m, message.orientation_xyzw)
+        T = message.T_world_cam
         drone = state.drone_status
         if drone is not None and drone.corrections_accepted > 0:
             self._forward(message.utime, T, message.reset_counter)
         else:
             self._forward(message.utime, state.T_map_onboard @ T, state.reset_counter)
 
-    def _on_keyframe(self, state: VehicleState, message: depth_keyframe_t, depth: np.ndarray,
-                     now_s: float) -> None:
+    def _on_keyframe(self, state: VehicleState, message: Keyframe, now_s: float) -> None:
         state.drone_heard_s = now_s
         key = (message.keyframe_id, message.utime)
         last = state.last_keyframe
@@ -377,7 +373,7 @@ class Station:
         state.counters.lost_on_link = state.lost_on_link_now()
         state.counters.keyframes_received += 1
         state.rates["received"].tick(now_s)
-        job = _Job(state.vehicle_id, state.session, message, depth, self._arrival_ns)
+        job = _Job(state.vehicle_id, state.session, message, self._arrival_ns)
         if self._inline:
             self._process_guarded(job)
             return
@@ -434,7 +430,8 @@ class Station:
     def _process(self, job: _Job) -> None:
         state = self.vehicles[job.vehicle_id]
         m = job.message
-        camera = (m.width, m.height, m.fx, m.fy, m.cx, m.cy, m.depth_scale_m)
+        c = m.camera
+        camera = (c.width, c.height, c.fx, c.fy, c.cx, c.cy, m.depth_scale_m)
         if job.session != state.worker_session:
             state.worker_session = job.session
             self._new_segment(state, m.utime)
@@ -446,16 +443,17 @@ class Station:
         segment = state.segment
         if segment.fusion is None:
             segment.camera = camera
-            segment.fusion = Fusion(m.width, m.height, m.fx, m.fy, m.cx, m.cy, m.depth_scale_m,
+            segment.fusion = Fusion(c.width, c.height, c.fx, c.fy, c.cx, c.cy, m.depth_scale_m,
                                     voxel_size_m=self.params.voxel_size_m,
                                     threads=self.params.threads)
-        has_onboard = m.tracking_status != odometry_t.TRACKING_NONE
+        has_onboard = m.tracking is not None
         if has_onboard:
-            T_onboard = pose_to_matrix(m.position_m, m.orientation_xyzw)
+            T_onboard = m.T_world_cam
         else:
             # No onboard pose (its fields are meaningless): start from the last refined one.
             T_onboard = segment.corrected[-1][1] if segment.corrected else np.eye(4)
-        result = segment.fusion.refine(job.depth, m.utime, T_onboard)
+        depth = m.depth
+        result = segment.fusion.refine(depth, m.utime, T_onboard)
         state.map_blocks = segment.fusion.num_blocks
         state.refine_ms.append(result.total_ms)
         state.last_result = result
@@ -472,9 +470,9 @@ class Station:
             state.counters.keyframes_lost += 1
             self._log(f"vehicle {state.vehicle_id}: keyframe {m.keyframe_id} not refined "
                       f"({result.lost_reason}); no correction")
-        self._show(state, m, job.depth, T_onboard, T_corrected, result)
+        self._show(state, m, depth, T_onboard, T_corrected, result)
 
-    def _send_correction(self, state: VehicleState, m: depth_keyframe_t, T_onboard: np.ndarray,
+    def _send_correction(self, state: VehicleState, m: Keyframe, T_onboard: np.ndarray,
                          T_corrected: np.ndarray, arrival_ns: int) -> None:
         # The move in the camera's own frame: its translation is the distance between the two
         # poses, however far from the origin the drone is.
@@ -487,19 +485,19 @@ class Station:
             state.counters.corrections_unsigned += 1
             return
         if self._publish is not None:
-            correction = correction_message(m.vehicle_id, m.keyframe_id, m.utime, T_corrected,
-                                            state.reset_counter)
-            envelope = state.signer.sign(correction.encode())
-            self._publish(channel_name(Channel.CORRECTION, m.vehicle_id), envelope.encode())
+            envelope = state.signer.sign_correction(m.keyframe_id, m.utime, T_corrected,
+                                                    state.reset_counter)
+            self._publish(channel_name(Channel.CORRECTION, m.vehicle_id), envelope)
             state.counters.corrections_sent += 1
             state.rates["corrections"].tick(time.monotonic())
         # Replay has nothing to send: its latency is the time to refine and fuse.
         state.latencies_ms.append((time.monotonic_ns() - arrival_ns) / 1e6)
 
-    def _show(self, state: VehicleState, m: depth_keyframe_t, depth: np.ndarray,
+    def _show(self, state: VehicleState, m: Keyframe, depth: np.ndarray,
               T_onboard: np.ndarray, T_corrected: np.ndarray | None, result: Any) -> None:
         self._file_truth(state)
-        state.view.keyframe(m.utime, depth, m.depth_scale_m, (m.fx, m.fy, m.cx, m.cy), T_onboard,
+        c = m.camera
+        state.view.keyframe(m.utime, depth, m.depth_scale_m, (c.fx, c.fy, c.cx, c.cy), T_onboard,
                             T_corrected)
         fusion = state.segment.fusion
         if result.status == "ok":
@@ -649,33 +647,16 @@ class Station:
     # --- status -------------------------------------------------------------------------------
 
     def ground_status(self, state: VehicleState, now_s: float, link_timeout_s: float,
-                      run_state: int = status_t.RUN_ACTIVE) -> status_t:
-        s = status_t()
-        s.run_state = run_state
-        s.last_keyframe_id = state.last_done_keyframe_id
-        s.utime = time.time_ns() // 1000
-        s.vehicle_id = state.vehicle_id
-        s.source = status_t.SOURCE_GROUND
-        s.depth_rate_hz = state.rates["received"].rate_hz(now_s)
-        s.odometry_rate_hz = state.rates["fused"].rate_hz(now_s)
-        s.keyframe_rate_hz = state.rates["corrections"].rate_hz(now_s)
-        c = state.counters
-        s.frames_captured = c.keyframes_received
-        s.queue_drops = c.keyframes_dropped
-        s.keyframes_sent = c.corrections_sent
-        s.corrections_accepted = c.corrections_sent
-        s.frames_lost = c.keyframes_lost
-        s.frames_skipped = c.duplicates + c.out_of_order
-        result = state.last_result
-        s.tracking_state = (odometry_t.TRACKING_NONE if result is None else
-                            {"first": odometry_t.TRACKING_FIRST, "ok": odometry_t.TRACKING_OK,
-                             "given": odometry_t.TRACKING_GIVEN}.get(result.status,
-                                                                     odometry_t.TRACKING_LOST))
+                      run_state: int = ground_status_t.RUN_ACTIVE) -> ground_status_t:
         if state.drone_heard_s is None:
-            s.link_state = status_t.LINK_UNKNOWN
+            link_state = ground_status_t.LINK_UNKNOWN
         elif now_s - state.drone_heard_s <= link_timeout_s:
-            s.link_state = status_t.LINK_UP
+            link_state = ground_status_t.LINK_UP
         else:
-            s.link_state = status_t.LINK_STALE
-        self.receiver.rejects.write_to(s)
-        return s
+            link_state = ground_status_t.LINK_STALE
+        result = state.last_result
+        return ground_status(
+            state.vehicle_id, run_state=run_state, link_state=link_state, counters=state.counters,
+            rates_hz={name: meter.rate_hz(now_s) for name, meter in state.rates.items()},
+            last_keyframe_id=state.last_done_keyframe_id,
+            tracking=None if result is None else result.tracking, rejects=self.receiver.rejects)

@@ -1,4 +1,4 @@
-// kinfly_ground._native: the engine in shared/ for Python. Input arrays are read in place; a
+// kinfly_ground._native: the engine in shared/ and the link (native_link.cpp) for Python. Input arrays are read in place; a
 // decoded image is copied once out of the codec's reused buffer into the array handed over, and a
 // mesh's vectors are handed over without a copy. The heavy calls release the GIL, so the LCM
 // thread keeps receiving while a keyframe is fused.
@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "arrays.h"
 #include "kinfly/camera.h"
 #include "kinfly/depth_codec.h"
 #include "kinfly/fusion_pipeline.h"
@@ -25,13 +26,14 @@ namespace nb = nanobind;
 using kinfly::CodecResult;
 using kinfly::DepthCodec;
 using kinfly::DepthEncoding;
+using kinfly::native::DepthIn;
+using kinfly::native::DepthOut;
+using kinfly::native::matrixOf;
+using kinfly::native::poseOf;
+using kinfly::native::PoseIn;
 
 namespace {
 
-using DepthIn = nb::ndarray<const uint16_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
-using DepthOut = nb::ndarray<nb::numpy, uint16_t, nb::ndim<2>>;
-using PoseIn = nb::ndarray<const double, nb::shape<4, 4>, nb::c_contig, nb::device::cpu>;
-using PoseOut = nb::ndarray<nb::numpy, double, nb::shape<4, 4>>;
 using GrayOut = nb::ndarray<nb::numpy, uint8_t, nb::ndim<2>>;
 using Rows3f = nb::ndarray<nb::numpy, float, nb::ndim<2>>;
 using Rows3i = nb::ndarray<nb::numpy, int32_t, nb::ndim<2>>;
@@ -40,20 +42,6 @@ using Rows3i = nb::ndarray<nb::numpy, int32_t, nb::ndim<2>>;
 template <typename T>
 nb::capsule ownerOf(T* object) {
   return nb::capsule(object, [](void* p) noexcept { delete static_cast<T*>(p); });
-}
-
-kinfly::Pose poseOf(const PoseIn& T) {
-  kinfly::Pose pose = kinfly::Pose::Identity();
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) pose.matrix()(r, c) = T(r, c);
-  return kinfly::orthonormalized(pose);
-}
-
-PoseOut matrixOf(const kinfly::Pose& pose) {
-  auto* m = new double[16];
-  for (int r = 0; r < 4; ++r)
-    for (int c = 0; c < 4; ++c) m[4 * r + c] = pose.matrix()(r, c);
-  return PoseOut(m, {4, 4}, nb::capsule(m, [](void* p) noexcept { delete[] static_cast<double*>(p); }));
 }
 
 // Vector3f/Vector3i are three packed scalars, so a std::vector of them is an N x 3 array: a
@@ -170,6 +158,7 @@ class PyMapSnapshot {
 
 struct RefineResult {
   std::string status;  // "first", "ok", "lost", "given" (kinfly::toString(TrackingStatus))
+  kinfly::TrackingStatus tracking = kinfly::TrackingStatus::kLost;
   kinfly::Pose T_world_cam = kinfly::Pose::Identity();
   float inlier_fraction = 0.f;
   float rmse_m = 0.f;
@@ -216,7 +205,7 @@ class PyFusion {
       omp_set_num_threads(threads_);  // per calling thread: the worker, not the caller's others
       r = pipeline_->processFrameFromGuess(viewOf(depth), utime, guess);
     }
-    RefineResult out{kinfly::toString(r.status), r.T_world_cam};
+    RefineResult out{kinfly::toString(r.status), r.status, r.T_world_cam};
     out.inlier_fraction = r.inlier_fraction;
     out.rmse_m = r.rmse_m;
     out.valid_depth_fraction = r.valid_depth_fraction;
@@ -282,6 +271,7 @@ NB_MODULE(_native, m) {
   // Python does not promise to destroy every object before it exits (an uncaught exception's
   // traceback keeps the station alive), so nanobind's exit-time leak report would be noise.
   nb::set_leak_warnings(false);
+  kinfly::native::bindLink(m);
   const DepthCodec::Params defaults;
   nb::class_<PyDepthCodec>(m, "DepthCodec",
                            "Lossless depth codec (RVL family, docs/wire.md); keeps its buffers.")
@@ -305,6 +295,7 @@ NB_MODULE(_native, m) {
 
   nb::class_<RefineResult>(m, "RefineResult", "What refining one keyframe gave (FrameResult).")
       .def_ro("status", &RefineResult::status, "first, ok, lost or given")
+      .def_ro("tracking", &RefineResult::tracking, "the same as a TrackingStatus")
       .def_prop_ro("T_world_cam", [](const RefineResult& r) { return matrixOf(r.T_world_cam); },
                    nb::rv_policy::move,
                    "4x4 camera-to-world; the last fused pose when lost")

@@ -6,26 +6,23 @@ nothing slow runs there (no viewer, no files, no fusion), or the next keyframes 
 LCM's buffers until they overflow. One worker thread refines and fuses them (the native code
 releases the GIL), publishes the signed correction at once and only then logs to the viewer; a
 low-priority mesher thread meshes copies of the map every few seconds, so marching cubes never
-holds up a correction. `replay` runs the same steps on the caller's thread (`inline=True`):
-every keyframe, nothing dropped.
+holds up a correction (the threads and the queue are runner.py's). `replay` runs the same steps
+on the caller's thread (`inline=True`): every keyframe, nothing dropped.
 
 Losses are counted where they happen: the drone's own (its status: frames its odometry could not
 keep up with, keyframes its link could not send), the link's (keyframe ids the drone's status says
 it sent that never arrived: `lost_on_link`), and the station's (`keyframes_dropped` from a full
 queue, `keyframes_lost` that could not be refined).
 
-Queue policy: at most `queue_keyframes` keyframes wait (32: about 6 s of keyframes at 5 Hz), so
-a laptop busy with other work for a few seconds delays corrections but loses no keyframe from
-the map. When a new one arrives to a full queue the oldest waiting one is dropped and counted: a
-station that stays slower than the drone can only keep up by dropping, and the newest keyframe,
-whose correction is freshest, is the one to keep.
+Queue: at most `queue_keyframes` keyframes wait (32: about 6 s of keyframes at 5 Hz), so a
+laptop busy with other work for a few seconds delays corrections but loses no keyframe from the
+map; beyond that the oldest is dropped and counted (runner.py).
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
 import math
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -36,9 +33,11 @@ import numpy as np
 from kinfly import ground_status_t
 
 from ._native import (Channel, DroneStatus, Fusion, Keyframe, MapSnapshot, Receiver, Signer,
-                      StampedPose as ReceivedPose, channel_name)
+                      StampedPose as ReceivedPose, TrackingStatus, channel_name,
+                      rotation_angle_rad)
 from .conversions import ground_status
 from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
+from .runner import Runner
 from .viewer import VehicleView, Viewer
 
 Publish = Callable[[str, bytes], None]
@@ -197,9 +196,8 @@ class VehicleState:
 
 def jump_exceeds(delta: np.ndarray, translation_m: float, rotation_rad: float) -> bool:
     """Whether the rigid transform DELTA moves further than either bound."""
-    cos_angle = np.clip((np.trace(delta[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
     return bool(np.linalg.norm(delta[:3, 3]) > translation_m
-                or math.acos(cos_angle) > rotation_rad)
+                or rotation_angle_rad(delta) > rotation_rad)
 
 
 def truth_anchor(corrected: list[StampedPose], truth: list[StampedPose]) -> np.ndarray | None:
@@ -237,7 +235,6 @@ class Station:
         self.vehicle_id = vehicle_id
         self._signers = signers
         self._publish = publish
-        self._inline = inline
         self._forward = forward
         self._log = log
         self.vehicles: dict[int, VehicleState] = {}
@@ -245,25 +242,12 @@ class Station:
         self.handler_errors = 0
         self.receiver = Receiver()
         self._arrival_ns = 0
-        self._queue: collections.deque[_Job] = collections.deque()
-        self._cv = threading.Condition()
-        self._stopping = False
-        self._idle = True
-        self._mesh_jobs: collections.deque[tuple[VehicleState, int, MapSnapshot]] = \
-            collections.deque(maxlen=1)
-        self._mesh_cv = threading.Condition()
-        self._threads: list[threading.Thread] = []
-        self._export_requests: list[Callable[[], None]] = []
         if vehicle_id is not None:
             # Made now, not at the first keyframe: the vehicle's state asks the viewer again then
             # and gets this one.
             viewer.vehicle(vehicle_id, "")
-        if not inline:
-            self._threads = [threading.Thread(target=self._work, name="kground-fuse", daemon=True),
-                             threading.Thread(target=self._mesh_loop, name="kground-mesh",
-                                              daemon=True)]
-            for thread in self._threads:
-                thread.start()
+        self.runner: Runner[_Job] = Runner(params.queue_keyframes, self._process_guarded,
+                                           self._on_dropped, inline=inline, log=log)
 
     # --- arrival (LCM thread) -----------------------------------------------------------------
 
@@ -373,44 +357,12 @@ class Station:
         state.counters.lost_on_link = state.lost_on_link_now()
         state.counters.keyframes_received += 1
         state.rates["received"].tick(now_s)
-        job = _Job(state.vehicle_id, state.session, message, self._arrival_ns)
-        if self._inline:
-            self._process_guarded(job)
-            return
-        with self._cv:
-            if len(self._queue) >= self.params.queue_keyframes:
-                dropped = self._queue.popleft()
-                self.vehicles[dropped.vehicle_id].counters.keyframes_dropped += 1
-            self._queue.append(job)
-            self._cv.notify()
+        self.runner.submit(_Job(state.vehicle_id, state.session, message, self._arrival_ns))
+
+    def _on_dropped(self, job: _Job) -> None:
+        self.vehicles[job.vehicle_id].counters.keyframes_dropped += 1
 
     # --- fusion (worker thread) ---------------------------------------------------------------
-
-    def _work(self) -> None:
-        while True:
-            with self._cv:
-                while not self._queue and not self._export_requests and not self._stopping:
-                    self._idle = True
-                    self._cv.notify_all()
-                    self._cv.wait()
-                if self._export_requests:
-                    request = self._export_requests.pop(0)
-                    job = None
-                elif self._queue:
-                    job = self._queue.popleft()
-                    request = None
-                else:
-                    self._idle = True
-                    self._cv.notify_all()
-                    return
-                self._idle = False
-            if request is not None:
-                try:
-                    request()
-                except Exception as error:  # an export on request: fusion goes on regardless
-                    self._log(f"request failed: {type(error).__name__}: {error}")
-            else:
-                self._process_guarded(job)
 
     def _process_guarded(self, job: _Job) -> None:
         """One keyframe that cannot be handled (intrinsics the engine refuses, say) is counted
@@ -443,7 +395,7 @@ class Station:
         segment = state.segment
         if segment.fusion is None:
             segment.camera = camera
-            segment.fusion = Fusion(c.width, c.height, c.fx, c.fy, c.cx, c.cy, m.depth_scale_m,
+            segment.fusion = Fusion(c, m.depth_scale_m,
                                     voxel_size_m=self.params.voxel_size_m,
                                     threads=self.params.threads)
         has_onboard = m.tracking is not None
@@ -460,7 +412,7 @@ class Station:
         if has_onboard:
             segment.onboard.append((m.utime, T_onboard))
         T_corrected = None
-        if result.status in ("first", "ok"):
+        if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
             T_corrected = result.T_world_cam
             segment.corrected.append((m.utime, T_corrected))
             state.counters.keyframes_fused += 1
@@ -500,7 +452,7 @@ class Station:
         state.view.keyframe(m.utime, depth, m.depth_scale_m, (c.fx, c.fy, c.cx, c.cy), T_onboard,
                             T_corrected)
         fusion = state.segment.fusion
-        if result.status == "ok":
+        if result.status is TrackingStatus.OK:
             # The map as raycast for this keyframe's registration, from its onboard pose (a few
             # mm from the refined one) where it measured depth; a map's first keyframe has none.
             state.view.render(m.utime, fusion.render())
@@ -517,7 +469,7 @@ class Station:
         }
         if T_corrected is not None and state.latencies_ms:
             health["link/latency_ms"] = state.latencies_ms[-1]
-        if result.status != "first":
+        if result.status is not TrackingStatus.FIRST_FRAME:
             health["tracking/inlier_fraction"] = result.inlier_fraction
             health["tracking/rmse_mm"] = result.rmse_m * 1e3
         state.view.health(m.utime, health)
@@ -527,13 +479,7 @@ class Station:
         if interval_us > 0 and (state.mesh_utime is None
                                 or m.utime - state.mesh_utime >= interval_us):
             state.mesh_utime = m.utime
-            snapshot = fusion.snapshot()
-            if self._inline:
-                state.view.mesh(m.utime, *snapshot.mesh())
-                return
-            with self._mesh_cv:
-                self._mesh_jobs.append((state, m.utime, snapshot))
-                self._mesh_cv.notify()
+            self.runner.mesh(state, m.utime, fusion.snapshot())
 
     def _file_truth(self, state: VehicleState) -> None:
         """Ground truth goes with the map of the session it arrived in: a restarted drone's
@@ -569,57 +515,22 @@ class Station:
             state.segment = Segment()
         state.view.restarted(utime)
 
-    def _mesh_loop(self) -> None:
-        # Niceness is per thread on Linux: fusion keeps the cores while a mesh is made.
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-        except OSError:
-            pass
-        while True:
-            with self._mesh_cv:
-                while not self._mesh_jobs and not self._stopping:
-                    self._mesh_cv.wait()
-                if not self._mesh_jobs:
-                    return
-                state, utime, snapshot = self._mesh_jobs.popleft()
-            try:
-                state.view.mesh(utime, *snapshot.mesh())
-            except Exception as error:  # a mesh is for display: fusion goes on without it
-                self._log(f"vehicle {state.vehicle_id}: no mesh for the viewer: {error}")
-
     # --- control (any thread) -----------------------------------------------------------------
 
     def run_in_worker(self, request: Callable[[], None]) -> None:
         """Runs REQUEST on the fusion thread between keyframes (an export on request), where the
         maps are not being changed."""
-        if self._inline:
-            request()
-            return
-        with self._cv:
-            self._export_requests.append(request)
-            self._cv.notify()
+        self.runner.run_in_worker(request)
 
     def drain(self, timeout_s: float) -> bool:
         """Waits until every queued keyframe is fused; False when TIMEOUT_S passed first."""
-        if self._inline:
-            return True
-        deadline = time.monotonic() + timeout_s
-        with self._cv:
-            while self._queue or self._export_requests or not self._idle:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cv.wait(left)
-        return True
+        return self.runner.drain(timeout_s)
 
     def stop(self) -> None:
-        with self._cv:
-            self._stopping = True
-            self._cv.notify_all()
-        with self._mesh_cv:
-            self._mesh_cv.notify_all()
-        for thread in self._threads:
-            thread.join()
+        self.runner.stop()
+
+    def queue_length(self) -> int:
+        return self.runner.queue_length()
 
     def show_final(self, truth: list[StampedPose] | None) -> None:
         """Sends every vehicle's map to the viewer as it is at the end, stamped with its last
@@ -641,9 +552,6 @@ class Station:
                 state.view.ground_truth_aligned(
                     last_utime, np.array([(T_map_truth @ T)[:3, 3] for _, T in segment_truth]))
 
-    def queue_length(self) -> int:
-        return len(self._queue)
-
     # --- status -------------------------------------------------------------------------------
 
     def ground_status(self, state: VehicleState, now_s: float, link_timeout_s: float,
@@ -659,4 +567,4 @@ class Station:
             state.vehicle_id, run_state=run_state, link_state=link_state, counters=state.counters,
             rates_hz={name: meter.rate_hz(now_s) for name, meter in state.rates.items()},
             last_keyframe_id=state.last_done_keyframe_id,
-            tracking=None if result is None else result.tracking, rejects=self.receiver.rejects)
+            tracking=None if result is None else result.status, rejects=self.receiver.rejects)

@@ -157,8 +157,7 @@ class PyMapSnapshot {
 };
 
 struct RefineResult {
-  std::string status;  // "first", "ok", "lost", "given" (kinfly::toString(TrackingStatus))
-  kinfly::TrackingStatus tracking = kinfly::TrackingStatus::kLost;
+  kinfly::TrackingStatus status = kinfly::TrackingStatus::kLost;
   kinfly::Pose T_world_cam = kinfly::Pose::Identity();
   float inlier_fraction = 0.f;
   float rmse_m = 0.f;
@@ -168,8 +167,7 @@ struct RefineResult {
 };
 
 struct FusionParams {
-  int width = 0, height = 0;
-  float fx = 0, fy = 0, cx = 0, cy = 0;
+  kinfly::PinholeCamera camera;
   double depth_scale_m = 0;
   float voxel_size_m = 0.01f;
   float truncation_m = 0.f;  // 0: four voxels
@@ -181,7 +179,7 @@ class PyFusion {
  public:
   explicit PyFusion(const FusionParams& p) : threads_(p.threads) {
     if (p.threads < 1) throw nb::value_error("threads must be at least 1");
-    const kinfly::PinholeCamera camera{p.fx, p.fy, p.cx, p.cy, p.width, p.height};
+    const kinfly::PinholeCamera& camera = p.camera;
     if (const std::string why = camera.validate(); !why.empty()) throw nb::value_error(why.c_str());
     kinfly::HashedVolume::Params volume_params;
     volume_params.voxel_size_m = p.voxel_size_m;
@@ -205,7 +203,7 @@ class PyFusion {
       omp_set_num_threads(threads_);  // per calling thread: the worker, not the caller's others
       r = pipeline_->processFrameFromGuess(viewOf(depth), utime, guess);
     }
-    RefineResult out{kinfly::toString(r.status), r.status, r.T_world_cam};
+    RefineResult out{r.status, r.T_world_cam};
     out.inlier_fraction = r.inlier_fraction;
     out.rmse_m = r.rmse_m;
     out.valid_depth_fraction = r.valid_depth_fraction;
@@ -272,6 +270,10 @@ NB_MODULE(_native, m) {
   // traceback keeps the station alive), so nanobind's exit-time leak report would be noise.
   nb::set_leak_warnings(false);
   kinfly::native::bindLink(m);
+  m.def("rotation_angle_rad",
+        [](PoseIn T) { return kinfly::rotationAngleRad(poseOf(T)); }, nb::arg("T"),
+        "Rotation angle of a 4x4 rigid transform in [0, pi] (se3.h's atan2 form: exact for small "
+        "angles, unlike acos of the trace)");
   const DepthCodec::Params defaults;
   nb::class_<PyDepthCodec>(m, "DepthCodec",
                            "Lossless depth codec (RVL family, docs/wire.md); keeps its buffers.")
@@ -294,8 +296,7 @@ NB_MODULE(_native, m) {
       .def_prop_ro("num_blocks", &PyMapSnapshot::numBlocks);
 
   nb::class_<RefineResult>(m, "RefineResult", "What refining one keyframe gave (FrameResult).")
-      .def_ro("status", &RefineResult::status, "first, ok, lost or given")
-      .def_ro("tracking", &RefineResult::tracking, "the same as a TrackingStatus")
+      .def_ro("status", &RefineResult::status, "the engine's TrackingStatus")
       .def_prop_ro("T_world_cam", [](const RefineResult& r) { return matrixOf(r.T_world_cam); },
                    nb::rv_policy::move,
                    "4x4 camera-to-world; the last fused pose when lost")
@@ -314,13 +315,12 @@ NB_MODULE(_native, m) {
                        "A full-resolution map (hashed TSDF volume) of one vehicle and the pipeline "
                        "that refines keyframes against it and fuses them.")
       .def("__init__",
-           [](PyFusion* self, int width, int height, float fx, float fy, float cx, float cy,
-              double depth_scale_m, float voxel_size_m, float truncation_m, int threads) {
-             new (self) PyFusion(FusionParams{width, height, fx, fy, cx, cy, depth_scale_m,
-                                              voxel_size_m, truncation_m, threads});
+           [](PyFusion* self, const kinfly::PinholeCamera& camera, double depth_scale_m,
+              float voxel_size_m, float truncation_m, int threads) {
+             new (self) PyFusion(
+                 FusionParams{camera, depth_scale_m, voxel_size_m, truncation_m, threads});
            },
-           nb::arg("width"), nb::arg("height"), nb::arg("fx"), nb::arg("fy"), nb::arg("cx"),
-           nb::arg("cy"), nb::arg("depth_scale_m"), nb::kw_only(),
+           nb::arg("camera"), nb::arg("depth_scale_m"), nb::kw_only(),
            nb::arg("voxel_size_m") = fusion_defaults.voxel_size_m,
            nb::arg("truncation_m") = fusion_defaults.truncation_m,
            nb::arg("threads") = fusion_defaults.threads)

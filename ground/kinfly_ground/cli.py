@@ -29,7 +29,8 @@ from ._native import (MAX_VEHICLE_ID, Channel, KeyFileError, Signer, channel_nam
 from .export import export, format_ms, print_summary
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
 from .outputs import OutputError, check_writable, memory, read_tum
-from .station import Station, StationParams, percentile
+from .station import Station, StationParams
+from .vehicle import percentile
 from .viewer import Viewer, ViewerError
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=1"  # LCM's default group; ttl 1: one hop (Wi-Fi)

@@ -11,7 +11,8 @@ from typing import Any
 from . import __version__
 from .outputs import (ate_figures, evaluate, memory, write_atomically, write_error_plot,
                       write_json, write_tum)
-from .station import Segment, Station, VehicleState, percentile
+from .station import Station
+from .vehicle import Segment, VehicleState, percentile
 
 
 def stats(values: list[float]) -> dict[str, float | int | None]:

@@ -22,7 +22,8 @@ from kinfly_ground._native import (Channel, CorrectionReceiver, DepthCodec, Sign
                                    key_id)
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
                                    write_atomically, write_tum)
-from kinfly_ground.station import Station, StationParams, truth_anchor
+from kinfly_ground.mapping import truth_anchor
+from kinfly_ground.station import Station, StationParams
 from kinfly_ground.viewer import Viewer
 
 VEHICLE = 7

@@ -2,8 +2,8 @@
 #include <vector>
 
 #include "depth_source.h"
-#include "kinfly/png_io.h"
-#include "kinfly/tum_dataset.h"
+#include "kinfly/io/png_io.h"
+#include "kinfly/io/tum_dataset.h"
 
 namespace kinfly::fw {
 namespace {

@@ -7,9 +7,9 @@
 #include <memory>
 #include <string>
 
-#include "kinfly/camera.h"
-#include "kinfly/image.h"
-#include "kinfly/se3.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly::fw {
 

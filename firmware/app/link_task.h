@@ -7,7 +7,7 @@
 
 #include "config.h"
 #include "depth_source.h"
-#include "kinfly/depth_codec.h"
+#include "kinfly/codec/depth_codec.h"
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/fw/sensor_watch.h"

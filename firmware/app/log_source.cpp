@@ -5,7 +5,7 @@
 #include <memory>
 
 #include "depth_source.h"
-#include "kinfly/depth_codec.h"
+#include "kinfly/codec/depth_codec.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/decode.h"

@@ -9,13 +9,13 @@
 
 #include "config.h"
 #include "depth_source.h"
-#include "kinfly/fusion_pipeline.h"
+#include "kinfly/pipeline/fusion_pipeline.h"
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/ground_truth_t.hpp"
-#include "kinfly/tsdf_volume.h"
-#include "kinfly/tum_dataset.h"
+#include "kinfly/volume/tsdf_volume.h"
+#include "kinfly/io/tum_dataset.h"
 #include "publisher.h"
 #include "runtime.h"
 

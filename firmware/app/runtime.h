@@ -8,11 +8,11 @@
 #include <mutex>
 
 #include "kinfly/fw/correction_anchor.h"
-#include "kinfly/camera.h"
-#include "kinfly/icp_tracker.h"
-#include "kinfly/image.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/core/image.h"
 #include "kinfly/odometry_t.hpp"
-#include "kinfly/se3.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly::fw {
 

@@ -5,7 +5,7 @@
 #include <random>
 
 #include "depth_source.h"
-#include "kinfly/synthetic_scene.h"
+#include "kinfly/synthetic/synthetic_scene.h"
 
 namespace kinfly::fw {
 namespace {

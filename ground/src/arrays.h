@@ -6,7 +6,7 @@
 
 #include <cstdint>
 
-#include "kinfly/se3.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly::native {
 

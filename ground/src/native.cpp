@@ -15,12 +15,12 @@
 #include <vector>
 
 #include "arrays.h"
-#include "kinfly/camera.h"
-#include "kinfly/depth_codec.h"
-#include "kinfly/fusion_pipeline.h"
-#include "kinfly/marching_cubes.h"
-#include "kinfly/mesh.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/codec/depth_codec.h"
+#include "kinfly/pipeline/fusion_pipeline.h"
+#include "kinfly/mesh/marching_cubes.h"
+#include "kinfly/mesh/mesh.h"
+#include "kinfly/volume/tsdf_volume.h"
 
 namespace nb = nanobind;
 using kinfly::CodecResult;

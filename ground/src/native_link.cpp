@@ -15,9 +15,9 @@
 #include <vector>
 
 #include "arrays.h"
-#include "kinfly/camera.h"
-#include "kinfly/depth_codec.h"
-#include "kinfly/icp_tracker.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/codec/depth_codec.h"
+#include "kinfly/tracking/icp_tracker.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/counters.h"

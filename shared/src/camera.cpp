@@ -1,4 +1,4 @@
-#include "kinfly/camera.h"
+#include "kinfly/core/camera.h"
 
 #include <cmath>
 #include <sstream>

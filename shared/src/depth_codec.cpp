@@ -1,4 +1,4 @@
-#include "kinfly/depth_codec.h"
+#include "kinfly/codec/depth_codec.h"
 
 #include <zstd.h>
 #include <zstd_errors.h>

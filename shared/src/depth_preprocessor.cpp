@@ -1,4 +1,4 @@
-#include "kinfly/depth_preprocessor.h"
+#include "kinfly/preprocessing/depth_preprocessor.h"
 
 #include <Eigen/Geometry>
 

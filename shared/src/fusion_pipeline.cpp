@@ -1,4 +1,4 @@
-#include "kinfly/fusion_pipeline.h"
+#include "kinfly/pipeline/fusion_pipeline.h"
 
 #include <chrono>
 #include <sstream>

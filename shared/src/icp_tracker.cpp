@@ -1,4 +1,4 @@
-#include "kinfly/icp_tracker.h"
+#include "kinfly/tracking/icp_tracker.h"
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
@@ -8,7 +8,7 @@
 #include <limits>
 #include <sstream>
 
-#include "kinfly/noise_model.h"
+#include "kinfly/core/noise_model.h"
 #include "parallel.h"
 
 namespace kinfly {

@@ -10,7 +10,7 @@
 // closed surface watertight and consistently oriented by construction; loops are triangulated
 // without diagonals lying in a cube face, so no edge is shared by more than two triangles
 // (tests/unit check all of this on a random field that exercises all 256 cases).
-#include "kinfly/marching_cubes.h"
+#include "kinfly/mesh/marching_cubes.h"
 
 #include <array>
 #include <cassert>
@@ -18,7 +18,7 @@
 #include <cstdint>
 #include <unordered_map>
 
-#include "kinfly/voxel_reader.h"
+#include "kinfly/volume/voxel_reader.h"
 
 namespace kinfly {
 namespace {

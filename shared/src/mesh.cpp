@@ -1,4 +1,4 @@
-#include "kinfly/mesh.h"
+#include "kinfly/mesh/mesh.h"
 
 #include <Eigen/Geometry>
 #include <cerrno>

@@ -1,4 +1,4 @@
-#include "kinfly/png_io.h"
+#include "kinfly/io/png_io.h"
 
 #include <png.h>
 

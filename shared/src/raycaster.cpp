@@ -1,4 +1,4 @@
-#include "kinfly/raycaster.h"
+#include "kinfly/raycast/raycaster.h"
 
 #include <algorithm>
 #include <array>
@@ -7,8 +7,8 @@
 #include <limits>
 #include <sstream>
 
-#include "kinfly/numeric.h"
-#include "kinfly/voxel_reader.h"
+#include "kinfly/core/numeric.h"
+#include "kinfly/volume/voxel_reader.h"
 #include "parallel.h"
 
 namespace kinfly {

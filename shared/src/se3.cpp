@@ -1,4 +1,4 @@
-#include "kinfly/se3.h"
+#include "kinfly/core/se3.h"
 
 #include <cmath>
 

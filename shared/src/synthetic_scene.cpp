@@ -1,6 +1,6 @@
 // Analytic scenes for tests: exact ray casting against planes, spheres and axis-aligned boxes,
 // plus the seed's Kinect noise model for raw sensor images.
-#include "kinfly/synthetic_scene.h"
+#include "kinfly/synthetic/synthetic_scene.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,11 +1,11 @@
-#include "kinfly/tsdf_integrator.h"
+#include "kinfly/volume/tsdf_integrator.h"
 
 #include <array>
 #include <cmath>
 #include <cstdint>
 
-#include "kinfly/lanes.h"
-#include "kinfly/numeric.h"
+#include "kinfly/core/lanes.h"
+#include "kinfly/core/numeric.h"
 #include <sstream>
 #include "parallel.h"
 

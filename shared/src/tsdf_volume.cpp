@@ -1,4 +1,4 @@
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/volume/tsdf_volume.h"
 
 #include <algorithm>
 #include <sstream>

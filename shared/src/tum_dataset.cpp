@@ -1,4 +1,4 @@
-#include "kinfly/tum_dataset.h"
+#include "kinfly/io/tum_dataset.h"
 
 #include <algorithm>
 #include <cerrno>

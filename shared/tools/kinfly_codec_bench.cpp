@@ -12,10 +12,10 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/depth_codec.h"
-#include "kinfly/image.h"
-#include "kinfly/png_io.h"
-#include "kinfly/tum_dataset.h"
+#include "kinfly/codec/depth_codec.h"
+#include "kinfly/core/image.h"
+#include "kinfly/io/png_io.h"
+#include "kinfly/io/tum_dataset.h"
 #include "percentile.h"
 
 namespace {

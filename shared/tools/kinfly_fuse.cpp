@@ -19,12 +19,12 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/fusion_pipeline.h"
-#include "kinfly/marching_cubes.h"
-#include "kinfly/mesh.h"
-#include "kinfly/tsdf_volume.h"
-#include "kinfly/png_io.h"
-#include "kinfly/tum_dataset.h"
+#include "kinfly/pipeline/fusion_pipeline.h"
+#include "kinfly/mesh/marching_cubes.h"
+#include "kinfly/mesh/mesh.h"
+#include "kinfly/volume/tsdf_volume.h"
+#include "kinfly/io/png_io.h"
+#include "kinfly/io/tum_dataset.h"
 #include "percentile.h"
 
 namespace {

@@ -13,7 +13,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "kinfly/depth_codec.h"
+#include "kinfly/codec/depth_codec.h"
 
 namespace kinfly::fuzz {
 

@@ -13,8 +13,8 @@
 #include <vector>
 
 #include "depth_decode_input.h"
-#include "kinfly/depth_codec.h"
-#include "kinfly/image.h"
+#include "kinfly/codec/depth_codec.h"
+#include "kinfly/core/image.h"
 
 using kinfly::DepthCodec;
 using kinfly::DepthEncoding;

@@ -12,9 +12,9 @@
 #include <vector>
 
 #include "depth_decode_input.h"
-#include "kinfly/depth_codec.h"
-#include "kinfly/image.h"
-#include "kinfly/synthetic_scene.h"
+#include "kinfly/codec/depth_codec.h"
+#include "kinfly/core/image.h"
+#include "kinfly/synthetic/synthetic_scene.h"
 
 namespace {
 

@@ -9,7 +9,7 @@
 #include <random>
 #include <vector>
 
-#include "kinfly/depth_codec.h"
+#include "kinfly/codec/depth_codec.h"
 #include "test_util.h"
 
 namespace kinfly {

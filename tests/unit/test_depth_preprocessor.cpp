@@ -7,7 +7,7 @@
 #include <cmath>
 #include <vector>
 
-#include "kinfly/depth_preprocessor.h"
+#include "kinfly/preprocessing/depth_preprocessor.h"
 #include "test_util.h"
 
 namespace kinfly {

@@ -4,8 +4,8 @@
 
 #include <vector>
 
-#include "kinfly/fusion_pipeline.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/pipeline/fusion_pipeline.h"
+#include "kinfly/volume/tsdf_volume.h"
 #include "test_util.h"
 
 namespace kinfly {

@@ -9,8 +9,8 @@
 #include <new>
 #include <vector>
 
-#include "kinfly/fusion_pipeline.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/pipeline/fusion_pipeline.h"
+#include "kinfly/volume/tsdf_volume.h"
 #include "test_util.h"
 
 namespace {

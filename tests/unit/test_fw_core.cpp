@@ -13,7 +13,7 @@
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/fw/sensor_watch.h"
-#include "kinfly/image.h"
+#include "kinfly/core/image.h"
 #include "test_util.h"
 
 namespace kinfly::fw {

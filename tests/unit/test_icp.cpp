@@ -7,10 +7,10 @@
 #include <cmath>
 #include <vector>
 
-#include "kinfly/depth_preprocessor.h"
-#include "kinfly/icp_tracker.h"
-#include "kinfly/noise_model.h"
-#include "kinfly/numeric.h"
+#include "kinfly/preprocessing/depth_preprocessor.h"
+#include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/core/noise_model.h"
+#include "kinfly/core/numeric.h"
 #include "test_util.h"
 
 namespace kinfly {

@@ -8,9 +8,9 @@
 #include <memory>
 #include <vector>
 
-#include "kinfly/raycaster.h"
-#include "kinfly/tsdf_integrator.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/raycast/raycaster.h"
+#include "kinfly/volume/tsdf_integrator.h"
+#include "kinfly/volume/tsdf_volume.h"
 #include "test_util.h"
 
 namespace kinfly {

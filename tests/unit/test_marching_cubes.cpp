@@ -11,9 +11,9 @@
 #include <string>
 #include <utility>
 
-#include "kinfly/marching_cubes.h"
-#include "kinfly/mesh.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/mesh/marching_cubes.h"
+#include "kinfly/mesh/mesh.h"
+#include "kinfly/volume/tsdf_volume.h"
 #include "test_util.h"
 
 namespace kinfly {

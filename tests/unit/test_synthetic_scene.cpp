@@ -4,7 +4,7 @@
 
 #include <cmath>
 
-#include "kinfly/synthetic_scene.h"
+#include "kinfly/synthetic/synthetic_scene.h"
 #include "test_util.h"
 
 namespace kinfly {

@@ -7,7 +7,7 @@
 #include <tuple>
 #include <vector>
 
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/volume/tsdf_volume.h"
 #include "test_util.h"
 
 namespace kinfly {

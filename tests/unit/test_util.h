@@ -8,13 +8,13 @@
 #include <cstdint>
 #include <random>
 
-#include "kinfly/camera.h"
-#include "kinfly/depth_preprocessor.h"
-#include "kinfly/icp_tracker.h"
-#include "kinfly/image.h"
-#include "kinfly/se3.h"
-#include "kinfly/synthetic_scene.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/preprocessing/depth_preprocessor.h"
+#include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/se3.h"
+#include "kinfly/synthetic/synthetic_scene.h"
+#include "kinfly/volume/tsdf_volume.h"
 
 namespace kinfly::test {
 

@@ -25,15 +25,15 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/depth_codec.h"
+#include "kinfly/codec/depth_codec.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/counters.h"
 #include "kinfly/link/decode.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
-#include "kinfly/png_io.h"
-#include "kinfly/tum_dataset.h"
+#include "kinfly/io/png_io.h"
+#include "kinfly/io/tum_dataset.h"
 #include "percentile.h"
 
 namespace {

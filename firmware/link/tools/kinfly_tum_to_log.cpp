@@ -12,13 +12,13 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/depth_codec.h"
+#include "kinfly/codec/depth_codec.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/odometry_t.hpp"
 #include "kinfly/ground_truth_t.hpp"
-#include "kinfly/png_io.h"
-#include "kinfly/tum_dataset.h"
+#include "kinfly/io/png_io.h"
+#include "kinfly/io/tum_dataset.h"
 
 namespace {
 

@@ -13,7 +13,7 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/image.h"
+#include "kinfly/core/image.h"
 
 // zstd's context types, declared here so that users of the codec do not include zstd.h.
 struct ZSTD_CCtx_s;

@@ -10,9 +10,9 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/camera.h"
-#include "kinfly/image.h"
-#include "kinfly/lanes.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/lanes.h"
 
 namespace kinfly {
 

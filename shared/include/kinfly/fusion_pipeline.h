@@ -7,14 +7,14 @@
 #include <memory>
 #include <string>
 
-#include "kinfly/camera.h"
-#include "kinfly/depth_preprocessor.h"
-#include "kinfly/icp_tracker.h"
-#include "kinfly/image.h"
-#include "kinfly/raycaster.h"
-#include "kinfly/se3.h"
-#include "kinfly/tsdf_integrator.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/preprocessing/depth_preprocessor.h"
+#include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/core/image.h"
+#include "kinfly/raycast/raycaster.h"
+#include "kinfly/core/se3.h"
+#include "kinfly/volume/tsdf_integrator.h"
+#include "kinfly/volume/tsdf_volume.h"
 
 namespace kinfly {
 

@@ -7,10 +7,10 @@
 #include <array>
 #include <string>
 
-#include "kinfly/camera.h"
-#include "kinfly/depth_preprocessor.h"
-#include "kinfly/image.h"
-#include "kinfly/se3.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/preprocessing/depth_preprocessor.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly {
 

@@ -3,8 +3,8 @@
 
 #include <string>
 
-#include "kinfly/mesh.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/mesh/mesh.h"
+#include "kinfly/volume/tsdf_volume.h"
 
 namespace kinfly {
 

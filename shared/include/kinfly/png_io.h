@@ -7,7 +7,7 @@
 #include <cstdint>
 #include <string>
 
-#include "kinfly/image.h"
+#include "kinfly/core/image.h"
 
 namespace kinfly {
 

@@ -7,10 +7,10 @@
 #include <random>
 #include <vector>
 
-#include "kinfly/camera.h"
-#include "kinfly/image.h"
-#include "kinfly/noise_model.h"
-#include "kinfly/se3.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/noise_model.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly {
 

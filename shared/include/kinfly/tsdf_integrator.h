@@ -7,10 +7,10 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/camera.h"
-#include "kinfly/image.h"
-#include "kinfly/se3.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/se3.h"
+#include "kinfly/volume/tsdf_volume.h"
 
 namespace kinfly {
 

@@ -12,8 +12,8 @@
 #include <cstdint>
 #include <vector>
 
-#include "kinfly/numeric.h"
-#include "kinfly/se3.h"
+#include "kinfly/core/numeric.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly {
 

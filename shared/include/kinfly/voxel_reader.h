@@ -5,8 +5,8 @@
 #include <algorithm>
 #include <array>
 
-#include "kinfly/numeric.h"
-#include "kinfly/tsdf_volume.h"
+#include "kinfly/core/numeric.h"
+#include "kinfly/volume/tsdf_volume.h"
 
 namespace kinfly {
 

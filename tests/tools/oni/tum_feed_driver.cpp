@@ -40,9 +40,9 @@
 #include <utility>
 #include <vector>
 
-#include "kinfly/image.h"
-#include "kinfly/png_io.h"
-#include "kinfly/tum_dataset.h"
+#include "kinfly/core/image.h"
+#include "kinfly/io/png_io.h"
+#include "kinfly/io/tum_dataset.h"
 #include "tum_feed.h"
 
 // ONI_EXPORT_DRIVER expects XnLib's allocation macros, which Debian does not ship.

@@ -8,7 +8,7 @@
 #include <string>
 #include <vector>
 
-#include "kinfly/se3.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly::fw {
 

@@ -7,8 +7,8 @@
 #include <optional>
 #include <string>
 
-#include "kinfly/icp_tracker.h"
-#include "kinfly/se3.h"
+#include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly::fw {
 

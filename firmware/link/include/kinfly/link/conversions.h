@@ -6,18 +6,18 @@
 #include <cstdint>
 #include <optional>
 
-#include "kinfly/camera.h"
+#include "kinfly/core/camera.h"
 #include "kinfly/camera_t.hpp"
-#include "kinfly/depth_codec.h"
+#include "kinfly/codec/depth_codec.h"
 #include "kinfly/depth_keyframe_t.hpp"
-#include "kinfly/fusion_pipeline.h"
+#include "kinfly/pipeline/fusion_pipeline.h"
 #include "kinfly/ground_truth_t.hpp"
-#include "kinfly/icp_tracker.h"
-#include "kinfly/image.h"
+#include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/core/image.h"
 #include "kinfly/odometry_t.hpp"
 #include "kinfly/pose3d_t.hpp"
 #include "kinfly/pose_correction_t.hpp"
-#include "kinfly/se3.h"
+#include "kinfly/core/se3.h"
 
 namespace kinfly::link {
 

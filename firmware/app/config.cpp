@@ -162,7 +162,7 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--link.keyframe_queue", l.keyframe_queue,
                   "keyframes waiting for the link (oldest dropped when full)")
       ->capture_default_str();
-  app->add_option("--link.status_rate_hz", l.status_rate_hz, "status_t rate [Hz]")
+  app->add_option("--link.status_rate_hz", l.status_rate_hz, "drone_status_t rate [Hz]")
       ->capture_default_str();
   app->add_option("--link.timeout_s", l.timeout_s,
                   "ground station unheard this long: link stale [s]")

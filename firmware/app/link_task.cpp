@@ -29,7 +29,6 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
   }
   codec_.reserve(camera.width, camera.height, &message_.payload);
   status_.vehicle_id = config.vehicle.id;
-  status_.source = status_t::SOURCE_DRONE;
 }
 
 void LinkTask::run() {
@@ -39,7 +38,7 @@ void LinkTask::run() {
   while (keyframes_->pop(&job_, std::chrono::milliseconds(0))) send(job_);
   if (await_corrections_) awaitCorrections();
   watchSensor();
-  publishStatus(status_t::RUN_FINAL);
+  publishStatus(drone_status_t::RUN_FINAL);
 }
 
 void LinkTask::serve(Clock::time_point* next_status) {
@@ -126,7 +125,7 @@ void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
     return;
   }
   std::lock_guard<std::mutex> lock(anchor_->mutex);
-  const Pose corrected = link::readPose(correction->position_m, correction->orientation_xyzw);
+  const Pose corrected = link::readPose(correction->T_world_cam);
   const auto outcome =
       anchor_->anchor.apply(correction->keyframe_id, corrected, correction->reset_counter);
   if (outcome != CorrectionAnchor::Outcome::kApplied) {
@@ -142,9 +141,8 @@ void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {
   last_ground_heard_ = Clock::now();
   const link::DecodeResult r =
       link::decodeMessage(rbuf->data, rbuf->data_size, link::DecodeBounds(), &ground_status_);
-  ground_status_heard_ = r.ok() && ground_status_.source == status_t::SOURCE_GROUND &&
-                         ground_status_.vehicle_id == config_.vehicle.id;
-  if (!r.ok() || ground_status_.source != status_t::SOURCE_GROUND)
+  ground_status_heard_ = r.ok() && ground_status_.vehicle_id == config_.vehicle.id;
+  if (!r.ok())
     ++rejects_.malformed;
   else if (ground_status_.vehicle_id != config_.vehicle.id)
     ++rejects_.wrong_vehicle;
@@ -152,12 +150,8 @@ void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {
 
 void LinkTask::send(const KeyframeJob& job) {
   depth_keyframe_t& m = message_;
-  m.utime = job.utime;
   m.vehicle_id = config_.vehicle.id;
-  m.frame_id = job.frame_id;
-  m.keyframe_id = job.keyframe_id;
-  link::writePose(job.T_world_cam, m.position_m, m.orientation_xyzw);
-  m.tracking_status = job.tracking;
+  link::fillKeyframe({job.utime, job.frame_id, job.keyframe_id, job.T_world_cam, job.tracking}, &m);
   const CodecResult r = link::encodeDepth(codec_, job.depth, camera_, depth_scale_m_, &m);
   if (!r.ok()) {
     ++counters_->keyframes_failed;
@@ -194,7 +188,7 @@ void LinkTask::watchSensor() {
 }
 
 void LinkTask::publishStatus(int8_t run_state) {
-  status_t& s = status_;
+  drone_status_t& s = status_;
   s.run_state = run_state;
   s.utime = link::wallClockUtime();
   const double elapsed_s = secondsSince(rate_window_start_);
@@ -221,15 +215,15 @@ void LinkTask::publishStatus(int8_t run_state) {
   s.tracking_state = counters_->tracking;
   const auto since = Clock::now() - last_ground_heard_;
   s.link_state = last_ground_heard_ == Clock::time_point()
-                     ? status_t::LINK_UNKNOWN
+                     ? drone_status_t::LINK_UNKNOWN
                      : (since <= std::chrono::duration<double>(config_.link.timeout_s)
-                            ? status_t::LINK_UP
-                            : status_t::LINK_STALE);
+                            ? drone_status_t::LINK_UP
+                            : drone_status_t::LINK_STALE);
   switch (watch_.state()) {
-    case SensorWatch::State::kStreaming: s.sensor_state = status_t::SENSOR_STREAMING; break;
-    case SensorWatch::State::kWaiting: s.sensor_state = status_t::SENSOR_WAITING; break;
-    case SensorWatch::State::kStalled: s.sensor_state = status_t::SENSOR_STALLED; break;
-    case SensorWatch::State::kEnded: s.sensor_state = status_t::SENSOR_ENDED; break;
+    case SensorWatch::State::kStreaming: s.sensor_state = drone_status_t::SENSOR_STREAMING; break;
+    case SensorWatch::State::kWaiting: s.sensor_state = drone_status_t::SENSOR_WAITING; break;
+    case SensorWatch::State::kStalled: s.sensor_state = drone_status_t::SENSOR_STALLED; break;
+    case SensorWatch::State::kEnded: s.sensor_state = drone_status_t::SENSOR_ENDED; break;
   }
   s.sensor_connects = counters_->sensor_connects;
   s.sensor_stalls = watch_.stalls();

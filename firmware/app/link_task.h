@@ -13,8 +13,9 @@
 #include "kinfly/link/counters.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
+#include "kinfly/drone_status_t.hpp"
+#include "kinfly/ground_status_t.hpp"
 #include "kinfly/sources/depth_source.h"
-#include "kinfly/status_t.hpp"
 #include "publisher.h"
 #include "runtime.h"
 
@@ -28,7 +29,7 @@ class LinkTask {
            double depth_scale_m, const StopToken* stop);
 
   // Until stop(); then sends what is still queued, waits for the ground's last corrections when
-  // asked to, and sends a last status (status_t.RUN_FINAL).
+  // asked to, and sends a last status (drone_status_t.RUN_FINAL).
   void run();
   // Called once the odometry has handed over its last keyframe. `await_corrections`: the source
   // ended (a replayed flight), so the corrections of the last keyframes are worth waiting for,
@@ -58,7 +59,7 @@ class LinkTask {
   // the keyframe's correction, so every correction it will send has come by then.
   void awaitCorrections();
   void watchSensor();
-  void publishStatus(int8_t run_state = status_t::RUN_ACTIVE);
+  void publishStatus(int8_t run_state = drone_status_t::RUN_ACTIVE);
 
   const FirmwareConfig& config_;
   SharedAnchor* anchor_;
@@ -71,7 +72,7 @@ class LinkTask {
   DepthCodec codec_;
   KeyframeJob job_;  // swapped with the queue's slots: its image circulates, never reallocated
   depth_keyframe_t message_{};
-  status_t status_{};
+  drone_status_t status_{};
   std::optional<link::CorrectionReceiver> corrections_;
   link::RejectCounters rejects_;
   SensorWatch watch_;
@@ -79,7 +80,7 @@ class LinkTask {
   Clock::time_point began_ = Clock::now();
   Clock::time_point last_ground_heard_{};
   int64_t last_keyframe_sent_ = -1;
-  status_t ground_status_{};  // the last one heard
+  ground_status_t ground_status_{};  // the last one heard
   bool ground_status_heard_ = false;
   LogThrottle reject_log_, send_log_;
   Clock::time_point rate_window_start_ = Clock::now();

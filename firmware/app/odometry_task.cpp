@@ -7,16 +7,6 @@
 
 namespace kinfly::fw {
 
-int8_t trackingCode(TrackingStatus status) {
-  switch (status) {
-    case TrackingStatus::kFirstFrame: return odometry_t::TRACKING_FIRST;
-    case TrackingStatus::kOk: return odometry_t::TRACKING_OK;
-    case TrackingStatus::kLost: return odometry_t::TRACKING_LOST;
-    case TrackingStatus::kGivenPose: return odometry_t::TRACKING_GIVEN;
-  }
-  return odometry_t::TRACKING_NONE;
-}
-
 std::string OdometryTask::engineParams(const FirmwareConfig& config, const PinholeCamera& camera,
                                        double depth_scale_m, DenseVolume::Params* volume,
                                        FusionPipeline::Params* pipeline) {
@@ -64,7 +54,7 @@ void OdometryTask::run() {
 void OdometryTask::process(const DepthCapture& capture) {
   const FrameResult r = pipeline_.processFrame(capture.depth.view(), capture.utime);
   ++counters_->frames_processed;
-  counters_->tracking = trackingCode(r.status);
+  counters_->tracking = link::trackingCode(r.status);
   if (r.status == TrackingStatus::kLost) {
     ++counters_->frames_lost;
     if (lost_log_.allow(secondsSince(began_)))
@@ -73,23 +63,18 @@ void OdometryTask::process(const DepthCapture& capture) {
   }
   const bool keyframe = selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction);
   Pose T_world_cam;
+  int32_t reset_counter = 0;
   {
     std::lock_guard<std::mutex> lock(anchor_->mutex);
     if (keyframe) anchor_->anchor.rememberKeyframe(next_keyframe_id_, r.T_world_cam);
     T_world_cam = anchor_->anchor.toWorld(r.T_world_cam);
-    odometry_.reset_counter = anchor_->anchor.resetCounter();
+    reset_counter = anchor_->anchor.resetCounter();
   }
-  odometry_.utime = r.utime;
-  odometry_.frame_id = capture.frame_id;
-  link::writePose(T_world_cam, odometry_.position_m, odometry_.orientation_xyzw);
-  odometry_.tracking_status = trackingCode(r.status);
-  odometry_.inlier_fraction = r.inlier_fraction;
-  odometry_.residual_m = r.rmse_m;
+  link::fillOdometry(r, capture.frame_id, T_world_cam, reset_counter, &odometry_);
   // Not sent while the network is down: the publisher says so once, the pose still counts.
   publisher_.publish(link::Channel::kOdometry, odometry_);
   if (capture.has_ground_truth) {
-    truth_.utime = capture.utime;
-    link::writePose(capture.T_world_cam_truth, truth_.position_m, truth_.orientation_xyzw);
+    link::fillGroundTruth(capture.utime, capture.T_world_cam_truth, &truth_);
     publisher_.publish(link::Channel::kGroundTruth, truth_);
     if (!config_.output.ground_truth.empty())
       ground_truth_.push_back({static_cast<double>(r.utime) * 1e-6, capture.T_world_cam_truth});
@@ -103,7 +88,7 @@ void OdometryTask::process(const DepthCapture& capture) {
   job_.frame_id = capture.frame_id;
   job_.keyframe_id = next_keyframe_id_++;
   job_.T_world_cam = T_world_cam;
-  job_.tracking = trackingCode(r.status);
+  job_.tracking = r.status;
   if (!keyframes_->push(job_) && keyframe_drop_log_.allow(secondsSince(began_)))
     spdlog::warn("odometry: link busy, oldest keyframe dropped ({} dropped in all)",
                  keyframes_->dropped());

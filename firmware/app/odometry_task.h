@@ -12,7 +12,7 @@
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/log_throttle.h"
-#include "kinfly/pose_t.hpp"
+#include "kinfly/ground_truth_t.hpp"
 #include "kinfly/sources/depth_source.h"
 #include "kinfly/volume/tsdf_volume.h"
 #include "kinfly/io/tum_dataset.h"
@@ -57,7 +57,7 @@ class OdometryTask {
   BoundedQueue<KeyframeJob>* keyframes_;
   const StopToken* stop_;
   odometry_t odometry_{};
-  pose_t truth_{};
+  ground_truth_t truth_{};
   KeyframeJob job_;
   int64_t next_keyframe_id_ = 0;
   Clock::time_point began_ = Clock::now();
@@ -65,6 +65,5 @@ class OdometryTask {
   std::vector<StampedPose> trajectory_, ground_truth_;
 };
 
-int8_t trackingCode(TrackingStatus status);
 
 }  // namespace kinfly::fw

@@ -9,6 +9,7 @@
 
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/core/camera.h"
+#include "kinfly/frame/tracking_status.h"
 #include "kinfly/core/image.h"
 #include "kinfly/odometry_t.hpp"
 #include "kinfly/core/se3.h"
@@ -35,7 +36,7 @@ struct KeyframeJob {
   Image<uint16_t> depth;  // raw, full resolution: the ground fuses at full resolution
   int64_t utime = 0, frame_id = 0, keyframe_id = 0;
   Pose T_world_cam = Pose::Identity();
-  int8_t tracking = odometry_t::TRACKING_NONE;
+  TrackingStatus tracking = TrackingStatus::kLost;
 };
 
 // The re-anchoring shared by the odometry (remembers keyframes, publishes anchored poses) and

@@ -21,19 +21,20 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from kinfly import status_t
+from kinfly import ground_status_t
 
 from . import __version__
-from .channels import MAX_VEHICLE_ID, Channel, channel_name, channels_regex
+from ._native import (MAX_VEHICLE_ID, Channel, KeyFileError, Signer, channel_name,
+                      ground_subscriptions, load_key_file, parse_channel)
+from .export import export, format_ms, print_summary
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
-from .outputs import (OutputError, ate_figures, check_writable, evaluate, memory, read_tum,
-                      write_atomically, write_error_plot, write_json, write_tum)
-from .signing import KeyFileError, Signer, load_key_file
-from .station import Segment, Station, StationParams, VehicleState, percentile
+from .outputs import OutputError, check_writable, memory, read_tum
+from .station import Station, StationParams
+from .vehicle import percentile
 from .viewer import Viewer, ViewerError
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=1"  # LCM's default group; ttl 1: one hop (Wi-Fi)
-STATUS_PERIOD_S = 0.1      # the ground's status_t at 10 Hz, as the drone's
+STATUS_PERIOD_S = 0.1      # the ground_status_t at 10 Hz, as the drone's status
 LINK_TIMEOUT_S = 1.0       # the drone is STALE after this long unheard (as kinfly-fw's default)
 PROGRESS_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 30.0     # at exit, the longest wait for queued keyframes to be fused
@@ -55,15 +56,6 @@ class UsageError(Exception):
 
 def log(message: str) -> None:
     print(f"kinfly-ground: {message}", file=sys.stderr, flush=True)
-
-
-def _stats(values: list[float]) -> dict[str, float | int | None]:
-    return {"count": len(values), "median": percentile(values, 50), "p90": percentile(values, 90),
-            "p99": percentile(values, 99), "max": max(values) if values else None}
-
-
-def _ms(value: float | None) -> str:
-    return "-" if value is None else f"{value:.1f}"
 
 
 # --- arguments -------------------------------------------------------------------------------
@@ -187,134 +179,6 @@ def _viewer(args: argparse.Namespace) -> Viewer:
                   recording_name=f"kinfly-ground {time.strftime('%Y-%m-%d %H:%M:%S')}")
 
 
-# --- outputs ---------------------------------------------------------------------------------
-
-def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, Any]:
-    truth = truth if truth is not None else segment.ground_truth
-    if not truth:
-        return {"available": False, "reason": "no ground truth"}
-    # Made at the end by Station.show_final; an export on request evaluates the map so far.
-    results = segment.evaluation
-    if results is None:
-        results = evaluate({"onboard": segment.onboard, "corrected": segment.corrected}, truth)
-    if not results:
-        return {"available": False, "reason": "fewer than 3 poses match the ground truth in time"}
-    write_error_plot(out / "ate.png", results)
-    summary: dict[str, Any] = {"available": True, "plot": "ate.png"}
-    for name, r in results.items():
-        summary[name] = ate_figures(r)
-    return summary
-
-
-def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str, Any]:
-    files: dict[str, str] = {}
-    result: dict[str, Any] = {"files": files, "corrected_poses": len(segment.corrected)}
-    if segment.fusion is not None:
-        snapshot = segment.snapshot or segment.fusion.snapshot()
-        result["mesh_triangles"] = write_atomically(out / "mesh.ply",
-                                                    lambda tmp: snapshot.write_ply(str(tmp)))
-        files["mesh"] = "mesh.ply"
-        result["map_blocks"] = segment.fusion.num_blocks
-        result["map_memory_mb"] = segment.fusion.memory_bytes / 1e6
-    write_tum(out / "trajectory_onboard.tum", segment.onboard)
-    write_tum(out / "trajectory_corrected.tum", segment.corrected)
-    files["trajectory_onboard"] = "trajectory_onboard.tum"
-    files["trajectory_corrected"] = "trajectory_corrected.tum"
-    if segment.ground_truth:
-        write_tum(out / "trajectory_ground_truth.tum", segment.ground_truth)
-        files["trajectory_ground_truth"] = "trajectory_ground_truth.tum"
-    result["ate"] = _ate_summary(segment, truth, out)
-    if result["ate"]["available"]:
-        files["ate_plot"] = "ate.png"
-    return result
-
-
-def _vehicle_summary(state: VehicleState, out: Path, truth: list | None) -> dict[str, Any]:
-    with state.lock:
-        segment, finished = state.segment, list(state.finished_segments)
-    summary: dict[str, Any] = {
-        "vehicle_id": state.vehicle_id,
-        "keyframes": dataclasses.asdict(state.counters),
-        "latency_ms": _stats(state.latencies_ms),
-        "refine_ms": _stats(state.refine_ms),
-        "reset_counter": state.reset_counter,
-    }
-    summary.update(_export_segment(segment, out, truth))
-    # Earlier odometry frames (before a drone restart), each complete on its own.
-    summary["earlier_segments"] = [
-        {"directory": f"segments/{i}", **_export_segment(s, out / "segments" / str(i), None)}
-        for i, s in enumerate(finished, 1)]
-    d = state.drone_status
-    if d is not None:
-        summary["drone_reported"] = {
-            "final": d.run_state == status_t.RUN_FINAL,
-            "frames_captured": d.frames_captured, "queue_drops": d.queue_drops,
-            "frames_lost": d.frames_lost, "keyframes_sent": d.keyframes_sent,
-            "last_keyframe_id": d.last_keyframe_id, "keyframes_dropped": d.keyframes_dropped,
-            "corrections_accepted": d.corrections_accepted,
-            "rejected_wrong_key": d.rejected_wrong_key, "rejected_bad_mac": d.rejected_bad_mac}
-    return summary
-
-
-def export(station: Station, out: Path, mode: str, started: float, truth: list | None,
-           extra: dict[str, Any]) -> dict[str, Any]:
-    """Writes every vehicle's outputs and summary.json (last). Runs on the fusion thread or after
-    it stopped, so the maps hold still."""
-    # A summary from an earlier export must not vouch for files this one is replacing.
-    (out / "summary.json").unlink(missing_ok=True)
-    vehicles = {}
-    for vid, state in sorted(list(station.vehicles.items())):
-        where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
-        vehicles[str(vid)] = {"directory": str(where), **_vehicle_summary(state, where, truth)}
-    rejects = dataclasses.asdict(station.receiver.rejects)
-    rejects["too_many_vehicles"] = station.rejected_too_many_vehicles
-    rejects["handler_errors"] = station.handler_errors
-    summary = {
-        "kinfly_ground": __version__, "mode": mode, "duration_s": time.monotonic() - started,
-        "vehicles": vehicles, "rejected_messages": rejects, "memory": memory(),
-        "params": dataclasses.asdict(station.params), **extra,
-    }
-    write_json(out / "summary.json", summary)
-    return summary
-
-
-def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
-    print(f"kinfly-ground {summary['mode']}: {summary['duration_s']:.1f} s, outputs in {out}")
-    if not summary["vehicles"]:
-        print("  no keyframes were received")
-    for vid, v in summary["vehicles"].items():
-        k, lat = v["keyframes"], v["latency_ms"]
-        drone = v.get("drone_reported")
-        if drone is None:
-            print(f"  vehicle {vid}: no status heard from the drone")
-        else:
-            print(f"  vehicle {vid}: the drone sent {drone['keyframes_sent']} keyframes"
-                  f"{'' if drone['final'] else ' by its last status heard (not its final one)'}"
-                  f"; it dropped {drone['queue_drops']} of {drone['frames_captured']} frames "
-                  f"(odometry behind) and {drone['keyframes_dropped']} keyframes (link busy)")
-        print(f"    {k['keyframes_received']} keyframes received, {k['lost_on_link']} lost on "
-              f"the link, {k['keyframes_fused']} fused, {k['keyframes_lost']} not refined, "
-              f"{k['keyframes_dropped']} dropped from the queue, {k['corrections_sent']} "
-              "corrections sent")
-        print(f"    correction latency: median {_ms(lat['median'])} ms, p99 {_ms(lat['p99'])} ms")
-        a = v["ate"]
-        if a["available"]:
-            parts = [f"{n} {a[n]['rmse_m'] * 100:.2f} cm ({a[n]['matched_poses']} poses)"
-                     for n in ("onboard", "corrected") if n in a]
-            print("    ATE RMSE: " + ", ".join(parts))
-        else:
-            print(f"    ATE: {a['reason']}")
-        print(f"    files: {', '.join(str(Path(v['directory']) / f) for f in v['files'].values())}")
-    m = summary["memory"]
-    after = summary.get("memory_after_fusion")
-    print(f"  memory: {after['rss_mb']:.0f} MB resident after fusing, " if after else "  memory: ",
-          end="")
-    print(f"{m['rss_mb']:.0f} MB at exit, {m['peak_rss_mb']:.0f} MB peak")
-    if rrd is not None:
-        print(f"  rerun recording: {rrd} (open with: rerun {rrd})")
-    print(f"  summary: {out / 'summary.json'}")
-
-
 # --- run -------------------------------------------------------------------------------------
 
 def _mavlink(args: argparse.Namespace):
@@ -377,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     station = Station(params, viewer, vehicle_id=args.vehicle, signers=signers,
                       publish=lc.publish, forward=bridge.send_pose if bridge else None, log=log)
-    keyframes, others = channels_regex(args.vehicle)
+    keyframes, others = ground_subscriptions(args.vehicle)
     lc.subscribe(keyframes, station.on_message).set_queue_capacity(KEYFRAME_QUEUE_MESSAGES)
     lc.subscribe(others, station.on_message).set_queue_capacity(SMALL_QUEUE_MESSAGES)
 
@@ -410,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
         log(f"{station.queue_length()} keyframes still queued after {DRAIN_TIMEOUT_S:.0f} s: "
             "left out")
     station.stop()
-    _publish_status(lc, station, status_t.RUN_FINAL)
+    _publish_status(lc, station, ground_status_t.RUN_FINAL)
     extra = {}
     if bridge is not None:
         extra["mavlink"] = {"url": args.mavlink, **dataclasses.asdict(bridge.counters),
@@ -443,7 +307,7 @@ def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, sta
                                                           bridge.state.as_metrics())
         if now >= next_status:
             next_status = now + STATUS_PERIOD_S
-            _publish_status(lc, station, status_t.RUN_ACTIVE)
+            _publish_status(lc, station, ground_status_t.RUN_ACTIVE)
         if now >= next_progress:
             next_progress = now + PROGRESS_PERIOD_S
             _progress(station, now - started)
@@ -463,7 +327,7 @@ def _progress(station: Station, elapsed_s: float) -> None:
         log(f"[{elapsed_s:6.1f} s] vehicle {vid}: {c.keyframes_received} keyframes, "
             f"{c.lost_on_link} lost on the link, {c.keyframes_fused} fused, "
             f"{c.keyframes_lost} not refined, {c.keyframes_dropped} dropped; "
-            f"latency median {_ms(percentile(lat, 50))} ms (last 50); queue "
+            f"latency median {format_ms(percentile(lat, 50))} ms (last 50); queue "
             f"{station.queue_length()}; map {state.map_blocks} blocks")
 
 
@@ -532,10 +396,10 @@ def replay(args: argparse.Namespace) -> int:
                       inline=True, log=log)
     size = max(1, log_file.size())
     next_progress = started
-    keyframe_suffix = "_" + Channel.KEYFRAME.value
     keyframes = 0
     for event in log_file:
-        if event.channel.endswith(keyframe_suffix):
+        parsed = parse_channel(event.channel)
+        if parsed is not None and parsed[0] is Channel.KEYFRAME:
             keyframes += 1
         station.on_message(event.channel, event.data)
         now = time.monotonic()

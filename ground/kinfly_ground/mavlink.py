@@ -176,9 +176,8 @@ def local_pose(T_world_cam: np.ndarray, R_body_cam: np.ndarray) -> tuple[np.ndar
 
 def load_signing_key(path: str | os.PathLike[str]) -> bytes:
     """A 32-byte MAVLink 2 signing secret, under the same file rules as the kinfly uplink key
-    (signing.KeyFileError when the file is open to group/others or not 32 bytes)."""
-    # Imported here so this module does not need the lcm-generated `kinfly` package signing uses.
-    from .signing import load_key_file
+    (KeyFileError when the file is open to group/others or not 32 bytes)."""
+    from ._native import load_key_file  # the uplink key's rules (firmware/link/signing.cpp)
     return load_key_file(path)
 
 

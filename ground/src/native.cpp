@@ -1,4 +1,4 @@
-// kinfly_ground._native: the engine in shared/ for Python. Input arrays are read in place; a
+// kinfly_ground._native: the engine in shared/ and the link (native_link.cpp) for Python. Input arrays are read in place; a
 // decoded image is copied once out of the codec's reused buffer into the array handed over, and a
 // mesh's vectors are handed over without a copy. The heavy calls release the GIL, so the LCM
 // thread keeps receiving while a keyframe is fused.
@@ -16,10 +16,11 @@
 #include <utility>
 #include <vector>
 
+#include "arrays.h"
 #include "kinfly/core/camera.h"
 #include "kinfly/codec/depth_codec.h"
-#include "kinfly/pipeline/fusion_pipeline.h"
 #include "kinfly/mesh/incremental_mesher.h"
+#include "kinfly/pipeline/fusion_pipeline.h"
 #include "kinfly/mesh/mesh.h"
 #include "kinfly/volume/tsdf_volume.h"
 
@@ -27,13 +28,14 @@ namespace nb = nanobind;
 using kinfly::CodecResult;
 using kinfly::DepthCodec;
 using kinfly::DepthEncoding;
+using kinfly::native::DepthIn;
+using kinfly::native::DepthOut;
+using kinfly::native::matrixOf;
+using kinfly::native::poseOf;
+using kinfly::native::PoseIn;
 
 namespace {
 
-using DepthIn = nb::ndarray<const uint16_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
-using DepthOut = nb::ndarray<nb::numpy, uint16_t, nb::ndim<2>>;
-using PoseIn = nb::ndarray<const double, nb::shape<4, 4>, nb::c_contig, nb::device::cpu>;
-using PoseOut = nb::ndarray<nb::numpy, double, nb::shape<4, 4>>;
 using GrayOut = nb::ndarray<nb::numpy, uint8_t, nb::ndim<2>>;
 using Rows3f = nb::ndarray<nb::numpy, float, nb::ndim<2>>;
 using Rows3i = nb::ndarray<nb::numpy, int32_t, nb::ndim<2>>;
@@ -42,20 +44,6 @@ using Rows3i = nb::ndarray<nb::numpy, int32_t, nb::ndim<2>>;
 template <typename T>
 nb::capsule ownerOf(T* object) {
   return nb::capsule(object, [](void* p) noexcept { delete static_cast<T*>(p); });
-}
-
-kinfly::Pose poseOf(const PoseIn& T) {
-  kinfly::Pose pose = kinfly::Pose::Identity();
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 4; ++c) pose.matrix()(r, c) = T(r, c);
-  return kinfly::orthonormalized(pose);
-}
-
-PoseOut matrixOf(const kinfly::Pose& pose) {
-  auto* m = new double[16];
-  for (int r = 0; r < 4; ++r)
-    for (int c = 0; c < 4; ++c) m[4 * r + c] = pose.matrix()(r, c);
-  return PoseOut(m, {4, 4}, nb::capsule(m, [](void* p) noexcept { delete[] static_cast<double*>(p); }));
 }
 
 // Vector3f/Vector3i are three packed scalars, so a std::vector of them is an N x 3 array: a
@@ -202,7 +190,7 @@ class PyMapSnapshot {
 };
 
 struct RefineResult {
-  std::string status;  // "first", "ok", "lost", "given" (kinfly::toString(TrackingStatus))
+  kinfly::TrackingStatus status = kinfly::TrackingStatus::kLost;
   kinfly::Pose T_world_cam = kinfly::Pose::Identity();
   float inlier_fraction = 0.f;
   float rmse_m = 0.f;
@@ -212,8 +200,7 @@ struct RefineResult {
 };
 
 struct FusionParams {
-  int width = 0, height = 0;
-  float fx = 0, fy = 0, cx = 0, cy = 0;
+  kinfly::PinholeCamera camera;
   double depth_scale_m = 0;
   float voxel_size_m = 0.01f;
   float truncation_m = 0.f;  // 0: four voxels
@@ -225,7 +212,7 @@ class PyFusion {
  public:
   explicit PyFusion(const FusionParams& p) : threads_(p.threads) {
     if (p.threads < 1) throw nb::value_error("threads must be at least 1");
-    const kinfly::PinholeCamera camera{p.fx, p.fy, p.cx, p.cy, p.width, p.height};
+    const kinfly::PinholeCamera& camera = p.camera;
     if (const std::string why = camera.validate(); !why.empty()) throw nb::value_error(why.c_str());
     kinfly::HashedVolume::Params volume_params;
     volume_params.voxel_size_m = p.voxel_size_m;
@@ -249,7 +236,7 @@ class PyFusion {
       omp_set_num_threads(threads_);  // per calling thread: the worker, not the caller's others
       r = pipeline_->processFrameFromGuess(viewOf(depth), utime, guess);
     }
-    RefineResult out{kinfly::toString(r.status), r.T_world_cam};
+    RefineResult out{r.status, r.T_world_cam};
     out.inlier_fraction = r.inlier_fraction;
     out.rmse_m = r.rmse_m;
     out.valid_depth_fraction = r.valid_depth_fraction;
@@ -319,6 +306,11 @@ NB_MODULE(_native, m) {
   // Python does not promise to destroy every object before it exits (an uncaught exception's
   // traceback keeps the station alive), so nanobind's exit-time leak report would be noise.
   nb::set_leak_warnings(false);
+  kinfly::native::bindLink(m);
+  m.def("rotation_angle_rad",
+        [](PoseIn T) { return kinfly::rotationAngleRad(poseOf(T)); }, nb::arg("T"),
+        "Rotation angle of a 4x4 rigid transform in [0, pi] (se3.h's atan2 form: exact for small "
+        "angles, unlike acos of the trace)");
   const DepthCodec::Params defaults;
   nb::class_<PyDepthCodec>(m, "DepthCodec",
                            "Lossless depth codec (RVL family, docs/wire.md); keeps its buffers.")
@@ -344,7 +336,7 @@ NB_MODULE(_native, m) {
                    "blocks_remeshed, blocks_kept, collect_ms, mesh_ms; None before");
 
   nb::class_<RefineResult>(m, "RefineResult", "What refining one keyframe gave (FrameResult).")
-      .def_ro("status", &RefineResult::status, "first, ok, lost or given")
+      .def_ro("status", &RefineResult::status, "the engine's TrackingStatus")
       .def_prop_ro("T_world_cam", [](const RefineResult& r) { return matrixOf(r.T_world_cam); },
                    nb::rv_policy::move,
                    "4x4 camera-to-world; the last fused pose when lost")
@@ -363,13 +355,12 @@ NB_MODULE(_native, m) {
                        "A full-resolution map (hashed TSDF volume) of one vehicle and the pipeline "
                        "that refines keyframes against it and fuses them.")
       .def("__init__",
-           [](PyFusion* self, int width, int height, float fx, float fy, float cx, float cy,
-              double depth_scale_m, float voxel_size_m, float truncation_m, int threads) {
-             new (self) PyFusion(FusionParams{width, height, fx, fy, cx, cy, depth_scale_m,
-                                              voxel_size_m, truncation_m, threads});
+           [](PyFusion* self, const kinfly::PinholeCamera& camera, double depth_scale_m,
+              float voxel_size_m, float truncation_m, int threads) {
+             new (self) PyFusion(
+                 FusionParams{camera, depth_scale_m, voxel_size_m, truncation_m, threads});
            },
-           nb::arg("width"), nb::arg("height"), nb::arg("fx"), nb::arg("fy"), nb::arg("cx"),
-           nb::arg("cy"), nb::arg("depth_scale_m"), nb::kw_only(),
+           nb::arg("camera"), nb::arg("depth_scale_m"), nb::kw_only(),
            nb::arg("voxel_size_m") = fusion_defaults.voxel_size_m,
            nb::arg("truncation_m") = fusion_defaults.truncation_m,
            nb::arg("threads") = fusion_defaults.threads)

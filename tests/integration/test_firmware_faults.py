@@ -1,7 +1,7 @@
 """kinfly-fw under the faults of a real flight, the real binary each time: corrupt and empty
 frames, a sensor that stops delivering, odometry slower than the sensor, a ground station that
 goes away and comes back, a network that goes down; and, in steady state, no heap allocation per
-frame and no memory growth. Each fault is counted (summary line, status_t), logged, and the
+frame and no memory growth. Each fault is counted (summary line, drone_status_t), logged, and the
 program keeps flying."""
 from __future__ import annotations
 
@@ -19,7 +19,6 @@ from conftest import REPO_ROOT, built
 from demo import Watched
 from firmware_run import firmware, summary
 from kinfly import depth_keyframe_t
-from kinfly_ground.conversions import decode
 
 SAMPLE_FRAMES = 60
 VEHICLE = 7
@@ -68,9 +67,9 @@ def test_corrupt_and_empty_frames_are_counted_and_the_flight_goes_on(sample_log:
         if kind == "truncated":
             return event.data[: len(event.data) // 2], event.timestamp
         if kind == "empty":  # a well-formed frame without one valid pixel
-            m = decode(depth_keyframe_t, event.data)
+            m = depth_keyframe_t.decode(event.data)
             m.encoding = depth_keyframe_t.ENCODING_RAW16
-            m.payload = bytes(2 * m.width * m.height)
+            m.payload = bytes(2 * m.camera.width * m.camera.height)
             m.payload_size = len(m.payload)
             return m.encode(), event.timestamp
         return event.data, event.timestamp
@@ -94,7 +93,7 @@ def test_a_sensor_that_stops_delivering_is_reported_as_a_stall(sample_log: Path,
     def change(index: int, event: lcm.Event) -> tuple[bytes, int]:
         if index < SAMPLE_FRAMES // 2:
             return event.data, event.timestamp
-        m = decode(depth_keyframe_t, event.data)
+        m = depth_keyframe_t.decode(event.data)
         m.utime += gap_us
         return m.encode(), event.timestamp + gap_us
 

@@ -19,7 +19,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
 
 from kinfly_ground.mavlink import MavlinkBridge, MavlinkError, _RateLimiter, load_signing_key
-from kinfly_ground.signing import KeyFileError
+from kinfly_ground._native import KeyFileError
 
 AUTOPILOT_SYSTEM, AUTOPILOT_COMPONENT = 1, 1
 WAIT_S = 2.0  # loopback delivers in well under a millisecond; this only bounds a failing test

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from kinfly_ground._native import Fusion
+from kinfly_ground._native import Fusion, PinholeCamera, TrackingStatus
 from kinfly_ground.outputs import ate, read_tum
 
 WIDTH, HEIGHT = 640, 480
@@ -79,11 +79,9 @@ def _keyframes(frames, start: int = FIRST_FRAME, count: int = REFINED_FRAMES):
     return frames[start:start + FRAME_STEP * count:FRAME_STEP]
 
 
-def _fusion(**overrides) -> Fusion:
-    args = dict(width=WIDTH, height=HEIGHT, fx=FX, fy=FY, cx=CX, cy=CY,
-                depth_scale_m=DEPTH_SCALE_M)
-    args.update(overrides)
-    return Fusion(**args)
+def _fusion(fx: float = FX, **overrides) -> Fusion:
+    camera = PinholeCamera(width=WIDTH, height=HEIGHT, fx=fx, fy=FY, cx=CX, cy=CY)
+    return Fusion(camera, DEPTH_SCALE_M, **overrides)
 
 
 def _refine_all(fusion: Fusion, keyframes, guess: np.ndarray):
@@ -107,8 +105,8 @@ def test_refine_follows_the_ground_truth(frames, truth) -> None:
     fusion = _fusion()
     results = _refine_all(fusion, keyframes, T_first)
 
-    assert [r.status for r in results] == ["first"] + ["ok"] * (len(keyframes) - 1), \
-        [(r.status, r.lost_reason) for r in results]
+    expected = [TrackingStatus.FIRST_FRAME] + [TrackingStatus.OK] * (len(keyframes) - 1)
+    assert [r.status for r in results] == expected, [(r.status, r.lost_reason) for r in results]
     first = results[0].T_world_cam
     assert np.array_equal(first[:3, 3], T_first[:3, 3])
     assert np.allclose(first, T_first, rtol=0, atol=ORTHONORMAL_TOLERANCE)
@@ -120,7 +118,7 @@ def test_refine_follows_the_ground_truth(frames, truth) -> None:
         assert np.linalg.det(R) == pytest.approx(1.0, abs=ORTHONORMAL_TOLERANCE)
         assert np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0])
         assert np.isfinite(T).all()
-        assert 0.0 < r.inlier_fraction <= 1.0 or r.status == "first"
+        assert 0.0 < r.inlier_fraction <= 1.0 or r.status is TrackingStatus.FIRST_FRAME
         assert r.total_ms > 0.0
 
     estimate = [(utime, r.T_world_cam) for (utime, _), r in zip(keyframes, results)]
@@ -168,7 +166,7 @@ def test_snapshot_mesh_is_well_formed_and_independent(frames) -> None:
     # More frames grow the map but not the copy.
     blocks_before = fusion.num_blocks
     later = _keyframes(frames, start=FIRST_FRAME + 3 * FRAME_STEP, count=4)
-    assert [r.status for r in _refine_all(fusion, later, guess)] == ["ok"] * len(later)
+    assert [r.status for r in _refine_all(fusion, later, guess)] == [TrackingStatus.OK] * len(later)
     assert fusion.num_blocks > blocks_before
     again, _, _ = snapshot.mesh()
     assert snapshot.num_blocks == blocks_before
@@ -274,13 +272,13 @@ def test_a_frame_without_depth_is_lost_and_leaves_the_map(frames) -> None:
 
     empty = np.zeros((HEIGHT, WIDTH), dtype=np.uint16)
     result = fusion.refine(empty, keyframes[1][0] + 33_000, last)
-    assert result.status == "lost"
+    assert result.status is TrackingStatus.LOST
     assert "valid depth" in result.lost_reason
     assert result.valid_depth_fraction == 0.0
     assert np.array_equal(result.T_world_cam, last)
     assert fusion.num_blocks == blocks
     # The map is intact: the next real keyframe still refines.
-    assert fusion.refine(keyframes[2][1], keyframes[2][0], last).status == "ok"
+    assert fusion.refine(keyframes[2][1], keyframes[2][0], last).status is TrackingStatus.OK
 
 
 def test_a_lost_frame_reports_the_last_fused_pose_not_the_guess(frames) -> None:
@@ -289,7 +287,7 @@ def test_a_lost_frame_reports_the_last_fused_pose_not_the_guess(frames) -> None:
     guess = last.copy()
     guess[0, 3] += 0.03
     result = fusion.refine(np.zeros((HEIGHT, WIDTH), dtype=np.uint16), 1, guess)
-    assert result.status == "lost"
+    assert result.status is TrackingStatus.LOST
     assert np.array_equal(result.T_world_cam, last)
 
 

@@ -16,14 +16,14 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from kinfly import depth_keyframe_t, odometry_t, pose_correction_t, pose_t, signed_t, status_t
-from kinfly_ground._native import DepthCodec
-from kinfly_ground.channels import Channel, channel_name
-from kinfly_ground.conversions import decode, matrix_to_pose, pose_to_matrix
+from kinfly import (depth_keyframe_t, drone_status_t, ground_status_t, ground_truth_t,
+                    odometry_t, pose3d_t, pose_correction_t, signed_t)
+from kinfly_ground._native import (Channel, CorrectionReceiver, DepthCodec, Signer, channel_name,
+                                   key_id)
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
                                    write_atomically, write_tum)
-from kinfly_ground.signing import Signer, compute_mac, key_id_of
-from kinfly_ground.station import Station, StationParams, truth_anchor
+from kinfly_ground.mapping import truth_anchor
+from kinfly_ground.station import Station, StationParams
 from kinfly_ground.viewer import Viewer
 
 VEHICLE = 7
@@ -78,15 +78,30 @@ def sample(sample_dir: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
     return frames
 
 
+def pose3d(T: np.ndarray) -> pose3d_t:
+    """A message's pose of a 4x4 T_world_cam (written here, not by the code under test)."""
+    pose = pose3d_t()
+    pose.position_m = [float(v) for v in T[:3, 3]]
+    pose.orientation_xyzw = [float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat()]
+    return pose
+
+
+def pose_to_matrix(position_m, orientation_xyzw) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(orientation_xyzw).as_matrix()  # scipy's order is (x, y, z, w)
+    T[:3, 3] = position_m
+    return T
+
+
 def keyframe(utime: int, depth: np.ndarray, keyframe_id: int, T_onboard: np.ndarray, *,
              vehicle: int = VEHICLE, fx: float = FX,
              tracking: int = odometry_t.TRACKING_OK) -> depth_keyframe_t:
     m = depth_keyframe_t()
     m.utime, m.vehicle_id, m.frame_id, m.keyframe_id = utime, vehicle, 3 * keyframe_id, keyframe_id
-    m.height, m.width = depth.shape
-    m.fx, m.fy, m.cx, m.cy = fx, FY, CX, CY
+    m.camera.height, m.camera.width = depth.shape
+    m.camera.fx, m.camera.fy, m.camera.cx, m.camera.cy = fx, FY, CX, CY
     m.depth_scale_m = DEPTH_SCALE_M
-    m.position_m, m.orientation_xyzw = matrix_to_pose(T_onboard)
+    m.T_world_cam = pose3d(T_onboard)
     m.tracking_status = tracking
     m.encoding = depth_keyframe_t.ENCODING_PALETTE_RVL_ZSTD
     m.payload = CODEC.encode(depth)
@@ -131,20 +146,21 @@ class Rig:
         self.station.on_message(channel_name(Channel.KEYFRAME, vehicle), data)
 
     def corrections(self, vehicle: int = VEHICLE) -> list[pose_correction_t]:
-        """The corrections published for VEHICLE, each one's envelope and MAC checked."""
+        """The corrections published for VEHICLE, each one accepted by the drone's own
+        receiver (key, MAC, time, sequence)."""
         out = []
         channel = channel_name(Channel.CORRECTION, vehicle)
         sequences = []
+        drone = CorrectionReceiver(KEYS[vehicle], vehicle)
         for published_on, data in self.published:
             if published_on != channel:
                 continue
-            envelope = decode(signed_t, data)
+            envelope = signed_t.decode(data)
             assert envelope.vehicle_id == vehicle
-            assert envelope.key_id == key_id_of(KEYS[vehicle])
-            assert envelope.mac == compute_mac(KEYS[vehicle], vehicle, envelope.sequence,
-                                               envelope.utime, envelope.payload)
+            assert envelope.key_id & 0xFFFFFFFF == key_id(KEYS[vehicle])
+            assert drone.receive(data, time.time_ns() // 1000) is not None
             sequences.append(envelope.sequence)
-            correction = decode(pose_correction_t, envelope.payload)
+            correction = pose_correction_t.decode(envelope.payload)
             assert correction.vehicle_id == vehicle
             out.append(correction)
         assert sequences == list(range(FIRST_SEQUENCE, FIRST_SEQUENCE + len(sequences)))
@@ -155,7 +171,8 @@ class Rig:
 
 
 def corrected_pose(correction: pose_correction_t) -> np.ndarray:
-    return pose_to_matrix(correction.position_m, correction.orientation_xyzw)
+    pose = correction.T_world_cam
+    return pose_to_matrix(pose.position_m, pose.orientation_xyzw)
 
 
 def assert_near(T: np.ndarray, T_truth: np.ndarray) -> None:
@@ -280,7 +297,8 @@ def test_a_keyframe_without_an_onboard_pose_is_refined_from_the_last_corrected(s
     keyframes = flight(sample, 3)
     message, T_truth = keyframes[2]
     message.tracking_status = odometry_t.TRACKING_NONE
-    message.position_m, message.orientation_xyzw = [0.0] * 3, [0.0] * 4
+    message.T_world_cam.position_m = [0.0] * 3
+    message.T_world_cam.orientation_xyzw = [0.0] * 4
     rig = Rig()
     for m, _ in keyframes:
         rig.send(m)
@@ -298,7 +316,7 @@ def test_malformed_keyframes_are_counted_and_dropped(sample) -> None:
         "empty": b"",
         "truncated": data[:-100],
         "garbage": np.random.default_rng(SEED).bytes(len(data)),
-        "wrong fingerprint": status_t().encode()[:8] + data[8:],
+        "wrong fingerprint": drone_status_t().encode()[:8] + data[8:],
         "undecodable payload": undecodable.encode(),
     }
     rig = Rig()
@@ -370,21 +388,20 @@ def test_ground_status_mirrors_the_counters_and_the_link(sample) -> None:
     keyframes = [m for m, _ in flight(sample, 3)]
     rig = Rig()
     station = rig.station
-    truth = pose_t()
+    truth = ground_truth_t()
     truth.utime, truth.vehicle_id = keyframes[0].utime, VEHICLE
-    truth.position_m, truth.orientation_xyzw = [0.0] * 3, [0.0, 0.0, 0.0, 1.0]
+    truth.T_world_cam = pose3d(np.eye(4))
     station.on_message(channel_name(Channel.GROUND_TRUTH, VEHICLE), truth.encode())
     state = rig.state()  # known from its ground truth, not yet heard from
 
     s = station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
-    assert (s.source, s.vehicle_id, s.link_state) == (status_t.SOURCE_GROUND, VEHICLE,
-                                                      status_t.LINK_UNKNOWN)
+    assert (s.vehicle_id, s.link_state) == (VEHICLE, ground_status_t.LINK_UNKNOWN)
     assert s.tracking_state == odometry_t.TRACKING_NONE
-    assert s.frames_captured == s.keyframes_sent == 0
+    assert s.keyframes_received == s.corrections_sent == 0
 
     rig.send(keyframes[0])
     s = station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
-    assert s.link_state == status_t.LINK_UP
+    assert s.link_state == ground_status_t.LINK_UP
     rig.send(keyframes[1])
     rig.send(keyframes[1])                                  # duplicate
     rig.send_bytes(keyframes[2].encode()[:-1])              # malformed
@@ -392,19 +409,19 @@ def test_ground_status_mirrors_the_counters_and_the_link(sample) -> None:
     rig.send(empty)                                         # no depth: lost
 
     now = time.monotonic()
-    s = decode(status_t, station.ground_status(state, now, LINK_TIMEOUT_S).encode())
+    s = ground_status_t.decode(station.ground_status(state, now, LINK_TIMEOUT_S).encode())
     c = state.counters
     assert (c.keyframes_received, c.keyframes_fused, c.keyframes_lost) == (3, 2, 1)
-    assert s.source == status_t.SOURCE_GROUND and s.link_state == status_t.LINK_UP
-    assert s.frames_captured == c.keyframes_received
-    assert s.keyframes_sent == s.corrections_accepted == c.corrections_sent == 2
-    assert s.frames_lost == c.keyframes_lost
-    assert s.frames_skipped == c.duplicates + c.out_of_order == 1
-    assert s.queue_drops == c.keyframes_dropped == 0
+    assert s.link_state == ground_status_t.LINK_UP
+    assert s.keyframes_received == c.keyframes_received
+    assert s.corrections_sent == c.corrections_sent == 2
+    assert s.keyframes_lost == c.keyframes_lost
+    assert s.keyframes_skipped == c.duplicates + c.out_of_order == 1
+    assert s.keyframes_dropped == c.keyframes_dropped == 0
     assert s.rejected_malformed == station.receiver.rejects.malformed == 1
     assert s.tracking_state == odometry_t.TRACKING_LOST
     stale = station.ground_status(state, now + LINK_TIMEOUT_S + 1.0, LINK_TIMEOUT_S)
-    assert stale.link_state == status_t.LINK_STALE
+    assert stale.link_state == ground_status_t.LINK_STALE
 
 
 # --- several vehicles -----------------------------------------------------------------------
@@ -528,7 +545,7 @@ def test_a_keyframe_the_engine_refuses_is_counted_and_fusion_goes_on(sample, inl
     the image) must not stop the station: counted, logged, and the next keyframes are fused."""
     keyframes = flight(sample, 3)
     bad = keyframes[0][0]
-    bad.cx = -1.0
+    bad.camera.cx = -1.0
     rig = Rig(inline=inline)
     for m, _ in keyframes:
         rig.send(m)
@@ -560,7 +577,7 @@ def test_forwarded_odometry_is_corrected_once(sample) -> None:
 
     odometry = odometry_t()
     odometry.utime, odometry.vehicle_id, odometry.frame_id = message.utime + 33_333, VEHICLE, 99
-    odometry.position_m, odometry.orientation_xyzw = matrix_to_pose(T_drifted)
+    odometry.T_world_cam = pose3d(T_drifted)
     odometry.tracking_status, odometry.inlier_fraction = odometry_t.TRACKING_OK, 0.8
     odometry.reset_counter = 5
     channel = channel_name(Channel.ODOMETRY, VEHICLE)
@@ -570,8 +587,8 @@ def test_forwarded_odometry_is_corrected_once(sample) -> None:
     assert_near(T, T_truth)  # the drift taken out
     assert reset_counter == station.vehicles[VEHICLE].reset_counter
 
-    status = status_t()
-    status.utime, status.vehicle_id, status.source = 1, VEHICLE, status_t.SOURCE_DRONE
+    status = drone_status_t()
+    status.utime, status.vehicle_id = 1, VEHICLE
     status.corrections_accepted = 1
     station.on_message(channel_name(Channel.STATUS, VEHICLE), status.encode())
     station.on_message(channel, odometry.encode())
@@ -598,9 +615,9 @@ def test_ground_truth_is_anchored_at_the_first_keyframe_it_covers() -> None:
 
 
 def drone_status(keyframes_sent: int, last_keyframe_id: int,
-                 run_state: int = status_t.RUN_ACTIVE) -> bytes:
-    s = status_t()
-    s.vehicle_id, s.source, s.run_state = VEHICLE, status_t.SOURCE_DRONE, run_state
+                 run_state: int = drone_status_t.RUN_ACTIVE) -> bytes:
+    s = drone_status_t()
+    s.vehicle_id, s.run_state = VEHICLE, run_state
     s.keyframes_sent, s.last_keyframe_id = keyframes_sent, last_keyframe_id
     return s.encode()
 
@@ -621,18 +638,18 @@ def test_keyframes_lost_on_the_link_are_counted_from_the_drones_status(sample) -
     # Its status after keyframe 6: 7 sent (ids 0..6); 7 was not covered yet.
     rig.station.on_message(status_channel, drone_status(7, 6))
     assert state.counters.lost_on_link == 2
-    rig.station.on_message(status_channel, drone_status(8, 7, status_t.RUN_FINAL))
+    rig.station.on_message(status_channel, drone_status(8, 7, drone_status_t.RUN_FINAL))
     assert state.counters.lost_on_link == 2
     assert any("the drone stopped: it sent 8 keyframes" in line for line in rig.logs)
     ground = rig.station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
-    assert ground.last_keyframe_id == 7 and ground.run_state == status_t.RUN_ACTIVE
+    assert ground.last_keyframe_id == 7 and ground.run_state == ground_status_t.RUN_ACTIVE
 
     # The drone restarts: its statuses count from zero until its first keyframe is here.
     rig.station.on_message(status_channel, drone_status(0, -1))
     assert state.counters.lost_on_link == 2 and state.drone_status.keyframes_sent == 8
     for message, _ in flight(sample, 3):
         rig.send(message)
-    rig.station.on_message(status_channel, drone_status(4, 3, status_t.RUN_FINAL))
+    rig.station.on_message(status_channel, drone_status(4, 3, drone_status_t.RUN_FINAL))
     assert state.counters.drone_restarts == 1
     assert state.counters.lost_on_link == 2 + 1  # keyframe 3 of the second flight
     ground = rig.station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)

@@ -1,7 +1,7 @@
 """Two processes talking LCM over UDP multicast in a private network namespace: keyframes from the
 drone end arrive complete and bit-exact at the ground end, and signed corrections from the
 Python ground station are accepted by the C++ drone end while one of every bad kind is rejected
-and counted, as its status_t reports."""
+and counted, as its drone_status_t reports."""
 from __future__ import annotations
 
 import json
@@ -63,7 +63,7 @@ def test_signed_corrections_accepted_and_each_bad_kind_counted(
         drone.kill()
     assert drone.returncode == 0, drone_err
 
-    # What the drone says in its status_t, decoded by Python ...
+    # What the drone says in its drone_status_t, decoded by Python ...
     status = json.loads(probe.stdout)
     assert status["corrections_accepted"] == good
     for kind in ("unsigned", "bad_mac", "wrong_key", "stale", "replayed", "malformed",

@@ -33,7 +33,7 @@ from firmware_run import read_tum
 
 GROUND_PROBE = REPO_ROOT / "tests" / "tools" / "ground_probe.py"
 VEHICLE = 1
-# status_t.SENSOR_* (proto/kinfly/status_t.lcm)
+# drone_status_t.SENSOR_* (proto/kinfly/drone_status_t.lcm)
 SENSOR_STREAMING, SENSOR_WAITING = 0, 1
 # The TUM sample's camera (freiburg3), as the log replay uses it.
 TUM_INTRINSICS = "535.4,539.2,320.1,247.6"
@@ -100,7 +100,7 @@ def statuses(netns: list[str], seconds: float) -> list[dict]:
     probe = subprocess.run([*netns, sys.executable, GROUND_PROBE, "watch", "--vehicle",
                             str(VEHICLE), "--seconds", str(seconds)],
                            capture_output=True, text=True, timeout=seconds + 30)
-    assert probe.returncode == 0, "no status_t from kinfly-fw: " + probe.stderr
+    assert probe.returncode == 0, "no drone_status_t from kinfly-fw: " + probe.stderr
     return json.loads(probe.stdout)
 
 

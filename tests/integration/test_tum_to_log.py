@@ -12,10 +12,8 @@ import pytest
 from PIL import Image
 
 from conftest import built
-from kinfly import depth_keyframe_t, odometry_t, pose_t
-from kinfly_ground._native import DepthCodec
-from kinfly_ground.channels import Channel, channel_name
-from kinfly_ground.conversions import decode
+from kinfly import depth_keyframe_t, ground_truth_t, odometry_t
+from kinfly_ground._native import Channel, DepthCodec, channel_name
 
 VEHICLE = 3
 
@@ -47,12 +45,13 @@ def test_every_depth_frame_is_in_the_log_bit_exact(converted: Path, sample_dir: 
     assert len(depth_events) == len(frames)
     codec = DepthCodec()
     for i, (event, (t, name)) in enumerate(zip(depth_events, frames)):
-        message = decode(depth_keyframe_t, event.data)
+        message = depth_keyframe_t.decode(event.data)
         assert message.utime == event.timestamp == round(t * 1e6)
         assert (message.vehicle_id, message.frame_id, message.keyframe_id) == (VEHICLE, i, -1)
         assert message.tracking_status == odometry_t.TRACKING_NONE
         assert message.depth_scale_m == pytest.approx(1 / 5000)
-        depth = codec.decode(message.payload, message.encoding, message.width, message.height)
+        depth = codec.decode(message.payload, message.encoding, message.camera.width,
+                             message.camera.height)
         png = np.asarray(Image.open(sample_dir / name))
         assert np.array_equal(depth, png), f"frame {i} ({name})"
 
@@ -60,7 +59,7 @@ def test_every_depth_frame_is_in_the_log_bit_exact(converted: Path, sample_dir: 
 def test_ground_truth_is_on_its_own_channel(converted: Path, sample_dir: Path) -> None:
     frames = read_list(sample_dir / "depth.txt")
     truth_channel = channel_name(Channel.GROUND_TRUTH, VEHICLE)
-    poses = [decode(pose_t, e.data) for e in lcm.EventLog(str(converted), "r")
+    poses = [ground_truth_t.decode(e.data) for e in lcm.EventLog(str(converted), "r")
              if e.channel == truth_channel]
     assert poses
     # Ground truth outside the frames' span (plus the tool's 1 s margin) is left out.
@@ -69,11 +68,11 @@ def test_ground_truth_is_on_its_own_channel(converted: Path, sample_dir: Path) -
     first_truth = next(r for r in read_list(sample_dir / "groundtruth.txt")
                        if r[0] >= frames[0][0] - 1.0)
     values = np.array(first_truth[1].split(), dtype=float)
-    assert list(poses[0].position_m) == pytest.approx(values[:3], abs=1e-9)
+    assert list(poses[0].T_world_cam.position_m) == pytest.approx(values[:3], abs=1e-9)
     # TUM writes 4 decimals, so the file's quaternion is unit only to ~1e-4; the log's is
     # normalised (and q and -q are the same rotation).
     q = values[3:] / np.linalg.norm(values[3:])
-    got = np.array(poses[0].orientation_xyzw)
+    got = np.array(poses[0].T_world_cam.orientation_xyzw)
     assert min(np.abs(got - q).max(), np.abs(got + q).max()) < 1e-9
 
 

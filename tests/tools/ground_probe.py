@@ -7,7 +7,7 @@ roles:
         up; with --key, first one signed correction of KEYFRAME (a fresh Signer, as a
         restarted ground station has).
     ground_probe.py watch [--seconds S] [--until-sensor STATE:CONNECTS]
-        records the drone's status_t for S seconds (without --seconds: until SIGTERM, or until
+        records the drone's drone_status_t for S seconds (without --seconds: until SIGTERM, or until
         a status reports that sensor_state and sensor_connects) and prints one JSON list, each
         status with every field and t_s, the seconds since the watch began; exit 1 if none was
         heard. It says "watching" on stderr once it listens.
@@ -23,11 +23,9 @@ import time
 
 import lcm
 
-from kinfly import status_t
-from kinfly_ground import signing
-from kinfly_ground.channels import Channel, channel_name
-from kinfly_ground.conversions import decode
-from uplink_probe import correction
+from kinfly import drone_status_t, ground_status_t
+from kinfly_ground._native import Channel, Signer, channel_name, load_key_file
+from uplink_probe import signed
 
 STATUS_PERIOD_S = 0.1
 DRAIN_S = 0.2  # after a stop: what LCM had taken in by then is handled within this
@@ -35,11 +33,10 @@ DRAIN_S = 0.2  # after a stop: what LCM had taken in by then is handled within t
 
 def beacon(lc: lcm.LCM, vehicle: int, seconds: float, key: str | None, keyframe: int) -> None:
     if key is not None:
-        signer = signing.Signer(signing.load_key_file(key), vehicle)
-        lc.publish(channel_name(Channel.CORRECTION, vehicle),
-                   signer.sign(correction(vehicle, keyframe)).encode())
-    status = status_t()
-    status.vehicle_id, status.source = vehicle, status_t.SOURCE_GROUND
+        signer = Signer(load_key_file(key), vehicle)
+        lc.publish(channel_name(Channel.CORRECTION, vehicle), signed(signer, keyframe))
+    status = ground_status_t()
+    status.vehicle_id, status.last_keyframe_id = vehicle, -1
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         status.utime = time.time_ns() // 1000
@@ -55,9 +52,9 @@ def watch(lc: lcm.LCM, vehicle: int, seconds: float | None,
     signal.signal(signal.SIGTERM, lambda *_: stopping.append(True))
 
     def on_status(_channel: str, data: bytes) -> None:
-        s = decode(status_t, data)
+        s = drone_status_t.decode(data)
         timeline.append({"t_s": round(time.monotonic() - start, 3),
-                         **{field: getattr(s, field) for field in status_t.__slots__}})
+                         **{field: getattr(s, field) for field in drone_status_t.__slots__}})
         if (s.sensor_state, s.sensor_connects) == until_sensor:
             stopping.append(True)
 

@@ -1,6 +1,6 @@
 """The ground's side of the signed-uplink test (tests/integration/test_link_netns.py), run in
 the test's network namespace: waits for the drone's status, sends good corrections and one of
-every kind of bad message, then prints the drone's last status_t counters as one JSON object."""
+every kind of bad message, then prints the drone's last drone_status_t counters as one JSON object."""
 from __future__ import annotations
 
 import argparse
@@ -11,20 +11,32 @@ import time
 
 import lcm
 
-from kinfly import pose_correction_t, status_t
-from kinfly_ground import signing
-from kinfly_ground.channels import Channel, channel_name
-from kinfly_ground.conversions import decode
+import numpy as np
+
+from kinfly import drone_status_t, pose_correction_t, signed_t
+from kinfly_ground._native import Channel, Signer, channel_name, load_key_file
 
 STALE_BY_S = 10.0  # well outside the drone's default 2 s window
 
 
-def correction(vehicle_id: int, keyframe_id: int) -> bytes:
+POSE = np.eye(4)
+POSE[:3, 3] = [0.1, 0.2, 0.3]
+
+
+def unsigned_correction(vehicle_id: int, keyframe_id: int) -> bytes:
     m = pose_correction_t()
     m.utime = time.time_ns() // 1000
     m.vehicle_id, m.keyframe_id = vehicle_id, keyframe_id
-    m.position_m, m.orientation_xyzw, m.reset_counter = [0.1, 0.2, 0.3], [0.0, 0.0, 0.0, 1.0], 0
+    m.T_world_cam.position_m = [0.1, 0.2, 0.3]
+    m.T_world_cam.orientation_xyzw = [0.0, 0.0, 0.0, 1.0]
+    m.reset_counter = 0
     return m.encode()
+
+
+def signed(signer: Signer, keyframe_id: int, utime_now: int | None = None) -> bytes:
+    """The signed correction of KEYFRAME_ID (to POSE), as the ground station sends it."""
+    return signer.sign_correction(keyframe_id, time.time_ns() // 1000, POSE, 0,
+                                  utime_now=utime_now)
 
 
 def main() -> int:
@@ -42,9 +54,9 @@ def main() -> int:
     args = parser.parse_args()
 
     lc = lcm.LCM()
-    statuses: list[status_t] = []
+    statuses: list[drone_status_t] = []
     lc.subscribe(channel_name(Channel.STATUS, args.vehicle),
-                 lambda _channel, data: statuses.append(decode(status_t, data)))
+                 lambda _channel, data: statuses.append(drone_status_t.decode(data)))
 
     def pump_until(done, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -59,39 +71,36 @@ def main() -> int:
         print("uplink_probe: no status from the drone, or too few keyframes", file=sys.stderr)
         return 1
 
-    key = signing.load_key_file(args.key)
-    signer = signing.Signer(key, args.vehicle)
+    key = load_key_file(args.key)
+    signer = Signer(key, args.vehicle)
     channel = channel_name(Channel.CORRECTION, args.vehicle)
-    good = [signer.sign(correction(args.vehicle, i)).encode() for i in range(args.good)]
+    good = [signed(signer, i) for i in range(args.good)]
     for envelope in good:
         lc.publish(channel, envelope)
         time.sleep(0.01)
 
-    bad_mac = signer.sign(correction(args.vehicle, 100))
+    bad_mac = signed_t.decode(signed(signer, 100))
     bad_mac.mac = bytes([bad_mac.mac[0] ^ 1]) + bad_mac.mac[1:]
     now_us = time.time_ns() // 1000
     bad = [
-        correction(args.vehicle, 101),                                            # unsigned
+        unsigned_correction(args.vehicle, 101),                                   # unsigned
         bad_mac.encode(),                                                         # bad MAC
-        signing.Signer(signing.load_key_file(args.other_key), args.vehicle)
-        .sign(correction(args.vehicle, 102)).encode(),                            # wrong key
-        signer.sign(correction(args.vehicle, 103),
-                    now_us - int(STALE_BY_S * 1e6)).encode(),                     # stale
+        signed(Signer(load_key_file(args.other_key), args.vehicle), 102),         # wrong key
+        signed(signer, 103, now_us - int(STALE_BY_S * 1e6)),                      # stale
         good[-1],                                                                 # replayed
-        signer.sign(correction(args.vehicle, 104)).encode()[:-3],                 # malformed
-        signing.Signer(key, args.vehicle + 1)
-        .sign(correction(args.vehicle + 1, 105)).encode(),                        # wrong vehicle
+        signed(signer, 104)[:-3],                                                 # malformed
+        signed(Signer(key, args.vehicle + 1), 105),                               # wrong vehicle
     ]
     for message in bad:
         lc.publish(channel, message)
         time.sleep(0.01)
-    lc.publish(f"KINFLY_{args.vehicle}_NO_SUCH_CHANNEL", correction(args.vehicle, 106))
+    lc.publish(f"KINFLY_{args.vehicle}_NO_SUCH_CHANNEL", unsigned_correction(args.vehicle, 106))
     if args.unknown_keyframe:
-        lc.publish(channel, signer.sign(correction(args.vehicle, 10**9)).encode())
+        lc.publish(channel, signed(signer, 10**9))
 
     expected_total = args.good + len(bad) + 1 + int(args.unknown_keyframe)
 
-    def counted(s: status_t) -> int:
+    def counted(s: drone_status_t) -> int:
         return (s.corrections_accepted + s.rejected_unsigned + s.rejected_wrong_key
                 + s.rejected_bad_mac + s.rejected_stale + s.rejected_replayed
                 + s.rejected_malformed + s.rejected_unknown_channel + s.rejected_wrong_vehicle
@@ -99,7 +108,7 @@ def main() -> int:
 
     pump_until(lambda: counted(statuses[-1]) >= expected_total, args.timeout)
     last = statuses[-1]
-    print(json.dumps({field: getattr(last, field) for field in status_t.__slots__
+    print(json.dumps({field: getattr(last, field) for field in drone_status_t.__slots__
                       if field.startswith(("rejected_", "corrections_"))}))
     return 0
 

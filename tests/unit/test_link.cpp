@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "kinfly/link/channels.h"
+#include "kinfly/link/conversions.h"
 #include "kinfly/link/decode.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
@@ -32,12 +33,12 @@ std::vector<uint8_t> encode(const T& message) {
   return bytes;
 }
 
-void setIdentityPose(double position_m[3], double orientation_xyzw[4]) {
-  position_m[0] = 0.5;
-  position_m[1] = -0.25;
-  position_m[2] = 1.0;
-  orientation_xyzw[0] = orientation_xyzw[1] = orientation_xyzw[2] = 0.0;
-  orientation_xyzw[3] = 1.0;
+void setIdentityPose(pose3d_t* pose) {
+  pose->position_m[0] = 0.5;
+  pose->position_m[1] = -0.25;
+  pose->position_m[2] = 1.0;
+  pose->orientation_xyzw[0] = pose->orientation_xyzw[1] = pose->orientation_xyzw[2] = 0.0;
+  pose->orientation_xyzw[3] = 1.0;
 }
 
 depth_keyframe_t sampleKeyframe(int payload_bytes) {
@@ -46,14 +47,14 @@ depth_keyframe_t sampleKeyframe(int payload_bytes) {
   m.vehicle_id = kVehicle;
   m.frame_id = 42;
   m.keyframe_id = 3;
-  m.width = 640;
-  m.height = 480;
-  m.fx = 535.4f;
-  m.fy = 539.2f;
-  m.cx = 320.1f;
-  m.cy = 247.6f;
+  m.camera.width = 640;
+  m.camera.height = 480;
+  m.camera.fx = 535.4f;
+  m.camera.fy = 539.2f;
+  m.camera.cx = 320.1f;
+  m.camera.cy = 247.6f;
   m.depth_scale_m = 1.0 / 5000.0;
-  setIdentityPose(m.position_m, m.orientation_xyzw);
+  setIdentityPose(&m.T_world_cam);
   m.tracking_status = odometry_t::TRACKING_OK;
   m.encoding = depth_keyframe_t::ENCODING_RVL;
   m.payload.resize(static_cast<size_t>(payload_bytes));
@@ -67,7 +68,7 @@ pose_correction_t sampleCorrection(int64_t keyframe_id) {
   m.utime = kNow - kSecond / 2;
   m.vehicle_id = kVehicle;
   m.keyframe_id = keyframe_id;
-  setIdentityPose(m.position_m, m.orientation_xyzw);
+  setIdentityPose(&m.T_world_cam);
   m.reset_counter = 0;
   return m;
 }
@@ -120,6 +121,48 @@ void expectTrailingPayloadLayout(T message) {
   EXPECT_EQ(bytes[fixed - 1], 13);
   EXPECT_EQ(bytes[fixed - 4] | bytes[fixed - 3] | bytes[fixed - 2], 0);
   EXPECT_EQ(bytes.back(), 0xAB);
+}
+
+TEST(Channels, GroundSubscriptionsKeepKeyframesApart) {
+  const Subscriptions one = groundSubscriptions(7);
+  EXPECT_EQ(one.keyframes, "KINFLY_7_KEYFRAME");
+  EXPECT_EQ(one.others, "KINFLY_7_(?!KEYFRAME$).*");
+  const Subscriptions every = groundSubscriptions(std::nullopt);
+  EXPECT_EQ(every.keyframes, "KINFLY_[0-9]+_KEYFRAME");
+  EXPECT_EQ(every.others, "KINFLY_[0-9]+_(?!KEYFRAME$).*");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Conversions
+
+TEST(Conversions, PosesRoundTripWithNonNegativeW) {
+  // A rotation of 200 degrees: Eigen's quaternion of it may come out with w < 0.
+  Pose T = Pose::Identity();
+  T.linear() = Eigen::AngleAxisd(200.0 * M_PI / 180.0, Eigen::Vector3d(1, 2, 3).normalized())
+                   .toRotationMatrix();
+  T.translation() = Eigen::Vector3d(1.5, -2.0, 0.25);
+  pose3d_t message;
+  writePose(T, &message);
+  EXPECT_GE(message.orientation_xyzw[3], 0.0);
+  EXPECT_TRUE(readPose(message).isApprox(T, 1e-12));
+}
+
+TEST(Conversions, TrackingCodesRoundTrip) {
+  for (TrackingStatus status : {TrackingStatus::kFirstFrame, TrackingStatus::kOk,
+                                TrackingStatus::kLost, TrackingStatus::kGivenPose})
+    EXPECT_EQ(trackingOf(trackingCode(status)), status);
+  EXPECT_EQ(trackingCode(std::nullopt), odometry_t::TRACKING_NONE);
+  EXPECT_EQ(trackingOf(odometry_t::TRACKING_NONE), std::nullopt);
+  EXPECT_EQ(trackingOf(17), std::nullopt);
+}
+
+TEST(Conversions, CameraRoundTrips) {
+  const PinholeCamera camera{525.f, 526.f, 319.5f, 239.5f, 640, 480};
+  const PinholeCamera back = cameraOf(cameraMessage(camera));
+  EXPECT_EQ(back.fx, camera.fx);
+  EXPECT_EQ(back.cy, camera.cy);
+  EXPECT_EQ(back.width, camera.width);
+  EXPECT_EQ(back.height, camera.height);
 }
 
 TEST(Decode, PayloadSizeIsTheLastFixedField) {
@@ -192,13 +235,13 @@ TEST(Decode, ImpossibleFieldsAreRejected) {
     EXPECT_FALSE(r.detail.empty()) << what;
   };
   auto m = sampleKeyframe(8);
-  m.width = bounds.max_width_px + 1;
+  m.camera.width = bounds.max_width_px + 1;
   expectBad(m, "too wide");
   m = sampleKeyframe(8);
-  m.height = 0;
+  m.camera.height = 0;
   expectBad(m, "no rows");
   m = sampleKeyframe(8);
-  m.width = -640;
+  m.camera.width = -640;
   expectBad(m, "negative width");
   m = sampleKeyframe(8);
   m.encoding = 9;
@@ -207,16 +250,16 @@ TEST(Decode, ImpossibleFieldsAreRejected) {
   m.tracking_status = 17;
   expectBad(m, "unknown tracking status");
   m = sampleKeyframe(8);
-  m.position_m[1] = std::numeric_limits<double>::quiet_NaN();
+  m.T_world_cam.position_m[1] = std::numeric_limits<double>::quiet_NaN();
   expectBad(m, "NaN position");
   m = sampleKeyframe(8);
-  m.orientation_xyzw[3] = 2.0;
+  m.T_world_cam.orientation_xyzw[3] = 2.0;
   expectBad(m, "non-unit quaternion");
   m = sampleKeyframe(8);
   m.depth_scale_m = 0.0;
   expectBad(m, "zero depth scale");
   m = sampleKeyframe(8);
-  m.fx = std::numeric_limits<float>::infinity();
+  m.camera.fx = std::numeric_limits<float>::infinity();
   expectBad(m, "infinite focal length");
   m = sampleKeyframe(8);
   m.vehicle_id = -1;
@@ -225,7 +268,7 @@ TEST(Decode, ImpossibleFieldsAreRejected) {
   // A raw capture has no pose yet: its pose fields are not checked.
   m = sampleKeyframe(8);
   m.tracking_status = odometry_t::TRACKING_NONE;
-  m.orientation_xyzw[3] = 0.0;
+  m.T_world_cam.orientation_xyzw[3] = 0.0;
   const auto bytes = encode(m);
   depth_keyframe_t got;
   EXPECT_TRUE(decodeMessage(bytes.data(), bytes.size(), bounds, &got).ok());
@@ -252,9 +295,12 @@ void fuzzDecode(const std::vector<uint8_t>& valid, uint32_t seed) {
 TEST(Decode, RandomCorruptionNeverCrashes) {
   fuzzDecode<depth_keyframe_t>(encode(sampleKeyframe(64)), 1);
   fuzzDecode<pose_correction_t>(encode(sampleCorrection(5)), 2);
-  status_t status{};
+  drone_status_t status{};
   status.vehicle_id = kVehicle;
-  fuzzDecode<status_t>(encode(status), 3);
+  fuzzDecode<drone_status_t>(encode(status), 3);
+  ground_status_t ground_status{};
+  ground_status.vehicle_id = kVehicle;
+  fuzzDecode<ground_status_t>(encode(ground_status), 5);
   signed_t envelope;
   Signer signer(testKey(1), kVehicle, 1);
   const auto inner = encode(sampleCorrection(5));
@@ -466,7 +512,7 @@ TEST(CorrectionReceiver, AcceptsTheGoodAndCountsEachBadKind) {
   EXPECT_EQ(r.wrong_vehicle, 1);
   EXPECT_EQ(r.total(), 7);
 
-  status_t status;
+  drone_status_t status;
   r.writeTo(&status);
   EXPECT_EQ(status.rejected_bad_mac, 1);
   EXPECT_EQ(status.rejected_unsigned, 1);

@@ -1,4 +1,6 @@
-// Cross-language check of the wire contract (driven by tests/integration/test_wire.py).
+// Cross-language check of the wire contract (driven by tests/integration/test_wire.py): the
+// lcm-gen Python types, which the tests and tools use to write and read messages, agree with the
+// C++ ones that kinfly-fw and the ground station's native module decode with.
 //   wire_roundtrip encode DIR   writes DIR/<type>.bin, one sample message per type, and prints
 //                               "<type> <fingerprint hex>" per type
 //   wire_roundtrip decode DIR   reads DIR/<type>.bin (written by Python from its own copy of the
@@ -17,14 +19,10 @@ namespace {
 
 using namespace kinfly;
 
-void samplePose(double position_m[3], double orientation_xyzw[4]) {
-  position_m[0] = 1.25;
-  position_m[1] = -2.5;
-  position_m[2] = 0.75;
-  orientation_xyzw[0] = 0.5;
-  orientation_xyzw[1] = -0.5;
-  orientation_xyzw[2] = 0.5;
-  orientation_xyzw[3] = 0.5;
+void samplePose(pose3d_t* pose) {
+  const double p[3] = {1.25, -2.5, 0.75}, q[4] = {0.5, -0.5, 0.5, 0.5};
+  for (int i = 0; i < 3; ++i) pose->position_m[i] = p[i];
+  for (int i = 0; i < 4; ++i) pose->orientation_xyzw[i] = q[i];
 }
 
 depth_keyframe_t sampleKeyframe() {
@@ -33,14 +31,14 @@ depth_keyframe_t sampleKeyframe() {
   m.vehicle_id = 7;
   m.frame_id = 1234;
   m.keyframe_id = 56;
-  m.width = 640;
-  m.height = 480;
-  m.fx = 535.25f;
-  m.fy = 539.125f;
-  m.cx = 320.5f;
-  m.cy = 247.75f;
+  m.camera.width = 640;
+  m.camera.height = 480;
+  m.camera.fx = 535.25f;
+  m.camera.fy = 539.125f;
+  m.camera.cx = 320.5f;
+  m.camera.cy = 247.75f;
   m.depth_scale_m = 0.0002;
-  samplePose(m.position_m, m.orientation_xyzw);
+  samplePose(&m.T_world_cam);
   m.tracking_status = odometry_t::TRACKING_OK;
   m.encoding = depth_keyframe_t::ENCODING_RVL_ZSTD;
   for (int i = 0; i < 1000; ++i) m.payload.push_back(static_cast<uint8_t>((i * 37) % 251));
@@ -53,7 +51,7 @@ odometry_t sampleOdometry() {
   m.utime = 1'700'000'000'200'000;
   m.vehicle_id = 7;
   m.frame_id = 1240;
-  samplePose(m.position_m, m.orientation_xyzw);
+  samplePose(&m.T_world_cam);
   m.tracking_status = odometry_t::TRACKING_LOST;
   m.inlier_fraction = 0.625f;
   m.residual_m = 0.0078125f;
@@ -74,11 +72,11 @@ imu_t sampleImu() {
   return m;
 }
 
-pose_t samplePoseMessage() {
-  pose_t m;
+ground_truth_t sampleGroundTruth() {
+  ground_truth_t m;
   m.utime = 1'700'000'000'300'000;
   m.vehicle_id = 7;
-  samplePose(m.position_m, m.orientation_xyzw);
+  samplePose(&m.T_world_cam);
   return m;
 }
 
@@ -87,16 +85,15 @@ pose_correction_t sampleCorrection() {
   m.utime = 1'700'000'000'123'456;
   m.vehicle_id = 7;
   m.keyframe_id = 56;
-  samplePose(m.position_m, m.orientation_xyzw);
+  samplePose(&m.T_world_cam);
   m.reset_counter = 2;
   return m;
 }
 
-status_t sampleStatus() {
-  status_t m;
+drone_status_t sampleDroneStatus() {
+  drone_status_t m;
   m.utime = 1'700'000'000'400'000;
   m.vehicle_id = 7;
-  m.source = status_t::SOURCE_DRONE;
   m.depth_rate_hz = 30.f;
   m.odometry_rate_hz = 29.5f;
   m.keyframe_rate_hz = 5.25f;
@@ -105,10 +102,10 @@ status_t sampleStatus() {
   m.keyframes_sent = 1500;
   m.keyframes_dropped = 4;
   m.last_keyframe_id = 1503;
-  m.run_state = status_t::RUN_FINAL;
+  m.run_state = drone_status_t::RUN_FINAL;
   m.tracking_state = odometry_t::TRACKING_OK;
-  m.link_state = status_t::LINK_UP;
-  m.sensor_state = status_t::SENSOR_STALLED;
+  m.link_state = drone_status_t::LINK_UP;
+  m.sensor_state = drone_status_t::SENSOR_STALLED;
   m.sensor_connects = 2;
   m.sensor_stalls = 3;
   m.frames_skipped = 11;
@@ -123,6 +120,28 @@ status_t sampleStatus() {
   m.rejected_wrong_vehicle = 8;
   m.corrections_accepted = 1400;
   m.corrections_unknown_keyframe = 9;
+  return m;
+}
+
+ground_status_t sampleGroundStatus() {
+  ground_status_t m;
+  m.utime = 1'700'000'000'450'000;
+  m.vehicle_id = 7;
+  m.keyframe_rate_hz = 5.25f;
+  m.fused_rate_hz = 5.f;
+  m.correction_rate_hz = 4.75f;
+  m.keyframes_received = 1490;
+  m.keyframes_skipped = 3;
+  m.keyframes_dropped = 2;
+  m.keyframes_lost = 5;
+  m.corrections_sent = 1480;
+  m.last_keyframe_id = 1499;
+  m.run_state = ground_status_t::RUN_ACTIVE;
+  m.tracking_state = odometry_t::TRACKING_OK;
+  m.link_state = ground_status_t::LINK_STALE;
+  m.rejected_malformed = 6;
+  m.rejected_unknown_channel = 7;
+  m.rejected_wrong_vehicle = 8;
   return m;
 }
 
@@ -184,9 +203,10 @@ bool forEachSample(const std::string& dir) {
   ok &= Op<depth_keyframe_t>::run(dir, sampleKeyframe());
   ok &= Op<odometry_t>::run(dir, sampleOdometry());
   ok &= Op<imu_t>::run(dir, sampleImu());
-  ok &= Op<pose_t>::run(dir, samplePoseMessage());
+  ok &= Op<ground_truth_t>::run(dir, sampleGroundTruth());
   ok &= Op<pose_correction_t>::run(dir, sampleCorrection());
-  ok &= Op<status_t>::run(dir, sampleStatus());
+  ok &= Op<drone_status_t>::run(dir, sampleDroneStatus());
+  ok &= Op<ground_status_t>::run(dir, sampleGroundStatus());
   ok &= Op<signed_t>::run(dir, sampleSigned());
   return ok;
 }

@@ -51,4 +51,10 @@ std::string vehicleChannelsRegex(int vehicle_id) {
   return kPrefix + std::to_string(vehicle_id) + "_.*";
 }
 
+Subscriptions groundSubscriptions(std::optional<int> vehicle_id) {
+  const std::string vehicle = kPrefix + (vehicle_id ? std::to_string(*vehicle_id) : "[0-9]+") + "_";
+  const std::string keyframe = "KEYFRAME";
+  return {vehicle + keyframe, vehicle + "(?!" + keyframe + "$).*"};
+}
+
 }  // namespace kinfly::link

@@ -2,30 +2,95 @@
 
 namespace kinfly::link {
 
-void writePose(const Pose& T_world_cam, double position_m[3], double orientation_xyzw[4]) {
-  const std::array<double, 7> t_q = poseToTum(T_world_cam);
-  for (int i = 0; i < 3; ++i) position_m[i] = t_q[i];
-  for (int i = 0; i < 4; ++i) orientation_xyzw[i] = t_q[3 + i];
+void writePose(const Pose& T_world_cam, pose3d_t* message) {
+  std::array<double, 7> t_q = poseToTum(T_world_cam);
+  const double sign = t_q[6] < 0.0 ? -1.0 : 1.0;  // q and -q are the same rotation
+  for (int i = 0; i < 3; ++i) message->position_m[i] = t_q[i];
+  for (int i = 0; i < 4; ++i) message->orientation_xyzw[i] = sign * t_q[3 + i];
 }
 
-Pose readPose(const double position_m[3], const double orientation_xyzw[4]) {
-  return poseFromTum({position_m[0], position_m[1], position_m[2], orientation_xyzw[0],
-                      orientation_xyzw[1], orientation_xyzw[2], orientation_xyzw[3]});
+Pose readPose(const pose3d_t& message) {
+  const double* p = message.position_m;
+  const double* q = message.orientation_xyzw;
+  return poseFromTum({p[0], p[1], p[2], q[0], q[1], q[2], q[3]});
 }
 
-PinholeCamera cameraOf(const depth_keyframe_t& message) {
-  return {message.fx, message.fy, message.cx, message.cy, message.width, message.height};
+camera_t cameraMessage(const PinholeCamera& camera) {
+  camera_t message;
+  message.width = camera.width;
+  message.height = camera.height;
+  message.fx = camera.fx;
+  message.fy = camera.fy;
+  message.cx = camera.cx;
+  message.cy = camera.cy;
+  return message;
+}
+
+PinholeCamera cameraOf(const camera_t& m) { return {m.fx, m.fy, m.cx, m.cy, m.width, m.height}; }
+
+PinholeCamera cameraOf(const depth_keyframe_t& message) { return cameraOf(message.camera); }
+
+int8_t trackingCode(std::optional<TrackingStatus> status) {
+  if (!status) return odometry_t::TRACKING_NONE;
+  switch (*status) {
+    case TrackingStatus::kFirstFrame: return odometry_t::TRACKING_FIRST;
+    case TrackingStatus::kOk: return odometry_t::TRACKING_OK;
+    case TrackingStatus::kLost: return odometry_t::TRACKING_LOST;
+    case TrackingStatus::kGivenPose: return odometry_t::TRACKING_GIVEN;
+  }
+  return odometry_t::TRACKING_NONE;
+}
+
+std::optional<TrackingStatus> trackingOf(int8_t code) {
+  switch (code) {
+    case odometry_t::TRACKING_FIRST: return TrackingStatus::kFirstFrame;
+    case odometry_t::TRACKING_OK: return TrackingStatus::kOk;
+    case odometry_t::TRACKING_LOST: return TrackingStatus::kLost;
+    case odometry_t::TRACKING_GIVEN: return TrackingStatus::kGivenPose;
+    default: return std::nullopt;
+  }
+}
+
+void fillOdometry(const FrameResult& result, int64_t frame_id, const Pose& T_world_cam,
+                  int32_t reset_counter, odometry_t* message) {
+  message->utime = result.utime;
+  message->frame_id = frame_id;
+  writePose(T_world_cam, &message->T_world_cam);
+  message->tracking_status = trackingCode(result.status);
+  message->inlier_fraction = result.inlier_fraction;
+  message->residual_m = result.rmse_m;
+  message->reset_counter = reset_counter;
+}
+
+void fillGroundTruth(int64_t utime, const Pose& T_world_cam, ground_truth_t* message) {
+  message->utime = utime;
+  writePose(T_world_cam, &message->T_world_cam);
+}
+
+void fillKeyframe(const KeyframeHeader& header, depth_keyframe_t* message) {
+  message->utime = header.utime;
+  message->frame_id = header.frame_id;
+  message->keyframe_id = header.keyframe_id;
+  writePose(header.T_world_cam, &message->T_world_cam);
+  message->tracking_status = trackingCode(header.tracking);
+}
+
+void fillCorrection(int32_t vehicle_id, const KeyframeHeader& keyframe, const Pose& T_corrected,
+                    int32_t reset_counter, pose_correction_t* message) {
+  message->utime = keyframe.utime;
+  message->vehicle_id = vehicle_id;
+  message->keyframe_id = keyframe.keyframe_id;
+  writePose(T_corrected, &message->T_world_cam);
+  message->reset_counter = reset_counter;
 }
 
 CodecResult encodeDepth(DepthCodec& codec, ImageView<const uint16_t> raw,
                         const PinholeCamera& camera, double depth_scale_m,
                         depth_keyframe_t* message) {
-  message->width = raw.width();
-  message->height = raw.height();
-  message->fx = camera.fx;
-  message->fy = camera.fy;
-  message->cx = camera.cx;
-  message->cy = camera.cy;
+  PinholeCamera sized = camera;
+  sized.width = raw.width();
+  sized.height = raw.height();
+  message->camera = cameraMessage(sized);
   message->depth_scale_m = depth_scale_m;
   message->encoding = static_cast<int8_t>(codec.params().encoding);
   const CodecResult result = codec.encode(raw, &message->payload);
@@ -36,8 +101,8 @@ CodecResult encodeDepth(DepthCodec& codec, ImageView<const uint16_t> raw,
 CodecResult decodeDepth(DepthCodec& codec, const depth_keyframe_t& message,
                         Image<uint16_t>* raw) {
   return codec.decode(message.payload.data(), message.payload.size(),
-                      static_cast<DepthEncoding>(message.encoding), message.width,
-                      message.height, raw);
+                      static_cast<DepthEncoding>(message.encoding), message.camera.width,
+                      message.camera.height, raw);
 }
 
 }  // namespace kinfly::link

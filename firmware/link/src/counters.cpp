@@ -34,7 +34,7 @@ int64_t RejectCounters::total() const {
          wrong_vehicle;
 }
 
-void RejectCounters::writeTo(status_t* status) const {
+void RejectCounters::writeTo(drone_status_t* status) const {
   status->rejected_unsigned = unsigned_messages;
   status->rejected_wrong_key = wrong_key;
   status->rejected_bad_mac = bad_mac;

@@ -36,17 +36,13 @@ bool finite(const double* v, int n) {
 }
 
 // A pose on the wire: finite, and a quaternion that is unit to well within float rounding of
-// whatever produced it (senders normalise; a far-off norm means a corrupted or foreign message).
-constexpr double kQuaternionNormTolerance = 1e-3;
-
-std::string poseProblem(const double position_m[3], const double orientation_xyzw[4]) {
-  if (!finite(position_m, 3)) return "position_m is not finite";
-  if (!finite(orientation_xyzw, 4)) return "orientation_xyzw is not finite";
-  const double norm = std::sqrt(orientation_xyzw[0] * orientation_xyzw[0] +
-                                orientation_xyzw[1] * orientation_xyzw[1] +
-                                orientation_xyzw[2] * orientation_xyzw[2] +
-                                orientation_xyzw[3] * orientation_xyzw[3]);
-  if (std::abs(norm - 1.0) > kQuaternionNormTolerance)
+// whatever produced it.
+std::string poseProblem(const pose3d_t& pose) {
+  const double* q = pose.orientation_xyzw;
+  if (!finite(pose.position_m, 3)) return "position_m is not finite";
+  if (!finite(q, 4)) return "orientation_xyzw is not finite";
+  const double norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  if (std::abs(norm - 1.0) > pose3d_t::UNIT_QUATERNION_TOLERANCE)
     return "orientation_xyzw is not a unit quaternion (norm " + std::to_string(norm) + ")";
   return {};
 }
@@ -64,15 +60,16 @@ std::string vehicleProblem(int32_t vehicle_id) {
 
 std::string fieldProblem(const depth_keyframe_t& m, const DecodeBounds& bounds) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
-  if (m.width <= 0 || m.width > bounds.max_width_px || m.height <= 0 ||
-      m.height > bounds.max_height_px)
-    return "image " + std::to_string(m.width) + "x" + std::to_string(m.height) +
+  const camera_t& c = m.camera;
+  if (c.width <= 0 || c.width > bounds.max_width_px || c.height <= 0 ||
+      c.height > bounds.max_height_px)
+    return "image " + std::to_string(c.width) + "x" + std::to_string(c.height) +
            " outside 1x1.." + std::to_string(bounds.max_width_px) + "x" +
            std::to_string(bounds.max_height_px);
-  const float k[4] = {m.fx, m.fy, m.cx, m.cy};
+  const float k[4] = {c.fx, c.fy, c.cx, c.cy};
   for (float v : k)
     if (!std::isfinite(v)) return "intrinsics are not finite";
-  if (!(m.fx > 0.f) || !(m.fy > 0.f)) return "focal lengths must be positive";
+  if (!(c.fx > 0.f) || !(c.fy > 0.f)) return "focal lengths must be positive";
   if (!(m.depth_scale_m > 0.0) || !std::isfinite(m.depth_scale_m))
     return "depth_scale_m must be positive and finite";
   if (m.encoding < depth_keyframe_t::ENCODING_RAW16 ||
@@ -81,7 +78,7 @@ std::string fieldProblem(const depth_keyframe_t& m, const DecodeBounds& bounds) 
   if (!validTracking(m.tracking_status))
     return "unknown tracking_status " + std::to_string(m.tracking_status);
   if (m.tracking_status != odometry_t::TRACKING_NONE)
-    return poseProblem(m.position_m, m.orientation_xyzw);
+    return poseProblem(m.T_world_cam);
   return {};
 }
 
@@ -91,7 +88,7 @@ std::string fieldProblem(const odometry_t& m, const DecodeBounds&) {
     return "unknown tracking_status " + std::to_string(m.tracking_status);
   if (!std::isfinite(m.inlier_fraction) || m.inlier_fraction < 0.f || m.inlier_fraction > 1.f)
     return "inlier_fraction outside [0, 1]";
-  return poseProblem(m.position_m, m.orientation_xyzw);
+  return poseProblem(m.T_world_cam);
 }
 
 std::string fieldProblem(const imu_t& m, const DecodeBounds&) {
@@ -101,26 +98,33 @@ std::string fieldProblem(const imu_t& m, const DecodeBounds&) {
   return {};
 }
 
-std::string fieldProblem(const pose_t& m, const DecodeBounds&) {
+std::string fieldProblem(const ground_truth_t& m, const DecodeBounds&) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
-  return poseProblem(m.position_m, m.orientation_xyzw);
+  return poseProblem(m.T_world_cam);
 }
 
 std::string fieldProblem(const pose_correction_t& m, const DecodeBounds&) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
   if (m.keyframe_id < 0) return "keyframe_id is negative";
   if (m.reset_counter < 0) return "reset_counter is negative";
-  return poseProblem(m.position_m, m.orientation_xyzw);
+  return poseProblem(m.T_world_cam);
 }
 
-std::string fieldProblem(const status_t& m, const DecodeBounds&) {
+template <class Status>
+std::string statusProblem(const Status& m) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
-  if (m.source != status_t::SOURCE_DRONE && m.source != status_t::SOURCE_GROUND)
-    return "unknown source " + std::to_string(m.source);
-  if (m.run_state != status_t::RUN_ACTIVE && m.run_state != status_t::RUN_FINAL)
+  if (m.run_state != Status::RUN_ACTIVE && m.run_state != Status::RUN_FINAL)
     return "unknown run_state " + std::to_string(m.run_state);
   if (m.last_keyframe_id < -1) return "last_keyframe_id below -1";
   return {};
+}
+
+std::string fieldProblem(const drone_status_t& m, const DecodeBounds&) {
+  return statusProblem(m);
+}
+
+std::string fieldProblem(const ground_status_t& m, const DecodeBounds&) {
+  return statusProblem(m);
 }
 
 std::string fieldProblem(const signed_t& m, const DecodeBounds&) {
@@ -196,12 +200,13 @@ DecodeResult decodeMessage(const void* data, size_t size, const DecodeBounds& bo
   template bool hasFingerprint<T>(const void*, size_t);                            \
   template DecodeResult decodeMessage<T>(const void*, size_t, const DecodeBounds&, T*);
 KINFLY_INSTANTIATE_DECODE(depth_keyframe_t)
+KINFLY_INSTANTIATE_DECODE(drone_status_t)
+KINFLY_INSTANTIATE_DECODE(ground_status_t)
+KINFLY_INSTANTIATE_DECODE(ground_truth_t)
 KINFLY_INSTANTIATE_DECODE(imu_t)
 KINFLY_INSTANTIATE_DECODE(odometry_t)
-KINFLY_INSTANTIATE_DECODE(pose_t)
 KINFLY_INSTANTIATE_DECODE(pose_correction_t)
 KINFLY_INSTANTIATE_DECODE(signed_t)
-KINFLY_INSTANTIATE_DECODE(status_t)
 #undef KINFLY_INSTANTIATE_DECODE
 
 }  // namespace kinfly::link

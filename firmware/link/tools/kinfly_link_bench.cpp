@@ -2,7 +2,7 @@
 // (tests/bench/bench_link.py) and the two-process tests in a network namespace.
 //
 //   kinfly-link-bench drone  --tum DIR --rate HZ --seconds S [--key FILE]
-//       publishes depth keyframes (TUM frames, encoded as they are sent) at HZ and a status_t at
+//       publishes depth keyframes (TUM frames, encoded as they are sent) at HZ and a drone_status_t at
 //       10 Hz, and with --key verifies every message on its correction channel, counting each
 //       rejection; prints one JSON summary.
 //   kinfly-link-bench ground --seconds S [--expect N] [--tum DIR]
@@ -42,7 +42,7 @@ using namespace kinfly;
 using Clock = std::chrono::steady_clock;
 
 constexpr double kTumDepthUnitsPerMetre = 5000.0;
-constexpr auto kStatusPeriod = std::chrono::milliseconds(100);  // status_t at 10 Hz
+constexpr auto kStatusPeriod = std::chrono::milliseconds(100);  // drone_status_t at 10 Hz
 
 std::atomic<bool> g_stop{false};
 void onSignal(int) { g_stop = true; }
@@ -170,10 +170,7 @@ int runDrone(const Options& options) {
       camera.width = raw.width();
       camera.height = raw.height();
       keyframe.vehicle_id = options.vehicle_id;
-      keyframe.frame_id = sent;
-      keyframe.keyframe_id = sent;
-      keyframe.tracking_status = odometry_t::TRACKING_GIVEN;
-      link::writePose(Pose::Identity(), keyframe.position_m, keyframe.orientation_xyzw);
+      link::fillKeyframe({0, sent, sent, Pose::Identity(), TrackingStatus::kGivenPose}, &keyframe);
       const CodecResult r =
           link::encodeDepth(codec, raw, camera, 1.0 / kTumDepthUnitsPerMetre, &keyframe);
       if (!r.ok()) return fail(std::string("cannot encode frame: ") + toString(r.status));
@@ -185,15 +182,14 @@ int runDrone(const Options& options) {
       next_frame += frame_period;
     }
     if (Clock::now() >= next_status) {
-      status_t status{};
+      drone_status_t status{};
       status.utime = link::wallClockUtime();
       status.vehicle_id = options.vehicle_id;
-      status.source = status_t::SOURCE_DRONE;
       status.keyframe_rate_hz = static_cast<float>(options.rate_hz);
       status.keyframes_sent = sent;
       status.last_keyframe_id = sent - 1;
-      status.tracking_state = odometry_t::TRACKING_GIVEN;
-      status.link_state = status_t::LINK_UNKNOWN;
+      status.tracking_state = link::trackingCode(TrackingStatus::kGivenPose);
+      status.link_state = drone_status_t::LINK_UNKNOWN;
       status.corrections_accepted = end.accepted();
       end.rejects().writeTo(&status);
       lcm.publish(status_channel, &status);

@@ -1,7 +1,7 @@
 // kinfly-tum-to-log: converts a TUM RGB-D folder into an LCM event log (lcm-logger's format), so
 // that recorded datasets replay exactly like recorded flights. Every depth frame becomes a
 // depth_keyframe_t on KINFLY_<vid>_DEPTH at its capture time; groundtruth.txt, when present,
-// becomes pose_t messages on KINFLY_<vid>_GROUND_TRUTH.
+// becomes ground_truth_t messages on KINFLY_<vid>_GROUND_TRUTH.
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
 
@@ -16,7 +16,7 @@
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/odometry_t.hpp"
-#include "kinfly/pose_t.hpp"
+#include "kinfly/ground_truth_t.hpp"
 #include "kinfly/io/png_io.h"
 #include "kinfly/io/tum_dataset.h"
 
@@ -114,10 +114,9 @@ int main(int argc, char** argv) {
       for (; next_truth < truth.size() && truth[next_truth].timestamp_s <= until_s; ++next_truth) {
         const StampedPose& p = truth[next_truth];
         if (p.timestamp_s < first_s || p.timestamp_s > last_s) continue;
-        pose_t pose;
-        pose.utime = toUtime(p.timestamp_s);
+        ground_truth_t pose;
         pose.vehicle_id = vehicle_id;
-        link::writePose(p.T_world_cam, pose.position_m, pose.orientation_xyzw);
+        link::fillGroundTruth(toUtime(p.timestamp_s), p.T_world_cam, &pose);
         writeEvent(&log, truth_channel, pose.utime, pose, &buffer);
         ++truth_written;
       }
@@ -128,12 +127,12 @@ int main(int argc, char** argv) {
       camera.height = raw.height();
       if (why = camera.validate(); !why.empty()) return fail(frames[i].path + ": " + why);
       writeTruthUntil(frames[i].timestamp_s);
-      message.utime = toUtime(frames[i].timestamp_s);
       message.vehicle_id = vehicle_id;
-      message.frame_id = static_cast<int64_t>(i);
-      message.keyframe_id = -1;
-      message.tracking_status = odometry_t::TRACKING_NONE;
-      link::writePose(Pose::Identity(), message.position_m, message.orientation_xyzw);
+      link::KeyframeHeader header;  // a raw capture: not a keyframe, no pose
+      header.utime = toUtime(frames[i].timestamp_s);
+      header.frame_id = static_cast<int64_t>(i);
+      header.keyframe_id = -1;
+      link::fillKeyframe(header, &message);
       const CodecResult encoded =
           link::encodeDepth(codec, raw, camera, 1.0 / depth_scale, &message);
       if (!encoded.ok())

@@ -88,13 +88,13 @@ class LogSource : public DepthSource {
   static constexpr int64_t kMaxTruthGapUs = 20'000;  // TUM's own association tolerance
 
   void readTruth(const lcm::LogEvent& event) {
-    pose_t truth;
+    ground_truth_t truth;
     if (!link::decodeMessage(event.data, static_cast<size_t>(event.datalen), link::DecodeBounds(),
                              &truth)
              .ok())
       return;  // ground truth is for evaluation only; a bad sample is simply not used
     truth_utime_ = truth.utime;
-    T_mocap_cam_ = link::readPose(truth.position_m, truth.orientation_xyzw);
+    T_mocap_cam_ = link::readPose(truth.T_world_cam);
     has_truth_ = true;
   }
 

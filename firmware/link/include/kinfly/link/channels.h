@@ -1,10 +1,12 @@
-// LCM channel names: the one place the C++ side spells them (ground/kinfly_ground/channels.py is
-// the Python one; proto/README.md is the table both follow). Every channel carries the vehicle id,
-// so several drones can share one network: KINFLY_<vehicle id>_<KIND>.
+// LCM channel names: the one place they are spelled (LCM constants cannot be strings, so not in
+// proto/; the ground station gets them through its native module; proto/README.md has the
+// table). Every channel carries the vehicle id, so several drones can share one network:
+// KINFLY_<vehicle id>_<KIND>.
 #pragma once
 
 #include <optional>
 #include <string>
+#include <utility>
 
 namespace kinfly::link {
 
@@ -13,10 +15,10 @@ enum class Channel {
   kKeyframe,      // depth_keyframe_t, keyframes with the onboard pose (drone -> ground)
   kOdometry,      // odometry_t (drone -> ground)
   kImu,           // imu_t (drone -> ground)
-  kStatus,        // status_t, the drone's (drone -> ground)
+  kStatus,        // drone_status_t (drone -> ground)
   kCorrection,    // signed_t around pose_correction_t (ground -> drone)
-  kGroundStatus,  // status_t, the ground station's (ground -> drone)
-  kGroundTruth,   // pose_t, in converted datasets only
+  kGroundStatus,  // ground_status_t (ground -> drone)
+  kGroundTruth,   // ground_truth_t, in converted datasets and from the simulator
 };
 
 constexpr int kMaxVehicleId = 65535;  // ids are 0..kMaxVehicleId
@@ -32,5 +34,13 @@ std::optional<ParsedChannel> parseChannel(const std::string& name);
 
 // Regular expression (LCM subscription syntax) matching every kinfly channel of one vehicle.
 std::string vehicleChannelsRegex(int vehicle_id);
+
+// The ground station's two subscriptions (LCM anchors the patterns), so that keyframes have a
+// queue of their own: one vehicle's keyframes and its other channels, or every vehicle's when
+// vehicle_id is nullopt.
+struct Subscriptions {
+  std::string keyframes, others;
+};
+Subscriptions groundSubscriptions(std::optional<int> vehicle_id);
 
 }  // namespace kinfly::link

@@ -1,26 +1,64 @@
-// Conversions between messages and the engine's types: the C++ side's one conversion file
-// (ground/kinfly_ground/conversions.py is the Python one).
+// Conversions between messages and the engine's types: the C++ side's one conversion file, used
+// by the drone and, through its native module, by the ground station. Every message field kinfly
+// fills in C++ is filled here (ground/kinfly_ground/conversions.py fills the ground's status).
 #pragma once
 
 #include <cstdint>
+#include <optional>
 
 #include "kinfly/core/camera.h"
+#include "kinfly/camera_t.hpp"
 #include "kinfly/codec/depth_codec.h"
 #include "kinfly/depth_keyframe_t.hpp"
+#include "kinfly/pipeline/fusion_pipeline.h"
+#include "kinfly/ground_truth_t.hpp"
+#include "kinfly/frame/tracking_status.h"
 #include "kinfly/core/image.h"
+#include "kinfly/odometry_t.hpp"
+#include "kinfly/pose3d_t.hpp"
+#include "kinfly/pose_correction_t.hpp"
 #include "kinfly/core/se3.h"
 
 namespace kinfly::link {
 
-// A message's (position_m, orientation_xyzw) pair <-> T_world_cam.
-void writePose(const Pose& T_world_cam, double position_m[3], double orientation_xyzw[4]);
-Pose readPose(const double position_m[3], const double orientation_xyzw[4]);
+// pose3d_t <-> T_world_cam (the quaternion written with w >= 0).
+void writePose(const Pose& T_world_cam, pose3d_t* message);
+Pose readPose(const pose3d_t& message);
 
+// camera_t <-> the engine's camera.
+camera_t cameraMessage(const PinholeCamera& camera);
+PinholeCamera cameraOf(const camera_t& message);
 PinholeCamera cameraOf(const depth_keyframe_t& message);
 
-// Fills the image part of a keyframe message (size, intrinsics, depth scale, encoding, payload)
-// from raw sensor depth; ids, time and pose are the caller's. The payload vector keeps its
-// capacity, so a message reused across frames stops allocating.
+// The engine's tracking status <-> odometry_t::TRACKING_*; TRACKING_NONE (no pose) is nullopt.
+int8_t trackingCode(std::optional<TrackingStatus> status);
+std::optional<TrackingStatus> trackingOf(int8_t code);
+
+// One odometry result: the frame's id, its pose re-anchored by the corrections (T_world_cam)
+// and the anchor's reset counter; vehicle_id is the caller's, set once.
+void fillOdometry(const FrameResult& result, int64_t frame_id, const Pose& T_world_cam,
+                  int32_t reset_counter, odometry_t* message);
+
+void fillGroundTruth(int64_t utime, const Pose& T_world_cam, ground_truth_t* message);
+
+// A keyframe's ids, time and onboard pose; the image part is encodeDepth's, vehicle_id the
+// caller's.
+struct KeyframeHeader {
+  int64_t utime = 0;        // [us] capture time
+  int64_t frame_id = 0;
+  int64_t keyframe_id = 0;
+  Pose T_world_cam = Pose::Identity();
+  std::optional<TrackingStatus> tracking;  // nullopt: no pose (a raw capture)
+};
+void fillKeyframe(const KeyframeHeader& header, depth_keyframe_t* message);
+
+// The refined pose of one keyframe (the ground's correction, signed before it is sent).
+void fillCorrection(int32_t vehicle_id, const KeyframeHeader& keyframe, const Pose& T_corrected,
+                    int32_t reset_counter, pose_correction_t* message);
+
+// Fills the image part of a keyframe message (camera, depth scale, encoding, payload) from raw
+// sensor depth. The payload vector keeps its capacity, so a message reused across frames stops
+// allocating.
 CodecResult encodeDepth(DepthCodec& codec, ImageView<const uint16_t> raw,
                         const PinholeCamera& camera, double depth_scale_m,
                         depth_keyframe_t* message);

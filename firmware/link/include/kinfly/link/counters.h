@@ -1,11 +1,11 @@
-// Counts of received messages that were dropped, by reason: reported in status_t by both sides.
+// Counts of received messages that were dropped, by reason: reported in both sides' status.
 #pragma once
 
 #include <cstdint>
 
 #include "kinfly/link/decode.h"
 #include "kinfly/link/signing.h"
-#include "kinfly/status_t.hpp"
+#include "kinfly/drone_status_t.hpp"
 
 namespace kinfly::link {
 
@@ -25,7 +25,7 @@ struct RejectCounters {
   void count(DecodeStatus status);
   RejectCounters& operator+=(const RejectCounters& other);
   int64_t total() const;
-  void writeTo(status_t* status) const;
+  void writeTo(drone_status_t* status) const;
 };
 
 }  // namespace kinfly::link

@@ -9,21 +9,22 @@
 #include <string>
 
 #include "kinfly/depth_keyframe_t.hpp"
+#include "kinfly/drone_status_t.hpp"
+#include "kinfly/ground_status_t.hpp"
+#include "kinfly/ground_truth_t.hpp"
 #include "kinfly/imu_t.hpp"
 #include "kinfly/odometry_t.hpp"
 #include "kinfly/pose_correction_t.hpp"
-#include "kinfly/pose_t.hpp"
 #include "kinfly/signed_t.hpp"
-#include "kinfly/status_t.hpp"
 
 namespace kinfly::link {
 
+// The defaults are the wire's own (proto/kinfly/*.lcm constants).
 struct DecodeBounds {
-  int max_width_px = 1280;               // [px] (0, 8192]
-  int max_height_px = 1024;              // [px] (0, 8192]
-  // [bytes] (0, 64 MiB]; a raw 1280x1024 frame is 2.5 MiB
-  int max_keyframe_payload_bytes = 8 << 20;
-  int max_signed_payload_bytes = 4096;   // [bytes] (0, 1 MiB]; corrections are ~100 bytes
+  int max_width_px = camera_t::MAX_WIDTH_PX;    // [px] (0, 8192]
+  int max_height_px = camera_t::MAX_HEIGHT_PX;  // [px] (0, 8192]
+  int max_keyframe_payload_bytes = depth_keyframe_t::MAX_PAYLOAD_BYTES;  // [bytes] (0, 64 MiB]
+  int max_signed_payload_bytes = signed_t::MAX_PAYLOAD_BYTES;            // [bytes] (0, 1 MiB]
   std::string validate() const;          // empty when valid, else what is wrong
 };
 

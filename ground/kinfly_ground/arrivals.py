@@ -1,0 +1,153 @@
+"""Arrivals (the LCM thread): every received message goes through the native Receiver (the link's
+C++: channel, bounded decoding, depth), then keyframes are classified against the vehicle's last
+one (duplicate, late, a restarted drone: a new session) and handed to the worker; the drone's
+status tells what the link lost; odometry is forwarded to an autopilot, corrected. Nothing slow
+runs here (no viewer, no files, no fusion), or the next keyframes would wait in LCM's buffers
+until they overflow."""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ._native import Channel, DroneStatus, Keyframe, Receiver, Signer
+from ._native import StampedPose as ReceivedPose
+from .viewer import Viewer
+from .vehicle import Job, VehicleState
+
+Forward = Callable[[int, np.ndarray, int], None]  # (utime, T_world_cam, reset_counter)
+
+
+class Arrivals:
+    """SUBMIT hands a keyframe to the worker. SIGNERS, PUBLISH: see Station."""
+
+    def __init__(self, params: Any, viewer: Viewer, *, vehicle_id: int | None,
+                 signers: dict[int, Signer], sends: bool, forward: Forward | None,
+                 submit: Callable[[Job], None], log: Callable[[str], None]) -> None:
+        self.params = params
+        self.viewer = viewer
+        self.vehicle_id = vehicle_id
+        self._signers = signers
+        self._sends = sends
+        self._forward = forward
+        self._submit = submit
+        self._log = log
+        self.vehicles: dict[int, VehicleState] = {}
+        self.rejected_too_many_vehicles = 0
+        self.handler_errors = 0
+        self.receiver = Receiver()
+        self._arrival_ns = 0
+
+    def on_message(self, channel: str, data: bytes) -> None:
+        # The arrival is stamped when Python gets the message: time spent waiting for the GIL
+        # before that is not in the latency.
+        self._arrival_ns = time.monotonic_ns()
+        try:
+            received = self.receiver.receive(channel, data)
+            if received is not None:
+                self._on_received(*received)
+        except Exception as error:  # a message that passed decoding but broke a handler
+            self.handler_errors += 1
+            self._log(f"{channel}: message not handled: {type(error).__name__}: {error}")
+
+    def _vehicle(self, vehicle_id: int) -> VehicleState | None:
+        state = self.vehicles.get(vehicle_id)
+        if state is not None:
+            return state
+        if self.vehicle_id is not None and vehicle_id != self.vehicle_id:
+            return None  # the subscription only lets this vehicle through; belt and braces
+        if len(self.vehicles) >= self.params.max_vehicles:
+            self.rejected_too_many_vehicles += 1
+            return None
+        prefix = "" if self.vehicle_id is not None else f"vehicle_{vehicle_id}/"
+        signer = self._signers.get(vehicle_id)
+        if signer is None and self._sends:
+            self._log(f"vehicle {vehicle_id}: no key, so its keyframes are mapped but no "
+                      "corrections are sent")
+        state = VehicleState(vehicle_id, lambda: self.viewer.vehicle(vehicle_id, prefix), signer)
+        self.vehicles[vehicle_id] = state
+        return state
+
+    def _on_received(self, channel: Channel, vehicle_id: int, message: Any) -> None:
+        """What the native Receiver let through: a Keyframe, the drone's status, a pose
+        (odometry, ground truth) or None (an IMU sample)."""
+        state = self._vehicle(vehicle_id)
+        if state is None:
+            return
+        now_s = time.monotonic()
+        if channel is Channel.KEYFRAME:
+            self._on_keyframe(state, message, now_s)
+        elif channel is Channel.STATUS:
+            state.drone_heard_s = now_s
+            self._on_drone_status(state, message)
+        elif channel is Channel.GROUND_TRUTH:
+            with state.lock:
+                state.pending_truth.append((state.session, message.utime, message.T_world_cam))
+        elif channel in (Channel.ODOMETRY, Channel.IMU, Channel.DEPTH):
+            state.drone_heard_s = now_s
+            if channel is Channel.ODOMETRY and self._forward is not None:
+                self._forward_odometry(state, message)
+
+    def _on_drone_status(self, state: VehicleState, message: DroneStatus) -> None:
+        last = state.drone_status
+        if last is not None and message.keyframes_sent < last.keyframes_sent:
+            # A restarted drone, before its first keyframe has started a new session here: its
+            # counters count from zero again and are not this session's.
+            return
+        state.drone_status = message
+        state.counters.lost_on_link = state.lost_on_link_now()
+        if message.final and (last is None or not last.final):
+            self._log(f"vehicle {state.vehicle_id}: the drone stopped: it sent "
+                      f"{message.keyframes_sent} keyframes (ids up to "
+                      f"{message.last_keyframe_id}); {state.counters.lost_on_link} lost on the "
+                      f"link; {message.queue_drops} frames its odometry could not keep up with, "
+                      f"{message.keyframes_dropped} keyframes its link could not send")
+
+    def _forward_odometry(self, state: VehicleState, message: ReceivedPose) -> None:
+        """The drone's pose at the camera's rate, corrected: a drone that applies the ground's
+        corrections (its status says so) already sends it re-anchored; for one that does not
+        (no key, a wrong one) the ground's latest correction is applied here."""
+        T = message.T_world_cam
+        drone = state.drone_status
+        if drone is not None and drone.corrections_accepted > 0:
+            self._forward(message.utime, T, message.reset_counter)
+        else:
+            self._forward(message.utime, state.T_map_onboard @ T, state.reset_counter)
+
+    def _on_keyframe(self, state: VehicleState, message: Keyframe, now_s: float) -> None:
+        state.drone_heard_s = now_s
+        key = (message.keyframe_id, message.utime)
+        last = state.last_keyframe
+        if last is not None and key == last:
+            state.counters.duplicates += 1
+            return
+        if last is not None and message.keyframe_id <= last[0]:
+            late = (message.keyframe_id != 0
+                    and last[0] - message.keyframe_id <= self.params.reorder_window
+                    and abs(message.utime - last[1]) <= self.params.reorder_window_s * 1e6)
+            if late:
+                # Its correction would be older than one the drone already applied.
+                state.counters.out_of_order += 1
+                state.session_keyframe_ids.add(message.keyframe_id)
+                return
+            state.lost_on_link_before = state.lost_on_link_now()
+            state.drone_status = None
+            state.session_keyframe_ids = set()
+            with state.lock:
+                state.session += 1
+                state.last_done_keyframe_id = -1
+            state.counters.drone_restarts += 1
+            self._log(f"vehicle {state.vehicle_id}: keyframe {message.keyframe_id} after "
+                      f"{last[0]}: the drone restarted; starting a new map")
+        state.last_keyframe = key
+        state.session_keyframe_ids.add(message.keyframe_id)
+        state.counters.lost_on_link = state.lost_on_link_now()
+        state.counters.keyframes_received += 1
+        state.rates["received"].tick(now_s)
+        self._submit(Job(state.vehicle_id, state.session, message, self._arrival_ns))
+
+    def on_dropped(self, job: Job) -> None:
+        """A keyframe pushed out of the full queue."""
+        self.vehicles[job.vehicle_id].counters.keyframes_dropped += 1

@@ -1,0 +1,153 @@
+"""kinfly-ground's outputs at the end of a run, a replay or on request: every vehicle's files
+(mesh, trajectories, the ATE plot), summary.json, and the summary printed at exit (docs/ground.md,
+"Outputs")."""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+from . import __version__
+from .outputs import (ate_figures, evaluate, memory, write_atomically, write_error_plot,
+                      write_json, write_tum)
+from .station import Station
+from .vehicle import Segment, VehicleState, percentile
+
+
+def stats(values: list[float]) -> dict[str, float | int | None]:
+    return {"count": len(values), "median": percentile(values, 50), "p90": percentile(values, 90),
+            "p99": percentile(values, 99), "max": max(values) if values else None}
+
+
+def format_ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
+
+
+def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, Any]:
+    truth = truth if truth is not None else segment.ground_truth
+    if not truth:
+        return {"available": False, "reason": "no ground truth"}
+    # Made at the end by Station.show_final; an export on request evaluates the map so far.
+    results = segment.evaluation
+    if results is None:
+        results = evaluate({"onboard": segment.onboard, "corrected": segment.corrected}, truth)
+    if not results:
+        return {"available": False, "reason": "fewer than 3 poses match the ground truth in time"}
+    write_error_plot(out / "ate.png", results)
+    summary: dict[str, Any] = {"available": True, "plot": "ate.png"}
+    for name, r in results.items():
+        summary[name] = ate_figures(r)
+    return summary
+
+
+def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str, Any]:
+    files: dict[str, str] = {}
+    result: dict[str, Any] = {"files": files, "corrected_poses": len(segment.corrected)}
+    if segment.fusion is not None:
+        snapshot = segment.snapshot or segment.fusion.snapshot()
+        result["mesh_triangles"] = write_atomically(out / "mesh.ply",
+                                                    lambda tmp: snapshot.write_ply(str(tmp)))
+        files["mesh"] = "mesh.ply"
+        result["map_blocks"] = segment.fusion.num_blocks
+        result["map_memory_mb"] = segment.fusion.memory_bytes / 1e6
+    write_tum(out / "trajectory_onboard.tum", segment.onboard)
+    write_tum(out / "trajectory_corrected.tum", segment.corrected)
+    files["trajectory_onboard"] = "trajectory_onboard.tum"
+    files["trajectory_corrected"] = "trajectory_corrected.tum"
+    if segment.ground_truth:
+        write_tum(out / "trajectory_ground_truth.tum", segment.ground_truth)
+        files["trajectory_ground_truth"] = "trajectory_ground_truth.tum"
+    result["ate"] = _ate_summary(segment, truth, out)
+    if result["ate"]["available"]:
+        files["ate_plot"] = "ate.png"
+    return result
+
+
+def _vehicle_summary(state: VehicleState, out: Path, truth: list | None) -> dict[str, Any]:
+    with state.lock:
+        segment, finished = state.segment, list(state.finished_segments)
+    summary: dict[str, Any] = {
+        "vehicle_id": state.vehicle_id,
+        "keyframes": dataclasses.asdict(state.counters),
+        "latency_ms": stats(state.latencies_ms),
+        "refine_ms": stats(state.refine_ms),
+        "reset_counter": state.reset_counter,
+    }
+    summary.update(_export_segment(segment, out, truth))
+    # Earlier odometry frames (before a drone restart), each complete on its own.
+    summary["earlier_segments"] = [
+        {"directory": f"segments/{i}", **_export_segment(s, out / "segments" / str(i), None)}
+        for i, s in enumerate(finished, 1)]
+    d = state.drone_status
+    if d is not None:
+        summary["drone_reported"] = {
+            "final": d.final,
+            "frames_captured": d.frames_captured, "queue_drops": d.queue_drops,
+            "frames_lost": d.frames_lost, "keyframes_sent": d.keyframes_sent,
+            "last_keyframe_id": d.last_keyframe_id, "keyframes_dropped": d.keyframes_dropped,
+            "corrections_accepted": d.corrections_accepted,
+            "rejected_wrong_key": d.rejected_wrong_key, "rejected_bad_mac": d.rejected_bad_mac}
+    return summary
+
+
+def export(station: Station, out: Path, mode: str, started: float, truth: list | None,
+           extra: dict[str, Any]) -> dict[str, Any]:
+    """Writes every vehicle's outputs and summary.json (last). Runs on the fusion thread or after
+    it stopped, so the maps hold still."""
+    # A summary from an earlier export must not vouch for files this one is replacing.
+    (out / "summary.json").unlink(missing_ok=True)
+    vehicles = {}
+    for vid, state in sorted(list(station.vehicles.items())):
+        where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
+        vehicles[str(vid)] = {"directory": str(where), **_vehicle_summary(state, where, truth)}
+    received = station.receiver.rejects  # what the ground can reject (the rest are the drone's)
+    rejects = {"malformed": received.malformed, "unknown_channel": received.unknown_channel,
+               "wrong_vehicle": received.wrong_vehicle}
+    rejects["too_many_vehicles"] = station.rejected_too_many_vehicles
+    rejects["handler_errors"] = station.handler_errors
+    summary = {
+        "kinfly_ground": __version__, "mode": mode, "duration_s": time.monotonic() - started,
+        "vehicles": vehicles, "rejected_messages": rejects, "memory": memory(),
+        "params": dataclasses.asdict(station.params), **extra,
+    }
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
+    print(f"kinfly-ground {summary['mode']}: {summary['duration_s']:.1f} s, outputs in {out}")
+    if not summary["vehicles"]:
+        print("  no keyframes were received")
+    for vid, v in summary["vehicles"].items():
+        k, lat = v["keyframes"], v["latency_ms"]
+        drone = v.get("drone_reported")
+        if drone is None:
+            print(f"  vehicle {vid}: no status heard from the drone")
+        else:
+            print(f"  vehicle {vid}: the drone sent {drone['keyframes_sent']} keyframes"
+                  f"{'' if drone['final'] else ' by its last status heard (not its final one)'}"
+                  f"; it dropped {drone['queue_drops']} of {drone['frames_captured']} frames "
+                  f"(odometry behind) and {drone['keyframes_dropped']} keyframes (link busy)")
+        print(f"    {k['keyframes_received']} keyframes received, {k['lost_on_link']} lost on "
+              f"the link, {k['keyframes_fused']} fused, {k['keyframes_lost']} not refined, "
+              f"{k['keyframes_dropped']} dropped from the queue, {k['corrections_sent']} "
+              "corrections sent")
+        print(f"    correction latency: median {format_ms(lat['median'])} ms, "
+              f"p99 {format_ms(lat['p99'])} ms")
+        a = v["ate"]
+        if a["available"]:
+            parts = [f"{n} {a[n]['rmse_m'] * 100:.2f} cm ({a[n]['matched_poses']} poses)"
+                     for n in ("onboard", "corrected") if n in a]
+            print("    ATE RMSE: " + ", ".join(parts))
+        else:
+            print(f"    ATE: {a['reason']}")
+        print(f"    files: {', '.join(str(Path(v['directory']) / f) for f in v['files'].values())}")
+    m = summary["memory"]
+    after = summary.get("memory_after_fusion")
+    print(f"  memory: {after['rss_mb']:.0f} MB resident after fusing, " if after else "  memory: ",
+          end="")
+    print(f"{m['rss_mb']:.0f} MB at exit, {m['peak_rss_mb']:.0f} MB peak")
+    if rrd is not None:
+        print(f"  rerun recording: {rrd} (open with: rerun {rrd})")
+    print(f"  summary: {out / 'summary.json'}")

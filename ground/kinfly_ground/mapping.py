@@ -1,0 +1,213 @@
+"""The maps (the worker thread): each keyframe is refined against its vehicle's map from the
+drone's onboard pose and fused (the GIL released), its correction goes out at once (uplink.py),
+then the viewer gets the keyframe, the render and the health figures, and every few seconds a copy
+of the map to mesh (runner.py). The correction policy: a correction that moves the onboard pose
+beyond the reset bounds is a jump (reset_counter + 1). Ground truth is filed with the map of the
+session it arrived in and drawn in the map's frame."""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ._native import Fusion, Keyframe, MapSnapshot, TrackingStatus, rotation_angle_rad
+from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
+from .uplink import Uplink
+from .vehicle import Job, Segment, StampedPose, VehicleState
+
+
+def jump_exceeds(delta: np.ndarray, translation_m: float, rotation_rad: float) -> bool:
+    """Whether the rigid transform DELTA moves further than either bound."""
+    return bool(np.linalg.norm(delta[:3, 3]) > translation_m
+                or rotation_angle_rad(delta) > rotation_rad)
+
+
+def truth_anchor(corrected: list[StampedPose], truth: list[StampedPose]) -> np.ndarray | None:
+    """T_map_truth that puts the ground truth on the first corrected keyframe that has a
+    ground-truth pose within ATE_MAX_TIME_DIFF_S of its capture time; None while none has."""
+    if not truth:
+        return None
+    truth_utimes = np.array([utime for utime, _ in truth])
+    for utime, T_map_cam in corrected:
+        nearest = int(np.argmin(np.abs(truth_utimes - utime)))
+        if abs(truth_utimes[nearest] - utime) <= ATE_MAX_TIME_DIFF_S * 1e6:
+            return T_map_cam @ np.linalg.inv(truth[nearest][1])
+    return None
+
+
+class Mapper:
+    """Handles queued keyframes (`process`, on the worker thread). MESH hands a map copy to the
+    mesher."""
+
+    def __init__(self, params: Any, vehicles: dict[int, VehicleState], uplink: Uplink,
+                 mesh: Callable[[VehicleState, int, MapSnapshot], None],
+                 log: Callable[[str], None]) -> None:
+        self.params = params
+        self.vehicles = vehicles
+        self._uplink = uplink
+        self._mesh = mesh
+        self._log = log
+
+    def process(self, job: Job) -> None:
+        """One keyframe that cannot be handled (intrinsics the engine refuses, say) is counted
+        and logged; the next one is fused as usual."""
+        state = self.vehicles[job.vehicle_id]
+        try:
+            self._process(job)
+        except Exception as error:
+            state.counters.failed += 1
+            self._log(f"vehicle {job.vehicle_id}: keyframe {job.message.keyframe_id} not "
+                      f"handled: {type(error).__name__}: {error}")
+        with state.lock:
+            if job.session == state.session:
+                state.last_done_keyframe_id = max(state.last_done_keyframe_id,
+                                                  job.message.keyframe_id)
+
+    def _process(self, job: Job) -> None:
+        state = self.vehicles[job.vehicle_id]
+        m = job.message
+        c = m.camera
+        camera = (c.width, c.height, c.fx, c.fy, c.cx, c.cy, m.depth_scale_m)
+        if job.session != state.worker_session:
+            state.worker_session = job.session
+            self._new_segment(state, m.utime)
+        elif state.segment.camera is not None and state.segment.camera != camera:
+            state.counters.camera_changes += 1
+            self._log(f"vehicle {state.vehicle_id}: the camera changed "
+                      f"({state.segment.camera[:6]} -> {camera[:6]}); starting a new map")
+            self._new_segment(state, m.utime)
+        segment = state.segment
+        if segment.fusion is None:
+            segment.camera = camera
+            segment.fusion = Fusion(c, m.depth_scale_m,
+                                    voxel_size_m=self.params.voxel_size_m,
+                                    threads=self.params.threads)
+        has_onboard = m.tracking is not None
+        if has_onboard:
+            T_onboard = m.T_world_cam
+        else:
+            # No onboard pose (its fields are meaningless): start from the last refined one.
+            T_onboard = segment.corrected[-1][1] if segment.corrected else np.eye(4)
+        depth = m.depth
+        result = segment.fusion.refine(depth, m.utime, T_onboard)
+        state.map_blocks = segment.fusion.num_blocks
+        state.refine_ms.append(result.total_ms)
+        state.last_result = result
+        if has_onboard:
+            segment.onboard.append((m.utime, T_onboard))
+        T_corrected = None
+        if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
+            T_corrected = result.T_world_cam
+            segment.corrected.append((m.utime, T_corrected))
+            state.counters.keyframes_fused += 1
+            state.rates["fused"].tick(time.monotonic())
+            self._correct(state, m, T_onboard, T_corrected, job.arrival_ns)
+        else:
+            state.counters.keyframes_lost += 1
+            self._log(f"vehicle {state.vehicle_id}: keyframe {m.keyframe_id} not refined "
+                      f"({result.lost_reason}); no correction")
+        self._show(state, m, depth, T_onboard, T_corrected, result)
+
+    def _correct(self, state: VehicleState, m: Keyframe, T_onboard: np.ndarray,
+                 T_corrected: np.ndarray, arrival_ns: int) -> None:
+        """The correction policy, then the uplink."""
+        # The move in the camera's own frame: its translation is the distance between the two
+        # poses, however far from the origin the drone is.
+        if jump_exceeds(np.linalg.inv(T_onboard) @ T_corrected, self.params.reset_translation_m,
+                        self.params.reset_rotation_rad):
+            state.reset_counter += 1
+            state.counters.resets += 1
+        state.T_map_onboard = T_corrected @ np.linalg.inv(T_onboard)
+        self._uplink.send(state, m, T_corrected, arrival_ns)
+
+    def _show(self, state: VehicleState, m: Keyframe, depth: np.ndarray,
+              T_onboard: np.ndarray, T_corrected: np.ndarray | None, result: Any) -> None:
+        self._file_truth(state)
+        c = m.camera
+        state.view.keyframe(m.utime, depth, m.depth_scale_m, (c.fx, c.fy, c.cx, c.cy), T_onboard,
+                            T_corrected)
+        fusion = state.segment.fusion
+        if result.status is TrackingStatus.OK:
+            # The map as raycast for this keyframe's registration, from its onboard pose (a few
+            # mm from the refined one) where it measured depth; a map's first keyframe has none.
+            state.view.render(m.utime, fusion.render())
+        # What the viewer's two plots show (viewer._layout): the keyframes' fate as the progress
+        # line counts it, and how well the ground registered them. The other counters are in
+        # summary.json; a first keyframe is not registered, so it has no tracking figures.
+        counters = state.counters
+        health = {
+            "link/received": float(counters.keyframes_received),
+            "link/lost_on_link": float(counters.lost_on_link),
+            "link/fused": float(counters.keyframes_fused),
+            "link/not_refined": float(counters.keyframes_lost),
+            "link/dropped": float(counters.keyframes_dropped),
+        }
+        if T_corrected is not None and state.latencies_ms:
+            health["link/latency_ms"] = state.latencies_ms[-1]
+        if result.status is not TrackingStatus.FIRST_FRAME:
+            health["tracking/inlier_fraction"] = result.inlier_fraction
+            health["tracking/rmse_mm"] = result.rmse_m * 1e3
+        state.view.health(m.utime, health)
+        # By capture time, which runs at the wall clock's pace in flight and at the log's in a
+        # replay.
+        interval_us = self.params.mesh_interval_s * 1e6
+        if interval_us > 0 and (state.mesh_utime is None
+                                or m.utime - state.mesh_utime >= interval_us):
+            state.mesh_utime = m.utime
+            self._mesh(state, m.utime, fusion.snapshot())
+
+    def _file_truth(self, state: VehicleState) -> None:
+        """Ground truth goes with the map of the session it arrived in: a restarted drone's
+        poses are in another frame, and a replayed log repeats the capture times."""
+        with state.lock:
+            pending = [e for e in state.pending_truth if e[0] <= state.worker_session]
+            state.pending_truth = [e for e in state.pending_truth if e[0] > state.worker_session]
+        for session, utime, T in pending:
+            if session == state.worker_session:
+                state.segment.ground_truth.append((utime, T))
+            elif session < state.worker_session and state.finished_segments:
+                state.finished_segments[-1].ground_truth.append((utime, T))
+        self._draw_truth(state)
+
+    def _draw_truth(self, state: VehicleState) -> None:
+        """Ground truth has a frame of its own (a recording's starts at its first sample, which
+        need not be the first keyframe's time), so it is drawn in the map's frame, anchored at the
+        first refined keyframe with a ground-truth pose at its capture time; poses heard before
+        that wait. At the end it is drawn again as the ATE aligns it (cli._finish)."""
+        segment = state.segment
+        if segment.T_map_truth is None:
+            segment.T_map_truth = truth_anchor(segment.corrected, segment.ground_truth)
+            if segment.T_map_truth is None:
+                return
+        for utime, T in segment.ground_truth[segment.truth_drawn:]:
+            state.view.ground_truth(utime, segment.T_map_truth @ T)
+        segment.truth_drawn = len(segment.ground_truth)
+
+    def _new_segment(self, state: VehicleState, utime: int) -> None:
+        with state.lock:
+            if state.segment.fusion is not None:
+                state.finished_segments.append(state.segment)
+            state.segment = Segment()
+        state.view.restarted(utime)
+
+    def show_final(self, truth: list[StampedPose] | None) -> None:
+        """Sends every vehicle's map to the viewer as it is at the end, stamped with its last
+        keyframe (the periodic meshes miss whatever came after the last one), and its ground
+        truth (TRUTH, else what the drone sent) as the ATE aligns it with the corrected
+        trajectory: the frame the evaluation compares them in. Call after stop()."""
+        for state in self.vehicles.values():
+            segment = state.segment
+            if segment.fusion is None or not segment.corrected:
+                continue
+            last_utime = segment.corrected[-1][0]
+            segment.snapshot = segment.fusion.snapshot()
+            state.view.mesh(last_utime, *segment.snapshot.mesh())
+            segment_truth = truth if truth is not None else segment.ground_truth
+            segment.evaluation = evaluate({"onboard": segment.onboard,
+                                           "corrected": segment.corrected}, segment_truth)
+            if "corrected" in segment.evaluation:
+                T_map_truth = np.linalg.inv(segment.evaluation["corrected"]["T_truth_estimate"])
+                state.view.ground_truth_aligned(
+                    last_utime, np.array([(T_map_truth @ T)[:3, 3] for _, T in segment_truth]))

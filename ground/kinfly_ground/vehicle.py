@@ -1,0 +1,138 @@
+"""What the station holds about each vehicle, shared by its parts (arrivals.py on the LCM thread,
+mapping.py on the worker thread, status.py): counters, sessions and their maps (segments)."""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ._native import DroneStatus, Fusion, Keyframe, MapSnapshot, Signer
+from .viewer import VehicleView
+
+StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4 T_world_cam)
+
+
+@dataclasses.dataclass
+class VehicleCounters:
+    keyframes_received: int = 0    # passed the Receiver's checks
+    lost_on_link: int = 0          # sent by the drone (its status says) but never received
+    keyframes_fused: int = 0       # refined (or the first of a map) and fused
+    keyframes_lost: int = 0        # the refinement failed: not fused, no correction
+    keyframes_dropped: int = 0     # the queue was full (oldest dropped)
+    duplicates: int = 0            # the same keyframe id and capture time again
+    out_of_order: int = 0          # older than one already received
+    drone_restarts: int = 0        # keyframe ids started again from zero
+    camera_changes: int = 0        # a keyframe with other intrinsics: the map starts again
+    corrections_sent: int = 0
+    corrections_unsigned: int = 0  # not sent: no key for this vehicle
+    resets: int = 0                # corrections beyond the jump threshold
+    failed: int = 0                # keyframes whose handling raised (logged): the station goes on
+
+
+@dataclasses.dataclass
+class Segment:
+    """One odometry frame's map and trajectories: a drone restart starts a new segment."""
+    fusion: Fusion | None = None
+    camera: tuple[Any, ...] | None = None
+    onboard: list[StampedPose] = dataclasses.field(default_factory=list)
+    corrected: list[StampedPose] = dataclasses.field(default_factory=list)
+    ground_truth: list[StampedPose] = dataclasses.field(default_factory=list)
+    # Draws the ground truth in the map's frame (None until a refined keyframe anchors it), and
+    # how many of its poses have been drawn.
+    T_map_truth: np.ndarray | None = None
+    truth_drawn: int = 0
+    snapshot: MapSnapshot | None = None  # the final map, meshed once for viewer and file
+    # The final ATE of each trajectory (outputs.evaluate), made once for viewer and summary.
+    evaluation: dict[str, dict[str, Any]] | None = None
+
+
+@dataclasses.dataclass
+class Job:
+    """A keyframe waiting for the worker: the vehicle's session it arrived in, and when."""
+    vehicle_id: int
+    session: int
+    message: Keyframe  # typed: camera, onboard pose, tracking status, depth
+    arrival_ns: int  # time.monotonic_ns() when the message came off the socket
+
+
+class RateMeter:
+    """Events per second over the last WINDOW_S."""
+
+    WINDOW_S = 2.0
+
+    def __init__(self) -> None:
+        self._times: collections.deque[float] = collections.deque()
+
+    def tick(self, now_s: float) -> None:
+        self._times.append(now_s)
+
+    def rate_hz(self, now_s: float) -> float:
+        while self._times and self._times[0] < now_s - self.WINDOW_S:
+            self._times.popleft()
+        return len(self._times) / self.WINDOW_S
+
+
+class VehicleState:
+    """Everything the station holds about one vehicle. Fields written by the worker are read by
+    the other threads only for status and progress, where a value one keyframe old is fine."""
+
+    def __init__(self, vehicle_id: int, make_view: Callable[[], VehicleView],
+                 signer: Signer | None) -> None:
+        self.vehicle_id = vehicle_id
+        self._make_view = make_view
+        self._view: VehicleView | None = None
+        self.signer = signer
+        self.counters = VehicleCounters()
+        self.segment = Segment()
+        self.finished_segments: list[Segment] = []
+        self.reset_counter = 0
+        self.latencies_ms: list[float] = []
+        self.refine_ms: list[float] = []
+        self.last_result: Any = None
+        self.mesh_utime: int | None = None  # capture time of the last mesh sent to the viewer
+        # Written by the fusion thread: the map itself must not be read while a refine runs.
+        self.map_blocks = 0
+        # The latest correction as a transform: the drone's odometry frame into the map's.
+        self.T_map_onboard = np.eye(4)
+        # Arrival side (LCM thread only).
+        self.session = 0
+        self.last_keyframe: tuple[int, int] | None = None  # (keyframe_id, utime)
+        self.worker_session = 0
+        self.drone_heard_s: float | None = None
+        # The drone's latest status in this session, and what the link lost in earlier ones.
+        self.drone_status: DroneStatus | None = None
+        self.session_keyframe_ids: set[int] = set()
+        self.lost_on_link_before = 0
+        # The highest keyframe id of this session the worker is done with (fused, lost or
+        # failed): the ground's status tells the drone, which waits for it at the end of a replay.
+        self.last_done_keyframe_id = -1
+        # Ground truth heard but not yet filed, tagged with the session it arrived in.
+        self.pending_truth: list[tuple[int, int, np.ndarray]] = []
+        self.rates = {name: RateMeter() for name in ("received", "fused", "corrections")}
+        self.lock = threading.Lock()  # pending_truth, segment swaps, last_done_keyframe_id
+
+    @property
+    def view(self) -> VehicleView:
+        """Made at first use, on the fusion thread (or at start by a station serving one
+        vehicle): rerun takes up to a second to set one up, which the LCM thread must not wait
+        for."""
+        if self._view is None:
+            self._view = self._make_view()
+        return self._view
+
+    def lost_on_link_now(self) -> int:
+        """Keyframes this session's drone says it sent, up to the last id it reported, that did
+        not arrive; plus the earlier sessions'. LCM thread."""
+        d = self.drone_status
+        if d is None:
+            return self.lost_on_link_before
+        heard = sum(1 for i in self.session_keyframe_ids if i <= d.last_keyframe_id)
+        return self.lost_on_link_before + max(0, d.keyframes_sent - heard)
+
+
+def percentile(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None

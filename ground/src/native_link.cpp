@@ -1,0 +1,400 @@
+// kinfly_ground._native's link: the ground station's end of the wire is firmware/link, the same
+// C++ as the drone's (channel names, bounded decoding, depth payloads, signing, reject counters),
+// so the wire is parsed, checked and signed in one implementation. Python sees typed results
+// (Keyframe, GroundTruth, Odometry, the drone's status), never raw messages.
+#include <nanobind/stl/filesystem.h>
+#include <nanobind/stl/optional.h>
+#include <nanobind/stl/pair.h>
+#include <nanobind/stl/string.h>
+
+#include <cstring>
+#include <filesystem>
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "arrays.h"
+#include "kinfly/core/camera.h"
+#include "kinfly/codec/depth_codec.h"
+#include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/link/channels.h"
+#include "kinfly/link/conversions.h"
+#include "kinfly/link/counters.h"
+#include "kinfly/link/decode.h"
+#include "kinfly/link/signing.h"
+#include "kinfly/link/uplink.h"
+
+namespace kinfly::native {
+namespace {
+
+// A key file that must not be used (its mode, size or type); the message says how to fix it.
+struct KeyFileError : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+
+// A keyframe (or a raw depth frame) as it arrived, its depth decoded.
+struct Keyframe {
+  int64_t utime = 0;  // [us] capture time
+  int32_t vehicle_id = 0;
+  int64_t frame_id = 0, keyframe_id = 0;
+  PinholeCamera camera;
+  double depth_scale_m = 0.0;
+  std::optional<TrackingStatus> tracking;  // the onboard odometry's; nullopt: no pose
+  Pose T_world_cam = Pose::Identity();     // the onboard pose
+  Image<uint16_t> depth;                   // raw units (depth_scale_m)
+};
+
+struct StampedPose {
+  int64_t utime = 0;
+  int32_t vehicle_id = 0;
+  Pose T_world_cam = Pose::Identity();
+  int32_t reset_counter = 0;   // odometry and corrections
+  int64_t keyframe_id = -1;    // corrections
+};
+
+nb::object poseOrNone(const Pose& T, bool present) {
+  return present ? nb::cast(matrixOf(T), nb::rv_policy::move) : nb::none();
+}
+
+link::Key keyOf(const nb::bytes& bytes) {
+  link::Key key;
+  if (bytes.size() != key.bytes.size())
+    throw nb::value_error(("a key is " + std::to_string(key.bytes.size()) + " bytes, not " +
+                           std::to_string(bytes.size()))
+                              .c_str());
+  std::memcpy(key.bytes.data(), bytes.c_str(), key.bytes.size());
+  key.id = link::keyIdOf(key.bytes);
+  return key;
+}
+
+template <class T>
+std::vector<uint8_t> encoded(const T& message) {
+  std::vector<uint8_t> bytes(static_cast<size_t>(message.getEncodedSize()));
+  message.encode(bytes.data(), 0, static_cast<int>(bytes.size()));
+  return bytes;
+}
+
+nb::bytes bytesOf(const std::vector<uint8_t>& data) {
+  return nb::bytes(reinterpret_cast<const char*>(data.data()), data.size());
+}
+
+// Everything the ground station hears goes through one Receiver: the channel is parsed, the
+// message decoded within bounds, a depth payload decoded, and the vehicle checked against the
+// channel; each rejection is counted by reason. Its own channels (corrections, its status) are
+// ignored when they loop back on multicast.
+class Receiver {
+ public:
+  Receiver() : codec_(codecParams(bounds_)) {}
+
+  // None, or (channel, vehicle id, what arrived: Keyframe, Odometry/GroundTruth (StampedPose),
+  // the drone's status, or None for IMU samples).
+  nb::object receive(const std::string& channel, const nb::bytes& data) {
+    const std::optional<link::ParsedChannel> parsed = link::parseChannel(channel);
+    if (!parsed) {
+      ++rejects_.unknown_channel;
+      return nb::none();
+    }
+    const int vehicle = parsed->vehicle_id;
+    const auto result = [&](nb::object message) {
+      return nb::make_tuple(parsed->channel, vehicle, message);
+    };
+    switch (parsed->channel) {
+      case link::Channel::kKeyframe:
+      case link::Channel::kDepth: {
+        if (!decode(data, &keyframe_)) return nb::none();
+        if (!link::decodeDepth(codec_, keyframe_, &depth_).ok()) {
+          ++rejects_.malformed;
+          return nb::none();
+        }
+        if (!sameVehicle(keyframe_.vehicle_id, vehicle)) return nb::none();
+        auto* k = new Keyframe();
+        k->utime = keyframe_.utime;
+        k->vehicle_id = keyframe_.vehicle_id;
+        k->frame_id = keyframe_.frame_id;
+        k->keyframe_id = keyframe_.keyframe_id;
+        k->camera = link::cameraOf(keyframe_);
+        k->depth_scale_m = keyframe_.depth_scale_m;
+        k->tracking = link::trackingOf(keyframe_.tracking_status);
+        if (k->tracking) k->T_world_cam = link::readPose(keyframe_.T_world_cam);
+        k->depth = Image<uint16_t>(depth_.width(), depth_.height());
+        k->depth.copyFrom(depth_.view());
+        return result(nb::cast(k, nb::rv_policy::take_ownership));
+      }
+      case link::Channel::kOdometry: {
+        odometry_t m;
+        if (!decode(data, &m) || !sameVehicle(m.vehicle_id, vehicle)) return nb::none();
+        return result(nb::cast(StampedPose{m.utime, m.vehicle_id, link::readPose(m.T_world_cam),
+                                           m.reset_counter}));
+      }
+      case link::Channel::kGroundTruth: {
+        ground_truth_t m;
+        if (!decode(data, &m) || !sameVehicle(m.vehicle_id, vehicle)) return nb::none();
+        return result(nb::cast(StampedPose{m.utime, m.vehicle_id, link::readPose(m.T_world_cam)}));
+      }
+      case link::Channel::kStatus: {
+        drone_status_t m;
+        if (!decode(data, &m) || !sameVehicle(m.vehicle_id, vehicle)) return nb::none();
+        return result(nb::cast(m));
+      }
+      case link::Channel::kImu: {
+        imu_t m;
+        if (!decode(data, &m) || !sameVehicle(m.vehicle_id, vehicle)) return nb::none();
+        return result(nb::none());
+      }
+      case link::Channel::kCorrection:
+      case link::Channel::kGroundStatus: return nb::none();
+    }
+    return nb::none();
+  }
+
+  const link::RejectCounters& rejects() const { return rejects_; }
+
+ private:
+  static DepthCodec::Params codecParams(const link::DecodeBounds& bounds) {
+    DepthCodec::Params params;
+    params.max_width_px = bounds.max_width_px;
+    params.max_height_px = bounds.max_height_px;
+    return params;
+  }
+  template <class T>
+  bool decode(const nb::bytes& data, T* out) {
+    const link::DecodeResult r = link::decodeMessage(data.c_str(), data.size(), bounds_, out);
+    rejects_.count(r.status);
+    return r.ok();
+  }
+  bool sameVehicle(int32_t in_message, int in_channel) {
+    if (in_message == in_channel) return true;
+    ++rejects_.wrong_vehicle;
+    return false;
+  }
+
+  link::DecodeBounds bounds_;
+  DepthCodec codec_;
+  link::RejectCounters rejects_;
+  depth_keyframe_t keyframe_;  // reused: its payload keeps its capacity
+  Image<uint16_t> depth_;      // reused: the codec's output
+};
+
+// Signs the ground's corrections for one vehicle.
+class Signer {
+ public:
+  Signer(const nb::bytes& key, int32_t vehicle_id, std::optional<int64_t> first_sequence)
+      : vehicle_id_(vehicle_id),
+        signer_(keyOf(key), vehicle_id, first_sequence.value_or(link::wallClockUtime())) {}
+
+  // The signed_t envelope, encoded, around the correction of one keyframe.
+  nb::bytes signCorrection(int64_t keyframe_id, int64_t utime, const PoseIn& T_world_cam,
+                           int32_t reset_counter, std::optional<int64_t> utime_now) {
+    link::KeyframeHeader keyframe;
+    keyframe.utime = utime;
+    keyframe.keyframe_id = keyframe_id;
+    pose_correction_t correction;
+    link::fillCorrection(vehicle_id_, keyframe, poseOf(T_world_cam), reset_counter, &correction);
+    const std::vector<uint8_t> inner = encoded(correction);
+    signer_.sign(inner.data(), inner.size(), utime_now.value_or(link::wallClockUtime()),
+                 &envelope_);
+    return bytesOf(encoded(envelope_));
+  }
+
+ private:
+  int32_t vehicle_id_;
+  link::Signer signer_;
+  signed_t envelope_;
+};
+
+// The drone's end of the uplink (link::CorrectionReceiver), for tests and tools that check what
+// the ground sends as the drone would.
+class CorrectionReceiver {
+ public:
+  CorrectionReceiver(const nb::bytes& key, int32_t vehicle_id, double window_s)
+      : receiver_(keyOf(key), vehicle_id, verifierParams(window_s), link::DecodeBounds()) {}
+
+  std::optional<StampedPose> receive(const nb::bytes& data, int64_t now_utime) {
+    const auto c = receiver_.receive(data.c_str(), data.size(), now_utime);
+    if (!c) return std::nullopt;
+    return StampedPose{c->utime, c->vehicle_id, link::readPose(c->T_world_cam), c->reset_counter,
+                       c->keyframe_id};
+  }
+  const link::RejectCounters& rejects() const { return receiver_.rejects(); }
+  int64_t accepted() const { return receiver_.accepted(); }
+
+ private:
+  static link::VerifierParams verifierParams(double window_s) {
+    link::VerifierParams params;
+    params.window_s = window_s;
+    if (const std::string why = params.validate(); !why.empty()) throw nb::value_error(why.c_str());
+    return params;
+  }
+  link::CorrectionReceiver receiver_;
+};
+
+}  // namespace
+
+void bindLink(nb::module_& m) {
+  nb::enum_<TrackingStatus>(m, "TrackingStatus", "The engine's tracking status (icp_tracker.h)")
+      .value("FIRST_FRAME", TrackingStatus::kFirstFrame)
+      .value("OK", TrackingStatus::kOk)
+      .value("LOST", TrackingStatus::kLost)
+      .value("GIVEN_POSE", TrackingStatus::kGivenPose);
+  m.def("tracking_code", [](std::optional<TrackingStatus> s) { return link::trackingCode(s); },
+        nb::arg("status").none(), "odometry_t.TRACKING_* of a status (None: TRACKING_NONE)");
+
+  nb::class_<PinholeCamera>(m, "PinholeCamera", "The engine's pinhole camera (camera.h)")
+      .def(nb::init<>())
+      .def("__init__",
+           [](PinholeCamera* self, int width, int height, float fx, float fy, float cx, float cy) {
+             new (self) PinholeCamera{fx, fy, cx, cy, width, height};
+           },
+           nb::arg("width"), nb::arg("height"), nb::arg("fx"), nb::arg("fy"), nb::arg("cx"),
+           nb::arg("cy"))
+      .def_rw("width", &PinholeCamera::width)
+      .def_rw("height", &PinholeCamera::height)
+      .def_rw("fx", &PinholeCamera::fx)
+      .def_rw("fy", &PinholeCamera::fy)
+      .def_rw("cx", &PinholeCamera::cx)
+      .def_rw("cy", &PinholeCamera::cy)
+      .def("validate", &PinholeCamera::validate, "empty when valid, else what is wrong")
+      .def("__eq__",
+           [](const PinholeCamera& a, const PinholeCamera& b) {
+             return a.width == b.width && a.height == b.height && a.fx == b.fx && a.fy == b.fy &&
+                    a.cx == b.cx && a.cy == b.cy;
+           })
+      .def("__repr__", [](const PinholeCamera& c) {
+        return "PinholeCamera(" + std::to_string(c.width) + "x" + std::to_string(c.height) +
+               ", fx=" + std::to_string(c.fx) + ", fy=" + std::to_string(c.fy) +
+               ", cx=" + std::to_string(c.cx) + ", cy=" + std::to_string(c.cy) + ")";
+      });
+
+  nb::enum_<link::Channel>(m, "Channel", "Kinds of kinfly channel (firmware/link/channels.h)")
+      .value("DEPTH", link::Channel::kDepth)
+      .value("KEYFRAME", link::Channel::kKeyframe)
+      .value("ODOMETRY", link::Channel::kOdometry)
+      .value("IMU", link::Channel::kImu)
+      .value("STATUS", link::Channel::kStatus)
+      .value("CORRECTION", link::Channel::kCorrection)
+      .value("GROUND_STATUS", link::Channel::kGroundStatus)
+      .value("GROUND_TRUTH", link::Channel::kGroundTruth);
+  m.attr("MAX_VEHICLE_ID") = link::kMaxVehicleId;
+  m.def("channel_name",
+        [](link::Channel channel, int vehicle_id) {
+          if (vehicle_id < 0 || vehicle_id > link::kMaxVehicleId)
+            throw nb::value_error(("vehicle id " + std::to_string(vehicle_id) + " outside [0, " +
+                                   std::to_string(link::kMaxVehicleId) + "]")
+                                      .c_str());
+          return link::channelName(channel, vehicle_id);
+        },
+        nb::arg("channel"), nb::arg("vehicle_id"), "KINFLY_<vehicle id>_<KIND>");
+  m.def("parse_channel",
+        [](const std::string& name) -> nb::object {
+          const auto parsed = link::parseChannel(name);
+          if (!parsed) return nb::none();
+          return nb::make_tuple(parsed->channel, parsed->vehicle_id);
+        },
+        nb::arg("name"), "(Channel, vehicle id) of a kinfly channel name; None for anything else");
+  m.def("ground_subscriptions",
+        [](std::optional<int> vehicle_id) {
+          const link::Subscriptions s = link::groundSubscriptions(vehicle_id);
+          return std::make_pair(s.keyframes, s.others);
+        },
+        nb::arg("vehicle_id").none(),
+        "LCM patterns (keyframes, everything else) for one vehicle, or every vehicle for None");
+
+  nb::class_<link::RejectCounters>(m, "RejectCounters", "Received messages dropped, by reason")
+      .def_ro("unsigned_messages", &link::RejectCounters::unsigned_messages)
+      .def_ro("wrong_key", &link::RejectCounters::wrong_key)
+      .def_ro("bad_mac", &link::RejectCounters::bad_mac)
+      .def_ro("stale", &link::RejectCounters::stale)
+      .def_ro("replayed", &link::RejectCounters::replayed)
+      .def_ro("malformed", &link::RejectCounters::malformed)
+      .def_ro("unknown_channel", &link::RejectCounters::unknown_channel)
+      .def_ro("wrong_vehicle", &link::RejectCounters::wrong_vehicle)
+      .def("total", &link::RejectCounters::total);
+
+  nb::class_<Keyframe>(m, "Keyframe", "A depth keyframe (or raw frame) as received")
+      .def_ro("utime", &Keyframe::utime)
+      .def_ro("vehicle_id", &Keyframe::vehicle_id)
+      .def_ro("frame_id", &Keyframe::frame_id)
+      .def_ro("keyframe_id", &Keyframe::keyframe_id)
+      .def_ro("camera", &Keyframe::camera)
+      .def_ro("depth_scale_m", &Keyframe::depth_scale_m)
+      .def_ro("tracking", &Keyframe::tracking, "the onboard odometry's status; None: no pose")
+      .def_prop_ro("T_world_cam",
+                   [](const Keyframe& k) { return poseOrNone(k.T_world_cam, k.tracking.has_value()); },
+                   "the onboard pose (4x4 camera to world); None when there is none")
+      .def_prop_ro("depth",
+                   [](nb::handle self) {
+                     Keyframe& k = nb::cast<Keyframe&>(self);
+                     return DepthOut(k.depth.data(),
+                                     {static_cast<size_t>(k.depth.height()),
+                                      static_cast<size_t>(k.depth.width())},
+                                     self);
+                   },
+                   "uint16 (height, width) raw depth, a view kept alive by the keyframe");
+
+  nb::class_<StampedPose>(m, "StampedPose", "A received pose: odometry, ground truth, correction")
+      .def_ro("utime", &StampedPose::utime)
+      .def_ro("vehicle_id", &StampedPose::vehicle_id)
+      .def_prop_ro("T_world_cam", [](const StampedPose& p) { return matrixOf(p.T_world_cam); },
+                   nb::rv_policy::move)
+      .def_ro("reset_counter", &StampedPose::reset_counter)
+      .def_ro("keyframe_id", &StampedPose::keyframe_id);
+
+  nb::class_<drone_status_t>(m, "DroneStatus", "The drone's status (drone_status_t)")
+#define KINFLY_FIELD(name) .def_ro(#name, &drone_status_t::name)
+      KINFLY_FIELD(utime) KINFLY_FIELD(vehicle_id) KINFLY_FIELD(depth_rate_hz)
+      KINFLY_FIELD(odometry_rate_hz) KINFLY_FIELD(keyframe_rate_hz) KINFLY_FIELD(frames_captured)
+      KINFLY_FIELD(queue_drops) KINFLY_FIELD(keyframes_sent) KINFLY_FIELD(keyframes_dropped)
+      KINFLY_FIELD(last_keyframe_id) KINFLY_FIELD(run_state) KINFLY_FIELD(tracking_state)
+      KINFLY_FIELD(link_state) KINFLY_FIELD(sensor_state) KINFLY_FIELD(sensor_connects)
+      KINFLY_FIELD(sensor_stalls) KINFLY_FIELD(frames_skipped) KINFLY_FIELD(frames_lost)
+      KINFLY_FIELD(rejected_unsigned) KINFLY_FIELD(rejected_wrong_key)
+      KINFLY_FIELD(rejected_bad_mac) KINFLY_FIELD(rejected_stale) KINFLY_FIELD(rejected_replayed)
+      KINFLY_FIELD(rejected_malformed) KINFLY_FIELD(rejected_unknown_channel)
+      KINFLY_FIELD(rejected_wrong_vehicle) KINFLY_FIELD(corrections_accepted)
+      KINFLY_FIELD(corrections_unknown_keyframe)
+#undef KINFLY_FIELD
+      .def_prop_ro("final", [](const drone_status_t& s) {
+        return s.run_state == drone_status_t::RUN_FINAL;
+      }, "its last status before kinfly-fw exits");
+
+  nb::class_<Receiver>(m, "Receiver",
+                       "Parses, decodes within bounds and checks every received message "
+                       "(firmware/link), counting what it rejects")
+      .def(nb::init<>())
+      .def("receive", &Receiver::receive, nb::arg("channel"), nb::arg("data"),
+           "None when rejected or not for the ground; else (Channel, vehicle id, message)")
+      .def_prop_ro("rejects", &Receiver::rejects, nb::rv_policy::reference_internal);
+
+  nb::exception<KeyFileError>(m, "KeyFileError");
+  m.def("load_key_file",
+        [](const std::filesystem::path& path) {
+          std::string why;
+          const std::optional<link::Key> key = link::loadKeyFile(path.string(), &why);
+          if (!key) throw KeyFileError(why);
+          return nb::bytes(reinterpret_cast<const char*>(key->bytes.data()), key->bytes.size());
+        },
+        nb::arg("path"),
+        "A 32-byte key; KeyFileError (like ssh) for a file group or others may access");
+  m.def("key_id", [](const nb::bytes& key) { return keyOf(key).id; }, nb::arg("key"),
+        "First 4 bytes of SHA-256 of the key, big-endian (unsigned)");
+
+  nb::class_<Signer>(m, "Signer", "Signs the ground's corrections for one vehicle (HMAC-SHA256)")
+      .def(nb::init<const nb::bytes&, int32_t, std::optional<int64_t>>(), nb::arg("key"),
+           nb::arg("vehicle_id"), nb::arg("first_sequence") = nb::none(),
+           "first_sequence: by default the wall clock in microseconds")
+      .def("sign_correction", &Signer::signCorrection, nb::arg("keyframe_id"), nb::arg("utime"),
+           nb::arg("T_world_cam"), nb::arg("reset_counter"), nb::arg("utime_now") = nb::none(),
+           "The encoded signed_t around a pose_correction_t of one keyframe");
+
+  nb::class_<CorrectionReceiver>(m, "CorrectionReceiver",
+                                 "The drone's end of the uplink: verifies signed corrections")
+      .def(nb::init<const nb::bytes&, int32_t, double>(), nb::arg("key"), nb::arg("vehicle_id"),
+           nb::arg("window_s") = link::VerifierParams().window_s)
+      .def("receive", &CorrectionReceiver::receive, nb::arg("data"), nb::arg("now_utime"),
+           "The correction (a StampedPose) if authentic, fresh and well formed; else None")
+      .def_prop_ro("rejects", &CorrectionReceiver::rejects, nb::rv_policy::reference_internal)
+      .def_prop_ro("accepted", &CorrectionReceiver::accepted);
+}
+
+}  // namespace kinfly::native

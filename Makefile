@@ -9,7 +9,7 @@
 #
 #   make build      Release build with Ninja, everything (programs and unit tests); binaries in
 #                   build/bin/. Installs nothing.
-#   make test       deps test + build + C++ unit tests (ctest) + Python integration tests (pytest)
+#   make test       deps test + build + C++ unit tests (ctest) + Python tests (pytest)
 #   make test-asan  deps unit; unit tests built with AddressSanitizer + UBSan in build-asan/
 #   make fuzz       deps fuzz; the depth decoder under libFuzzer + ASan/UBSan (clang, build-fuzz/)
 #                   for FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
@@ -78,7 +78,7 @@ IMAGE ?= $(AARCH64_DIR)/kinfly-arm64.img
 DEPS_GROUPS := demo unit test fuzz aarch64 image bench
 DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
 
-.PHONY: deps $(DEPS_TARGETS) build test unit-test integration-test test-asan fuzz fuzz-corpus demo \
+.PHONY: deps $(DEPS_TARGETS) build test unit-test python-test test-asan fuzz fuzz-corpus demo \
         demo-runs test-runs eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
@@ -108,14 +108,14 @@ DEMO_PROGRAMS := kinfly-fw kinfly-keygen
 BENCH_PROGRAMS := kinfly-codec-bench kinfly-mesh-bench kinfly-link-bench kinfly-fuse kinfly-tum-to-log \
                   $(DEMO_PROGRAMS)
 
-test: deps-test build unit-test integration-test
+test: deps-test build unit-test python-test
 
 unit-test:
 	ctest --test-dir $(BUILD_DIR) --output-on-failure -j $(JOBS)
 
 # The aarch64 tests (marker aarch64) need the cross build and the image: make test-aarch64.
-integration-test:
-	$(PY) -m pytest $(REPO_ROOT)/tests/integration -v -m "not aarch64"
+python-test:
+	$(PY) -m pytest $(REPO_ROOT)/tests -v -m "not aarch64"
 
 # Sanitizers slow everything down, so only the unit tests (synthetic, small) run here.
 test-asan: deps-unit
@@ -166,7 +166,7 @@ test-runs: test
 eval: deps-demo
 	@test -d $(KINFLY_DATA) || { echo "no shared data at $(KINFLY_DATA) (set KINFLY_DATA)"; exit 1; }
 	$(call build_programs,kinfly-fuse)
-	$(PY) $(REPO_ROOT)/tests/tools/kinfly_eval.py all --fuse $(FUSE) --data $(KINFLY_DATA) \
+	$(PY) $(REPO_ROOT)/tests/eval/kinfly_eval.py all --fuse $(FUSE) --data $(KINFLY_DATA) \
 	  --out $(REPO_ROOT)/out/eval
 
 # Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
@@ -204,7 +204,7 @@ image: deps-image package-aarch64
 # pytest runs from .venv.
 test-aarch64: deps-demo deps-unit build image
 	ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS)
-	$(PY) -m pytest $(REPO_ROOT)/tests/integration -v -m aarch64
+	$(PY) -m pytest $(REPO_ROOT)/tests -v -m aarch64
 
 flash:
 	@test -n "$(DEVICE)" || { echo "make flash IMAGE=... DEVICE=/dev/sdX CONFIRM=yes"; exit 2; }

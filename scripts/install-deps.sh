@@ -50,10 +50,10 @@ unit_packages=(
 
 # test (make test): what the integration tests use beyond demo and unit.
 test_packages=(
-  # tests/integration/test_flash.py: sfdisk and mkfs.ext4 on loop devices (losetup, partx and
+  # tests/packaging/test_flash.py: sfdisk and mkfs.ext4 on loop devices (losetup, partx and
   # mount come with every Debian system)
   fdisk e2fsprogs
-  # tests/integration/test_viewer_screenshot.py: the rerun viewer on a virtual X display with
+  # tests/ground/test_viewer_screenshot.py: the rerun viewer on a virtual X display with
   # software Vulkan (Mesa's lavapipe), the X libraries it loads at run time, and the certificates
   # rerun's control client loads even for http to 127.0.0.1
   xvfb libvulkan1 mesa-vulkan-drivers libxcursor1 libxi6 libxkbcommon-x11-0 ca-certificates

@@ -31,6 +31,7 @@ from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "tests" / "tools"))
+sys.path.insert(0, str(REPO_ROOT / "tests" / "eval"))
 sys.path.insert(0, str(REPO_ROOT / "scripts"))
 import demo  # noqa: E402
 import kinfly_eval  # noqa: E402

@@ -42,6 +42,7 @@ from kinfly import odometry_t
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "tests" / "tools"))
+sys.path.insert(0, str(REPO_ROOT / "tests" / "eval"))
 sys.path.insert(0, str(REPO_ROOT / "scripts"))  # netns.py, shared with make demo
 import kinfly_eval  # noqa: E402
 from firmware_run import firmware, summary  # noqa: E402

@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "tests" / "tools"))
+sys.path.insert(0, str(REPO_ROOT / "tests" / "eval"))
 import kinfly_eval  # noqa: E402
 
 # DESIGN.md "Budgets".

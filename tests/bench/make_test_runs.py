@@ -4,7 +4,7 @@ cores busy).
 
     .venv/bin/python tests/bench/make_test_runs.py [--runs 3] [--busy 2] [--out out/bench]
 
-Runs `make unit-test integration-test` (the build and the packages must be in place: `make
+Runs `make unit-test python-test` (the build and the packages must be in place: `make
 test` once first) RUNS times with BUSY processes each keeping a core busy (tests/tools/busy.py),
 once the load average shows them. Prints one line per run and one JSON object (also written to
 OUT/make_test_runs.json): each run's exit status, time, load average and pytest's last line. A
@@ -43,7 +43,7 @@ def main() -> int:
         settle_load(args.busy)
         for i in range(args.runs):
             started = time.monotonic()
-            result = subprocess.run(["make", "-C", REPO_ROOT, "unit-test", "integration-test"],
+            result = subprocess.run(["make", "-C", REPO_ROOT, "unit-test", "python-test"],
                                     capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
             summaries = re.findall(r"^=+ (.*(?:passed|failed|error).*) =+$", result.stdout,
                                    re.MULTILINE)

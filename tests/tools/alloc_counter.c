@@ -1,5 +1,5 @@
 /* Counts heap allocations per thread in an unmodified program, for the steady-state test of
- * kinfly-fw (tests/integration/test_firmware_faults.py): LD_PRELOAD=libkinfly_alloc_counter.so.
+ * kinfly-fw (tests/firmware/test_firmware_faults.py): LD_PRELOAD=libkinfly_alloc_counter.so.
  * Every malloc-family call adds one to a thread-local count; when a thread ends (and at exit for
  * the main thread) one line "<thread name> <count>" is appended to $KINFLY_ALLOC_REPORT. Threads
  * are told apart by the names kinfly-fw gives them (pthread_setname_np), read at their end.

@@ -1,5 +1,5 @@
 """A stand-in ground station for the firmware tests that run kinfly-fw in a network namespace
-(tests/integration/test_firmware_faults.py, test_openni.py), run inside the same namespace. Two
+(tests/firmware/test_firmware_faults.py, test_openni.py), run inside the same namespace. Two
 roles:
 
     ground_probe.py beacon --seconds S [--key KEY --correct KEYFRAME]

@@ -1,4 +1,4 @@
-"""The ground's side of the signed-uplink test (tests/integration/test_link_netns.py), run in
+"""The ground's side of the signed-uplink test (tests/system/test_link_netns.py), run in
 the test's network namespace: waits for the drone's status, sends good corrections and one of
 every kind of bad message, then prints the drone's last drone_status_t counters as one JSON object."""
 from __future__ import annotations

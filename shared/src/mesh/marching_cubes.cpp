@@ -9,7 +9,8 @@
 // face therefore share its segments, traversed in opposite directions, which makes the mesh of a
 // closed surface watertight and consistently oriented by construction; loops are triangulated
 // without diagonals lying in a cube face, so no edge is shared by more than two triangles
-// (tests/unit check all of this on a random field that exercises all 256 cases).
+// (tests/engine/test_marching_cubes.cpp checks all of this on a random field that exercises all
+// 256 cases).
 #include "kinfly/mesh/marching_cubes.h"
 
 #include <algorithm>

@@ -3,11 +3,11 @@
 
 Importable (the integration tests and the benchmark use it) and a CLI:
 
-    python tests/tools/kinfly_eval.py tum     --fuse build/bin/kinfly-fuse --data DIR [fuse args...]
-    python tests/tools/kinfly_eval.py replica --fuse build/bin/kinfly-fuse --data DIR [fuse args...]
-    python tests/tools/kinfly_eval.py all     --fuse build/bin/kinfly-fuse [--data SHARED_DATA]
-    python tests/tools/kinfly_eval.py ate TRAJ.tum GT.tum
-    python tests/tools/kinfly_eval.py mesh MESH.ply GT.ply
+    python tests/eval/kinfly_eval.py tum     --fuse build/bin/kinfly-fuse --data DIR [fuse args...]
+    python tests/eval/kinfly_eval.py replica --fuse build/bin/kinfly-fuse --data DIR [fuse args...]
+    python tests/eval/kinfly_eval.py all     --fuse build/bin/kinfly-fuse [--data SHARED_DATA]
+    python tests/eval/kinfly_eval.py ate TRAJ.tum GT.tum
+    python tests/eval/kinfly_eval.py mesh MESH.ply GT.ply
 
 Each prints one JSON object. `--data` is a TUM sequence folder for `tum` and the Replica folder
 (the one holding cam_params.json and office0/) for `replica`.

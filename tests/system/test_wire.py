@@ -2,7 +2,7 @@
 and tools write and read messages with, agree with the C++ ones kinfly-fw and the ground
 station's native module decode with. Messages encoded by C++ decode in Python to the same values
 and back (same fingerprints, same bytes). Decoding within bounds, signing, key files and channel
-names have one implementation, firmware/link, tested in tests/unit/test_link.cpp."""
+names have one implementation, firmware/link, tested in tests/firmware/test_link.cpp."""
 from __future__ import annotations
 
 import subprocess
@@ -17,7 +17,7 @@ from kinfly import (depth_keyframe_t, drone_status_t, ground_status_t, ground_tr
 TYPES = (depth_keyframe_t, odometry_t, imu_t, ground_truth_t, pose_correction_t, drone_status_t,
          ground_status_t, signed_t)
 
-# The same samples as tests/wire/wire_roundtrip.cpp, written independently: every float is exact
+# The same samples as tests/system/wire_roundtrip.cpp, written independently: every float is exact
 # in float32, so equal values mean equal bytes.
 POSITION = [1.25, -2.5, 0.75]
 ORIENTATION = [0.5, -0.5, 0.5, 0.5]

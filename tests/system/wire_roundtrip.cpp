@@ -1,4 +1,4 @@
-// Cross-language check of the wire contract (driven by tests/integration/test_wire.py): the
+// Cross-language check of the wire contract (driven by tests/system/test_wire.py): the
 // lcm-gen Python types, which the tests and tools use to write and read messages, agree with the
 // C++ ones that kinfly-fw and the ground station's native module decode with.
 //   wire_roundtrip encode DIR   writes DIR/<type>.bin, one sample message per type, and prints

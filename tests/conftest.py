@@ -1,4 +1,4 @@
-"""Fixtures shared by the integration tests: where the repository, the built binaries and the
+"""Fixtures shared by the Python tests: where the repository, the built binaries and the
 shared real data are.
 
 The shared data (`<repo>/../shared/data`, or $KINFLY_DATA) is not part of the repository. Without
@@ -14,8 +14,9 @@ from pathlib import Path
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO_ROOT / "tests" / "tools"))
+sys.path.insert(0, str(REPO_ROOT / "tests" / "eval"))
 sys.path.insert(0, str(REPO_ROOT / "scripts"))  # netns.py, shared with make demo
 
 import kinfly_eval  # noqa: E402  (needs the sys.path entry above)
@@ -25,7 +26,7 @@ from netns import NetnsUnavailable, network_namespace  # noqa: E402
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers", "aarch64: needs the cross build and the image (make test-aarch64); "
-                   "`make integration-test` leaves these out")
+                   "`make python-test` leaves these out")
 
 
 def require_built(path: Path, make_target: str) -> Path:

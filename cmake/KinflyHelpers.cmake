@@ -37,9 +37,9 @@ function(kinfly_add_test)
 endfunction()
 
 # kinfly_add_library(NAME name SOURCES a.cpp ... [PUBLIC dep ...] [PRIVATE dep ...])
-# A kinfly library (shared/'s, the link): static kinfly_<name>, used as kinfly::<name>, headers in the calling
-# folder's include/. Position-independent, because shared objects link them too (the ground
-# package's Python module, the OpenNI2 test driver). -fno-semantic-interposition: nothing ever
+# A kinfly library (shared/'s, the link): static kinfly_<name>, used as kinfly::<name>, headers
+# in the calling folder's include/. Position-independent, because shared objects link them too
+# (the ground package's Python module, the OpenNI2 test driver). -fno-semantic-interposition: nothing ever
 # interposes these functions, and without it -fPIC would stop GCC inlining a library's own
 # functions into its loops.
 function(kinfly_add_library)

@@ -50,13 +50,14 @@ CLI::Option* addSharedOption(CLI::App* app, const std::string& name, std::vector
 // The engine's and the link's Params name their fields as those libraries do; kinfly-fw's keys
 // for some of them are older (and users' config files have them): a message that starts with
 // such a field's name is given the key instead.
-std::string namingKeys(std::string why,
-                       std::initializer_list<std::pair<std::string_view, std::string_view>> keys) {
+Status namingKeys(Status status,
+                  std::initializer_list<std::pair<std::string_view, std::string_view>> keys) {
+  const std::string& why = status.message();
   for (const auto& [field, key] : keys)
     if (why.size() > field.size() && why.compare(0, field.size(), field) == 0 &&
         why[field.size()] == ' ')
-      return std::string(key) + why.substr(field.size());
-  return why;
+      return Status::error(std::string(key) + why.substr(field.size()));
+  return status;
 }
 
 bool oneOf(const std::string& value, std::initializer_list<const char*> allowed) {
@@ -181,16 +182,17 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
       ->capture_default_str();
 }
 
-std::string VehicleConfig::validate() const {
+Status VehicleConfig::validate() const {
   return outOfRange("vehicle.id", id, 0, link::kMaxVehicleId);
 }
 
-std::string SourceConfig::validate() const {
+Status SourceConfig::validate() const {
   if (!oneOf(kind, {"log", "dataset", "openni", "synthetic"}))
-    return "source.kind must be log, dataset, openni or synthetic (got \"" + kind + "\")";
+    return Status::error("source.kind must be log, dataset, openni or synthetic (got \"" + kind +
+                         "\")");
   if ((kind == "log" && log.path.empty()) || (kind == "dataset" && dataset.tum_dir.empty()))
-    return "source.path is required for source.kind = " + kind;
-  std::string deprecated;
+    return Status::error("source.path is required for source.kind = " + kind);
+  Status deprecated;
   if (deprecated_depth_units_per_m)
     deprecated = outOfRange("source.depth_units_per_m", *deprecated_depth_units_per_m, 0, 1e6,
                             Bound::kOpen);
@@ -200,9 +202,10 @@ std::string SourceConfig::validate() const {
                       watch.validate());
 }
 
-std::string OdometryConfig::validate() const {
+Status OdometryConfig::validate() const {
   if (!(downsample == 1 || downsample == 2 || downsample == 4))
-    return "odometry.downsample must be 1, 2 or 4 (got " + std::to_string(downsample) + ")";
+    return Status::error("odometry.downsample must be 1, 2 or 4 (got " +
+                         std::to_string(downsample) + ")");
   return firstProblem(namingKeys(volume.validate(), {{"resolution_vox", "odometry.volume_vox"},
                                                      {"voxel_size_m", "odometry.voxel_m"},
                                                      {"lookahead_m", "odometry.lookahead_m"},
@@ -212,7 +215,7 @@ std::string OdometryConfig::validate() const {
                       outOfRange("odometry.capture_queue", capture_queue, 1, 64));
 }
 
-std::string LinkConfig::validate() const {
+Status LinkConfig::validate() const {
   return firstProblem(namingKeys(signing.validate(), {{"window_s", "link.signing_window_s"}}),
                       outOfRange("link.keyframe_queue", keyframe_queue, 1, 64),
                       outOfRange("link.status_rate_hz", status_rate_hz, 1, 100),
@@ -220,14 +223,14 @@ std::string LinkConfig::validate() const {
                       outOfRange("link.final_wait_s", final_wait_s, 0, 60));
 }
 
-std::string OutputConfig::validate() const {
+Status OutputConfig::validate() const {
   if (!oneOf(log_level, {"trace", "debug", "info", "warn", "error"}))
-    return "output.log_level must be trace, debug, info, warn or error (got \"" + log_level +
-           "\")";
+    return Status::error("output.log_level must be trace, debug, info, warn or error (got \"" +
+                         log_level + "\")");
   return {};
 }
 
-std::string FirmwareConfig::validate() const {
+Status FirmwareConfig::validate() const {
   return firstProblem(vehicle.validate(), source.validate(), odometry.validate(),
                       link.validate(), keyframe.validate(), corrections.validate(),
                       output.validate());

@@ -11,6 +11,7 @@
 #include <optional>
 #include <string>
 
+#include "kinfly/core/status.h"
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/sensor_watch.h"
@@ -26,7 +27,7 @@ namespace kinfly::fw {
 struct VehicleConfig {                           // [vehicle]
   int id = 1;                                    // id [0, 65535], in every channel name
   std::string key_file = "/etc/kinfly/vehicle.key";  // key_file: kinfly-keygen; mode 0600
-  std::string validate() const;
+  Status validate() const;
 };
 
 struct SourceConfig {                            // [source]
@@ -45,7 +46,7 @@ struct SourceConfig {                            // [source]
   // Given only by the deprecated key source.depth_units_per_m (raw units per metre), which sets
   // dataset.depth_scale_m to its inverse; main warns when it is there.
   std::optional<double> deprecated_depth_units_per_m;
-  std::string validate() const;
+  Status validate() const;
 };
 
 struct OdometryConfig {                          // [odometry]
@@ -55,7 +56,7 @@ struct OdometryConfig {                          // [odometry]
   DenseVolume::Params volume;
   int threads = 1;               // threads [1, 64]: the engine's OpenMP threads
   int capture_queue = 4;         // capture_queue [1, 64]: frames between capture and odometry
-  std::string validate() const;
+  Status validate() const;
 };
 
 struct LinkConfig {                              // [link]
@@ -67,14 +68,14 @@ struct LinkConfig {                              // [link]
   // final_wait_s [s] [0, 60]: when the source ends (a replayed flight), how long at most to
   // wait for the ground's corrections of the last keyframes before exiting
   double final_wait_s = 5.0;
-  std::string validate() const;
+  Status validate() const;
 };
 
 struct OutputConfig {                            // [output]
   std::string trajectory;        // trajectory: TUM file of the published poses, written at exit
   std::string ground_truth;      // ground_truth: TUM file of the source's true poses
   std::string log_level = "info";  // log_level: trace | debug | info | warn | error
-  std::string validate() const;
+  Status validate() const;
 };
 
 struct FirmwareConfig {
@@ -86,8 +87,8 @@ struct FirmwareConfig {
   CorrectionAnchor::Params corrections;          // [corrections]
   OutputConfig output;
 
-  // Empty when valid, else the first wrong value, its key in the config, and the allowed range.
-  std::string validate() const;
+  // An error names the first wrong value, its key in the config, and the allowed range.
+  Status validate() const;
 };
 
 // Registers every field as an option (and config key) of `app`, and makes `app` read config

@@ -51,18 +51,18 @@ void awaitTask(std::thread* thread, const std::atomic<bool>& finished, StopToken
   if (g_signal_received) stop->interrupt();
 }
 
-std::unique_ptr<DepthSource> openSource(const FirmwareConfig& config, std::string* why) {
+StatusOr<std::unique_ptr<DepthSource>> openSource(const FirmwareConfig& config) {
   const SourceConfig& source = config.source;
-  if (source.kind == "dataset") return openDatasetSource(source.dataset, why);
+  if (source.kind == "dataset") return openDatasetSource(source.dataset);
   if (source.kind == "synthetic") {
     SyntheticSourceParams p = source.synthetic;
     p.first_utime = link::wallClockUtime();
-    return openSyntheticSource(p, why);
+    return openSyntheticSource(p);
   }
-  if (source.kind == "openni") return openOpenniSource(source.openni, why);
+  if (source.kind == "openni") return openOpenniSource(source.openni);
   LogSourceParams p = source.log;
   p.vehicle_id = config.vehicle.id;
-  return openLogSource(p, why);
+  return openLogSource(p);
 }
 
 // Thread names show in top, gdb and the journal; the allocation test tells threads apart by them.
@@ -72,8 +72,8 @@ void nameThisThread(const char* name) { pthread_setname_np(pthread_self(), name)
 bool writeIfAsked(const std::string& path, const std::vector<StampedPose>& poses,
                   const char* key) {
   if (path.empty()) return true;
-  if (std::string problem = writeTumTrajectory(path, poses); !problem.empty()) {
-    spdlog::error("{}: {}", key, problem);
+  if (const Status written = writeTumTrajectory(path, poses); !written.ok()) {
+    spdlog::error("{}: {}", key, written.message());
     return false;
   }
   return true;
@@ -127,8 +127,8 @@ int run(int argc, char** argv) {
   }
   // Logs go to stderr; stdout carries only the summary line (and --print-config).
   spdlog::set_default_logger(spdlog::stderr_color_mt("kinfly-fw"));
-  if (std::string why = config.validate(); !why.empty()) {
-    spdlog::critical("invalid configuration: {}", why);
+  if (const Status valid = config.validate(); !valid.ok()) {
+    spdlog::critical("invalid configuration: {}", valid.message());
     return 2;
   }
   spdlog::set_level(spdlog::level::from_str(config.output.log_level));
@@ -142,29 +142,31 @@ int run(int argc, char** argv) {
     return 2;
   }
 
-  std::string why;
   std::optional<link::Key> key;
   if (!config.vehicle.key_file.empty()) {
-    key = link::loadKeyFile(config.vehicle.key_file, &why);
-    if (!key) {
-      spdlog::critical("{} (vehicle.key_file; empty to run without corrections)", why);
+    StatusOr<link::Key> loaded = link::loadKeyFile(config.vehicle.key_file);
+    if (!loaded.ok()) {
+      spdlog::critical("{} (vehicle.key_file; empty to run without corrections)",
+                       loaded.status().message());
       return 2;
     }
+    key = *loaded;
   } else {
     spdlog::warn("no vehicle.key_file: every correction will be rejected as unsigned");
   }
-  std::unique_ptr<DepthSource> source = openSource(config, &why);
-  if (!source) {
-    spdlog::critical("source: {}", why);
+  StatusOr<std::unique_ptr<DepthSource>> opened = openSource(config);
+  if (!opened.ok()) {
+    spdlog::critical("source: {}", opened.status().message());
     return 2;
   }
+  const std::unique_ptr<DepthSource> source = *std::move(opened);
   const PinholeCamera camera = source->camera();
   DenseVolume::Params volume_params;
   FusionPipeline::Params pipeline_params;
-  if (why = OdometryTask::engineParams(config, camera, source->depthScaleM(), &volume_params,
-                                       &pipeline_params);
-      !why.empty()) {
-    spdlog::critical("odometry: {}", why);
+  if (const Status valid = OdometryTask::engineParams(config, camera, source->depthScaleM(),
+                                                      &volume_params, &pipeline_params);
+      !valid.ok()) {
+    spdlog::critical("odometry: {}", valid.message());
     return 2;
   }
   std::signal(SIGINT, onSignal);

@@ -7,19 +7,19 @@
 
 namespace kinfly::fw {
 
-std::string OdometryTask::engineParams(const FirmwareConfig& config, const PinholeCamera& camera,
-                                       double depth_scale_m, DenseVolume::Params* volume,
-                                       FusionPipeline::Params* pipeline) {
+Status OdometryTask::engineParams(const FirmwareConfig& config, const PinholeCamera& camera,
+                                  double depth_scale_m, DenseVolume::Params* volume,
+                                  FusionPipeline::Params* pipeline) {
   if (camera.width % config.odometry.downsample != 0 ||
       camera.height % config.odometry.downsample != 0)
-    return "odometry.downsample " + std::to_string(config.odometry.downsample) +
-           " does not divide the " + std::to_string(camera.width) + "x" +
-           std::to_string(camera.height) + " image";
+    return Status::error("odometry.downsample " + std::to_string(config.odometry.downsample) +
+                         " does not divide the " + std::to_string(camera.width) + "x" +
+                         std::to_string(camera.height) + " image");
   *volume = config.odometry.volume;
   pipeline->preprocess.depth_scale_m = depth_scale_m;
   pipeline->preprocess.downsample = config.odometry.downsample;
   pipeline->integrate.truncation_m = 4.f * volume->voxel_size_m;
-  if (std::string why = volume->validate(); !why.empty()) return why;
+  if (Status valid = volume->validate(); !valid.ok()) return valid;
   return pipeline->validate(volume->voxel_size_m);
 }
 

@@ -23,9 +23,9 @@ namespace kinfly::fw {
 
 class OdometryTask {
  public:
-  // The engine's parameters for this configuration and source; empty when valid, else which
-  // value is wrong.
-  static std::string engineParams(const FirmwareConfig& config, const PinholeCamera& camera,
+  // The engine's parameters for this configuration and source; an error says which value is
+  // wrong.
+  static Status engineParams(const FirmwareConfig& config, const PinholeCamera& camera,
                                   double depth_scale_m, DenseVolume::Params* volume,
                                   FusionPipeline::Params* pipeline);
 

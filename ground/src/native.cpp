@@ -76,8 +76,8 @@ class PyDepthCodec {
     params.zstd_level = zstd_level;
     params.max_width_px = max_width_px;
     params.max_height_px = max_height_px;
-    if (const std::string why = params.validate(); !why.empty())
-      throw nb::value_error(why.c_str());
+    if (const kinfly::Status valid = params.validate(); !valid.ok())
+      throw nb::value_error(valid.message().c_str());
     codec_ = std::make_unique<DepthCodec>(params);
   }
 
@@ -139,14 +139,14 @@ class PyMapSnapshot {
 
   // Binary PLY; OSError naming the file when it cannot be written.
   size_t writePly(const std::string& path) {
-    std::string why;
+    kinfly::Status written;
     {
       nb::gil_scoped_release unlocked;
       extract();
-      why = kinfly::writePly(mesh_, path);
+      written = kinfly::writePly(mesh_, path);
     }
-    if (!why.empty()) {
-      PyErr_SetString(PyExc_OSError, why.c_str());
+    if (!written.ok()) {
+      PyErr_SetString(PyExc_OSError, written.message().c_str());
       throw nb::python_error();
     }
     return mesh_.triangles.size();
@@ -213,16 +213,17 @@ class PyFusion {
   explicit PyFusion(const FusionParams& p) : threads_(p.threads) {
     if (p.threads < 1) throw nb::value_error("threads must be at least 1");
     const kinfly::PinholeCamera& camera = p.camera;
-    if (const std::string why = camera.validate(); !why.empty()) throw nb::value_error(why.c_str());
+    if (const kinfly::Status valid = camera.validate(); !valid.ok())
+      throw nb::value_error(valid.message().c_str());
     kinfly::HashedVolume::Params volume_params;
     volume_params.voxel_size_m = p.voxel_size_m;
-    if (const std::string why = volume_params.validate(); !why.empty())
-      throw nb::value_error(why.c_str());
+    if (const kinfly::Status valid = volume_params.validate(); !valid.ok())
+      throw nb::value_error(valid.message().c_str());
     kinfly::FusionPipeline::Params params;
     params.preprocess.depth_scale_m = p.depth_scale_m;
     params.integrate.truncation_m = p.truncation_m > 0.f ? p.truncation_m : 4.f * p.voxel_size_m;
-    if (const std::string why = params.validate(p.voxel_size_m); !why.empty())
-      throw nb::value_error(why.c_str());
+    if (const kinfly::Status valid = params.validate(p.voxel_size_m); !valid.ok())
+      throw nb::value_error(valid.message().c_str());
     volume_ = std::make_unique<kinfly::HashedVolume>(volume_params);
     pipeline_ = std::make_unique<kinfly::FusionPipeline>(camera, params, volume_.get());
   }

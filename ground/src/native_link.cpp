@@ -223,7 +223,8 @@ class CorrectionReceiver {
   static link::VerifierParams verifierParams(double window_s) {
     link::VerifierParams params;
     params.window_s = window_s;
-    if (const std::string why = params.validate(); !why.empty()) throw nb::value_error(why.c_str());
+    if (const Status valid = params.validate(); !valid.ok())
+      throw nb::value_error(valid.message().c_str());
     return params;
   }
   link::CorrectionReceiver receiver_;
@@ -254,7 +255,8 @@ void bindLink(nb::module_& m) {
       .def_rw("fy", &PinholeCamera::fy)
       .def_rw("cx", &PinholeCamera::cx)
       .def_rw("cy", &PinholeCamera::cy)
-      .def("validate", &PinholeCamera::validate, "empty when valid, else what is wrong")
+      .def("validate", [](const PinholeCamera& camera) { return camera.validate().message(); },
+           "empty when valid, else what is wrong")
       .def("__eq__",
            [](const PinholeCamera& a, const PinholeCamera& b) {
              return a.width == b.width && a.height == b.height && a.fx == b.fx && a.fy == b.fy &&
@@ -369,9 +371,8 @@ void bindLink(nb::module_& m) {
   nb::exception<KeyFileError>(m, "KeyFileError");
   m.def("load_key_file",
         [](const std::filesystem::path& path) {
-          std::string why;
-          const std::optional<link::Key> key = link::loadKeyFile(path.string(), &why);
-          if (!key) throw KeyFileError(why);
+          const StatusOr<link::Key> key = link::loadKeyFile(path.string());
+          if (!key.ok()) throw KeyFileError(key.status().message());
           return nb::bytes(reinterpret_cast<const char*>(key->bytes.data()), key->bytes.size());
         },
         nb::arg("path"),

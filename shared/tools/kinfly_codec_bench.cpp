@@ -108,17 +108,18 @@ int main(int argc, char** argv) {
   DepthCodec::Params params;
   kinfly::parseDepthEncoding(encoding_name, &params.encoding);
   params.zstd_level = zstd_level;
-  if (std::string why = params.validate(); !why.empty()) return fail(why);
+  if (const kinfly::Status status = params.validate(); !status.ok()) return fail(status.message());
 
   std::vector<kinfly::TumDepthEntry> entries;
-  if (std::string why = kinfly::readTumDepthList(tum_dir, &entries); !why.empty()) return fail(why);
+  if (const kinfly::Status status = kinfly::readTumDepthList(tum_dir, &entries); !status.ok())
+    return fail(status.message());
   if (max_frames > 0 && static_cast<size_t>(max_frames) < entries.size()) entries.resize(max_frames);
   if (entries.empty()) return fail(tum_dir + "/depth.txt lists no frames");
   // PNG decoding is kept out of the timed loop.
   std::vector<kinfly::Image<uint16_t>> frames(entries.size());
   for (size_t i = 0; i < entries.size(); ++i)
-    if (std::string why = kinfly::loadDepthPng(entries[i].path, &frames[i]); !why.empty())
-      return fail(why);
+    if (const kinfly::Status status = kinfly::loadDepthPng(entries[i].path, &frames[i]); !status.ok())
+      return fail(status.message());
 
   DepthCodec codec(params);
   std::vector<uint8_t> payload;

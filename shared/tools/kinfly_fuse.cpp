@@ -104,25 +104,24 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
 
   std::vector<kinfly::TumDepthEntry> entries;
-  if (std::string why = kinfly::readTumDepthList(opt.tum_dir, &entries); !why.empty()) return fail(why);
+  if (const kinfly::Status status = kinfly::readTumDepthList(opt.tum_dir, &entries); !status.ok()) return fail(status.message());
   if (opt.max_frames > 0 && static_cast<size_t>(opt.max_frames) < entries.size()) entries.resize(opt.max_frames);
 
   kinfly::Image<uint16_t> depth;
-  if (std::string why = kinfly::loadDepthPng(entries.front().path, &depth); !why.empty()) return fail(why);
+  if (const kinfly::Status status = kinfly::loadDepthPng(entries.front().path, &depth); !status.ok()) return fail(status.message());
   kinfly::PinholeCamera camera;
-  if (!opt.intrinsics.empty()) {
-    std::string why;
-    if (!kinfly::parseIntrinsics(opt.intrinsics, &camera, &why)) return fail(why);
-  }
+  if (!opt.intrinsics.empty())
+    if (const kinfly::Status parsed = kinfly::parseIntrinsics(opt.intrinsics, &camera); !parsed.ok())
+      return fail(parsed.message());
   camera.width = depth.width();
   camera.height = depth.height();
-  if (std::string why = camera.validate(); !why.empty()) return fail("--intrinsics: " + why);
+  if (const kinfly::Status status = camera.validate(); !status.ok()) return fail("--intrinsics: " + status.message());
   if (camera.width % opt.downsample != 0 || camera.height % opt.downsample != 0)
     return fail("--downsample " + std::to_string(opt.downsample) + " does not divide the image size");
 
   std::vector<kinfly::StampedPose> given_poses;
   if (!opt.poses_path.empty())
-    if (std::string why = kinfly::readTumTrajectory(opt.poses_path, &given_poses); !why.empty()) return fail(why);
+    if (const kinfly::Status status = kinfly::readTumTrajectory(opt.poses_path, &given_poses); !status.ok()) return fail(status.message());
 
   const bool dense = opt.volume == "dense";
   const float voxel_m = opt.voxel_size_m > 0.f ? opt.voxel_size_m : (dense ? 0.03f : 0.01f);
@@ -130,19 +129,19 @@ int main(int argc, char** argv) {
   if (dense) {
     kinfly::DenseVolume::Params p;
     p.voxel_size_m = voxel_m;
-    if (std::string why = p.validate(); !why.empty()) return fail(why);
+    if (const kinfly::Status status = p.validate(); !status.ok()) return fail(status.message());
     volume = std::make_unique<kinfly::DenseVolume>(p);
   } else {
     kinfly::HashedVolume::Params p;
     p.voxel_size_m = voxel_m;
-    if (std::string why = p.validate(); !why.empty()) return fail(why);
+    if (const kinfly::Status status = p.validate(); !status.ok()) return fail(status.message());
     volume = std::make_unique<kinfly::HashedVolume>(p);
   }
   kinfly::FusionPipeline::Params params;
   params.preprocess.depth_scale_m = 1.0 / opt.depth_scale;
   params.preprocess.downsample = opt.downsample;
   params.integrate.truncation_m = opt.truncation_m > 0.f ? opt.truncation_m : 4.f * voxel_m;
-  if (std::string why = params.validate(voxel_m); !why.empty()) return fail(why);
+  if (const kinfly::Status status = params.validate(voxel_m); !status.ok()) return fail(status.message());
 
   std::error_code mkdir_error;
   std::filesystem::create_directories(opt.out_dir, mkdir_error);
@@ -161,7 +160,7 @@ int main(int argc, char** argv) {
 
   for (size_t i = 0; i < entries.size(); ++i) {
     const kinfly::TumDepthEntry& e = entries[i];
-    if (std::string why = kinfly::loadDepthPng(e.path, &depth); !why.empty()) return fail(why);
+    if (const kinfly::Status status = kinfly::loadDepthPng(e.path, &depth); !status.ok()) return fail(status.message());
     if (depth.width() != camera.width || depth.height() != camera.height)
       return fail(e.path + ": image size " + std::to_string(depth.width()) + "x" + std::to_string(depth.height()) +
                   " differs from the first frame's");
@@ -200,18 +199,18 @@ int main(int argc, char** argv) {
   }
 
   const std::string traj_path = opt.out_dir + "/trajectory.tum";
-  if (std::string why = kinfly::writeTumTrajectory(traj_path, trajectory); !why.empty()) return fail(why);
+  if (const kinfly::Status status = kinfly::writeTumTrajectory(traj_path, trajectory); !status.ok()) return fail(status.message());
 
   const std::string render_path = opt.out_dir + "/render.png";
   kinfly::Image<uint8_t> render(pipeline.camera().width, pipeline.camera().height, 0);
   pipeline.renderShaded(render.view());
-  if (std::string why = kinfly::writeGrayPng(render_path, render.view()); !why.empty())
-    return fail(why);
+  if (const kinfly::Status status = kinfly::writeGrayPng(render_path, render.view()); !status.ok())
+    return fail(status.message());
 
   std::fprintf(stderr, "meshing %zu blocks...\n", volume->numAllocatedBlocks());
   const kinfly::TriangleMesh mesh = kinfly::MarchingCubes(kinfly::MarchingCubes::Params()).extract(*volume);
   const std::string mesh_path = opt.out_dir + "/mesh.ply";
-  if (std::string why = kinfly::writePly(mesh, mesh_path); !why.empty()) return fail(why);
+  if (const kinfly::Status status = kinfly::writePly(mesh, mesh_path); !status.ok()) return fail(status.message());
 
   const std::string stats_path = opt.out_dir + "/stats.json";
   std::ofstream js(stats_path);

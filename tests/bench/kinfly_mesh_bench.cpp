@@ -151,10 +151,10 @@ int main(int argc, char** argv) {
 
   std::vector<kinfly::TumDepthEntry> entries;
   std::vector<kinfly::StampedPose> truth;
-  std::string why = kinfly::readTumDepthList(tum_dir, &entries);
-  if (why.empty()) why = kinfly::readTumTrajectory(tum_dir + "/groundtruth.txt", &truth);
-  if (!why.empty()) {
-    std::fprintf(stderr, "kinfly-mesh-bench: %s\n", why.c_str());
+  kinfly::Status read = kinfly::readTumDepthList(tum_dir, &entries);
+  if (read.ok()) read = kinfly::readTumTrajectory(tum_dir + "/groundtruth.txt", &truth);
+  if (!read.ok()) {
+    std::fprintf(stderr, "kinfly-mesh-bench: %s\n", read.message().c_str());
     return 1;
   }
   std::vector<Frame> frames;
@@ -162,8 +162,8 @@ int main(int argc, char** argv) {
     const kinfly::StampedPose* pose = kinfly::findNearestPose(truth, e.timestamp_s, kPoseMaxDtS);
     if (pose == nullptr) continue;
     Frame f;
-    if (const std::string bad = kinfly::loadDepthPng(e.path, &f.depth); !bad.empty()) {
-      std::fprintf(stderr, "kinfly-mesh-bench: %s\n", bad.c_str());
+    if (const kinfly::Status loaded = kinfly::loadDepthPng(e.path, &f.depth); !loaded.ok()) {
+      std::fprintf(stderr, "kinfly-mesh-bench: %s\n", loaded.message().c_str());
       return 1;
     }
     f.utime = static_cast<int64_t>(e.timestamp_s * 1e6);

@@ -69,7 +69,7 @@ TEST(Camera, ScaledIntrinsicsFollowThePyramidConvention) {
     const PinholeCamera coarse = cam.scaled(factor);
     EXPECT_EQ(coarse.width, cam.width / factor);
     EXPECT_EQ(coarse.height, cam.height / factor);
-    EXPECT_TRUE(coarse.validate().empty()) << coarse.validate();
+    EXPECT_TRUE(coarse.validate().ok()) << coarse.validate().message();
     // Coarse pixel x samples fine pixel factor * x: every point projects to the fine pixel
     // divided by the factor.
     for (int i = 0; i < 200; ++i) {
@@ -88,7 +88,7 @@ TEST(Camera, ScaledIntrinsicsFollowThePyramidConvention) {
 }
 
 TEST(Camera, ValidateNamesTheBadField) {
-  EXPECT_TRUE(test::tumCamera().validate().empty());
+  EXPECT_TRUE(test::tumCamera().validate().ok());
   const float nan = std::numeric_limits<float>::quiet_NaN();
   struct Case {
     PinholeCamera camera;
@@ -110,15 +110,17 @@ TEST(Camera, ValidateNamesTheBadField) {
       {with([](PinholeCamera& c) { c.cy = 500.f; }), "cy"},
   };
   for (const Case& c : cases) {
-    const std::string why = c.camera.validate();
+    const Status valid = c.camera.validate();
+    EXPECT_FALSE(valid.ok()) << c.field;
+    const std::string& why = valid.message();
     EXPECT_NE(why.find(c.field), std::string::npos) << "'" << why << "' should name " << c.field;
   }
 }
 
 TEST(Camera, ParseIntrinsics) {
   PinholeCamera cam;
-  std::string why;
-  ASSERT_TRUE(parseIntrinsics("525,526.5,319.5,239.5", &cam, &why)) << why;
+  const Status parsed = parseIntrinsics("525,526.5,319.5,239.5", &cam);
+  ASSERT_TRUE(parsed.ok()) << parsed.message();
   EXPECT_FLOAT_EQ(cam.fx, 525.f);
   EXPECT_FLOAT_EQ(cam.fy, 526.5f);
   EXPECT_FLOAT_EQ(cam.cx, 319.5f);
@@ -127,9 +129,9 @@ TEST(Camera, ParseIntrinsics) {
   const PinholeCamera before = cam;
   for (const char* bad : {"525,526,319", "525,526,319,239,1", "525,abc,319,239", "525,526q,319,239",
                           ""}) {
-    why.clear();
-    EXPECT_FALSE(parseIntrinsics(bad, &cam, &why)) << bad;
-    EXPECT_FALSE(why.empty()) << bad;
+    const Status refused = parseIntrinsics(bad, &cam);
+    EXPECT_FALSE(refused.ok()) << bad;
+    EXPECT_FALSE(refused.message().empty()) << bad;
     EXPECT_FLOAT_EQ(cam.fx, before.fx) << "a rejected text leaves the camera alone: " << bad;
   }
 }

@@ -224,19 +224,19 @@ TEST(DepthCodec, WireValuesAndNamesAreFixed) {
 }
 
 TEST(DepthCodec, ParamsValidate) {
-  EXPECT_EQ(DepthCodec::Params().validate(), "");
+  EXPECT_TRUE(DepthCodec::Params().validate().ok());
   DepthCodec::Params p;
   p.zstd_level = 0;
-  EXPECT_NE(p.validate(), "");
+  EXPECT_FALSE(p.validate().ok());
   p = DepthCodec::Params();
   p.max_width_px = 0;
-  EXPECT_NE(p.validate(), "");
+  EXPECT_FALSE(p.validate().ok());
   p = DepthCodec::Params();
   p.max_height_px = 8193;
-  EXPECT_NE(p.validate(), "");
+  EXPECT_FALSE(p.validate().ok());
   p = DepthCodec::Params();
   p.encoding = static_cast<DepthEncoding>(kDepthEncodingCount);
-  EXPECT_NE(p.validate(), "");
+  EXPECT_FALSE(p.validate().ok());
 }
 
 TEST(DepthCodec, RejectsUnknownEncoding) {

@@ -58,7 +58,7 @@ struct PipelineFixture : public ::testing::Test {
 };
 
 TEST_F(PipelineFixture, TracksSyntheticSequence) {
-  ASSERT_EQ(FusionPipeline::Params().validate(volume.voxelSizeM()), "");
+  ASSERT_TRUE(FusionPipeline::Params().validate(volume.voxelSizeM()).ok());
   for (int k = 0; k < kFrames; ++k) {
     render(k, 1000 + k);
     const FrameResult r = pipeline.processFrame(raw, utimeOf(k));

@@ -342,9 +342,9 @@ TEST(IncrementalMesher, ReadOffsetsAreTheBlocksACubeReads) {
 
 TEST(IncrementalMesher, ParamsValidate) {
   IncrementalMesher::Params p;
-  EXPECT_EQ(p.validate(), "");
+  EXPECT_TRUE(p.validate().ok());
   p.min_weight = 0.f;
-  EXPECT_NE(p.validate(), "");
+  EXPECT_FALSE(p.validate().ok());
 }
 
 }  // namespace

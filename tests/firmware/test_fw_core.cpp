@@ -101,7 +101,7 @@ constexpr int64_t kSecond = 1'000'000;
 
 TEST(KeyframeSelector, MotionOrTimeMakesAKeyframeButNotFasterThanTheMinimum) {
   KeyframeSelector::Params p;
-  ASSERT_EQ(p.validate(), "");
+  ASSERT_TRUE(p.validate().ok());
   KeyframeSelector selector(p);
   int64_t t = 0;
   EXPECT_TRUE(selector.select(poseAt(0.0), t, TrackingStatus::kFirstFrame, 1.f));
@@ -135,10 +135,10 @@ TEST(KeyframeSelector, TimeRunningBackwardsRestartsTheReference) {
 TEST(KeyframeSelector, ValidateNamesTheBadValue) {
   KeyframeSelector::Params p;
   p.min_interval_s = 2.0;
-  EXPECT_NE(p.validate().find("min_interval_s"), std::string::npos);
+  EXPECT_NE(p.validate().message().find("min_interval_s"), std::string::npos);
   p = KeyframeSelector::Params{};
   p.min_translation_m = -1.0;
-  EXPECT_NE(p.validate().find("min_translation_m"), std::string::npos);
+  EXPECT_NE(p.validate().message().find("min_translation_m"), std::string::npos);
 }
 
 // ---- CorrectionAnchor -------------------------------------------------------------------------
@@ -210,7 +210,7 @@ TEST(SensorWatch, WaitingForTheDeviceAndTheEndAreNotStalls) {
 TEST(SensorWatch, ValidateNamesTheBadValue) {
   SensorWatch::Params p;
   p.stall_timeout_s = 0.0;
-  EXPECT_NE(p.validate().find("source.stall_timeout_s"), std::string::npos);
+  EXPECT_NE(p.validate().message().find("source.stall_timeout_s"), std::string::npos);
 }
 
 TEST(LogThrottle, FirstThenAtMostOncePerPeriodWithTheCountLeftOut) {
@@ -236,18 +236,18 @@ TEST(Backoff, DoublesUpToTheCeilingAndStartsOverAfterAReset) {
 }
 
 TEST(RangeCheck, NamesTheKeyTheRangeAndTheValue) {
-  EXPECT_EQ(outOfRange("source.speed", 1.0, 0, 100, Bound::kOpen), "");
-  EXPECT_EQ(outOfRange("source.speed", 0.0, 0, 100, Bound::kOpen),
+  EXPECT_TRUE(outOfRange("source.speed", 1.0, 0, 100, Bound::kOpen).ok());
+  EXPECT_EQ(outOfRange("source.speed", 0.0, 0, 100, Bound::kOpen).message(),
             "source.speed must be in (0, 100] (got 0)");
-  EXPECT_EQ(outOfRange("link.final_wait_s", 0.0, 0, 60), "");
-  EXPECT_EQ(outOfRange("link.final_wait_s", 61.0, 0, 60),
+  EXPECT_TRUE(outOfRange("link.final_wait_s", 0.0, 0, 60).ok());
+  EXPECT_EQ(outOfRange("link.final_wait_s", 61.0, 0, 60).message(),
             "link.final_wait_s must be in [0, 60] (got 61)");
-  EXPECT_NE(outOfRange("odometry.threads", std::nan(""), 1, 64), "");
+  EXPECT_FALSE(outOfRange("odometry.threads", std::nan(""), 1, 64).ok());
 }
 
-TEST(RangeCheck, FirstProblemIsTheFirstNonEmptyOne) {
-  EXPECT_EQ(firstProblem(std::string(), std::string("b"), std::string("c")), "b");
-  EXPECT_EQ(firstProblem(std::string(), std::string()), "");
+TEST(RangeCheck, FirstProblemIsTheFirstFailedOne) {
+  EXPECT_EQ(firstProblem(Status(), Status::error("b"), Status::error("c")).message(), "b");
+  EXPECT_TRUE(firstProblem(Status(), Status()).ok());
 }
 
 }  // namespace

@@ -411,54 +411,59 @@ class KeyFiles : public ::testing::Test {
 
 TEST_F(KeyFiles, CreatedKeyLoadsBackWithOwnerOnlyMode) {
   const std::string path = (dir_ / "v7.key").string();
-  std::string why;
-  const auto created = createKeyFile(path, false, &why);
-  ASSERT_TRUE(created) << why;
+  const StatusOr<Key> created = createKeyFile(path, false);
+  ASSERT_TRUE(created.ok()) << created.status().message();
   struct stat st {};
   ASSERT_EQ(::stat(path.c_str(), &st), 0);
   EXPECT_EQ(st.st_mode & 0777, 0600u);
   EXPECT_EQ(st.st_size, static_cast<off_t>(kKeyBytes));
-  const auto loaded = loadKeyFile(path, &why);
-  ASSERT_TRUE(loaded) << why;
+  const StatusOr<Key> loaded = loadKeyFile(path);
+  ASSERT_TRUE(loaded.ok()) << loaded.status().message();
   EXPECT_EQ(loaded->bytes, created->bytes);
   EXPECT_EQ(loaded->id, created->id);
   // Never overwritten by accident; replaced on request by a different random key.
-  EXPECT_FALSE(createKeyFile(path, false, &why));
-  EXPECT_NE(why.find("exists"), std::string::npos) << why;
-  const auto replaced = createKeyFile(path, true, &why);
-  ASSERT_TRUE(replaced) << why;
+  const StatusOr<Key> kept = createKeyFile(path, false);
+  EXPECT_FALSE(kept.ok());
+  EXPECT_NE(kept.status().message().find("exists"), std::string::npos) << kept.status().message();
+  const StatusOr<Key> replaced = createKeyFile(path, true);
+  ASSERT_TRUE(replaced.ok()) << replaced.status().message();
   EXPECT_NE(replaced->bytes, created->bytes);
 }
 
 TEST_F(KeyFiles, RefusesKeysOthersCanRead) {
   const std::string path = (dir_ / "open.key").string();
-  std::string why;
-  ASSERT_TRUE(createKeyFile(path, false, &why)) << why;
+  ASSERT_TRUE(createKeyFile(path, false).ok());
   for (mode_t mode : {0640, 0604, 0620, 0660, 0644}) {
     ASSERT_EQ(::chmod(path.c_str(), mode), 0);
-    EXPECT_FALSE(loadKeyFile(path, &why)) << std::oct << mode;
+    const StatusOr<Key> loaded = loadKeyFile(path);
+    EXPECT_FALSE(loaded.ok()) << std::oct << mode;
+    const std::string& why = loaded.status().message();
     EXPECT_NE(why.find("chmod 600"), std::string::npos) << why;
   }
   ASSERT_EQ(::chmod(path.c_str(), 0400), 0);
-  EXPECT_TRUE(loadKeyFile(path, &why)) << why;
+  const StatusOr<Key> loaded = loadKeyFile(path);
+  EXPECT_TRUE(loaded.ok()) << loaded.status().message();
 }
 
 TEST_F(KeyFiles, RefusesWrongSizesSymlinksAndMissingFiles) {
-  std::string why;
   const std::string short_path = (dir_ / "short.key").string();
   std::ofstream(short_path) << "too short";
   ASSERT_EQ(::chmod(short_path.c_str(), 0600), 0);
-  EXPECT_FALSE(loadKeyFile(short_path, &why));
-  EXPECT_NE(why.find("bytes"), std::string::npos) << why;
+  const StatusOr<Key> too_short = loadKeyFile(short_path);
+  EXPECT_FALSE(too_short.ok());
+  EXPECT_NE(too_short.status().message().find("bytes"), std::string::npos)
+      << too_short.status().message();
 
   const std::string real = (dir_ / "real.key").string();
-  ASSERT_TRUE(createKeyFile(real, false, &why)) << why;
+  ASSERT_TRUE(createKeyFile(real, false).ok());
   const std::string link = (dir_ / "link.key").string();
   std::filesystem::create_symlink(real, link);
-  EXPECT_FALSE(loadKeyFile(link, &why));
+  EXPECT_FALSE(loadKeyFile(link).ok());
 
-  EXPECT_FALSE(loadKeyFile((dir_ / "missing.key").string(), &why));
-  EXPECT_NE(why.find("missing.key"), std::string::npos) << why;
+  const StatusOr<Key> missing = loadKeyFile((dir_ / "missing.key").string());
+  EXPECT_FALSE(missing.ok());
+  EXPECT_NE(missing.status().message().find("missing.key"), std::string::npos)
+      << missing.status().message();
 }
 
 // ---------------------------------------------------------------------------------------------

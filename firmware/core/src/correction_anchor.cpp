@@ -2,10 +2,10 @@
 
 namespace kinfly::fw {
 
-std::string CorrectionAnchor::Params::validate() const {
+Status CorrectionAnchor::Params::validate() const {
   if (history_keyframes < 1 || history_keyframes > 65536)
-    return "corrections.history_keyframes must be in [1, 65536] (got " +
-           std::to_string(history_keyframes) + ")";
+    return Status::error("corrections.history_keyframes must be in [1, 65536] (got " +
+                         std::to_string(history_keyframes) + ")");
   return {};
 }
 

@@ -5,7 +5,7 @@
 
 namespace kinfly::fw {
 
-std::string KeyframeSelector::Params::validate() const {
+Status KeyframeSelector::Params::validate() const {
   std::ostringstream why;
   if (!(min_translation_m > 0.0 && min_translation_m <= 10.0))
     why << "keyframe.min_translation_m must be in (0, 10] m (got " << min_translation_m << ")";
@@ -18,7 +18,7 @@ std::string KeyframeSelector::Params::validate() const {
         << ")";
   else if (!(min_inlier_fraction >= 0.f && min_inlier_fraction <= 1.f))
     why << "keyframe.min_inlier_fraction must be in [0, 1] (got " << min_inlier_fraction << ")";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 bool KeyframeSelector::select(const Pose& T_world_cam, int64_t utime, TrackingStatus status,

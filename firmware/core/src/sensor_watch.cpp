@@ -4,11 +4,11 @@
 
 namespace kinfly::fw {
 
-std::string SensorWatch::Params::validate() const {
+Status SensorWatch::Params::validate() const {
   if (stall_timeout_s > 0.0 && stall_timeout_s <= 60.0) return {};
   std::ostringstream why;
   why << "source.stall_timeout_s must be in (0, 60] (got " << stall_timeout_s << ")";
-  return why.str();
+  return Status::error(why.str());
 }
 
 SensorWatch::Change SensorWatch::update(double now_s, double last_frame_s, bool source_waiting,

@@ -110,10 +110,10 @@ std::string fieldProblem(const pose_correction_t& m, const DecodeBounds&) {
   return poseProblem(m.T_world_cam);
 }
 
-template <class Status>
-std::string statusProblem(const Status& m) {
+template <class StatusMessage>
+std::string statusProblem(const StatusMessage& m) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
-  if (m.run_state != Status::RUN_ACTIVE && m.run_state != Status::RUN_FINAL)
+  if (m.run_state != StatusMessage::RUN_ACTIVE && m.run_state != StatusMessage::RUN_FINAL)
     return "unknown run_state " + std::to_string(m.run_state);
   if (m.last_keyframe_id < -1) return "last_keyframe_id below -1";
   return {};
@@ -133,13 +133,15 @@ std::string fieldProblem(const signed_t& m, const DecodeBounds&) {
 
 }  // namespace
 
-std::string DecodeBounds::validate() const {
-  if (max_width_px <= 0 || max_width_px > 8192) return "max_width_px must be in (0, 8192]";
-  if (max_height_px <= 0 || max_height_px > 8192) return "max_height_px must be in (0, 8192]";
+Status DecodeBounds::validate() const {
+  if (max_width_px <= 0 || max_width_px > 8192)
+    return Status::error("max_width_px must be in (0, 8192]");
+  if (max_height_px <= 0 || max_height_px > 8192)
+    return Status::error("max_height_px must be in (0, 8192]");
   if (max_keyframe_payload_bytes <= 0 || max_keyframe_payload_bytes > (64 << 20))
-    return "max_keyframe_payload_bytes must be in (0, 64 MiB]";
+    return Status::error("max_keyframe_payload_bytes must be in (0, 64 MiB]");
   if (max_signed_payload_bytes <= 0 || max_signed_payload_bytes > (1 << 20))
-    return "max_signed_payload_bytes must be in (0, 1 MiB]";
+    return Status::error("max_signed_payload_bytes must be in (0, 1 MiB]");
   return {};
 }
 

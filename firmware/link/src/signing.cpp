@@ -62,32 +62,28 @@ uint32_t keyIdOf(const std::array<uint8_t, kKeyBytes>& bytes) {
          uint32_t{digest[3]};
 }
 
-std::optional<Key> loadKeyFile(const std::string& path, std::string* why) {
+StatusOr<Key> loadKeyFile(const std::string& path) {
   FileDescriptor file{::open(path.c_str(), O_RDONLY | O_CLOEXEC | O_NOFOLLOW)};
   if (file.fd < 0) {
-    *why = "cannot open key file " + path + ": " + errnoText();
-    return std::nullopt;
+    return Status::error("cannot open key file " + path + ": " + errnoText());
   }
   struct stat st {};
   if (::fstat(file.fd, &st) != 0) {
-    *why = "cannot stat key file " + path + ": " + errnoText();
-    return std::nullopt;
+    return Status::error("cannot stat key file " + path + ": " + errnoText());
   }
   if (!S_ISREG(st.st_mode)) {
-    *why = "key file " + path + " is not a regular file";
-    return std::nullopt;
+    return Status::error("key file " + path + " is not a regular file");
   }
   if ((st.st_mode & 077) != 0) {
     char mode[8];
     std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(st.st_mode & 07777));
-    *why = "key file " + path + " has mode " + mode +
-           ": group and others must have no access (chmod 600 " + path + ")";
-    return std::nullopt;
+    return Status::error("key file " + path + " has mode " + mode +
+                         ": group and others must have no access (chmod 600 " + path + ")");
   }
   if (st.st_size != static_cast<off_t>(kKeyBytes)) {
-    *why = "key file " + path + " holds " + std::to_string(st.st_size) + " bytes, not " +
-           std::to_string(kKeyBytes) + " (create one with kinfly-keygen)";
-    return std::nullopt;
+    return Status::error("key file " + path + " holds " + std::to_string(st.st_size) +
+                         " bytes, not " + std::to_string(kKeyBytes) +
+                         " (create one with kinfly-keygen)");
   }
   Key key;
   size_t got = 0;
@@ -95,8 +91,8 @@ std::optional<Key> loadKeyFile(const std::string& path, std::string* why) {
     const ssize_t n = ::read(file.fd, key.bytes.data() + got, kKeyBytes - got);
     if (n < 0 && errno == EINTR) continue;
     if (n <= 0) {
-      *why = "cannot read key file " + path + (n < 0 ? ": " + errnoText() : ": short read");
-      return std::nullopt;
+      return Status::error("cannot read key file " + path +
+                           (n < 0 ? ": " + errnoText() : ": short read"));
     }
     got += static_cast<size_t>(n);
   }
@@ -104,11 +100,10 @@ std::optional<Key> loadKeyFile(const std::string& path, std::string* why) {
   return key;
 }
 
-std::optional<Key> createKeyFile(const std::string& path, bool overwrite, std::string* why) {
+StatusOr<Key> createKeyFile(const std::string& path, bool overwrite) {
   ensureSodium();
   if (!overwrite && ::access(path.c_str(), F_OK) == 0) {
-    *why = path + " already exists (pass --force to replace it)";
-    return std::nullopt;
+    return Status::error(path + " already exists (pass --force to replace it)");
   }
   Key key;
   randombytes_buf(key.bytes.data(), key.bytes.size());
@@ -119,17 +114,16 @@ std::optional<Key> createKeyFile(const std::string& path, bool overwrite, std::s
   const std::string temporary = path + ".tmp." + std::to_string(::getpid());
   FileDescriptor file{::open(temporary.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0600)};
   if (file.fd < 0) {
-    *why = "cannot create " + temporary + ": " + errnoText();
-    return std::nullopt;
+    return Status::error("cannot create " + temporary + ": " + errnoText());
   }
   const bool written =
       ::write(file.fd, key.bytes.data(), key.bytes.size()) ==
           static_cast<ssize_t>(key.bytes.size()) &&
       ::fchmod(file.fd, 0600) == 0 && ::fsync(file.fd) == 0;
   if (!written || ::rename(temporary.c_str(), path.c_str()) != 0) {
-    *why = "cannot write key file " + path + ": " + errnoText();
+    Status failed = Status::error("cannot write key file " + path + ": " + errnoText());
     ::unlink(temporary.c_str());
-    return std::nullopt;
+    return failed;
   }
   return key;
 }
@@ -178,9 +172,9 @@ const char* toString(Verdict verdict) {
   return "?";
 }
 
-std::string VerifierParams::validate() const {
+Status VerifierParams::validate() const {
   if (!(window_s > 0.0 && window_s <= 3600.0))
-    return "window_s must be in (0, 3600] s (got " + std::to_string(window_s) + ")";
+    return Status::error("window_s must be in (0, 3600] s (got " + std::to_string(window_s) + ")");
   return {};
 }
 

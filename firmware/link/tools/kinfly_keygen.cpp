@@ -19,10 +19,9 @@ int main(int argc, char** argv) {
   app.set_version_flag("--version", "kinfly-keygen 0.1.0");
   CLI11_PARSE(app, argc, argv);
 
-  std::string why;
-  const auto key = kinfly::link::createKeyFile(out_path, force, &why);
-  if (!key) {
-    std::cerr << "kinfly-keygen: error: " << why << "\n";
+  const kinfly::StatusOr<kinfly::link::Key> key = kinfly::link::createKeyFile(out_path, force);
+  if (!key.ok()) {
+    std::cerr << "kinfly-keygen: error: " << key.status().message() << "\n";
     return 1;
   }
   std::printf("wrote %s (key id 0x%08x)\n", out_path.c_str(), key->id);

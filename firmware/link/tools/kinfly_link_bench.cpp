@@ -52,15 +52,15 @@ int fail(const std::string& message) {
   return 1;
 }
 
-std::string loadFrames(const std::string& dir, int max_frames, std::vector<Image<uint16_t>>* out) {
+Status loadFrames(const std::string& dir, int max_frames, std::vector<Image<uint16_t>>* out) {
   std::vector<TumDepthEntry> entries;
-  if (std::string why = readTumDepthList(dir, &entries); !why.empty()) return why;
+  if (Status read = readTumDepthList(dir, &entries); !read.ok()) return read;
   if (max_frames > 0 && static_cast<size_t>(max_frames) < entries.size())
     entries.resize(static_cast<size_t>(max_frames));
-  if (entries.empty()) return dir + "/depth.txt lists no frames";
+  if (entries.empty()) return Status::error(dir + "/depth.txt lists no frames");
   out->resize(entries.size());
   for (size_t i = 0; i < entries.size(); ++i)
-    if (std::string why = loadDepthPng(entries[i].path, &(*out)[i]); !why.empty()) return why;
+    if (Status loaded = loadDepthPng(entries[i].path, &(*out)[i]); !loaded.ok()) return loaded;
   return {};
 }
 
@@ -132,18 +132,18 @@ int runDrone(const Options& options) {
     return fail("--encoding: unknown encoding \"" + options.encoding + "\"");
   std::optional<link::CorrectionReceiver> corrections;
   if (!options.key_path.empty()) {
-    std::string why;
-    const auto key = link::loadKeyFile(options.key_path, &why);
-    if (!key) return fail(why);
+    const StatusOr<link::Key> key = link::loadKeyFile(options.key_path);
+    if (!key.ok()) return fail(key.status().message());
     link::VerifierParams verifier;
     verifier.window_s = options.window_s;
-    if (why = verifier.validate(); !why.empty()) return fail("--window: " + why);
+    if (const Status valid = verifier.validate(); !valid.ok())
+      return fail("--window: " + valid.message());
     corrections.emplace(*key, options.vehicle_id, verifier, link::DecodeBounds());
   }
   if (options.tum_dir.empty()) return fail("drone: --tum is required");
   std::vector<Image<uint16_t>> frames;
-  if (std::string why = loadFrames(options.tum_dir, options.max_frames, &frames); !why.empty())
-    return fail(why);
+  if (const Status loaded = loadFrames(options.tum_dir, options.max_frames, &frames); !loaded.ok())
+    return fail(loaded.message());
 
   lcm::LCM lcm(options.lcm_url);
   if (!lcm.good()) return fail("cannot start LCM on \"" + options.lcm_url + "\"");
@@ -285,9 +285,9 @@ class GroundEnd {
 int runGround(const Options& options) {
   std::vector<Image<uint16_t>> reference;
   if (!options.tum_dir.empty()) {
-    if (std::string why = loadFrames(options.tum_dir, options.max_frames, &reference);
-        !why.empty())
-      return fail(why);
+    if (const Status loaded = loadFrames(options.tum_dir, options.max_frames, &reference);
+        !loaded.ok())
+      return fail(loaded.message());
   }
   lcm::LCM lcm(options.lcm_url);
   if (!lcm.good()) return fail("cannot start LCM on \"" + options.lcm_url + "\"");

@@ -77,13 +77,15 @@ int main(int argc, char** argv) {
   if (!parseDepthEncoding(encoding_name, &codec_params.encoding))
     return fail("--encoding: unknown encoding \"" + encoding_name + "\"");
   PinholeCamera camera;
-  std::string why;
-  if (!intrinsics.empty() && !parseIntrinsics(intrinsics, &camera, &why)) return fail(why);
+  if (!intrinsics.empty())
+    if (const Status parsed = parseIntrinsics(intrinsics, &camera); !parsed.ok())
+      return fail(parsed.message());
   if (!force && std::filesystem::exists(out_path))
     return fail(out_path + " already exists (pass --force to replace it)");
 
   std::vector<TumDepthEntry> frames;
-  if (why = readTumDepthList(tum_dir, &frames); !why.empty()) return fail(why);
+  if (const Status read = readTumDepthList(tum_dir, &frames); !read.ok())
+    return fail(read.message());
   if (max_frames > 0 && static_cast<size_t>(max_frames) < frames.size())
     frames.resize(static_cast<size_t>(max_frames));
   if (frames.empty()) return fail(tum_dir + "/depth.txt lists no frames");
@@ -91,7 +93,8 @@ int main(int argc, char** argv) {
   std::vector<StampedPose> truth;
   const std::string truth_path = tum_dir + "/groundtruth.txt";
   if (std::filesystem::exists(truth_path)) {
-    if (why = readTumTrajectory(truth_path, &truth); !why.empty()) return fail(why);
+    if (const Status read = readTumTrajectory(truth_path, &truth); !read.ok())
+      return fail(read.message());
   }
   const double first_s = frames.front().timestamp_s - kGroundTruthMarginS;
   const double last_s = frames.back().timestamp_s + kGroundTruthMarginS;
@@ -122,10 +125,12 @@ int main(int argc, char** argv) {
       }
     };
     for (size_t i = 0; i < frames.size(); ++i) {
-      if (why = loadDepthPng(frames[i].path, &raw); !why.empty()) return fail(why);
+      if (const Status loaded = loadDepthPng(frames[i].path, &raw); !loaded.ok())
+        return fail(loaded.message());
       camera.width = raw.width();
       camera.height = raw.height();
-      if (why = camera.validate(); !why.empty()) return fail(frames[i].path + ": " + why);
+      if (const Status valid = camera.validate(); !valid.ok())
+        return fail(frames[i].path + ": " + valid.message());
       writeTruthUntil(frames[i].timestamp_s);
       message.vehicle_id = vehicle_id;
       link::KeyframeHeader header;  // a raw capture: not a keyframe, no pose

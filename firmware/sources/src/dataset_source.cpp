@@ -26,8 +26,8 @@ class DatasetSource : public DepthSource {
   SourceStatus next(DepthCapture* out, std::string* why) override {
     if (next_ >= entries_.size()) return SourceStatus::kEnd;
     const TumDepthEntry& entry = entries_[next_++];
-    if (std::string problem = loadDepthPng(entry.path, &out->depth); !problem.empty()) {
-      *why = problem;
+    if (Status loaded = loadDepthPng(entry.path, &out->depth); !loaded.ok()) {
+      *why = loaded.message();
       return SourceStatus::kSkipped;
     }
     if (out->depth.width() != camera_.width || out->depth.height() != camera_.height) {
@@ -49,27 +49,23 @@ class DatasetSource : public DepthSource {
 
 }  // namespace
 
-std::string DatasetSourceParams::validate() const {
+Status DatasetSourceParams::validate() const {
   return outOfRange("source.depth_scale_m", depth_scale_m, 1e-6, 1.0);
 }
 
-std::unique_ptr<DepthSource> openDatasetSource(const DatasetSourceParams& params,
-                                               std::string* why) {
-  if (*why = params.validate(); !why->empty()) return nullptr;
+StatusOr<std::unique_ptr<DepthSource>> openDatasetSource(const DatasetSourceParams& params) {
+  if (Status valid = params.validate(); !valid.ok()) return valid;
   std::vector<TumDepthEntry> entries;
-  if (*why = readTumDepthList(params.tum_dir, &entries); !why->empty()) return nullptr;
-  if (entries.empty()) {
-    *why = params.tum_dir + "/depth.txt lists no frames";
-    return nullptr;
-  }
+  if (Status read = readTumDepthList(params.tum_dir, &entries); !read.ok()) return read;
+  if (entries.empty()) return Status::error(params.tum_dir + "/depth.txt lists no frames");
   PinholeCamera camera;
-  if (!params.intrinsics.empty() && !parseIntrinsics(params.intrinsics, &camera, why))
-    return nullptr;
+  if (!params.intrinsics.empty())
+    if (Status parsed = parseIntrinsics(params.intrinsics, &camera); !parsed.ok()) return parsed;
   Image<uint16_t> first;
-  if (*why = loadDepthPng(entries.front().path, &first); !why->empty()) return nullptr;
+  if (Status loaded = loadDepthPng(entries.front().path, &first); !loaded.ok()) return loaded;
   camera.width = first.width();
   camera.height = first.height();
-  if (*why = camera.validate(); !why->empty()) return nullptr;
+  if (Status valid = camera.validate(); !valid.ok()) return valid;
   return std::make_unique<DatasetSource>(std::move(entries), camera, params.depth_scale_m,
                                          params.tum_dir);
 }

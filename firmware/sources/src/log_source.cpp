@@ -23,20 +23,19 @@ class LogSource : public DepthSource {
         codec_(DepthCodec::Params()) {}
 
   // Reads up to the first decodable frame to learn the camera, then starts over.
-  bool open(std::string* why) {
+  Status open() {
     DepthCapture probe;
+    std::string why;
     for (;;) {
-      const SourceStatus status = next(&probe, why);
+      const SourceStatus status = next(&probe, &why);
       if (status == SourceStatus::kFrame) break;
-      if (status == SourceStatus::kEnd) {
-        *why = path_ + " holds no decodable frame on " + channel_ +
-               (why->empty() ? "" : " (last problem: " + *why + ")");
-        return false;
-      }
+      if (status == SourceStatus::kEnd)
+        return Status::error(path_ + " holds no decodable frame on " + channel_ +
+                             (why.empty() ? "" : " (last problem: " + why + ")"));
     }
     frames_ = 0;
     has_truth_ = has_truth_origin_ = false;
-    return rewind(why);
+    return rewind();
   }
 
   const PinholeCamera& camera() const override { return camera_; }
@@ -108,10 +107,10 @@ class LogSource : public DepthSource {
     out->T_world_cam_truth = orthonormalized(T_cam0_mocap_ * T_mocap_cam_);
   }
 
-  bool rewind(std::string* why) {
+  Status rewind() {
     log_ = std::make_unique<lcm::LogFile>(path_, "r");
-    if (!log_->good()) *why = "cannot reopen " + path_;
-    return log_->good();
+    if (!log_->good()) return Status::error("cannot reopen " + path_);
+    return {};
   }
 
   std::string path_, channel_, truth_channel_;
@@ -129,18 +128,13 @@ class LogSource : public DepthSource {
 
 }  // namespace
 
-std::unique_ptr<DepthSource> openLogSource(const LogSourceParams& params, std::string* why) {
-  if (!std::filesystem::is_regular_file(params.path)) {
-    *why = "source.path: " + params.path + " is not a file";
-    return nullptr;
-  }
+StatusOr<std::unique_ptr<DepthSource>> openLogSource(const LogSourceParams& params) {
+  if (!std::filesystem::is_regular_file(params.path))
+    return Status::error("source.path: " + params.path + " is not a file");
   auto log = std::make_unique<lcm::LogFile>(params.path, "r");
-  if (!log->good()) {
-    *why = "cannot open LCM log " + params.path;
-    return nullptr;
-  }
+  if (!log->good()) return Status::error("cannot open LCM log " + params.path);
   auto source = std::make_unique<LogSource>(params, std::move(log));
-  if (!source->open(why)) return nullptr;
+  if (Status opened = source->open(); !opened.ok()) return opened;
   return source;
 }
 

@@ -66,7 +66,7 @@ std::string openniError() {
 
 // OpenNI2's state is per process: initialised by the first source, never shut down before exit
 // (its drivers' threads may still run while a stream is torn down).
-bool initialiseOpenni(std::string* why) {
+Status initialiseOpenni() {
   static const openni::Status status = [] {
     const openni::Status s = openni::OpenNI::initialize();
     const openni::Version v = openni::OpenNI::getVersion();
@@ -75,9 +75,8 @@ bool initialiseOpenni(std::string* why) {
                    v.build);
     return s;
   }();
-  if (status == openni::STATUS_OK) return true;
-  *why = "OpenNI2 did not initialise: " + openniError();
-  return false;
+  if (status == openni::STATUS_OK) return {};
+  return Status::error("OpenNI2 did not initialise: " + openniError());
 }
 
 class UsbWatch {
@@ -166,7 +165,7 @@ class OpenniSource : public DepthSource,
   }
 
   // Recordings must open at start; a sensor may come later.
-  bool openRecording(std::string* why) { return connect(why); }
+  Status openRecording() { return connect(); }
 
   const PinholeCamera& camera() const override { return camera_; }
   double depthScaleM() const override { return 0.001; }  // DEPTH_1_MM, the only mode asked for
@@ -193,14 +192,13 @@ class OpenniSource : public DepthSource,
         *why = waiting_why_;
         return SourceStatus::kWaiting;
       }
-      std::string problem;
-      if (!connect(&problem)) {
+      if (const Status connected = connect(); !connected.ok()) {
         const double wait_s = backoff_.next();
         next_attempt_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                            std::chrono::duration<double>(wait_s));
         // The attempt number makes every retry its own log line: the log shows it goes on.
         std::ostringstream text;
-        text << problem << "; attempt " << ++failed_attempts_ << " failed, retrying in "
+        text << connected.message() << "; attempt " << ++failed_attempts_ << " failed, retrying in "
              << wait_s << " s";
         waiting_why_ = *why = text.str();
         return SourceStatus::kWaiting;
@@ -261,29 +259,26 @@ class OpenniSource : public DepthSource,
     if (connected_ && uri_ == info->getUri()) lost_ = true;
   }
 
-  bool connect(std::string* why) {
+  Status connect() {
     std::string uri = params_.uri;
     if (uri.empty()) {
       openni::Array<openni::DeviceInfo> devices;
       openni::OpenNI::enumerateDevices(&devices);
       if (devices.getSize() == 0) {
-        *why = "no depth sensor: OpenNI2 lists none (supported sensors on USB: " +
-               usb_->attached() + ")";
-        return false;
+        return Status::error("no depth sensor: OpenNI2 lists none (supported sensors on USB: " +
+                             usb_->attached() + ")");
       }
       uri = devices[0].getUri();
     }
     if (device_.open(uri.c_str()) != openni::STATUS_OK) {
-      *why = (file_ ? "cannot open recording " : "cannot open depth sensor ") + uri + ": " +
-             openniError();
-      if (usb_) *why += " (supported sensors on USB: " + usb_->attached() + ")";
-      return false;
+      std::string why = (file_ ? "cannot open recording " : "cannot open depth sensor ") + uri +
+                        ": " + openniError();
+      if (usb_) why += " (supported sensors on USB: " + usb_->attached() + ")";
+      return Status::error(why);
     }
-    std::string problem = startDepth();
-    if (!problem.empty()) {
-      *why = uri + ": " + problem;
+    if (const Status started = startDepth(); !started.ok()) {
       device_.close();
-      return false;
+      return Status::error(uri + ": " + started.message());
     }
     if (file_) {
       frames_in_file_ = device_.getPlaybackControl()->getNumberOfFrames(stream_);
@@ -305,11 +300,11 @@ class OpenniSource : public DepthSource,
     ++connects_;
     spdlog::info("openni: {} streaming {}x{} depth (connection {})", uri, camera_.width,
                  camera_.height, connects_);
-    return true;
+    return {};
   }
 
-  // Picks the configured size in millimetres, starts the stream; empty on success.
-  std::string startDepth() {
+  // Picks the configured size in millimetres, starts the stream.
+  Status startDepth() {
     if (file_) {
       openni::PlaybackControl* playback = device_.getPlaybackControl();
       playback->setRepeatEnabled(false);
@@ -318,7 +313,7 @@ class OpenniSource : public DepthSource,
       playback->setSpeed(-1.0f);
     }
     const openni::SensorInfo* info = device_.getSensorInfo(openni::SENSOR_DEPTH);
-    if (info == nullptr) return "has no depth sensor";
+    if (info == nullptr) return Status::error("has no depth sensor");
     const openni::Array<openni::VideoMode>& modes = info->getSupportedVideoModes();
     int best = -1;
     std::ostringstream offered;
@@ -333,11 +328,11 @@ class OpenniSource : public DepthSource,
       if (best < 0 || std::abs(m.getFps() - 30) < std::abs(modes[best].getFps() - 30)) best = i;
     }
     if (best < 0)
-      return "offers no " + std::to_string(camera_.width) + "x" +
-             std::to_string(camera_.height) + " millimetre depth mode (source.width, " +
-             "source.height); it offers " + offered.str();
+      return Status::error("offers no " + std::to_string(camera_.width) + "x" +
+                           std::to_string(camera_.height) + " millimetre depth mode " +
+                           "(source.width, source.height); it offers " + offered.str());
     if (stream_.create(device_, openni::SENSOR_DEPTH) != openni::STATUS_OK)
-      return "cannot create the depth stream: " + openniError();
+      return Status::error("cannot create the depth stream: " + openniError());
     // Recordings replay the mode they were made with; drivers without the properties (OpenNI2's
     // test device) refuse these calls, which changes nothing.
     if (!file_) {
@@ -345,9 +340,9 @@ class OpenniSource : public DepthSource,
       stream_.setMirroringEnabled(false);  // the optical frame has x to the right
     }
     if (stream_.start() != openni::STATUS_OK) {
-      std::string problem = "cannot start the depth stream: " + openniError();
+      Status failed = Status::error("cannot start the depth stream: " + openniError());
       stream_.destroy();
-      return problem;
+      return failed;
     }
     const float hfov_rad = stream_.getHorizontalFieldOfView();
     if (hfov_rad > 0.f && hfov_rad < 3.f) {
@@ -435,32 +430,28 @@ class OpenniSource : public DepthSource,
 
 }  // namespace
 
-std::string OpenniSourceParams::validate() const {
+Status OpenniSourceParams::validate() const {
   return firstProblem(sourceSizeProblem(width_px, height_px),
                       outOfRange("source.reconnect_min_s", reconnect_min_s, 0.01, 60),
                       outOfRange("source.reconnect_max_s", reconnect_max_s, reconnect_min_s, 600));
 }
 
-std::unique_ptr<DepthSource> openOpenniSource(const OpenniSourceParams& params,
-                                              std::string* why) {
-  if (*why = params.validate(); !why->empty()) return nullptr;
-  PinholeCamera camera;
-  if (!sourceCamera(kPrimeSenseFxAt640, params.width_px, params.height_px, params.intrinsics,
-                    &camera, why))
-    return nullptr;
-  if (!initialiseOpenni(why)) return nullptr;
+StatusOr<std::unique_ptr<DepthSource>> openOpenniSource(const OpenniSourceParams& params) {
+  if (Status valid = params.validate(); !valid.ok()) return valid;
+  StatusOr<PinholeCamera> camera =
+      sourceCamera(kPrimeSenseFxAt640, params.width_px, params.height_px, params.intrinsics);
+  if (!camera.ok()) return camera.status();
+  if (Status initialised = initialiseOpenni(); !initialised.ok()) return initialised;
   std::error_code error;  // the non-throwing overloads: a bad path is a message, not an abort
   const bool file = std::filesystem::is_regular_file(params.uri, error);
-  if (!file && params.uri.size() > 4 && params.uri.compare(params.uri.size() - 4, 4, ".oni") == 0) {
-    *why = "source.path: recording " + params.uri + " does not exist";
-    return nullptr;
-  }
-  if (std::filesystem::is_directory(params.uri, error)) {
-    *why = "source.path: " + params.uri + " is a folder, not a device URI or an .oni recording";
-    return nullptr;
-  }
-  auto source = std::make_unique<OpenniSource>(params, camera, file);
-  if (file && !source->openRecording(why)) return nullptr;
+  if (!file && params.uri.size() > 4 && params.uri.compare(params.uri.size() - 4, 4, ".oni") == 0)
+    return Status::error("source.path: recording " + params.uri + " does not exist");
+  if (std::filesystem::is_directory(params.uri, error))
+    return Status::error("source.path: " + params.uri +
+                         " is a folder, not a device URI or an .oni recording");
+  auto source = std::make_unique<OpenniSource>(params, *camera, file);
+  if (file)
+    if (Status opened = source->openRecording(); !opened.ok()) return opened;
   return source;
 }
 

@@ -69,20 +69,18 @@ class SyntheticSource : public DepthSource {
 
 }  // namespace
 
-std::string SyntheticSourceParams::validate() const {
+Status SyntheticSourceParams::validate() const {
   return firstProblem(sourceSizeProblem(width_px, height_px),
                       outOfRange("source.rate_hz", rate_hz, 0, 1000, Bound::kOpen),
                       outOfRange("source.seed", seed, 0, 2147483647));
 }
 
-std::unique_ptr<DepthSource> openSyntheticSource(const SyntheticSourceParams& params,
-                                                 std::string* why) {
-  if (*why = params.validate(); !why->empty()) return nullptr;
-  PinholeCamera camera;
-  if (!sourceCamera(kKinectFxAt640, params.width_px, params.height_px, params.intrinsics,
-                    &camera, why))
-    return nullptr;
-  return std::make_unique<SyntheticSource>(params, camera);
+StatusOr<std::unique_ptr<DepthSource>> openSyntheticSource(const SyntheticSourceParams& params) {
+  if (Status valid = params.validate(); !valid.ok()) return valid;
+  StatusOr<PinholeCamera> camera =
+      sourceCamera(kKinectFxAt640, params.width_px, params.height_px, params.intrinsics);
+  if (!camera.ok()) return camera.status();
+  return std::make_unique<SyntheticSource>(params, *camera);
 }
 
 }  // namespace kinfly::fw

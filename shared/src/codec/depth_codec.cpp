@@ -234,7 +234,7 @@ const char* toString(CodecStatus status) {
   return "unknown";
 }
 
-std::string DepthCodec::Params::validate() const {
+Status DepthCodec::Params::validate() const {
   std::ostringstream why;
   if (static_cast<int>(encoding) >= kDepthEncodingCount) why << "encoding is not a DepthEncoding";
   else if (zstd_level < 1 || zstd_level > ZSTD_maxCLevel())
@@ -243,7 +243,7 @@ std::string DepthCodec::Params::validate() const {
     why << "max_width_px must be in [1, " << kMaxSidePx << "]";
   else if (max_height_px < 1 || max_height_px > kMaxSidePx)
     why << "max_height_px must be in [1, " << kMaxSidePx << "]";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 void DepthCodec::ZstdDeleter::operator()(ZSTD_CCtx_s* context) const { ZSTD_freeCCtx(context); }
@@ -255,7 +255,7 @@ DepthCodec::DepthCodec(const Params& params)
       dctx_(ZSTD_createDCtx()),
       index_of_value_(65536, 0),
       palette_(kMaxPaletteSize + 1, 0) {
-  assert(params_.validate().empty());
+  assert(params_.validate().ok());
 }
 
 DepthCodec::~DepthCodec() = default;

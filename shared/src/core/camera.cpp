@@ -7,7 +7,7 @@
 
 namespace kinfly {
 
-std::string PinholeCamera::validate() const {
+Status PinholeCamera::validate() const {
   std::ostringstream why;
   if (!(std::isfinite(fx) && fx > 0.f)) why << "fx must be a positive number (got " << fx << ")";
   else if (!(std::isfinite(fy) && fy > 0.f)) why << "fy must be a positive number (got " << fy << ")";
@@ -16,7 +16,7 @@ std::string PinholeCamera::validate() const {
     why << "cx must lie inside the image width " << width << " (got " << cx << ")";
   else if (!(std::isfinite(cy) && cy >= 0.f && cy <= static_cast<float>(height)))
     why << "cy must lie inside the image height " << height << " (got " << cy << ")";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 PinholeCamera PinholeCamera::scaled(int factor) const {
@@ -25,7 +25,7 @@ PinholeCamera PinholeCamera::scaled(int factor) const {
   return {fx / f, fy / f, cx / f, cy / f, width / factor, height / factor};
 }
 
-bool parseIntrinsics(const std::string& text, PinholeCamera* camera, std::string* why) {
+Status parseIntrinsics(const std::string& text, PinholeCamera* camera) {
   std::vector<float> v;
   std::stringstream in(text);
   std::string item;
@@ -35,19 +35,17 @@ bool parseIntrinsics(const std::string& text, PinholeCamera* camera, std::string
       v.push_back(std::stof(item, &used));
       if (used != item.size()) throw std::invalid_argument(item);
     } catch (const std::exception&) {
-      *why = "--intrinsics: \"" + item + "\" is not a number";
-      return false;
+      return Status::error("--intrinsics: \"" + item + "\" is not a number");
     }
   }
-  if (v.size() != 4) {
-    *why = "--intrinsics expects 4 comma-separated numbers fx,fy,cx,cy (got \"" + text + "\")";
-    return false;
-  }
+  if (v.size() != 4)
+    return Status::error("--intrinsics expects 4 comma-separated numbers fx,fy,cx,cy (got \"" +
+                         text + "\")");
   camera->fx = v[0];
   camera->fy = v[1];
   camera->cx = v[2];
   camera->cy = v[3];
-  return true;
+  return {};
 }
 
 }  // namespace kinfly

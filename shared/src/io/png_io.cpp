@@ -92,25 +92,25 @@ std::string writeGrayRows(png_structp png, png_infop info, std::FILE* file, PngE
 
 }  // namespace
 
-std::string loadDepthPng(const std::string& path, Image<uint16_t>* out) {
+Status loadDepthPng(const std::string& path, Image<uint16_t>* out) {
   const File file(std::fopen(path.c_str(), "rb"));
-  if (!file) return openProblem(path, "r");
+  if (!file) return Status::error(openProblem(path, "r"));
   png_byte signature[8];
   if (std::fread(signature, 1, sizeof signature, file.get()) != sizeof signature ||
       png_sig_cmp(signature, 0, sizeof signature) != 0)
-    return path + ": not a PNG file";
+    return Status::error(path + ": not a PNG file");
   PngErrors errors;
   png_structp png = png_create_read_struct(PNG_LIBPNG_VER_STRING, &errors, onError, onWarning);
   png_infop info = png ? png_create_info_struct(png) : nullptr;
   std::string why = info ? readDepthRows(png, info, file.get(), &errors, out)
                          : std::string("libpng could not start (out of memory)");
   png_destroy_read_struct(&png, &info, nullptr);
-  return why.empty() ? why : path + ": " + why;
+  return why.empty() ? Status() : Status::error(path + ": " + why);
 }
 
-std::string writeGrayPng(const std::string& path, ImageView<const uint8_t> image) {
+Status writeGrayPng(const std::string& path, ImageView<const uint8_t> image) {
   File file(std::fopen(path.c_str(), "wb"));
-  if (!file) return openProblem(path, "w");
+  if (!file) return Status::error(openProblem(path, "w"));
   PngErrors errors;
   png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, &errors, onError, onWarning);
   png_infop info = png ? png_create_info_struct(png) : nullptr;
@@ -118,7 +118,7 @@ std::string writeGrayPng(const std::string& path, ImageView<const uint8_t> image
                          : std::string("libpng could not start (out of memory)");
   png_destroy_write_struct(&png, &info);
   if (std::fclose(file.release()) != 0 && why.empty()) why = std::strerror(errno);
-  return why.empty() ? why : path + ": " + why;
+  return why.empty() ? Status() : Status::error(path + ": " + why);
 }
 
 }  // namespace kinfly

@@ -30,12 +30,14 @@ std::string where(const std::string& path, int line) {
 
 }  // namespace
 
-std::string readTumDepthList(const std::string& dir, std::vector<TumDepthEntry>* entries) {
+Status readTumDepthList(const std::string& dir, std::vector<TumDepthEntry>* entries) {
   entries->clear();
-  if (!isDirectory(dir)) return dir + ": no such directory";
+  if (!isDirectory(dir)) return Status::error(dir + ": no such directory");
   const std::string list = dir + "/depth.txt";
   std::ifstream in(list);
-  if (!in) return list + ": cannot open (" + std::strerror(errno) + "); a TUM folder has depth.txt";
+  if (!in)
+    return Status::error(list + ": cannot open (" + std::strerror(errno) +
+                         "); a TUM folder has depth.txt");
   std::string line;
   for (int n = 1; std::getline(in, line); ++n) {
     if (isBlankOrComment(line)) continue;
@@ -43,20 +45,21 @@ std::string readTumDepthList(const std::string& dir, std::vector<TumDepthEntry>*
     TumDepthEntry e;
     std::string file, extra;
     if (!(fields >> e.timestamp_s >> file) || (fields >> extra) || !std::isfinite(e.timestamp_s))
-      return where(list, n) + "expected \"timestamp filename\", got \"" + line + "\"";
+      return Status::error(where(list, n) + "expected \"timestamp filename\", got \"" + line +
+                           "\"");
     if (!entries->empty() && e.timestamp_s <= entries->back().timestamp_s)
-      return where(list, n) + "timestamps must increase";
+      return Status::error(where(list, n) + "timestamps must increase");
     e.path = file.front() == '/' ? file : dir + "/" + file;
     entries->push_back(std::move(e));
   }
-  if (entries->empty()) return list + ": lists no depth images";
+  if (entries->empty()) return Status::error(list + ": lists no depth images");
   return {};
 }
 
-std::string readTumTrajectory(const std::string& path, std::vector<StampedPose>* poses) {
+Status readTumTrajectory(const std::string& path, std::vector<StampedPose>* poses) {
   poses->clear();
   std::ifstream in(path);
-  if (!in) return path + ": cannot open (" + std::strerror(errno) + ")";
+  if (!in) return Status::error(path + ": cannot open (" + std::strerror(errno) + ")");
   std::string line;
   for (int n = 1; std::getline(in, line); ++n) {
     if (isBlankOrComment(line)) continue;
@@ -67,21 +70,23 @@ std::string readTumTrajectory(const std::string& path, std::vector<StampedPose>*
     bool ok = static_cast<bool>(fields >> p.timestamp_s);
     for (double& x : v) ok = ok && static_cast<bool>(fields >> x);
     if (!ok || (fields >> extra))
-      return where(path, n) + "expected \"t tx ty tz qx qy qz qw\", got \"" + line + "\"";
+      return Status::error(where(path, n) + "expected \"t tx ty tz qx qy qz qw\", got \"" +
+                           line + "\"");
     const double qn = std::sqrt(v[3] * v[3] + v[4] * v[4] + v[5] * v[5] + v[6] * v[6]);
-    if (!(std::fabs(qn - 1.0) < 1e-2)) return where(path, n) + "quaternion is not unit length";
+    if (!(std::fabs(qn - 1.0) < 1e-2))
+      return Status::error(where(path, n) + "quaternion is not unit length");
     p.T_world_cam = poseFromTum(v);
     poses->push_back(p);
   }
   std::sort(poses->begin(), poses->end(),
             [](const StampedPose& a, const StampedPose& b) { return a.timestamp_s < b.timestamp_s; });
-  if (poses->empty()) return path + ": holds no poses";
+  if (poses->empty()) return Status::error(path + ": holds no poses");
   return {};
 }
 
-std::string writeTumTrajectory(const std::string& path, const std::vector<StampedPose>& poses) {
+Status writeTumTrajectory(const std::string& path, const std::vector<StampedPose>& poses) {
   std::ofstream out(path, std::ios::trunc);
-  if (!out) return "cannot write " + path + ": " + std::strerror(errno);
+  if (!out) return Status::error("cannot write " + path + ": " + std::strerror(errno));
   out << "# timestamp tx ty tz qx qy qz qw (camera-to-world, metres)\n" << std::fixed;
   for (const StampedPose& p : poses) {
     const std::array<double, 7> v = poseToTum(p.T_world_cam);
@@ -90,7 +95,7 @@ std::string writeTumTrajectory(const std::string& path, const std::vector<Stampe
     out << '\n';
   }
   out.close();
-  if (!out) return "failed writing " + path;
+  if (!out) return Status::error("failed writing " + path);
   return {};
 }
 

@@ -178,8 +178,8 @@ struct IncrementalMesher::State {
   size_t triangles = 0;
 };
 
-std::string IncrementalMesher::Params::validate() const {
-  if (!(min_weight > 0.f)) return "min_weight must be > 0";
+Status IncrementalMesher::Params::validate() const {
+  if (!(min_weight > 0.f)) return Status::error("min_weight must be > 0");
   return {};
 }
 

@@ -294,8 +294,8 @@ void gatherBlock(const TsdfVolume& volume, const VoxelBlock& block, detail::Bloc
 
 }  // namespace
 
-std::string MarchingCubes::Params::validate() const {
-  if (!(min_weight > 0.f)) return "min_weight must be > 0";
+Status MarchingCubes::Params::validate() const {
+  if (!(min_weight > 0.f)) return Status::error("min_weight must be > 0");
   return {};
 }
 

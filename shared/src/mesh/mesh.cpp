@@ -17,9 +17,9 @@ double TriangleMesh::surfaceAreaM2() const {
   return area;
 }
 
-std::string writePly(const TriangleMesh& mesh, const std::string& path) {
+Status writePly(const TriangleMesh& mesh, const std::string& path) {
   std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  if (!out) return "cannot write " + path + ": " + std::strerror(errno);
+  if (!out) return Status::error("cannot write " + path + ": " + std::strerror(errno));
   out << "ply\nformat binary_little_endian 1.0\ncomment kinfly TSDF mesh, metres, world frame\n"
       << "element vertex " << mesh.vertices.size() << "\n"
       << "property float x\nproperty float y\nproperty float z\n"
@@ -39,7 +39,7 @@ std::string writePly(const TriangleMesh& mesh, const std::string& path) {
     out.write(reinterpret_cast<const char*>(t.data()), 3 * sizeof(int));
   }
   out.close();
-  if (!out) return "failed writing " + path + " (disk full?)";
+  if (!out) return Status::error("failed writing " + path + " (disk full?)");
   return {};
 }
 

@@ -11,12 +11,12 @@ double msSince(std::chrono::steady_clock::time_point start) {
 }
 }  // namespace
 
-std::string FusionPipeline::Params::validate(float voxel_size_m) const {
-  for (const std::string& why : {preprocess.validate(), icp.validate(),
-                                 integrate.validate(voxel_size_m), raycast.validate()})
-    if (!why.empty()) return why;
+Status FusionPipeline::Params::validate(float voxel_size_m) const {
+  for (const Status& stage : {preprocess.validate(), icp.validate(), integrate.validate(voxel_size_m),
+                              raycast.validate()})
+    if (!stage.ok()) return stage;
   if (!(min_valid_depth_fraction >= 0.f && min_valid_depth_fraction < 1.f))
-    return "min_valid_depth_fraction must be in [0, 1)";
+    return Status::error("min_valid_depth_fraction must be in [0, 1)");
   return {};
 }
 

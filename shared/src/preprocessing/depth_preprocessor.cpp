@@ -9,7 +9,7 @@
 
 namespace kinfly {
 
-std::string DepthPreprocessor::Params::validate() const {
+Status DepthPreprocessor::Params::validate() const {
   std::ostringstream why;
   if (!(depth_scale_m > 0.0 && std::isfinite(depth_scale_m))) why << "depth_scale_m must be > 0";
   else if (!(min_depth_m >= 0.f)) why << "min_depth_m must be >= 0";
@@ -20,7 +20,7 @@ std::string DepthPreprocessor::Params::validate() const {
   else if (!(bilateral_sigma_space_px > 0.f)) why << "bilateral_sigma_space_px must be > 0";
   else if (!(bilateral_sigma_range_m > 0.f)) why << "bilateral_sigma_range_m must be > 0";
   else if (!(pyramid_range_sigmas > 0.f)) why << "pyramid_range_sigmas must be > 0";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 BilateralKernel::BilateralKernel(int radius_px, float sigma_space_px, float sigma_range_m)

@@ -164,14 +164,14 @@ bool sampleTsdf(const TsdfVolume& volume, const Eigen::Vector3f& p_world, float*
   return reader.trilinear(p_world / volume.voxelSizeM(), tsdf, gradient);
 }
 
-std::string Raycaster::Params::validate() const {
+Status Raycaster::Params::validate() const {
   std::ostringstream why;
   if (!(min_depth_m >= 0.f)) why << "min_depth_m must be >= 0";
   else if (!(max_depth_m > min_depth_m)) why << "max_depth_m must be > min_depth_m";
   else if (!(step_fraction > 0.f && step_fraction <= 1.f)) why << "step_fraction must be in (0, 1]";
   else if (range_tile_px < 1) why << "range_tile_px must be >= 1";
   else if (!(hint_margin_m > 0.f)) why << "hint_margin_m must be > 0";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 Raycaster::Raycaster(const PinholeCamera& camera, const Params& params)

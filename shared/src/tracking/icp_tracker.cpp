@@ -21,7 +21,7 @@ void IcpSystem::add(const IcpSystem& other) {
   valid_points += other.valid_points;
 }
 
-std::string IcpTracker::Params::validate() const {
+Status IcpTracker::Params::validate() const {
   std::ostringstream why;
   for (int it : iterations_coarse_to_fine)
     if (it < 0) why << "iterations must be >= 0; ";
@@ -36,7 +36,7 @@ std::string IcpTracker::Params::validate() const {
   if (!(max_rmse_m > 0.f)) why << "max_rmse_m must be > 0; ";
   if (!(huber_sigmas >= 0.f)) why << "huber_sigmas must be >= 0; ";
   if (!(convergence_epsilon >= 0.0)) why << "convergence_epsilon must be >= 0; ";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 IcpTracker::IcpTracker(const Params& params) : params_(params) {}

@@ -15,13 +15,13 @@ using lanes::Floats;
 using lanes::Ints;
 using lanes::kWidth;
 
-std::string TsdfIntegrator::Params::validate(float voxel_size_m) const {
+Status TsdfIntegrator::Params::validate(float voxel_size_m) const {
   std::ostringstream why;
   if (!(truncation_m > 2.f * voxel_size_m))
     why << "truncation_m (" << truncation_m << ") must exceed two voxels (" << 2.f * voxel_size_m << " m)";
   else if (!(max_weight > 0.f)) why << "max_weight must be > 0";
   else if (allocation_stride_px < 1) why << "allocation_stride_px must be >= 1";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 TsdfIntegrator::TsdfIntegrator(const Params& params) : params_(params) {}

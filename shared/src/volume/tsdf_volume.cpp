@@ -14,7 +14,7 @@ void VoxelBlock::reset(const BlockIndex& new_index) {
 // ---------------------------------------------------------------------------------------------
 // DenseVolume
 
-std::string DenseVolume::Params::validate() const {
+Status DenseVolume::Params::validate() const {
   std::ostringstream why;
   if (resolution_vox < 16 || resolution_vox > 512 || resolution_vox % kBlockSide != 0)
     why << "resolution_vox must be a multiple of 8 in [16, 512] (got " << resolution_vox << ")";
@@ -24,7 +24,7 @@ std::string DenseVolume::Params::validate() const {
     why << "lookahead_m must be in [0, 10] (got " << lookahead_m << ")";
   else if (shift_threshold_blocks < 1 || shift_threshold_blocks > 64)
     why << "shift_threshold_blocks must be in [1, 64] (got " << shift_threshold_blocks << ")";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 DenseVolume::DenseVolume(const Params& params)
@@ -99,11 +99,11 @@ void DenseVolume::clear() {
 // ---------------------------------------------------------------------------------------------
 // HashedVolume
 
-std::string HashedVolume::Params::validate() const {
+Status HashedVolume::Params::validate() const {
   std::ostringstream why;
   if (!(voxel_size_m > 0.f)) why << "voxel_size_m must be > 0";
   else if (chunk_blocks <= 0) why << "chunk_blocks must be > 0";
-  return why.str();
+  return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 HashedVolume::HashedVolume(const Params& params) : TsdfVolume(params.voxel_size_m), params_(params) {

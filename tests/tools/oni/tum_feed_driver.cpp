@@ -220,8 +220,8 @@ class TumFeedStream : public oni::driver::StreamBase {
           std::this_thread::sleep_for(
               std::min<Clock::duration>(kLiveSleepStep, due - Clock::now()));
       }
-      if (std::string problem = loadDepthPng(entry.path, &png); !problem.empty()) {
-        std::fprintf(stderr, "tum feed: %s: frame not sent\n", problem.c_str());
+      if (const kinfly::Status loaded = loadDepthPng(entry.path, &png); !loaded.ok()) {
+        std::fprintf(stderr, "tum feed: %s: frame not sent\n", loaded.message().c_str());
         continue;
       }
       if (png.width() != width_ || png.height() != height_) {
@@ -328,8 +328,8 @@ class TumFeedDriver : public oni::driver::DriverBase {
     FeedOptions options = parseUri(uri, &problem);
     std::vector<TumDepthEntry> frames;
     Image<uint16_t> first;
-    if (problem.empty()) problem = readTumDepthList(options.folder, &frames);
-    if (problem.empty()) problem = loadDepthPng(frames.front().path, &first);
+    if (problem.empty()) problem = readTumDepthList(options.folder, &frames).message();
+    if (problem.empty()) problem = loadDepthPng(frames.front().path, &first).message();
     if (!problem.empty()) {
       getServices().errorLoggerAppend("tum feed: %s", problem.c_str());
       return nullptr;

@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "kinfly/core/image.h"
+#include "kinfly/core/status.h"
 
 // zstd's context types, declared here so that users of the codec do not include zstd.h.
 struct ZSTD_CCtx_s;
@@ -47,6 +48,8 @@ enum class CodecStatus {
 };
 const char* toString(CodecStatus status);
 
+// A per-frame outcome, counted by the link, not a Status (kinfly/core/status.h): `detail` is
+// static text so that a rejected frame costs no allocation.
 struct CodecResult {
   CodecStatus status = CodecStatus::kOk;
   const char* detail = "";  // static text saying which check failed; never owned
@@ -69,7 +72,7 @@ class DepthCodec {
     // Kinect/OpenNI depth mode.
     int max_width_px = 1280;
     int max_height_px = 1024;
-    std::string validate() const;  // empty when valid
+    Status validate() const;
   };
 
   // `params` must validate(); an invalid one is a programming error (asserted).

@@ -4,6 +4,8 @@
 #include <Eigen/Core>
 #include <string>
 
+#include "kinfly/core/status.h"
+
 namespace kinfly {
 
 struct PinholeCamera {
@@ -14,8 +16,8 @@ struct PinholeCamera {
   int width = 640;     // [px] > 0
   int height = 480;    // [px] > 0
 
-  // Empty string when valid, otherwise what is wrong (names the field).
-  std::string validate() const;
+  // An error names the field and what is wrong with it.
+  Status validate() const;
 
   // Intrinsics for an image downsampled by `factor`, where coarse pixel x samples (or is centred
   // on) fine pixel factor * x, as the pyramid and --downsample do.
@@ -30,7 +32,8 @@ struct PinholeCamera {
   }
 };
 
-// Parses "fx,fy,cx,cy" (the --intrinsics option of the tools) into camera's intrinsics.
-bool parseIntrinsics(const std::string& text, PinholeCamera* camera, std::string* why);
+// Parses "fx,fy,cx,cy" (the --intrinsics option of the tools) into camera's intrinsics; leaves
+// *camera alone when the text does not parse.
+Status parseIntrinsics(const std::string& text, PinholeCamera* camera);
 
 }  // namespace kinfly

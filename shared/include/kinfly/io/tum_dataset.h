@@ -1,5 +1,5 @@
-// TUM RGB-D folders and TUM trajectory files. Errors come back as text naming the file and line;
-// nothing here throws.
+// TUM RGB-D folders and TUM trajectory files. Errors come back as a Status naming the file and
+// line; nothing here throws.
 #pragma once
 
 #include <array>
@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 
 namespace kinfly {
 
@@ -21,12 +22,12 @@ struct StampedPose {
   Pose T_world_cam = Pose::Identity();
 };
 
-// Reads DIR/depth.txt ("timestamp filename" per line, '#' comments). Empty string on success.
-std::string readTumDepthList(const std::string& dir, std::vector<TumDepthEntry>* entries);
+// Reads DIR/depth.txt ("timestamp filename" per line, '#' comments).
+Status readTumDepthList(const std::string& dir, std::vector<TumDepthEntry>* entries);
 
 // TUM trajectory: "t tx ty tz qx qy qz qw" per line, camera-to-world.
-std::string readTumTrajectory(const std::string& path, std::vector<StampedPose>* poses);
-std::string writeTumTrajectory(const std::string& path, const std::vector<StampedPose>& poses);
+Status readTumTrajectory(const std::string& path, std::vector<StampedPose>* poses);
+Status writeTumTrajectory(const std::string& path, const std::vector<StampedPose>& poses);
 
 // The pose nearest in time to t within max_dt_s, or nullptr. `poses` sorted by time.
 const StampedPose* findNearestPose(const std::vector<StampedPose>& poses, double t,

@@ -24,6 +24,7 @@
 #include <string>
 #include <vector>
 
+#include "kinfly/core/status.h"
 #include "kinfly/mesh/mesh.h"
 #include "kinfly/volume/tsdf_volume.h"
 
@@ -105,7 +106,7 @@ class IncrementalMesher {
   struct Params {
     // As MarchingCubes::Params: cubes with a corner observed less than this are skipped.
     float min_weight = 1.f;  // > 0
-    std::string validate() const;
+    Status validate() const;
   };
   explicit IncrementalMesher(const Params& params);
   ~IncrementalMesher();

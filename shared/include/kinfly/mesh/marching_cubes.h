@@ -3,6 +3,7 @@
 
 #include <string>
 
+#include "kinfly/core/status.h"
 #include "kinfly/mesh/mesh.h"
 #include "kinfly/volume/tsdf_volume.h"
 
@@ -14,7 +15,7 @@ class MarchingCubes {
     // Cubes with any corner observed less than this are skipped, so single noisy
     // observations do not become surface.
     float min_weight = 1.f;  // > 0
-    std::string validate() const;
+    Status validate() const;
   };
   explicit MarchingCubes(const Params& params);
 

@@ -5,6 +5,8 @@
 #include <string>
 #include <vector>
 
+#include "kinfly/core/status.h"
+
 namespace kinfly {
 
 struct TriangleMesh {
@@ -14,8 +16,7 @@ struct TriangleMesh {
   double surfaceAreaM2() const;
 };
 
-// Binary little-endian PLY with vertex normals. Returns an empty string on success, otherwise
-// the reason (naming the file).
-std::string writePly(const TriangleMesh& mesh, const std::string& path);
+// Binary little-endian PLY with vertex normals. An error names the file.
+Status writePly(const TriangleMesh& mesh, const std::string& path);
 
 }  // namespace kinfly

@@ -10,6 +10,7 @@
 #include "kinfly/core/camera.h"
 #include "kinfly/core/image.h"
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 #include "kinfly/frame/depth_frame.h"
 #include "kinfly/frame/model_maps.h"
 #include "kinfly/frame/tracking_status.h"
@@ -32,6 +33,8 @@ struct FrameResult {
   float inlier_fraction = 0.f;
   float rmse_m = 0.f;
   float valid_depth_fraction = 0.f;
+  // Why the status is kLost (empty otherwise): a per-frame outcome for logs and counts, not an
+  // error (kinfly/core/status.h); the pipeline goes on with the next frame.
   std::string lost_reason;
   StageTimesMs ms;
 };
@@ -45,7 +48,7 @@ class FusionPipeline {
     Raycaster::Params raycast;
     // Frames with fewer valid depth pixels than this are not tracked or integrated.
     float min_valid_depth_fraction = 0.05f;  // [0, 1)
-    std::string validate(float voxel_size_m) const;
+    Status validate(float voxel_size_m) const;
   };
 
   // `input_camera` describes the raw depth images; `volume` must outlive the pipeline.

@@ -9,6 +9,7 @@
 
 #include "kinfly/core/camera.h"
 #include "kinfly/core/image.h"
+#include "kinfly/core/status.h"
 #include "kinfly/frame/depth_frame.h"
 
 namespace kinfly {
@@ -45,7 +46,7 @@ class DepthPreprocessor {
     // are left out of the average (KinFu pyrDown), so levels do not smear across edges.
     float pyramid_range_sigmas = 3.f;     // > 0
 
-    std::string validate() const;
+    Status validate() const;
   };
 
   // `input_camera` describes the raw images given to process(), before downsampling.

@@ -11,6 +11,7 @@
 #include "kinfly/core/camera.h"
 #include "kinfly/core/image.h"
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 #include "kinfly/frame/model_maps.h"
 #include "kinfly/volume/tsdf_volume.h"
 
@@ -40,7 +41,7 @@ class Raycaster {
     // depth and, should that fail, marches only this far either side of it: the tracker's
     // correspondence gate (0.1 m) discards anything further.
     float hint_margin_m = 0.1f;  // [m] > 0
-    std::string validate() const;
+    Status validate() const;
   };
 
   Raycaster(const PinholeCamera& camera, const Params& params);

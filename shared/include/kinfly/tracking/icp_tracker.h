@@ -8,6 +8,7 @@
 #include <string>
 
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 #include "kinfly/frame/depth_frame.h"
 #include "kinfly/frame/model_maps.h"
 #include "kinfly/frame/tracking_status.h"
@@ -20,7 +21,8 @@ struct IcpResult {
   float inlier_fraction = 0.f;  // finest level: inliers / valid current pixels
   float rmse_m = 0.f;           // finest level point-to-plane RMS over inliers
   int iterations = 0;           // total over all levels
-  std::string reason;           // why the status is kLost (empty otherwise)
+  // Why the status is kLost (empty otherwise): data for FrameResult::lost_reason, not a Status.
+  std::string reason;
 };
 
 // One 6x6 system: A = sum w J^T J, b = -sum w J^T e, with J = [p x n, n] and w the residual's
@@ -60,7 +62,7 @@ class IcpTracker {
     // Stop a level early when the update is this small (metres and radians alike).
     double convergence_epsilon = 1e-5;    // >= 0
 
-    std::string validate() const;
+    Status validate() const;
   };
 
   // How buildSystem associates and weighs one level's pairs: the part of Params the system

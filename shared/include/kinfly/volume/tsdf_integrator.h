@@ -10,6 +10,7 @@
 #include "kinfly/core/camera.h"
 #include "kinfly/core/image.h"
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 #include "kinfly/volume/tsdf_volume.h"
 
 namespace kinfly {
@@ -28,7 +29,7 @@ class TsdfIntegrator {
     // Allocation samples every n-th pixel: the band of one pixel spans a whole block, so
     // neighbouring pixels add nothing (a block is >= 8 pixels wide at any range we keep).
     int allocation_stride_px = 2;  // >= 1
-    std::string validate(float voxel_size_m) const;
+    Status validate(float voxel_size_m) const;
   };
 
   explicit TsdfIntegrator(const Params& params);

@@ -14,6 +14,7 @@
 
 #include "kinfly/core/numeric.h"
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 
 namespace kinfly {
 
@@ -101,7 +102,7 @@ class DenseVolume final : public TsdfVolume {
     float lookahead_m = 1.5f;     // [m] [0, 10]
     // Re-centre only when the wanted centre has moved this many blocks, so shifts are rare.
     int shift_threshold_blocks = 2;  // [1, 64]
-    std::string validate() const;
+    Status validate() const;
   };
   explicit DenseVolume(const Params& params);
 
@@ -141,7 +142,7 @@ class HashedVolume final : public TsdfVolume {
     // Block storage grows in chunks of this many blocks (4 KiB each), so adding surface costs an
     // allocation only once per chunk, never per frame.
     int chunk_blocks = 4096;          // > 0
-    std::string validate() const;
+    Status validate() const;
   };
   explicit HashedVolume(const Params& params);
 

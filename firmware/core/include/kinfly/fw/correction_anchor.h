@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 
 namespace kinfly::fw {
 
@@ -16,7 +17,7 @@ class CorrectionAnchor {
  public:
   struct Params {
     int history_keyframes = 256;  // [1, 65536] keyframes whose onboard pose is remembered
-    std::string validate() const;
+    Status validate() const;
   };
 
   enum class Outcome {

@@ -8,6 +8,7 @@
 #include <string>
 
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 #include "kinfly/frame/tracking_status.h"
 
 namespace kinfly::fw {
@@ -22,7 +23,7 @@ class KeyframeSelector {
     // [0, 1]: tracking quality a keyframe's pose needs. Pixels beyond the dense volume have no
     // model to match, so well-tracked real frames sit near 0.5 (ICP calls < 0.1 lost).
     float min_inlier_fraction = 0.25f;
-    std::string validate() const;      // empty when valid, else which value and its range
+    Status validate() const;  // an error names the value and its range
   };
 
   explicit KeyframeSelector(const Params& params) : params_(params) {}

@@ -6,27 +6,29 @@
 #include <sstream>
 #include <string>
 
+#include "kinfly/core/status.h"
+
 namespace kinfly::fw {
 
 enum class Bound { kClosed, kOpen };
 
-// Empty when lo <= value <= hi (lo < value with Bound::kOpen), else the message; NaN is out of
+// Ok when lo <= value <= hi (lo < value with Bound::kOpen), else the message; NaN is out of
 // every range.
-inline std::string outOfRange(const std::string& key, double value, double lo, double hi,
+inline Status outOfRange(const std::string& key, double value, double lo, double hi,
                               Bound lower = Bound::kClosed) {
   const bool open = lower == Bound::kOpen;
   if ((open ? value > lo : value >= lo) && value <= hi) return {};
   std::ostringstream why;
   why << key << " must be in " << (open ? "(" : "[") << lo << ", " << hi << "] (got " << value
       << ")";
-  return why.str();
+  return Status::error(why.str());
 }
 
-// The first non-empty of several checks, in order: validate() reports one problem at a time.
-template <class... Problems>
-std::string firstProblem(Problems&&... problems) {
-  std::string first;
-  ((first.empty() ? void(first = std::forward<Problems>(problems)) : void()), ...);
+// The first failed of several checks, in order: validate() reports one problem at a time.
+template <class... Checks>
+Status firstProblem(Checks&&... checks) {
+  Status first;
+  ((first.ok() ? void(first = std::forward<Checks>(checks)) : void()), ...);
   return first;
 }
 

@@ -6,13 +6,15 @@
 #include <cstdint>
 #include <string>
 
+#include "kinfly/core/status.h"
+
 namespace kinfly::fw {
 
 class SensorWatch {
  public:
   struct Params {
     double stall_timeout_s = 1.0;  // [s] (0, 60]: no frame this long while connected: stalled
-    std::string validate() const;
+    Status validate() const;
   };
 
   enum class State {

@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <string>
 
+#include "kinfly/core/status.h"
 #include "kinfly/depth_keyframe_t.hpp"
 #include "kinfly/drone_status_t.hpp"
 #include "kinfly/ground_status_t.hpp"
@@ -25,7 +26,7 @@ struct DecodeBounds {
   int max_height_px = camera_t::MAX_HEIGHT_PX;  // [px] (0, 8192]
   int max_keyframe_payload_bytes = depth_keyframe_t::MAX_PAYLOAD_BYTES;  // [bytes] (0, 64 MiB]
   int max_signed_payload_bytes = signed_t::MAX_PAYLOAD_BYTES;            // [bytes] (0, 1 MiB]
-  std::string validate() const;          // empty when valid, else what is wrong
+  Status validate() const;
 };
 
 enum class DecodeStatus {
@@ -38,6 +39,8 @@ enum class DecodeStatus {
 };
 const char* toString(DecodeStatus status);
 
+// A per-message outcome that receivers count by status (RejectCounters), not a Status
+// (kinfly/core/status.h); `detail` is what a Status message would say, for the log.
 struct DecodeResult {
   DecodeStatus status = DecodeStatus::kOk;
   std::string detail;  // names the field or size at fault; empty when kOk

@@ -10,6 +10,7 @@
 #include <optional>
 #include <string>
 
+#include "kinfly/core/status.h"
 #include "kinfly/signed_t.hpp"
 
 namespace kinfly::link {
@@ -25,12 +26,12 @@ struct Key {
 uint32_t keyIdOf(const std::array<uint8_t, kKeyBytes>& bytes);
 
 // Reads a key file (exactly 32 bytes). Like ssh, it refuses a file that group or others may read
-// or write, or that is not a regular file; *why says which.
-std::optional<Key> loadKeyFile(const std::string& path, std::string* why);
+// or write, or that is not a regular file, and says which.
+StatusOr<Key> loadKeyFile(const std::string& path);
 
 // Creates a key file of 32 random bytes, mode 0600. Never replaces an existing file unless
 // overwrite is set, and then only by renaming a complete new file over it.
-std::optional<Key> createKeyFile(const std::string& path, bool overwrite, std::string* why);
+StatusOr<Key> createKeyFile(const std::string& path, bool overwrite);
 
 class Signer {
  public:
@@ -59,7 +60,7 @@ const char* toString(Verdict verdict);
 
 struct VerifierParams {
   double window_s = 2.0;  // [s] (0, 3600]: |receiver clock - signing time| accepted
-  std::string validate() const;
+  Status validate() const;
 };
 
 class Verifier {

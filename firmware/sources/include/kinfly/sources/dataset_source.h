@@ -4,6 +4,7 @@
 #include <memory>
 #include <string>
 
+#include "kinfly/core/status.h"
 #include "kinfly/sources/depth_source.h"
 
 namespace kinfly::fw {
@@ -12,11 +13,10 @@ struct DatasetSourceParams {
   std::string tum_dir;             // source.path: the folder holding depth.txt
   std::string intrinsics;          // source.intrinsics: "fx,fy,cx,cy"; empty: TUM freiburg3
   double depth_scale_m = 0.0002;   // source.depth_scale_m [m per raw unit] [1e-6, 1]: TUM 1/5000
-  std::string validate() const;    // empty when valid, else the key, its range and the value
+  Status validate() const;  // an error names the key, its range and the value
 };
 
-// nullptr and *why when the folder cannot be opened or its first frame read.
-std::unique_ptr<DepthSource> openDatasetSource(const DatasetSourceParams& params,
-                                               std::string* why);
+// An error when the folder cannot be opened or its first frame read.
+StatusOr<std::unique_ptr<DepthSource>> openDatasetSource(const DatasetSourceParams& params);
 
 }  // namespace kinfly::fw

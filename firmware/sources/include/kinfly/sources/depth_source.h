@@ -11,6 +11,7 @@
 #include "kinfly/core/camera.h"
 #include "kinfly/core/image.h"
 #include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
 
 namespace kinfly::fw {
 
@@ -24,6 +25,8 @@ struct DepthCapture {
   Pose T_world_cam_truth = Pose::Identity();
 };
 
+// What next() did: a per-frame outcome that the capture thread counts and acts on, not an error
+// (kinfly/core/status.h). Its *why is the text a Status message would be, for the log.
 enum class SourceStatus {
   kFrame,    // *out holds a new frame
   kSkipped,  // a frame was unreadable; *why says why; the next call goes on with the next one
@@ -51,12 +54,12 @@ class DepthSource {
 
 // The camera of a source that knows its image size but maybe not its lens: focal length
 // `fx_at_640_px` scaled to the width, principal point at the centre, unless `intrinsics`
-// ("fx,fy,cx,cy") says otherwise. False and *why when the result is not a valid camera.
-bool sourceCamera(float fx_at_640_px, int width_px, int height_px, const std::string& intrinsics,
-                  PinholeCamera* camera, std::string* why);
+// ("fx,fy,cx,cy") says otherwise. An error when the result is not a valid camera.
+StatusOr<PinholeCamera> sourceCamera(float fx_at_640_px, int width_px, int height_px,
+                                     const std::string& intrinsics);
 
 // The range of the image size asked of a source that makes or requests its frames
-// (source.width, source.height: [16, 4096] px); empty when in range.
-std::string sourceSizeProblem(int width_px, int height_px);
+// (source.width, source.height: [16, 4096] px).
+Status sourceSizeProblem(int width_px, int height_px);
 
 }  // namespace kinfly::fw

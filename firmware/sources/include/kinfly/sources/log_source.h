@@ -14,7 +14,7 @@ struct LogSourceParams {
   int vehicle_id = 1;  // vehicle.id: whose channels to replay
 };
 
-// nullptr and *why when the log cannot be opened or holds no decodable frame.
-std::unique_ptr<DepthSource> openLogSource(const LogSourceParams& params, std::string* why);
+// An error when the log cannot be opened or holds no decodable frame.
+StatusOr<std::unique_ptr<DepthSource>> openLogSource(const LogSourceParams& params);
 
 }  // namespace kinfly::fw

@@ -6,6 +6,7 @@
 #include <memory>
 #include <string>
 
+#include "kinfly/core/status.h"
 #include "kinfly/sources/depth_source.h"
 
 namespace kinfly::fw {
@@ -22,12 +23,11 @@ struct OpenniSourceParams {
                                  // losing the sensor; doubles ...
   double reconnect_max_s = 8.0;  // source.reconnect_max_s [s] [reconnect_min_s, 600]: ... up
                                  // to this
-  std::string validate() const;  // empty when valid, else the key, its range and the value
+  Status validate() const;  // an error names the key, its range and the value
 };
 
-// nullptr and *why only when the parameters are invalid, OpenNI2 itself cannot start, or a
-// recording cannot be opened.
-std::unique_ptr<DepthSource> openOpenniSource(const OpenniSourceParams& params,
-                                              std::string* why);
+// An error only when the parameters are invalid, OpenNI2 itself cannot start, or a recording
+// cannot be opened.
+StatusOr<std::unique_ptr<DepthSource>> openOpenniSource(const OpenniSourceParams& params);
 
 }  // namespace kinfly::fw

@@ -7,6 +7,7 @@
 #include <memory>
 #include <string>
 
+#include "kinfly/core/status.h"
 #include "kinfly/sources/depth_source.h"
 
 namespace kinfly::fw {
@@ -18,11 +19,10 @@ struct SyntheticSourceParams {
   double rate_hz = 30.0;       // source.rate_hz [Hz] (0, 1000]: frame times 1 / rate_hz apart
   int seed = 1;                // source.seed [0, 2^31): the same seed gives the same frames
   int64_t first_utime = 0;     // [us] capture time of frame 0 (kinfly-fw: the wall clock)
-  std::string validate() const;  // empty when valid, else the key, its range and the value
+  Status validate() const;  // an error names the key, its range and the value
 };
 
-// nullptr and *why when the parameters do not make a camera.
-std::unique_ptr<DepthSource> openSyntheticSource(const SyntheticSourceParams& params,
-                                                 std::string* why);
+// An error when the parameters do not make a camera.
+StatusOr<std::unique_ptr<DepthSource>> openSyntheticSource(const SyntheticSourceParams& params);
 
 }  // namespace kinfly::fw

@@ -38,7 +38,7 @@ void LinkTask::run() {
   while (keyframes_->pop(&job_, std::chrono::milliseconds(0))) send(job_);
   if (await_corrections_) awaitCorrections();
   watchSensor();
-  publishStatus(drone_status_t::RUN_FINAL);
+  publishStatus(/*is_final=*/true);
 }
 
 void LinkTask::serve(Clock::time_point* next_status) {
@@ -187,10 +187,21 @@ void LinkTask::watchSensor() {
   }
 }
 
-void LinkTask::publishStatus(int8_t run_state) {
-  drone_status_t& s = status_;
-  s.run_state = run_state;
-  s.utime = link::wallClockUtime();
+namespace {
+
+link::SensorState sensorState(SensorWatch::State state) {
+  switch (state) {
+    case SensorWatch::State::kStreaming: return link::SensorState::kStreaming;
+    case SensorWatch::State::kWaiting: return link::SensorState::kWaiting;
+    case SensorWatch::State::kStalled: return link::SensorState::kStalled;
+    case SensorWatch::State::kEnded: return link::SensorState::kEnded;
+  }
+  return link::SensorState::kStreaming;
+}
+
+}  // namespace
+
+void LinkTask::publishStatus(bool is_final) {
   const double elapsed_s = secondsSince(rate_window_start_);
   if (elapsed_s >= 1.0) {
     const auto rate = [elapsed_s](int64_t now, int64_t before) {
@@ -204,35 +215,34 @@ void LinkTask::publishStatus(int8_t run_state) {
     sent_at_window_ = counters_->keyframes_sent;
     rate_window_start_ = Clock::now();
   }
-  s.depth_rate_hz = depth_rate_hz_;
-  s.odometry_rate_hz = odometry_rate_hz_;
-  s.keyframe_rate_hz = keyframe_rate_hz_;
-  s.frames_captured = counters_->frames_captured;
-  s.queue_drops = capture_queue_->dropped();
-  s.keyframes_sent = counters_->keyframes_sent;
-  s.keyframes_dropped = counters_->keyframes_failed + keyframes_->dropped();
-  s.last_keyframe_id = last_keyframe_sent_;
-  s.tracking_state = counters_->tracking;
+  link::DroneHealth h;
+  h.utime = link::wallClockUtime();
+  h.is_final = is_final;
+  h.depth_rate_hz = depth_rate_hz_;
+  h.odometry_rate_hz = odometry_rate_hz_;
+  h.keyframe_rate_hz = keyframe_rate_hz_;
+  h.frames_captured = counters_->frames_captured;
+  h.queue_drops = capture_queue_->dropped();
+  h.keyframes_sent = counters_->keyframes_sent;
+  h.keyframes_dropped = counters_->keyframes_failed + keyframes_->dropped();
+  h.last_keyframe_id = last_keyframe_sent_;
+  h.tracking = counters_->tracking.load();
   const auto since = Clock::now() - last_ground_heard_;
-  s.link_state = last_ground_heard_ == Clock::time_point()
-                     ? drone_status_t::LINK_UNKNOWN
-                     : (since <= std::chrono::duration<double>(config_.link.timeout_s)
-                            ? drone_status_t::LINK_UP
-                            : drone_status_t::LINK_STALE);
-  switch (watch_.state()) {
-    case SensorWatch::State::kStreaming: s.sensor_state = drone_status_t::SENSOR_STREAMING; break;
-    case SensorWatch::State::kWaiting: s.sensor_state = drone_status_t::SENSOR_WAITING; break;
-    case SensorWatch::State::kStalled: s.sensor_state = drone_status_t::SENSOR_STALLED; break;
-    case SensorWatch::State::kEnded: s.sensor_state = drone_status_t::SENSOR_ENDED; break;
-  }
-  s.sensor_connects = counters_->sensor_connects;
-  s.sensor_stalls = watch_.stalls();
-  s.frames_skipped = counters_->frames_skipped;
-  s.frames_lost = counters_->frames_lost;
-  rejects().writeTo(&s);
-  s.corrections_accepted = accepted() - counters_->corrections_unknown;
-  s.corrections_unknown_keyframe = counters_->corrections_unknown;
-  publisher_.publish(link::Channel::kStatus, s);  // the publisher logs a network going down
+  h.link = last_ground_heard_ == Clock::time_point()
+               ? link::LinkState::kUnknown
+               : (since <= std::chrono::duration<double>(config_.link.timeout_s)
+                      ? link::LinkState::kUp
+                      : link::LinkState::kStale);
+  h.sensor = sensorState(watch_.state());
+  h.sensor_connects = counters_->sensor_connects;
+  h.sensor_stalls = watch_.stalls();
+  h.frames_skipped = counters_->frames_skipped;
+  h.frames_lost = counters_->frames_lost;
+  h.rejects = rejects();
+  h.corrections_accepted = accepted() - counters_->corrections_unknown;
+  h.corrections_unknown_keyframe = counters_->corrections_unknown;
+  link::fillDroneStatus(h, &status_);
+  publisher_.publish(link::Channel::kStatus, status_);  // the publisher logs a network going down
 }
 
 }  // namespace kinfly::fw

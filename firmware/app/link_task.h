@@ -59,7 +59,8 @@ class LinkTask {
   // the keyframe's correction, so every correction it will send has come by then.
   void awaitCorrections();
   void watchSensor();
-  void publishStatus(int8_t run_state = drone_status_t::RUN_ACTIVE);
+  // is_final: the last status before kinfly-fw exits (drone_status_t.RUN_FINAL).
+  void publishStatus(bool is_final = false);
 
   const FirmwareConfig& config_;
   SharedAnchor* anchor_;
@@ -72,7 +73,7 @@ class LinkTask {
   DepthCodec codec_;
   KeyframeJob job_;  // swapped with the queue's slots: its image circulates, never reallocated
   depth_keyframe_t message_{};
-  drone_status_t status_{};
+  drone_status_t status_{};  // its vehicle_id set once; link::fillDroneStatus the rest
   std::optional<link::CorrectionReceiver> corrections_;
   link::RejectCounters rejects_;
   SensorWatch watch_;

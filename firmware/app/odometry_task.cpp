@@ -54,7 +54,7 @@ void OdometryTask::run() {
 void OdometryTask::process(const DepthCapture& capture) {
   const FrameResult r = pipeline_.processFrame(capture.depth.view(), capture.utime);
   ++counters_->frames_processed;
-  counters_->tracking = link::trackingCode(r.status);
+  counters_->tracking.store(r.status);
   if (r.status == TrackingStatus::kLost) {
     ++counters_->frames_lost;
     if (lost_log_.allow(secondsSince(began_)))

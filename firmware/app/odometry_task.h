@@ -13,6 +13,7 @@
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/ground_truth_t.hpp"
+#include "kinfly/odometry_t.hpp"
 #include "kinfly/sources/depth_source.h"
 #include "kinfly/volume/tsdf_volume.h"
 #include "kinfly/io/tum_dataset.h"

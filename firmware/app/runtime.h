@@ -6,12 +6,13 @@
 #include <chrono>
 #include <cstdint>
 #include <mutex>
+#include <optional>
+#include <type_traits>
 
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/core/camera.h"
 #include "kinfly/frame/tracking_status.h"
 #include "kinfly/core/image.h"
-#include "kinfly/odometry_t.hpp"
 #include "kinfly/core/se3.h"
 
 namespace kinfly::fw {
@@ -20,6 +21,23 @@ using Clock = std::chrono::steady_clock;
 // The longest any thread waits before looking at the stop flag again.
 constexpr std::chrono::milliseconds kPollPeriod{50};
 
+// The odometry's last verdict, for the status: the engine's TrackingStatus kept in an atomic of
+// its underlying value; nullopt before the first frame.
+class AtomicTracking {
+ public:
+  void store(TrackingStatus status) { value_ = static_cast<Value>(status); }
+  std::optional<TrackingStatus> load() const {
+    const Value value = value_;
+    if (value == kNone) return std::nullopt;
+    return static_cast<TrackingStatus>(value);
+  }
+
+ private:
+  using Value = std::underlying_type_t<TrackingStatus>;
+  static constexpr Value kNone = -1;
+  std::atomic<Value> value_{kNone};
+};
+
 struct Counters {
   // capture thread
   std::atomic<int64_t> frames_captured{0}, frames_skipped{0}, sensor_connects{0};
@@ -27,7 +45,7 @@ struct Counters {
   std::atomic<int64_t> last_frame_ns{-1};  // [ns] Clock time of the last frame, -1 before one
   // odometry thread
   std::atomic<int64_t> frames_processed{0}, frames_lost{0};
-  std::atomic<int8_t> tracking{odometry_t::TRACKING_NONE};
+  AtomicTracking tracking;
   // link thread
   std::atomic<int64_t> keyframes_sent{0}, keyframes_failed{0}, corrections_unknown{0};
 };

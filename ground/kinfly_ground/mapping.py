@@ -81,8 +81,9 @@ class Mapper:
         segment = state.segment
         if segment.fusion is None:
             segment.camera = camera
-            segment.fusion = Fusion(c, m.depth_scale_m,
-                                    voxel_size_m=self.params.voxel_size_m,
+            pipeline = self.params.pipeline_params()
+            pipeline.preprocess.depth_scale_m = m.depth_scale_m
+            segment.fusion = Fusion(c, self.params.volume_params(), pipeline,
                                     threads=self.params.threads)
         has_onboard = m.tracking is not None
         if has_onboard:

@@ -22,7 +22,7 @@ from collections.abc import Callable
 
 from kinfly import ground_status_t
 
-from ._native import Receiver, Signer
+from ._native import FusionPipelineParams, HashedVolumeParams, Receiver, Signer
 from .arrivals import Arrivals, Forward
 from .mapping import Mapper
 from .runner import Runner
@@ -34,7 +34,8 @@ from .viewer import Viewer
 
 @dataclasses.dataclass(frozen=True)
 class StationParams:
-    voxel_size_m: float = 0.01          # [m] (0.002, 0.1]: the full-resolution map's voxel
+    # The map's voxel (HashedVolumeParams.voxel_size_m); the truncation band is four of them.
+    voxel_size_m: float = 0.01          # [m] (0.002, 0.1]
     threads: int = 2                    # [1, 64] engine threads for fusion
     queue_keyframes: int = 32           # [1, 1000] keyframes waiting to be fused (then drop oldest)
     # A correction that moves the drone's pose further than this is a jump: reset_counter + 1,
@@ -47,6 +48,19 @@ class StationParams:
     reorder_window_s: float = 5.0       # [s] > 0
     mesh_interval_s: float = 5.0        # [s] >= 0.5 between meshes sent to the viewer; 0: none
     max_vehicles: int = 16              # [1, 1000] maps held when serving every vehicle
+
+    def volume_params(self) -> HashedVolumeParams:
+        """The engine's parameters for each map's hashed volume."""
+        volume = HashedVolumeParams()
+        volume.voxel_size_m = self.voxel_size_m
+        return volume
+
+    def pipeline_params(self) -> FusionPipelineParams:
+        """The engine's parameters for each map's pipeline: its defaults, with a truncation band
+        of four voxels. The depth scale is each map's first keyframe's (mapping.py)."""
+        pipeline = FusionPipelineParams()
+        pipeline.integrate.truncation_m = 4.0 * self.voxel_size_m
+        return pipeline
 
     def validate(self) -> str:
         checks = [
@@ -61,7 +75,11 @@ class StationParams:
              "mesh interval must be 0 (off) or >= 0.5 s"),
             (1 <= self.max_vehicles <= 1000, "max vehicles must be in [1, 1000]"),
         ]
-        return next((why for ok, why in checks if not ok), "")
+        if why := next((why for ok, why in checks if not ok), ""):
+            return why
+        # Then the engine's own ranges, at its fields.
+        return self.volume_params().validate() or self.pipeline_params().validate(
+            self.voxel_size_m)
 
 
 class Station:

@@ -4,6 +4,7 @@
 // thread keeps receiving while a keyframe is fused.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
+#include <nanobind/stl/array.h>
 #include <nanobind/stl/string.h>
 #include <omp.h>
 
@@ -199,33 +200,28 @@ struct RefineResult {
   double preprocess_ms = 0, track_ms = 0, integrate_ms = 0, raycast_ms = 0, total_ms = 0;
 };
 
-struct FusionParams {
-  kinfly::PinholeCamera camera;
-  double depth_scale_m = 0;
-  float voxel_size_m = 0.01f;
-  float truncation_m = 0.f;  // 0: four voxels
-  int threads = 2;
-};
+// What a parameter struct's validate() says, as Python sees it: "" when valid, otherwise why.
+std::string whyInvalid(const kinfly::Status& status) {
+  return status.ok() ? std::string() : status.message();
+}
 
-// One map: a hashed volume and the pipeline that tracks and fuses into it at full resolution.
+void throwIfInvalid(const kinfly::Status& status) {
+  if (!status.ok()) throw nb::value_error(status.message().c_str());
+}
+
+// One map: a hashed volume and the pipeline that tracks and fuses into it at full resolution,
+// made from the engine's own parameter structs (the station builds them, kinfly_ground/station.py).
 class PyFusion {
  public:
-  explicit PyFusion(const FusionParams& p) : threads_(p.threads) {
-    if (p.threads < 1) throw nb::value_error("threads must be at least 1");
-    const kinfly::PinholeCamera& camera = p.camera;
-    if (const kinfly::Status valid = camera.validate(); !valid.ok())
-      throw nb::value_error(valid.message().c_str());
-    kinfly::HashedVolume::Params volume_params;
-    volume_params.voxel_size_m = p.voxel_size_m;
-    if (const kinfly::Status valid = volume_params.validate(); !valid.ok())
-      throw nb::value_error(valid.message().c_str());
-    kinfly::FusionPipeline::Params params;
-    params.preprocess.depth_scale_m = p.depth_scale_m;
-    params.integrate.truncation_m = p.truncation_m > 0.f ? p.truncation_m : 4.f * p.voxel_size_m;
-    if (const kinfly::Status valid = params.validate(p.voxel_size_m); !valid.ok())
-      throw nb::value_error(valid.message().c_str());
-    volume_ = std::make_unique<kinfly::HashedVolume>(volume_params);
-    pipeline_ = std::make_unique<kinfly::FusionPipeline>(camera, params, volume_.get());
+  PyFusion(const kinfly::PinholeCamera& camera, const kinfly::HashedVolume::Params& volume,
+           const kinfly::FusionPipeline::Params& pipeline, int threads)
+      : threads_(threads) {
+    if (threads < 1) throw nb::value_error("threads must be at least 1");
+    throwIfInvalid(camera.validate());
+    throwIfInvalid(volume.validate());
+    throwIfInvalid(pipeline.validate(volume.voxel_size_m));
+    volume_ = std::make_unique<kinfly::HashedVolume>(volume);
+    pipeline_ = std::make_unique<kinfly::FusionPipeline>(camera, pipeline, volume_.get());
   }
 
   RefineResult refine(DepthIn depth, int64_t utime, PoseIn T_world_cam_guess) {
@@ -300,6 +296,86 @@ class PyFusion {
   std::shared_ptr<MeshState> mesh_ = std::make_shared<MeshState>();
 };
 
+// The engine's parameter structs, their fields named as in the engine (units and ranges at each
+// field in its header) and their validate(): "" when valid, otherwise why.
+void bindParams(nb::module_& m) {
+  using kinfly::DepthPreprocessor;
+  using kinfly::FusionPipeline;
+  using kinfly::HashedVolume;
+  using kinfly::IcpTracker;
+  using kinfly::Raycaster;
+  using kinfly::TsdfIntegrator;
+  nb::class_<HashedVolume::Params>(m, "HashedVolumeParams",
+                                   "The ground's map (volume/tsdf_volume.h, HashedVolume::Params)")
+      .def(nb::init<>())
+      .def_rw("voxel_size_m", &HashedVolume::Params::voxel_size_m)
+      .def_rw("chunk_blocks", &HashedVolume::Params::chunk_blocks)
+      .def("validate", [](const HashedVolume::Params& p) { return whyInvalid(p.validate()); });
+
+  nb::class_<DepthPreprocessor::Params>(
+      m, "DepthPreprocessorParams",
+      "Depth conversion, filter and pyramid (preprocessing/depth_preprocessor.h)")
+      .def(nb::init<>())
+      .def_rw("depth_scale_m", &DepthPreprocessor::Params::depth_scale_m)
+      .def_rw("min_depth_m", &DepthPreprocessor::Params::min_depth_m)
+      .def_rw("max_depth_m", &DepthPreprocessor::Params::max_depth_m)
+      .def_rw("downsample", &DepthPreprocessor::Params::downsample)
+      .def_rw("bilateral_radius_px", &DepthPreprocessor::Params::bilateral_radius_px)
+      .def_rw("bilateral_sigma_space_px", &DepthPreprocessor::Params::bilateral_sigma_space_px)
+      .def_rw("bilateral_sigma_range_m", &DepthPreprocessor::Params::bilateral_sigma_range_m)
+      .def_rw("pyramid_range_sigmas", &DepthPreprocessor::Params::pyramid_range_sigmas)
+      .def("validate", [](const DepthPreprocessor::Params& p) { return whyInvalid(p.validate()); });
+
+  nb::class_<IcpTracker::Params>(m, "IcpTrackerParams", "Frame-to-model ICP (tracking/icp_tracker.h)")
+      .def(nb::init<>())
+      .def_rw("iterations_coarse_to_fine", &IcpTracker::Params::iterations_coarse_to_fine)
+      .def_rw("distance_gate_m", &IcpTracker::Params::distance_gate_m)
+      .def_rw("normal_angle_gate_rad", &IcpTracker::Params::normal_angle_gate_rad)
+      .def_rw("min_inlier_fraction", &IcpTracker::Params::min_inlier_fraction)
+      .def_rw("min_inliers", &IcpTracker::Params::min_inliers)
+      .def_rw("min_eigenvalue_ratio", &IcpTracker::Params::min_eigenvalue_ratio)
+      .def_rw("max_translation_m", &IcpTracker::Params::max_translation_m)
+      .def_rw("max_rotation_rad", &IcpTracker::Params::max_rotation_rad)
+      .def_rw("max_rmse_m", &IcpTracker::Params::max_rmse_m)
+      .def_rw("noise_weighting", &IcpTracker::Params::noise_weighting)
+      .def_rw("huber_sigmas", &IcpTracker::Params::huber_sigmas)
+      .def_rw("convergence_epsilon", &IcpTracker::Params::convergence_epsilon)
+      .def("validate", [](const IcpTracker::Params& p) { return whyInvalid(p.validate()); });
+
+  nb::class_<TsdfIntegrator::Params>(m, "TsdfIntegratorParams",
+                                     "TSDF integration (volume/tsdf_integrator.h)")
+      .def(nb::init<>())
+      .def_rw("truncation_m", &TsdfIntegrator::Params::truncation_m)
+      .def_rw("max_weight", &TsdfIntegrator::Params::max_weight)
+      .def_rw("allocation_stride_px", &TsdfIntegrator::Params::allocation_stride_px)
+      .def("validate", [](const TsdfIntegrator::Params& p, float voxel_size_m) {
+        return whyInvalid(p.validate(voxel_size_m));
+      }, nb::arg("voxel_size_m"));
+
+  nb::class_<Raycaster::Params>(m, "RaycasterParams", "Raycasting the model (raycast/raycaster.h)")
+      .def(nb::init<>())
+      .def_rw("min_depth_m", &Raycaster::Params::min_depth_m)
+      .def_rw("max_depth_m", &Raycaster::Params::max_depth_m)
+      .def_rw("step_fraction", &Raycaster::Params::step_fraction)
+      .def_rw("range_tile_px", &Raycaster::Params::range_tile_px)
+      .def_rw("hint_margin_m", &Raycaster::Params::hint_margin_m)
+      .def("validate", [](const Raycaster::Params& p) { return whyInvalid(p.validate()); });
+
+  // The stages' structs are reached through it and changed in place
+  // (p.integrate.truncation_m = 0.04).
+  nb::class_<FusionPipeline::Params>(m, "FusionPipelineParams",
+                                     "The loop's stages (pipeline/fusion_pipeline.h)")
+      .def(nb::init<>())
+      .def_rw("preprocess", &FusionPipeline::Params::preprocess)
+      .def_rw("icp", &FusionPipeline::Params::icp)
+      .def_rw("integrate", &FusionPipeline::Params::integrate)
+      .def_rw("raycast", &FusionPipeline::Params::raycast)
+      .def_rw("min_valid_depth_fraction", &FusionPipeline::Params::min_valid_depth_fraction)
+      .def("validate", [](const FusionPipeline::Params& p, float voxel_size_m) {
+        return whyInvalid(p.validate(voxel_size_m));
+      }, nb::arg("voxel_size_m"));
+}
+
 }  // namespace
 
 NB_MODULE(_native, m) {
@@ -351,20 +427,15 @@ NB_MODULE(_native, m) {
       .def_ro("raycast_ms", &RefineResult::raycast_ms)
       .def_ro("total_ms", &RefineResult::total_ms);
 
-  const FusionParams fusion_defaults;
+  bindParams(m);
   nb::class_<PyFusion>(m, "Fusion",
                        "A full-resolution map (hashed TSDF volume) of one vehicle and the pipeline "
                        "that refines keyframes against it and fuses them.")
-      .def("__init__",
-           [](PyFusion* self, const kinfly::PinholeCamera& camera, double depth_scale_m,
-              float voxel_size_m, float truncation_m, int threads) {
-             new (self) PyFusion(
-                 FusionParams{camera, depth_scale_m, voxel_size_m, truncation_m, threads});
-           },
-           nb::arg("camera"), nb::arg("depth_scale_m"), nb::kw_only(),
-           nb::arg("voxel_size_m") = fusion_defaults.voxel_size_m,
-           nb::arg("truncation_m") = fusion_defaults.truncation_m,
-           nb::arg("threads") = fusion_defaults.threads)
+      .def(nb::init<const kinfly::PinholeCamera&, const kinfly::HashedVolume::Params&,
+                    const kinfly::FusionPipeline::Params&, int>(),
+           nb::arg("camera"), nb::arg("volume"), nb::arg("pipeline"), nb::kw_only(),
+           nb::arg("threads") = 2,
+           "ValueError naming the field when the camera or a parameter is out of its range")
       // noconvert: a float or strided array is refused, not silently cast or copied.
       .def("refine", &PyFusion::refine, nb::arg("depth").noconvert(), nb::arg("utime"),
            nb::arg("T_world_cam_guess"),

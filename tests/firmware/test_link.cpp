@@ -165,6 +165,43 @@ TEST(Conversions, CameraRoundTrips) {
   EXPECT_EQ(back.height, camera.height);
 }
 
+TEST(Conversions, DroneHealthFillsTheStatus) {
+  DroneHealth health;
+  health.utime = 1'700'000'000'000'000;
+  health.is_final = true;
+  health.keyframe_rate_hz = 5.f;
+  health.keyframes_sent = 12;
+  health.last_keyframe_id = 11;
+  health.tracking = TrackingStatus::kOk;
+  health.link = LinkState::kStale;
+  health.sensor = SensorState::kStalled;
+  health.sensor_stalls = 2;
+  health.rejects.bad_mac = 3;
+  health.corrections_unknown_keyframe = 1;
+  drone_status_t status{};
+  status.vehicle_id = 7;
+  fillDroneStatus(health, &status);
+  EXPECT_EQ(status.vehicle_id, 7);  // the caller's
+  EXPECT_EQ(status.utime, health.utime);
+  EXPECT_EQ(status.run_state, drone_status_t::RUN_FINAL);
+  EXPECT_EQ(status.keyframe_rate_hz, 5.f);
+  EXPECT_EQ(status.keyframes_sent, 12);
+  EXPECT_EQ(status.last_keyframe_id, 11);
+  EXPECT_EQ(status.tracking_state, odometry_t::TRACKING_OK);
+  EXPECT_EQ(status.link_state, drone_status_t::LINK_STALE);
+  EXPECT_EQ(status.sensor_state, drone_status_t::SENSOR_STALLED);
+  EXPECT_EQ(status.sensor_stalls, 2);
+  EXPECT_EQ(status.rejected_bad_mac, 3);
+  EXPECT_EQ(status.corrections_unknown_keyframe, 1);
+
+  fillDroneStatus(DroneHealth(), &status);
+  EXPECT_EQ(status.run_state, drone_status_t::RUN_ACTIVE);
+  EXPECT_EQ(status.tracking_state, odometry_t::TRACKING_NONE);
+  EXPECT_EQ(status.link_state, drone_status_t::LINK_UNKNOWN);
+  EXPECT_EQ(status.sensor_state, drone_status_t::SENSOR_STREAMING);
+  EXPECT_EQ(status.last_keyframe_id, -1);
+}
+
 TEST(Decode, PayloadSizeIsTheLastFixedField) {
   expectTrailingPayloadLayout(sampleKeyframe(0));
   expectTrailingPayloadLayout(signed_t());

@@ -1,4 +1,5 @@
-"""The ground's native bindings (kinfly_ground._native: Fusion, RefineResult, MapSnapshot) on real
+"""The ground's native bindings (kinfly_ground._native: Fusion and the engine's parameter structs,
+RefineResult, MapSnapshot) on real
 data, the committed TUM teddy sample: refining keyframes follows the ground truth, renders and
 meshes have the documented types and shapes, a snapshot is a copy, bad inputs raise the documented
 Python errors, a frame without depth is lost without touching the map, and refine lets other
@@ -13,7 +14,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from kinfly_ground._native import Fusion, PinholeCamera, TrackingStatus
+from kinfly_ground._native import (Fusion, FusionPipelineParams, HashedVolumeParams, PinholeCamera,
+                                   TrackingStatus)
 from kinfly_ground.outputs import ate, read_tum
 
 WIDTH, HEIGHT = 640, 480
@@ -79,9 +81,15 @@ def _keyframes(frames, start: int = FIRST_FRAME, count: int = REFINED_FRAMES):
     return frames[start:start + FRAME_STEP * count:FRAME_STEP]
 
 
-def _fusion(fx: float = FX, **overrides) -> Fusion:
+def _fusion(fx: float = FX, *, voxel_size_m: float = 0.01, truncation_voxels: float = 4.0,
+            threads: int = 2) -> Fusion:
     camera = PinholeCamera(width=WIDTH, height=HEIGHT, fx=fx, fy=FY, cx=CX, cy=CY)
-    return Fusion(camera, DEPTH_SCALE_M, **overrides)
+    volume = HashedVolumeParams()
+    volume.voxel_size_m = voxel_size_m
+    pipeline = FusionPipelineParams()
+    pipeline.preprocess.depth_scale_m = DEPTH_SCALE_M
+    pipeline.integrate.truncation_m = truncation_voxels * voxel_size_m
+    return Fusion(camera, volume, pipeline, threads=threads)
 
 
 def _refine_all(fusion: Fusion, keyframes, guess: np.ndarray):
@@ -257,11 +265,30 @@ def test_depth_of_another_type_or_layout_is_a_type_error(frames, make) -> None:
     (dict(fx=0.0), "fx"),
     (dict(fx=-535.4), "fx"),
     (dict(voxel_size_m=0.0), "voxel_size_m"),
+    (dict(truncation_voxels=2.0), "truncation_m"),
     (dict(threads=0), "threads"),
-], ids=["fx-zero", "fx-negative", "voxel-size-zero", "threads-zero"])
+], ids=["fx-zero", "fx-negative", "voxel-size-zero", "truncation-two-voxels", "threads-zero"])
 def test_bad_parameters_are_value_errors(overrides, message) -> None:
     with pytest.raises(ValueError, match=message):
         _fusion(**overrides)
+
+
+def test_parameter_structs_are_the_engines_with_their_defaults_and_checks() -> None:
+    volume = HashedVolumeParams()
+    assert volume.voxel_size_m == pytest.approx(0.01)
+    assert volume.validate() == ""
+    volume.voxel_size_m = -1.0
+    assert "voxel_size_m" in volume.validate()
+
+    pipeline = FusionPipelineParams()
+    assert pipeline.icp.iterations_coarse_to_fine == [10, 5, 4]
+    assert pipeline.validate(0.01) == ""
+    # The stages' structs are the pipeline's own, changed in place.
+    pipeline.integrate.truncation_m = 0.015
+    assert "truncation_m" in pipeline.validate(0.01)
+    assert "truncation_m" in pipeline.integrate.validate(0.01)
+    pipeline.icp.iterations_coarse_to_fine = [1, 1, 1]
+    assert pipeline.icp.iterations_coarse_to_fine == [1, 1, 1]
 
 
 def test_a_frame_without_depth_is_lost_and_leaves_the_map(frames) -> None:

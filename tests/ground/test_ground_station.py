@@ -654,3 +654,11 @@ def test_keyframes_lost_on_the_link_are_counted_from_the_drones_status(sample) -
     assert state.counters.lost_on_link == 2 + 1  # keyframe 3 of the second flight
     ground = rig.station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
     assert ground.last_keyframe_id == 2
+
+
+def test_station_params_build_the_engines_parameters() -> None:
+    params = StationParams(voxel_size_m=0.02)
+    assert params.validate() == ""
+    assert params.volume_params().voxel_size_m == pytest.approx(0.02)
+    assert params.pipeline_params().integrate.truncation_m == pytest.approx(0.08)  # four voxels
+    assert "voxel size" in StationParams(voxel_size_m=0.001).validate()

@@ -84,6 +84,39 @@ void fillCorrection(int32_t vehicle_id, const KeyframeHeader& keyframe, const Po
   message->reset_counter = reset_counter;
 }
 
+void fillDroneStatus(const DroneHealth& h, drone_status_t* message) {
+  drone_status_t& s = *message;
+  s.utime = h.utime;
+  s.run_state = h.is_final ? drone_status_t::RUN_FINAL : drone_status_t::RUN_ACTIVE;
+  s.depth_rate_hz = h.depth_rate_hz;
+  s.odometry_rate_hz = h.odometry_rate_hz;
+  s.keyframe_rate_hz = h.keyframe_rate_hz;
+  s.frames_captured = h.frames_captured;
+  s.queue_drops = h.queue_drops;
+  s.keyframes_sent = h.keyframes_sent;
+  s.keyframes_dropped = h.keyframes_dropped;
+  s.last_keyframe_id = h.last_keyframe_id;
+  s.tracking_state = trackingCode(h.tracking);
+  switch (h.link) {
+    case LinkState::kUnknown: s.link_state = drone_status_t::LINK_UNKNOWN; break;
+    case LinkState::kUp: s.link_state = drone_status_t::LINK_UP; break;
+    case LinkState::kStale: s.link_state = drone_status_t::LINK_STALE; break;
+  }
+  switch (h.sensor) {
+    case SensorState::kStreaming: s.sensor_state = drone_status_t::SENSOR_STREAMING; break;
+    case SensorState::kWaiting: s.sensor_state = drone_status_t::SENSOR_WAITING; break;
+    case SensorState::kStalled: s.sensor_state = drone_status_t::SENSOR_STALLED; break;
+    case SensorState::kEnded: s.sensor_state = drone_status_t::SENSOR_ENDED; break;
+  }
+  s.sensor_connects = h.sensor_connects;
+  s.sensor_stalls = h.sensor_stalls;
+  s.frames_skipped = h.frames_skipped;
+  s.frames_lost = h.frames_lost;
+  h.rejects.writeTo(&s);
+  s.corrections_accepted = h.corrections_accepted;
+  s.corrections_unknown_keyframe = h.corrections_unknown_keyframe;
+}
+
 CodecResult encodeDepth(DepthCodec& codec, ImageView<const uint16_t> raw,
                         const PinholeCamera& camera, double depth_scale_m,
                         depth_keyframe_t* message) {

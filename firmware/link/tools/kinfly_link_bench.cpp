@@ -182,16 +182,17 @@ int runDrone(const Options& options) {
       next_frame += frame_period;
     }
     if (Clock::now() >= next_status) {
+      link::DroneHealth health;
+      health.utime = link::wallClockUtime();
+      health.keyframe_rate_hz = static_cast<float>(options.rate_hz);
+      health.keyframes_sent = sent;
+      health.last_keyframe_id = sent - 1;
+      health.tracking = TrackingStatus::kGivenPose;
+      health.rejects = end.rejects();
+      health.corrections_accepted = end.accepted();
       drone_status_t status{};
-      status.utime = link::wallClockUtime();
       status.vehicle_id = options.vehicle_id;
-      status.keyframe_rate_hz = static_cast<float>(options.rate_hz);
-      status.keyframes_sent = sent;
-      status.last_keyframe_id = sent - 1;
-      status.tracking_state = link::trackingCode(TrackingStatus::kGivenPose);
-      status.link_state = drone_status_t::LINK_UNKNOWN;
-      status.corrections_accepted = end.accepted();
-      end.rejects().writeTo(&status);
+      link::fillDroneStatus(health, &status);
       lcm.publish(status_channel, &status);
       next_status += kStatusPeriod;
     }

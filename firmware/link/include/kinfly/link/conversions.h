@@ -10,6 +10,7 @@
 #include "kinfly/camera_t.hpp"
 #include "kinfly/codec/depth_codec.h"
 #include "kinfly/depth_keyframe_t.hpp"
+#include "kinfly/drone_status_t.hpp"
 #include "kinfly/pipeline/fusion_pipeline.h"
 #include "kinfly/ground_truth_t.hpp"
 #include "kinfly/frame/tracking_status.h"
@@ -18,6 +19,7 @@
 #include "kinfly/pose3d_t.hpp"
 #include "kinfly/pose_correction_t.hpp"
 #include "kinfly/core/se3.h"
+#include "kinfly/link/counters.h"
 
 namespace kinfly::link {
 
@@ -55,6 +57,37 @@ void fillKeyframe(const KeyframeHeader& header, depth_keyframe_t* message);
 // The refined pose of one keyframe (the ground's correction, signed before it is sent).
 void fillCorrection(int32_t vehicle_id, const KeyframeHeader& keyframe, const Pose& T_corrected,
                     int32_t reset_counter, pose_correction_t* message);
+
+// The drone's state as its status reports it, in the link's own terms: the firmware maps its
+// link timeout and its sensor watch (firmware/core) onto these, so the link needs neither.
+enum class LinkState { kUnknown, kUp, kStale };                     // drone_status_t::LINK_*
+enum class SensorState { kStreaming, kWaiting, kStalled, kEnded };  // drone_status_t::SENSOR_*
+
+// The drone's figures for one status message; counts are totals since kinfly-fw started.
+struct DroneHealth {
+  int64_t utime = 0;              // [us] when taken, on the drone's wall clock
+  bool is_final = false;          // the last status before kinfly-fw exits: its counts are final
+  float depth_rate_hz = 0.f;      // [Hz] depth frames captured
+  float odometry_rate_hz = 0.f;   // [Hz] frames processed by the odometry
+  float keyframe_rate_hz = 0.f;   // [Hz] keyframes sent
+  int64_t frames_captured = 0;
+  int64_t queue_drops = 0;        // frames the full capture queue dropped
+  int64_t keyframes_sent = 0;
+  int64_t keyframes_dropped = 0;  // not sent: the link was busy or down
+  int64_t last_keyframe_id = -1;  // the highest id sent, -1 before the first
+  std::optional<TrackingStatus> tracking;  // the odometry's last verdict; nullopt before a frame
+  LinkState link = LinkState::kUnknown;
+  SensorState sensor = SensorState::kStreaming;
+  int64_t sensor_connects = 0;
+  int64_t sensor_stalls = 0;
+  int64_t frames_skipped = 0;     // unreadable or undecodable frames
+  int64_t frames_lost = 0;        // frames the odometry could not track
+  RejectCounters rejects;         // received messages dropped, by reason
+  int64_t corrections_accepted = 0;
+  int64_t corrections_unknown_keyframe = 0;
+};
+// vehicle_id is the caller's, set once.
+void fillDroneStatus(const DroneHealth& health, drone_status_t* message);
 
 // Fills the image part of a keyframe message (camera, depth scale, encoding, payload) from raw
 // sensor depth. The payload vector keeps its capacity, so a message reused across frames stops

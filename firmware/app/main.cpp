@@ -137,8 +137,8 @@ int run(int argc, char** argv) {
                  "= {} (metres per raw unit) instead of source.depth_units_per_m = {}",
                  config.source.dataset.depth_scale_m, *config.source.deprecated_depth_units_per_m);
   // A URL LCM cannot use is a configuration error; a network that is not up yet is not.
-  if (std::string problem = Publisher::urlProblem(config.link.lcm_url); !problem.empty()) {
-    spdlog::critical("invalid configuration: {}", problem);
+  if (const Status url = Publisher::checkUrl(config.link.lcm_url); !url.ok()) {
+    spdlog::critical("invalid configuration: {}", url.message());
     return 2;
   }
 

@@ -13,20 +13,23 @@ Publisher::Publisher(std::string name, const std::string& url, int vehicle_id,
   maintain();
 }
 
-std::string Publisher::urlProblem(const std::string& url) {
+Status Publisher::checkUrl(const std::string& url) {
   if (const auto target = link::multicastTarget(url)) {
-    const std::string problem = link::multicastTargetProblem(*target);
-    return problem.empty() ? "" : "link.lcm_url \"" + url + "\": " + problem;
+    const Status valid = link::checkMulticastTarget(*target);
+    if (valid.ok()) return valid;
+    return Status::error("link.lcm_url \"" + url + "\": " + valid.message());
   }
   // Providers without a network (memq://, file://) start at once, or never.
-  return lcm::LCM(url).good() ? "" : "LCM cannot start on \"" + url + "\" (link.lcm_url)";
+  if (lcm::LCM(url).good()) return Status();
+  return Status::error("LCM cannot start on \"" + url + "\" (link.lcm_url)");
 }
 
 void Publisher::maintain() {
   if (lcm_ || Clock::now() < next_attempt_) return;
   // Only when the kernel has a route: LCM itself would print a page of advice on every try.
-  std::string problem = target_ ? link::multicastRouteProblem(*target_) : "";
-  if (problem.empty()) {
+  const Status route = target_ ? link::checkMulticastRoute(*target_) : Status();
+  std::string problem = route.ok() ? std::string() : route.message();
+  if (route.ok()) {
     auto lcm = std::make_unique<lcm::LCM>(url_);
     if (lcm->good()) {
       lcm_ = std::move(lcm);

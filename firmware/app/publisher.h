@@ -33,9 +33,9 @@ class Publisher {
   // every few seconds at most (a Wi-Fi that is not configured at all).
   static constexpr double kRetryMinS = 0.1, kRetryMaxS = 5.0;
 
-  // Empty when LCM can use `url` once the network is there, else what is wrong with it (a
+  // Ok when LCM can use `url` once the network is there, else what is wrong with it (a
   // configuration error: waiting cannot mend it).
-  static std::string urlProblem(const std::string& url);
+  static Status checkUrl(const std::string& url);
 
   // `name` starts its log lines. `on_start` runs after every start of LCM, on the owner's
   // thread (the link subscribes there).

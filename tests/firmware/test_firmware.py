@@ -80,6 +80,11 @@ def test_dataset_replay_matches_the_log_replay(sample_log: Path, sample_dir: Pat
     (["--link.signing_window_s", "0"], "link.signing_window_s must be in (0, 3600]"),
     (["--source.depth_scale_m", "0"], "source.depth_scale_m must be in [1e-06, 1]"),
     (["--source.depth_units_per_m", "0"], "source.depth_units_per_m must be in (0, 1e+06]"),
+    # A URL no network can mend is a configuration error (a missing route is not: the drone waits).
+    (["--link.lcm_url", "udpm://10.1.2.3:7667"],
+     'link.lcm_url "udpm://10.1.2.3:7667": 10.1.2.3 is not a multicast group'),
+    (["--link.lcm_url", "udpm://239.255.76.67:0"], "the port must be in [1, 65535]"),
+    (["--link.lcm_url", "udpm://drone.local:7667"], '"drone.local" is not an IPv4 address'),
 ])
 def test_bad_configuration_refuses_to_start(sample_log: Path, args: list[str],
                                             message: str) -> None:

@@ -30,30 +30,32 @@ std::optional<MulticastTarget> multicastTarget(const std::string& lcm_url) {
   return target;
 }
 
-std::string multicastTargetProblem(const MulticastTarget& target) {
+Status checkMulticastTarget(const MulticastTarget& target) {
   in_addr address{};
   if (inet_pton(AF_INET, target.group.c_str(), &address) != 1)
-    return "\"" + target.group + "\" is not an IPv4 address";
+    return Status::error("\"" + target.group + "\" is not an IPv4 address");
   if (!IN_MULTICAST(ntohl(address.s_addr)))
-    return target.group + " is not a multicast group (224.0.0.0 to 239.255.255.255)";
-  if (target.port == 0) return "the port must be in [1, 65535]";
-  return "";
+    return Status::error(target.group +
+                         " is not a multicast group (224.0.0.0 to 239.255.255.255)");
+  if (target.port == 0) return Status::error("the port must be in [1, 65535]");
+  return Status();
 }
 
-std::string multicastRouteProblem(const MulticastTarget& target) {
+Status checkMulticastRoute(const MulticastTarget& target) {
   sockaddr_in to{};
   to.sin_family = AF_INET;
   to.sin_port = htons(target.port);
-  if (std::string problem = multicastTargetProblem(target); !problem.empty()) return problem;
+  if (Status valid = checkMulticastTarget(target); !valid.ok()) return valid;
   inet_pton(AF_INET, target.group.c_str(), &to.sin_addr);
   const int fd = socket(AF_INET, SOCK_DGRAM, 0);
-  if (fd < 0) return std::string("socket: ") + std::strerror(errno);
+  if (fd < 0) return Status::error(std::string("socket: ") + std::strerror(errno));
   // A UDP connect() sends nothing: it only looks up the route, as LCM does before it starts.
   const int connected = connect(fd, reinterpret_cast<const sockaddr*>(&to), sizeof to);
   const int error = errno;
   close(fd);
-  if (connected == 0) return "";
-  return "no route to the multicast group " + target.group + " (" + std::strerror(error) + ")";
+  if (connected == 0) return Status();
+  return Status::error("no route to the multicast group " + target.group + " (" +
+                       std::strerror(error) + ")");
 }
 
 }  // namespace kinfly::link

@@ -7,6 +7,8 @@
 #include <optional>
 #include <string>
 
+#include "kinfly/core/status.h"
+
 namespace kinfly::link {
 
 struct MulticastTarget {
@@ -21,11 +23,11 @@ inline constexpr const char* kLcmDefaultUrl = "udpm://239.255.76.67:7667?ttl=0";
 // LCM's default); nullopt for providers that need no network (memq://, file://).
 std::optional<MulticastTarget> multicastTarget(const std::string& lcm_url);
 
-// Empty when the target is an IPv4 multicast group and a port, else what is wrong with it: a
+// Ok when the target is an IPv4 multicast group and a port, else what is wrong with it: a
 // configuration error, unlike a missing route.
-std::string multicastTargetProblem(const MulticastTarget& target);
+Status checkMulticastTarget(const MulticastTarget& target);
 
-// Empty when the kernel has a route to the target, else why not (as connect() says it).
-std::string multicastRouteProblem(const MulticastTarget& target);
+// Ok when the kernel has a route to the target, else why not (as connect() says it).
+Status checkMulticastRoute(const MulticastTarget& target);
 
 }  // namespace kinfly::link

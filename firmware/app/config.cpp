@@ -196,7 +196,7 @@ Status SourceConfig::validate() const {
   if (deprecated_depth_units_per_m)
     deprecated = outOfRange("source.depth_units_per_m", *deprecated_depth_units_per_m, 0, 1e6,
                             Bound::kOpen);
-  return firstProblem(outOfRange("source.speed", speed, 0, 100, Bound::kOpen),
+  return firstError(outOfRange("source.speed", speed, 0, 100, Bound::kOpen),
                       std::move(deprecated), dataset.validate(), synthetic.validate(),
                       outOfRange("source.max_frames", max_frames, 0, 1e9), openni.validate(),
                       watch.validate());
@@ -206,7 +206,7 @@ Status OdometryConfig::validate() const {
   if (!(downsample == 1 || downsample == 2 || downsample == 4))
     return Status::error("odometry.downsample must be 1, 2 or 4 (got " +
                          std::to_string(downsample) + ")");
-  return firstProblem(namingKeys(volume.validate(), {{"resolution_vox", "odometry.volume_vox"},
+  return firstError(namingKeys(volume.validate(), {{"resolution_vox", "odometry.volume_vox"},
                                                      {"voxel_size_m", "odometry.voxel_m"},
                                                      {"lookahead_m", "odometry.lookahead_m"},
                                                      {"shift_threshold_blocks",
@@ -216,7 +216,7 @@ Status OdometryConfig::validate() const {
 }
 
 Status LinkConfig::validate() const {
-  return firstProblem(namingKeys(signing.validate(), {{"window_s", "link.signing_window_s"}}),
+  return firstError(namingKeys(signing.validate(), {{"window_s", "link.signing_window_s"}}),
                       outOfRange("link.keyframe_queue", keyframe_queue, 1, 64),
                       outOfRange("link.status_rate_hz", status_rate_hz, 1, 100),
                       outOfRange("link.timeout_s", timeout_s, 0, 60, Bound::kOpen),
@@ -231,7 +231,7 @@ Status OutputConfig::validate() const {
 }
 
 Status FirmwareConfig::validate() const {
-  return firstProblem(vehicle.validate(), source.validate(), odometry.validate(),
+  return firstError(vehicle.validate(), source.validate(), odometry.validate(),
                       link.validate(), keyframe.validate(), corrections.validate(),
                       output.validate());
 }

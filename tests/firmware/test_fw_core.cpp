@@ -245,9 +245,9 @@ TEST(RangeCheck, NamesTheKeyTheRangeAndTheValue) {
   EXPECT_FALSE(outOfRange("odometry.threads", std::nan(""), 1, 64).ok());
 }
 
-TEST(RangeCheck, FirstProblemIsTheFirstFailedOne) {
-  EXPECT_EQ(firstProblem(Status(), Status::error("b"), Status::error("c")).message(), "b");
-  EXPECT_TRUE(firstProblem(Status(), Status()).ok());
+TEST(RangeCheck, FirstErrorIsTheFirstFailedCheck) {
+  EXPECT_EQ(firstError(Status(), Status::error("b"), Status::error("c")).message(), "b");
+  EXPECT_TRUE(firstError(Status(), Status()).ok());
 }
 
 }  // namespace

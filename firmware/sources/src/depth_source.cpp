@@ -18,8 +18,8 @@ StatusOr<PinholeCamera> sourceCamera(float fx_at_640_px, int width_px, int heigh
   return camera;
 }
 
-Status sourceSizeProblem(int width_px, int height_px) {
-  return firstProblem(outOfRange("source.width", width_px, 16, 4096),
+Status checkSourceSize(int width_px, int height_px) {
+  return firstError(outOfRange("source.width", width_px, 16, 4096),
                       outOfRange("source.height", height_px, 16, 4096));
 }
 

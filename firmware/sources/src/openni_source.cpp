@@ -431,7 +431,7 @@ class OpenniSource : public DepthSource,
 }  // namespace
 
 Status OpenniSourceParams::validate() const {
-  return firstProblem(sourceSizeProblem(width_px, height_px),
+  return firstError(checkSourceSize(width_px, height_px),
                       outOfRange("source.reconnect_min_s", reconnect_min_s, 0.01, 60),
                       outOfRange("source.reconnect_max_s", reconnect_max_s, reconnect_min_s, 600));
 }

@@ -70,7 +70,7 @@ class SyntheticSource : public DepthSource {
 }  // namespace
 
 Status SyntheticSourceParams::validate() const {
-  return firstProblem(sourceSizeProblem(width_px, height_px),
+  return firstError(checkSourceSize(width_px, height_px),
                       outOfRange("source.rate_hz", rate_hz, 0, 1000, Bound::kOpen),
                       outOfRange("source.seed", seed, 0, 2147483647));
 }

@@ -26,7 +26,7 @@ inline Status outOfRange(const std::string& key, double value, double lo, double
 
 // The first failed of several checks, in order: validate() reports one problem at a time.
 template <class... Checks>
-Status firstProblem(Checks&&... checks) {
+Status firstError(Checks&&... checks) {
   Status first;
   ((first.ok() ? void(first = std::forward<Checks>(checks)) : void()), ...);
   return first;

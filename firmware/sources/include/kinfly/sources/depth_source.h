@@ -60,6 +60,6 @@ StatusOr<PinholeCamera> sourceCamera(float fx_at_640_px, int width_px, int heigh
 
 // The range of the image size asked of a source that makes or requests its frames
 // (source.width, source.height: [16, 4096] px).
-Status sourceSizeProblem(int width_px, int height_px);
+Status checkSourceSize(int width_px, int height_px);
 
 }  // namespace kinfly::fw

@@ -8,17 +8,16 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pyarrow as pa
 import pytest
 from rerun.chunk import RrdReader
 from scipy.spatial.transform import Rotation
 
 from kinfly_ground.viewer import Viewer, ViewerError
+from rrd_rows import latest, read_rows
 
 SEED = 20261201
 T0_US = 1_700_000_000_000_000
@@ -49,38 +48,6 @@ def depth_image(rng: np.random.Generator) -> np.ndarray:
     depth = np.round(depth_m / DEPTH_SCALE_M).astype(np.uint16)
     depth[rng.random((HEIGHT, WIDTH)) < 0.05] = 0
     return depth
-
-
-@dataclass
-class Row:
-    entity: str
-    utime: int | None      # None: static
-    row_id: bytes          # rerun's row ids grow with logging order
-    components: dict[str, Any]
-
-
-def read_rows(path: Path) -> list[Row]:
-    rows = []
-    for chunk in RrdReader(path).stream():
-        batch = chunk.to_record_batch()
-        names = batch.schema.names
-        utimes = (batch.column("capture_time").cast(pa.int64()).to_numpy() // 1000
-                  if "capture_time" in names else [None] * batch.num_rows)
-        data = {name: batch.column(name).to_pylist() for name in names
-                if ":" in name and not name.startswith("rerun.")}
-        for i in range(batch.num_rows):
-            rows.append(Row(chunk.entity_path.lstrip("/"),
-                            None if utimes[i] is None else int(utimes[i]),
-                            batch.column("rerun.controls.RowId")[i].as_py(),
-                            {name: values[i] for name, values in data.items()}))
-    return rows
-
-
-def latest(rows: list[Row], entity: str, component: str) -> Any:
-    """ENTITY's last value of COMPONENT, as a viewer at the end of the recording shows it."""
-    candidates = [r for r in rows if r.entity == entity and component in r.components]
-    assert candidates, f"nothing logged to {entity} {component}"
-    return max(candidates, key=lambda r: (r.utime, r.row_id)).components[component]
 
 
 def run_session(viewer: Viewer) -> dict[str, Any]:

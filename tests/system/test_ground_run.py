@@ -25,7 +25,7 @@ from busy import busy_cores
 from firmware_run import summary as drone_summary
 from netns import send_signal
 from kinfly_ground.outputs import ATE_MAX_TIME_DIFF_S
-from test_ground_viewer import latest, read_rows
+from rrd_rows import latest, read_rows
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 GROUND = Path(sys.executable).parent / "kinfly-ground"

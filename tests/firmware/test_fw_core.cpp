@@ -1,5 +1,5 @@
 // The firmware's logic: the drop-oldest capture queue, keyframe selection, re-anchoring of the
-// odometry by ground corrections, the sensor watch and log throttling.
+// odometry by ground corrections, the sensor watch, log throttling and the link's send budget.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -14,6 +14,7 @@
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/fw/range_check.h"
+#include "kinfly/fw/send_budget.h"
 #include "kinfly/fw/sensor_watch.h"
 #include "kinfly/core/image.h"
 #include "test_util.h"
@@ -248,6 +249,161 @@ TEST(RangeCheck, NamesTheKeyTheRangeAndTheValue) {
 TEST(RangeCheck, FirstErrorIsTheFirstFailedCheck) {
   EXPECT_EQ(firstError(Status(), Status::error("b"), Status::error("c")).message(), "b");
   EXPECT_TRUE(firstError(Status(), Status()).ok());
+}
+
+// ---- Send budget ------------------------------------------------------------------------------
+
+TEST(TokenBucket, SendsAtItsRateAfterTheBurst) {
+  TokenBucket bucket(/*rate_Bps=*/10000.0, /*burst_bytes=*/3000.0);
+  constexpr double kPacket = 1000.0, kStep_s = 1e-3;
+  double sent = 0.0;
+  for (double t = 0.0; t < 10.0; t += kStep_s)
+    while (bucket.take(kPacket, t)) sent += kPacket;
+  // 10 s at the rate plus the first burst, within one packet (the last one not yet due).
+  EXPECT_NEAR(sent, 10.0 * 10000.0 + 3000.0, kPacket);
+  // A new rate holds from the next refill on: an empty bucket at 1000 B/s needs 1 s per packet.
+  bucket.setRate(1000.0);
+  const double wait_s = bucket.waitS(kPacket, 10.0);
+  EXPECT_GT(wait_s, 0.0);
+  EXPECT_LE(wait_s, 1.0);
+}
+
+TEST(TokenBucket, WaitIsExactlyTheTimeTheTokensNeed) {
+  TokenBucket bucket(1000.0, 500.0);
+  ASSERT_TRUE(bucket.take(500.0, 0.0));
+  EXPECT_DOUBLE_EQ(bucket.waitS(200.0, 0.0), 0.2);
+  EXPECT_DOUBLE_EQ(bucket.waitS(200.0, 0.1), 0.1);
+  EXPECT_FALSE(bucket.take(200.0, 0.1));
+  EXPECT_TRUE(bucket.take(200.0, 0.2));
+  EXPECT_DOUBLE_EQ(bucket.waitS(1.0, 0.2), 0.001);
+}
+
+// A bottleneck as a fluid queue: the drone offers its whole budget (it always has keyframes to
+// send), the link carries capacity_bps, the excess waits in the queue; the ground reports the
+// goodput over the last second and the queueing delay, one report every 0.1 s, heard 20 ms
+// later. Returns the budget's and the queue's medians over [from_s, to_s).
+struct Bottleneck {
+  explicit Bottleneck(double capacity, double random_loss = 0.0)
+      : capacity_bps(capacity), loss(random_loss) {}
+  double capacity_bps;
+  double loss;  // random loss: fewer bits arrive, nothing queues
+  double queue_bits = 0.0;
+  std::vector<double> delivered_bps;  // per 10 ms step, the last second's worth
+
+  void step(double offered_bps, double dt_s) {
+    queue_bits += offered_bps * dt_s;
+    const double out = std::min(queue_bits, capacity_bps * dt_s);
+    queue_bits -= out;
+    delivered_bps.push_back(out * (1.0 - loss) / dt_s);
+    if (delivered_bps.size() > 100) delivered_bps.erase(delivered_bps.begin());
+  }
+  double goodputBps() const {
+    double sum = 0.0;
+    for (double b : delivered_bps) sum += b;
+    return delivered_bps.empty() ? 0.0 : sum / static_cast<double>(delivered_bps.size());
+  }
+  double queueMs() const { return 1e3 * queue_bits / capacity_bps; }
+};
+
+double median(std::vector<double> values) {
+  std::nth_element(values.begin(), values.begin() + static_cast<long>(values.size() / 2),
+                   values.end());
+  return values[values.size() / 2];
+}
+
+struct Flight {
+  std::vector<double> t_s, budget_bps, queue_ms;
+  double medianOf(const std::vector<double>& v, double from_s, double to_s) const {
+    std::vector<double> in;
+    for (size_t i = 0; i < t_s.size(); ++i)
+      if (t_s[i] >= from_s && t_s[i] < to_s) in.push_back(v[i]);
+    return median(in);
+  }
+};
+
+Flight fly(LinkRate* rate, Bottleneck* link, double seconds,
+           double capacity_after_bps = 0.0, double change_s = 1e9) {
+  constexpr double kDt_s = 0.01, kReportEvery_s = 0.1, kReportDelay_s = 0.02;
+  Flight flight;
+  struct Report { double at_s, goodput_bps, queue_ms; };
+  std::vector<Report> in_flight;
+  double next_report_s = kReportEvery_s;
+  for (double t = 0.0; t < seconds; t += kDt_s) {
+    if (t >= change_s && capacity_after_bps > 0.0) link->capacity_bps = capacity_after_bps;
+    link->step(rate->budgetBps(), kDt_s);
+    if (t >= next_report_s) {
+      in_flight.push_back({t + kReportDelay_s, link->goodputBps(), link->queueMs()});
+      next_report_s += kReportEvery_s;
+    }
+    while (!in_flight.empty() && in_flight.front().at_s <= t) {
+      rate->onReport(in_flight.front().goodput_bps, in_flight.front().queue_ms,
+                     /*limited=*/true, t);
+      in_flight.erase(in_flight.begin());
+    }
+    flight.t_s.push_back(t);
+    flight.budget_bps.push_back(rate->budgetBps());
+    flight.queue_ms.push_back(link->queueMs());
+  }
+  return flight;
+}
+
+TEST(LinkRate, FindsTheCapacityAndKeepsTheQueueShort) {
+  LinkRate rate{LinkRate::Params()};  // starts at 8 Mbit/s
+  Bottleneck link(5e6);
+  const Flight f = fly(&rate, &link, 60.0);
+  const double budget = f.medianOf(f.budget_bps, 10.0, 60.0);
+  // Settles below the capacity (it backs off to 0.85 of the goodput and climbs back), and not
+  // far below: at least 70 % of the link used.
+  EXPECT_GT(budget, 0.7 * 5e6);
+  EXPECT_LT(budget, 1.05 * 5e6);
+  EXPECT_LT(f.medianOf(f.queue_ms, 10.0, 60.0), LinkRate::Params().queue_high_ms);
+}
+
+TEST(LinkRate, FollowsACapacityDropWithinTwoSeconds) {
+  LinkRate rate{LinkRate::Params()};
+  Bottleneck link(5e6);
+  const Flight f = fly(&rate, &link, 40.0, /*capacity_after_bps=*/2e6, /*change_s=*/20.0);
+  EXPECT_LT(f.medianOf(f.budget_bps, 22.0, 24.0), 2e6);
+  EXPECT_GT(f.medianOf(f.budget_bps, 30.0, 40.0), 0.7 * 2e6);
+  EXPECT_LT(f.medianOf(f.queue_ms, 25.0, 40.0), LinkRate::Params().queue_high_ms);
+}
+
+TEST(LinkRate, RandomLossWithoutAQueueIsNoReasonToSendLess) {
+  LinkRate::Params params;
+  params.start_bps = 4e6;
+  LinkRate rate(params);
+  Bottleneck link(50e6, /*random_loss=*/0.10);  // far more capacity than max_bps: never a queue
+  fly(&rate, &link, 30.0);
+  EXPECT_EQ(rate.decreases(), 0);
+  EXPECT_DOUBLE_EQ(rate.budgetBps(), params.max_bps);
+}
+
+TEST(LinkRate, DoesNotGrowWhenTheDroneHadLessToSend) {
+  LinkRate rate{LinkRate::Params()};
+  for (int i = 0; i < 100; ++i) rate.onReport(1e6, 0.0, /*limited=*/false, 0.1 * i);
+  EXPECT_DOUBLE_EQ(rate.budgetBps(), LinkRate::Params().start_bps);
+}
+
+TEST(LinkRate, ValidateNamesTheBadValue) {
+  LinkRate::Params params;
+  params.queue_low_ms = 50.0;  // above queue_high_ms
+  EXPECT_EQ(params.validate().message(), "link.queue_low_ms must be in [0, 40] (got 50)");
+  EXPECT_TRUE(LinkRate::Params().validate().ok());
+}
+
+TEST(KeyframeScale, ShrinksBelowTheMinimumRateAndGrowsBackWithSpare) {
+  const KeyframeScale::Params p;  // 1 Hz minimum, hysteresis 1.5, down to 1/4
+  constexpr double kFull = 100e3;  // [bytes] a full-size keyframe on the wire
+  EXPECT_EQ(KeyframeScale::choose(p, 1, 2 * kFull, kFull), 1);
+  EXPECT_EQ(KeyframeScale::choose(p, 1, 0.5 * kFull, kFull), 2);
+  EXPECT_EQ(KeyframeScale::choose(p, 2, 0.1 * kFull, kFull / 4), 4);
+  EXPECT_EQ(KeyframeScale::choose(p, 4, 0.01 * kFull, kFull / 16), 4);  // the smallest there is
+  // Back to full size only when full-size keyframes would come at 1.5 Hz.
+  EXPECT_EQ(KeyframeScale::choose(p, 2, 1.2 * kFull, kFull / 4), 2);
+  EXPECT_EQ(KeyframeScale::choose(p, 2, 1.6 * kFull, kFull / 4), 1);
+  KeyframeScale::Params bad;
+  bad.max_scale = 3;
+  EXPECT_EQ(bad.validate().message(), "link.max_scale must be 1, 2 or 4 (got 3)");
 }
 
 }  // namespace

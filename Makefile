@@ -29,7 +29,8 @@
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
 #   make test-aarch64  deps demo, unit, image; the above + the image; unit tests and a replay
-#                   under qemu-aarch64, the image test
+#                   under qemu-aarch64, alone and against the native kinfly-ground (hardware in
+#                   the loop, a network namespace: root or sudo), the image test
 #   make package-aarch64  the kinfly-fw .deb (arm64) in build-aarch64/pkg/
 #   make image      deps image; flashable arm64 disk image build-aarch64/kinfly-arm64.img (root)
 #   make flash IMAGE=... DEVICE=/dev/sdX CONFIRM=yes  write the image to an SD card (checked)
@@ -201,7 +202,7 @@ image: deps-image package-aarch64
 	$(REPO_ROOT)/scripts/build-image.sh --deb $(AARCH64_DEB) --out $(IMAGE)
 
 # The native build makes the replay's flight log and the trajectory the emulated one must match;
-# pytest runs from .venv.
+# pytest runs from .venv, whose kinfly-ground is the ground station in the loop.
 test-aarch64: deps-demo deps-unit build image
 	ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS)
 	$(PY) -m pytest $(REPO_ROOT)/tests -v -m aarch64

@@ -82,8 +82,11 @@ def ground_command(out: Path, *, key: Path | None, vehicle: int | None = VEHICLE
     return command
 
 
-def drone_command(log: Path, *, key: Path | None, trajectory: Path | None = None) -> list[str]:
-    command = [str(BUILD / "kinfly-fw"), "--config", str(FW_CONFIG),
+def drone_command(log: Path, *, key: Path | None, trajectory: Path | None = None,
+                  program: Sequence[str] | None = None) -> list[str]:
+    """kinfly-fw replaying LOG as vehicle 1; PROGRAM is what runs it (default build/bin/kinfly-fw;
+    the aarch64 tests put qemu-aarch64 before the arm64 build)."""
+    command = [*(program or [str(BUILD / "kinfly-fw")]), "--config", str(FW_CONFIG),
                "--vehicle.id", str(VEHICLE_ID), "--vehicle.key_file", str(key or ""),
                "--source.kind", "log", "--source.path", str(log), "--link.lcm_url", LCM_URL]
     if trajectory is not None:

@@ -87,6 +87,10 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
       ->capture_default_str();
   app->add_option("--source.speed", s.speed, "replay rate factor when realtime")
       ->capture_default_str();
+  app->add_option("--source.lockstep", s.lockstep,
+                  "realtime = false only: each keyframe's correction applied before the next "
+                  "frame (waits up to link.final_wait_s for the ground)")
+      ->capture_default_str();
   addSharedOption<std::string>(app, "--source.intrinsics",
                                {&s.dataset.intrinsics, &s.openni.intrinsics,
                                 &s.synthetic.intrinsics},
@@ -169,7 +173,8 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "ground station unheard this long: link stale [s]")
       ->capture_default_str();
   app->add_option("--link.final_wait_s", l.final_wait_s,
-                  "when the source ends: the longest wait for the ground's last corrections [s]")
+                  "when the source ends: the longest wait for the ground's last corrections; "
+                  "with source.lockstep, for each keyframe's [s]")
       ->capture_default_str();
   app->add_option("--corrections.history_keyframes", c->corrections.history_keyframes,
                   "keyframes whose onboard pose is kept for corrections")
@@ -192,6 +197,9 @@ Status SourceConfig::validate() const {
                          "\")");
   if ((kind == "log" && log.path.empty()) || (kind == "dataset" && dataset.tum_dir.empty()))
     return Status::error("source.path is required for source.kind = " + kind);
+  if (lockstep && realtime)
+    return Status::error("source.lockstep needs source.realtime = false: frames paced to their "
+                         "capture times cannot wait for the ground station");
   Status deprecated;
   if (deprecated_depth_units_per_m)
     deprecated = outOfRange("source.depth_units_per_m", *deprecated_depth_units_per_m, 0, 1e6,

@@ -34,6 +34,10 @@ struct SourceConfig {                            // [source]
   std::string kind = "log";                      // kind: log | dataset | openni | synthetic
   bool realtime = true;          // realtime: replay at capture rate; false: as fast as possible
   double speed = 1.0;            // speed (0, 100]: replay rate factor when realtime
+  // lockstep: only with realtime = false: after each keyframe, the next frame waits until the
+  // ground station reports that keyframe done (its correction applied), at most
+  // link.final_wait_s; a replay then gives the same trajectory on any machine, however fast.
+  bool lockstep = false;
   int max_frames = 0;            // max_frames [0, 1e9]: stop after this many frames (0: never)
   // Each source's own Params, whatever the kind: every value is checked, so a config file
   // stays valid when its kind changes. Keys that several sources read (path, intrinsics, width,
@@ -66,7 +70,8 @@ struct LinkConfig {                              // [link]
   double status_rate_hz = 10.0;  // status_rate_hz [Hz] [1, 100]
   double timeout_s = 2.0;        // timeout_s [s] (0, 60]: ground unheard this long: link stale
   // final_wait_s [s] [0, 60]: when the source ends (a replayed flight), how long at most to
-  // wait for the ground's corrections of the last keyframes before exiting
+  // wait for the ground's corrections of the last keyframes before exiting; with
+  // source.lockstep, how long each keyframe waits for its own
   double final_wait_s = 5.0;
   Status validate() const;
 };

@@ -3,6 +3,8 @@
 #include <omp.h>
 #include <spdlog/spdlog.h>
 
+#include <thread>
+
 #include "kinfly/link/conversions.h"
 
 namespace kinfly::fw {
@@ -86,12 +88,31 @@ void OdometryTask::process(const DepthCapture& capture) {
   job_.depth.copyFrom(capture.depth.view());
   job_.utime = r.utime;
   job_.frame_id = capture.frame_id;
-  job_.keyframe_id = next_keyframe_id_++;
+  const int64_t keyframe_id = next_keyframe_id_++;
+  job_.keyframe_id = keyframe_id;
   job_.T_world_cam = T_world_cam;
   job_.tracking = r.status;
   if (!keyframes_->push(job_) && keyframe_drop_log_.allow(secondsSince(began_)))
     spdlog::warn("odometry: link busy, oldest keyframe dropped ({} dropped in all)",
                  keyframes_->dropped());
+  // job_ now holds the queue slot it was swapped with.
+  if (config_.source.lockstep) awaitGround(keyframe_id);
+}
+
+void OdometryTask::awaitGround(int64_t keyframe_id) {
+  using namespace std::chrono_literals;
+  const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                           std::chrono::duration<double>(config_.link.final_wait_s));
+  while (counters_->ground_done_keyframe < keyframe_id && !stop_->stopRequested()) {
+    if (Clock::now() >= deadline) {
+      if (lockstep_log_.allow(secondsSince(began_)))
+        spdlog::warn("odometry: lockstep: no answer from the ground station to keyframe {} "
+                     "within {:.1f} s, going on ({} more since the last report)",
+                     keyframe_id, config_.link.final_wait_s, lockstep_log_.suppressed());
+      return;
+    }
+    std::this_thread::sleep_for(1ms);
+  }
 }
 
 }  // namespace kinfly::fw

@@ -1,6 +1,7 @@
 // The odometry thread: the engine at QVGA in a dense volume that follows the drone, one pose
 // published per frame, keyframe selection, keyframes handed to the link. It never waits for the
-// link: a full keyframe queue drops its oldest keyframe.
+// link: a full keyframe queue drops its oldest keyframe. Only a lockstep replay
+// (source.lockstep) waits, after each keyframe, for the ground station's answer.
 #pragma once
 
 #include <memory>
@@ -46,6 +47,9 @@ class OdometryTask {
 
  private:
   void process(const DepthCapture& capture);
+  // source.lockstep: until the ground station reports keyframe `keyframe_id` done (its
+  // correction is applied by then), link.final_wait_s at most, or a stop.
+  void awaitGround(int64_t keyframe_id);
 
   const FirmwareConfig& config_;
   DenseVolume volume_;
@@ -62,7 +66,7 @@ class OdometryTask {
   KeyframeJob job_;
   int64_t next_keyframe_id_ = 0;
   Clock::time_point began_ = Clock::now();
-  LogThrottle lost_log_, keyframe_drop_log_;
+  LogThrottle lost_log_, keyframe_drop_log_, lockstep_log_;
   std::vector<StampedPose> trajectory_, ground_truth_;
 };
 

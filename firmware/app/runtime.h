@@ -48,6 +48,9 @@ struct Counters {
   AtomicTracking tracking;
   // link thread
   std::atomic<int64_t> keyframes_sent{0}, keyframes_failed{0}, corrections_unknown{0};
+  // The last keyframe id the ground station reported done (ground_status_t.last_keyframe_id,
+  // sent after that keyframe's correction), -1 before one: source.lockstep waits for it.
+  std::atomic<int64_t> ground_done_keyframe{-1};
 };
 
 struct KeyframeJob {

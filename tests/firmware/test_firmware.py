@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO_ROOT, built, wait_for_line
+import demo  # scripts/demo.py (conftest puts scripts/ on the path)
 from demo import Watched
 from firmware_run import CONFIG, firmware, read_tum, summary
 
@@ -26,6 +27,9 @@ SAME_ENGINE_TOLERANCE_M = 1e-6
 # The synthetic flight against its own ground truth: a 3 cm voxel volume and one full swing of
 # the flight; drift well under a voxel.
 SYNTHETIC_MAX_ERROR_M = 0.02
+# A lockstep replay that hears no ground station waits this long for each keyframe: short, so
+# that the 9 keyframes of the sample cost under 2 s.
+NO_GROUND_WAIT_S = 0.2
 # The longest wait for kinfly-fw to start flying (a loaded machine is slow, never this slow).
 STARTUP_TIMEOUT_S = 60.0
 
@@ -85,6 +89,8 @@ def test_dataset_replay_matches_the_log_replay(sample_log: Path, sample_dir: Pat
      'link.lcm_url "udpm://10.1.2.3:7667": 10.1.2.3 is not a multicast group'),
     (["--link.lcm_url", "udpm://239.255.76.67:0"], "the port must be in [1, 65535]"),
     (["--link.lcm_url", "udpm://drone.local:7667"], '"drone.local" is not an IPv4 address'),
+    # Frames paced to their capture times cannot wait for the ground.
+    (["--source.lockstep", "true"], "source.lockstep needs source.realtime = false"),
 ])
 def test_bad_configuration_refuses_to_start(sample_log: Path, args: list[str],
                                             message: str) -> None:
@@ -245,3 +251,58 @@ def test_flight_over_lcm_keyframes_bit_exact_and_corrections_checked(
     received = json.loads(ground_out)
     assert received["received"] == sent > 0
     assert received["bit_exact"] is True
+
+
+def lockstep_flight(netns: list[str], out: Path) -> np.ndarray:
+    """The sample replayed as fast as possible in lockstep against the real kinfly-ground
+    (scripts/demo.py's flight); every correction sent was applied. The drone's published poses."""
+    out.mkdir()
+    key = demo.make_key(out / "vehicle.key")
+    drone = [*demo.drone_command(demo.SAMPLE_LOG, key=key, trajectory=out / "drone.tum"),
+             "--source.realtime", "false", "--source.lockstep", "true"]
+    flight = demo.fly(netns, demo.ground_command(out, key=key), [drone], quiet=True)
+    assert flight.drone_rcs == [0] and flight.ground_rc == 0, flight.ground_output
+    assert "no answer from the ground station" not in flight.drone_output, flight.drone_output
+    counts = summary(flight.drone_output)
+    sent = json.loads((out / "summary.json").read_text())["vehicles"]["1"]["keyframes"]
+    assert counts.processed == 60 and counts.keyframes_sent == sent["keyframes_fused"] > 0
+    assert counts.applied == sent["corrections_sent"] == counts.keyframes_sent
+    return read_tum(out / "drone.tum")
+
+
+def test_lockstep_replays_against_the_ground_are_the_same(netns: list[str],
+                                                          tmp_path: Path) -> None:
+    """source.lockstep: each keyframe's correction applies from the next frame on, however fast
+    the drone runs, so two replays as fast as possible against the ground give one trajectory
+    (without lockstep they differ by up to 14 mm: docs/firmware.md). The first correction that
+    moves the drone applies at the frame after its keyframe."""
+    first = lockstep_flight(netns, tmp_path / "first")
+    second = lockstep_flight(netns, tmp_path / "second")
+    assert first.shape == second.shape == (60, 8)
+    assert np.array_equal(first[:, 0], second[:, 0])
+    assert np.abs(first[:, 1:] - second[:, 1:]).max() < SAME_ENGINE_TOLERANCE_M
+    alone = tmp_path / "alone.tum"
+    run = subprocess.run(firmware("--source.path", demo.SAMPLE_LOG, "--source.realtime", "false",
+                                  "--output.trajectory", alone),
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    moved = np.flatnonzero(np.abs(read_tum(alone)[:, 1:4] - first[:, 1:4]).max(axis=1)
+                           > SAME_ENGINE_TOLERANCE_M)
+    assert moved.size > 0
+    keyframe_times = np.loadtxt(tmp_path / "first" / "trajectory_onboard.tum")[:, 0]
+    first_moved_after = np.searchsorted(first[:, 0], keyframe_times, side="right")
+    assert moved[0] in first_moved_after, (moved[0], first_moved_after)
+
+
+def test_lockstep_without_a_ground_station_goes_on(sample_log: Path) -> None:
+    """No ground station answers: each keyframe waits link.final_wait_s, says so, and the replay
+    still flies every frame."""
+    run = subprocess.run(firmware("--source.path", sample_log, "--source.realtime", "false",
+                                  "--source.lockstep", "true", "--link.final_wait_s",
+                                  NO_GROUND_WAIT_S),
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    counts = summary(run.stdout)
+    assert counts.processed == 60 and counts.keyframes_sent > 0
+    assert ("odometry: lockstep: no answer from the ground station to keyframe 0 within 0.2 s"
+            in run.stdout + run.stderr)

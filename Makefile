@@ -172,7 +172,7 @@ eval: deps-demo
 
 # Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
 # runs on one thread and fails only if a frame does not come back bit for bit. The link bench
-# needs root (or sudo) for its network namespace.
+# needs root (or sudo) for its network namespace, and nft for its lossy links.
 bench: deps-bench
 	$(call build_programs,$(BENCH_PROGRAMS))
 	mkdir -p $(REPO_ROOT)/out/bench

@@ -57,6 +57,9 @@ test_packages=(
   # software Vulkan (Mesa's lavapipe), the X libraries it loads at run time, and the certificates
   # rerun's control client loads even for http to 127.0.0.1
   xvfb libvulkan1 mesa-vulkan-drivers libxcursor1 libxi6 libxkbcommon-x11-0 ca-certificates
+  # tests/system/test_link_shape.py: nft for the Wi-Fi-like link's packet loss
+  # (scripts/netns.py, LinkShape; its cap is tc, from iproute2)
+  nftables
 )
 
 # fuzz (make fuzz): clang with libFuzzer, and clang's OpenMP runtime (the project configures
@@ -83,9 +86,10 @@ image_packages=(
 )
 
 # bench (make bench): callgrind for the drone's instructions per frame
-# (tests/bench/bench_onboard.py); the group also makes .venv-bench (Open3D).
+# (tests/bench/bench_onboard.py), nft for the lossy links of tests/bench/bench_link.py
+# (scripts/netns.py); the group also makes .venv-bench (Open3D).
 bench_packages=(
-  valgrind
+  valgrind nftables
 )
 
 all_groups=(demo unit test fuzz aarch64 image bench)
@@ -112,12 +116,14 @@ groups it uses:
   demo     make demo, make eval: the C++ build of the programs, Python with its headers, `ip`;
            .venv from requirements.txt with the ground package (ground/)
   unit     make test-asan: the C++ build and GoogleTest, no Python
-  test     make test: demo + unit + what the integration tests use
+  test     make test: demo + unit + what the integration tests use (nft for the
+           Wi-Fi-like link)
   fuzz     make fuzz: unit + clang with libFuzzer
   aarch64  make firmware-aarch64, make package-aarch64: cross compiler, qemu-user, mmdebstrap
   image    make image: aarch64 + qemu-user-static, binfmt-support and the disk image tools
            (make test-aarch64 installs demo, unit and image)
-  bench    make bench: demo + valgrind; .venv-bench from requirements-bench.txt (Open3D)
+  bench    make bench: demo + valgrind, nft; .venv-bench from requirements-bench.txt
+           (Open3D)
   all      every group above (make deps)
 
 The Debian packages each group adds to those it includes:

@@ -6,10 +6,11 @@ it the tests that need it are skipped on a developer's machine, but fail under C
 a skip would hide that the accuracy checks never ran."""
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -20,7 +21,7 @@ sys.path.insert(0, str(REPO_ROOT / "tests" / "eval"))
 sys.path.insert(0, str(REPO_ROOT / "scripts"))  # netns.py, shared with make demo
 
 import kinfly_eval  # noqa: E402  (needs the sys.path entry above)
-from netns import NetnsUnavailable, network_namespace  # noqa: E402
+from netns import LinkShape, NetnsUnavailable, network_namespace  # noqa: E402
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -115,6 +116,12 @@ def replica_dir(shared_data: Path) -> Path:
     return _require_shared(shared_data / kinfly_eval.REPLICA_SUBDIR)
 
 
+def _no_netns(err: NetnsUnavailable) -> None:
+    if os.environ.get("CI"):
+        pytest.fail(f"CI must run the multi-process LCM tests: {err}", pytrace=False)
+    pytest.skip(str(err))
+
+
 @pytest.fixture
 def netns() -> Iterator[list[str]]:
     """A private network namespace (scripts/netns.py) for LCM between processes; yields the
@@ -123,9 +130,23 @@ def netns() -> Iterator[list[str]]:
         with network_namespace("test") as prefix:
             yield prefix
     except NetnsUnavailable as err:
-        if os.environ.get("CI"):
-            pytest.fail(f"CI must run the multi-process LCM tests: {err}", pytrace=False)
-        pytest.skip(str(err))
+        _no_netns(err)
+
+
+@pytest.fixture
+def wifi_netns() -> Iterator[Callable[[LinkShape], list[str]]]:
+    """Makes private network namespaces whose `lo` is shaped like a Wi-Fi link:
+    `prefix = wifi_netns(LinkShape(loss=0.05, loss_run_packets=5))` (scripts/netns.py), as many
+    as the test asks for, all removed after it. Unavailable: a skip here, a failure under CI."""
+    with contextlib.ExitStack() as namespaces:
+        def make(shape: LinkShape) -> list[str]:
+            try:
+                return namespaces.enter_context(network_namespace("wifi", shape))
+            except NetnsUnavailable as err:
+                _no_netns(err)
+                raise  # not reached: skip and fail raise
+
+        yield make
 
 
 @pytest.fixture(scope="session")

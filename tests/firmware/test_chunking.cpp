@@ -4,6 +4,9 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <atomic>
+#include <cstdlib>
+#include <new>
 #include <cmath>
 #include <cstdio>
 #include <numeric>
@@ -13,6 +16,17 @@
 #include "kinfly/link/channels.h"
 #include "kinfly/link/chunking.h"
 #include "kinfly/link/decode.h"
+
+// Heap allocations by this program, for the steady-state test below. Not inlined, so that GCC
+// does not see free() meet a pointer from operator new.
+static std::atomic<int64_t> g_allocations{0};
+[[gnu::noinline]] void* operator new(size_t size) {
+  ++g_allocations;
+  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
+  throw std::bad_alloc();
+}
+[[gnu::noinline]] void operator delete(void* p) noexcept { std::free(p); }
+[[gnu::noinline]] void operator delete(void* p, size_t) noexcept { std::free(p); }
 
 namespace kinfly::link {
 namespace {
@@ -218,6 +232,15 @@ TEST(ChunkEncoder, RefusesWhatTheWireCannotCarry) {
   EXPECT_FALSE(encoder.encode(one.data(), static_cast<size_t>(maxKeyframeMessageBytes(DecodeBounds())) + 1,
                               ids(1), 1)
                    .ok());
+  depth_keyframe_t keyframe{};
+  keyframe.payload_size = 10;  // more than the (empty) payload holds
+  EXPECT_FALSE(encoder.encode(keyframe, 1).ok());
+  keyframe.payload.assign(10, 1);
+  keyframe.keyframe_id = 4;
+  const auto span = encoder.encode(keyframe, 1);
+  ASSERT_TRUE(span.ok()) << span.status().message();
+  EXPECT_EQ(span->begin()->message_bytes, keyframe.getEncodedSize());
+  EXPECT_EQ(span->begin()->keyframe_id, 4);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -289,6 +312,32 @@ TEST(ChunkAssembler, AnyKOfNRecoverInAnyOrder) {
       EXPECT_EQ(assembler.message(), message) << c.name;
     }
   }
+}
+
+// Once the encoder's kept keyframes and the assembler's slots have grown to the keyframe size,
+// neither allocates: encoding, sending through datagrams, losses rebuilt, and completion.
+TEST(ChunkAssembler, NothingAllocatesInSteadyState) {
+  ChunkEncoder encoder({});
+  ChunkAssembler assembler(kVehicle, {});
+  const auto message = randomMessage(50'000, 18);
+  std::vector<uint8_t> datagram(2000);
+  const auto run = [&](int64_t first_id, int keyframes) {
+    for (int64_t id = first_id; id < first_id + keyframes; ++id) {
+      const auto span = encoder.encode(message.data(), message.size(), ids(id), 4);
+      ASSERT_TRUE(span.ok());
+      for (const keyframe_chunk_t& chunk : *span) {
+        if (chunk.index == static_cast<int16_t>(id % 7)) continue;  // one lost per keyframe
+        const int size = chunk.encode(datagram.data(), 0, static_cast<int>(datagram.size()));
+        ASSERT_GT(size, 0);
+        assembler.receive(datagram.data(), static_cast<size_t>(size));
+      }
+    }
+  };
+  run(0, 20);  // more than repair_keyframes and max_keyframes: every buffer has grown
+  const int64_t before = g_allocations.load();
+  run(20, 20);
+  EXPECT_EQ(g_allocations.load() - before, 0);
+  EXPECT_EQ(assembler.counters().keyframes_completed, 40);
 }
 
 // ---------------------------------------------------------------------------------------------

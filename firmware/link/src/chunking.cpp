@@ -234,11 +234,14 @@ int ChunkEncoder::originalsPerGroup(int64_t message_bytes) const {
 }
 
 StatusOr<ChunkSpan> ChunkEncoder::encode(const depth_keyframe_t& keyframe, int recovery) {
+  // lcm-gen's encoder reads payload_size bytes whatever the vector holds.
+  if (keyframe.payload_size < 0 || static_cast<size_t>(keyframe.payload_size) > keyframe.payload.size())
+    return Status::error("the keyframe's payload_size exceeds its payload");
   const int size = keyframe.getEncodedSize();
   if (size <= 0) return Status::error("the keyframe cannot be encoded");
   fit(&encoded_, static_cast<size_t>(size));
   if (keyframe.encode(encoded_.data(), 0, size) != size)
-    return Status::error("the keyframe cannot be encoded (payload_size disagrees with payload)");
+    return Status::error("the keyframe cannot be encoded");
   return encode(encoded_.data(), encoded_.size(),
                 {keyframe.utime, keyframe.vehicle_id, keyframe.keyframe_id}, recovery);
 }

@@ -58,6 +58,9 @@ FUZZ_SECONDS ?= 60
 # One seed corpus per fuzz target, tests/fuzz/corpus/<name> for fuzz_<name>.
 FUZZ_TARGETS := depth_decode chunk_assemble
 FUZZ_SEEDS := $(REPO_ROOT)/tests/fuzz/corpus
+# Each target's equal share of FUZZ_SECONDS, at least 1 (libFuzzer reads 0 as "no limit").
+FUZZ_SECONDS_EACH = $(shell echo $$(( $(FUZZ_SECONDS) / $(words $(FUZZ_TARGETS)) > 0 ? \
+                                      $(FUZZ_SECONDS) / $(words $(FUZZ_TARGETS)) : 1 )))
 FUSE := $(BUILD_DIR)/bin/kinfly-fuse
 CODEC_BENCH := $(BUILD_DIR)/bin/kinfly-codec-bench
 MESH_BENCH := $(BUILD_DIR)/bin/kinfly-mesh-bench
@@ -138,9 +141,7 @@ fuzz: deps-fuzz
 	cmake --build $(FUZZ_DIR) -j $(JOBS) --target $(addprefix fuzz_,$(FUZZ_TARGETS))
 	for name in $(FUZZ_TARGETS); do \
 	  mkdir -p $(FUZZ_DIR)/corpus/$$name; \
-	  $(FUZZ_DIR)/tests/fuzz_$$name \
-	    -max_total_time=$$(( $(FUZZ_SECONDS) / $(words $(FUZZ_TARGETS)) > 0 ? \
-	                         $(FUZZ_SECONDS) / $(words $(FUZZ_TARGETS)) : 1 )) \
+	  $(FUZZ_DIR)/tests/fuzz_$$name -max_total_time=$(FUZZ_SECONDS_EACH) \
 	    -print_final_stats=1 -artifact_prefix=$(FUZZ_DIR)/$$name- \
 	    $(FUZZ_DIR)/corpus/$$name $(FUZZ_SEEDS)/$$name; \
 	done

@@ -11,8 +11,9 @@
 #                   build/bin/. Installs nothing.
 #   make test       deps test + build + C++ unit tests (ctest) + Python tests (pytest)
 #   make test-asan  deps unit; unit tests built with AddressSanitizer + UBSan in build-asan/
-#   make fuzz       deps fuzz; the depth decoder under libFuzzer + ASan/UBSan (clang, build-fuzz/)
-#                   for FUZZ_SECONDS (default 60); `make fuzz-corpus` regenerates its seed corpus
+#   make fuzz       deps fuzz; the depth decoder and the ground's chunk assembly under libFuzzer +
+#                   ASan/UBSan (clang, build-fuzz/), FUZZ_SECONDS (default 60) split between them;
+#                   `make fuzz-corpus` regenerates their seed corpora
 #   make demo       deps demo; builds only kinfly-fw and kinfly-keygen; a recorded flight end to
 #                   end: kinfly-fw replays the shipped LCM log to kinfly-ground over LCM in a
 #                   network namespace; outputs in out/demo
@@ -55,7 +56,12 @@ BUILD_DIR := $(REPO_ROOT)/build
 ASAN_DIR := $(REPO_ROOT)/build-asan
 FUZZ_DIR := $(REPO_ROOT)/build-fuzz
 FUZZ_SECONDS ?= 60
-FUZZ_SEEDS := $(REPO_ROOT)/tests/fuzz/corpus/depth_decode
+# One seed corpus per fuzz target, tests/fuzz/corpus/<name> for fuzz_<name>.
+FUZZ_TARGETS := depth_decode chunk_assemble
+FUZZ_SEEDS := $(REPO_ROOT)/tests/fuzz/corpus
+# Each target's equal share of FUZZ_SECONDS, at least 1 (libFuzzer reads 0 as "no limit").
+FUZZ_SECONDS_EACH = $(shell echo $$(( $(FUZZ_SECONDS) / $(words $(FUZZ_TARGETS)) > 0 ? \
+                                      $(FUZZ_SECONDS) / $(words $(FUZZ_TARGETS)) : 1 )))
 FUSE := $(BUILD_DIR)/bin/kinfly-fuse
 CODEC_BENCH := $(BUILD_DIR)/bin/kinfly-codec-bench
 MESH_BENCH := $(BUILD_DIR)/bin/kinfly-mesh-bench
@@ -126,21 +132,27 @@ test-asan: deps-unit
 	ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1 \
 	  ctest --test-dir $(ASAN_DIR) --output-on-failure -j $(JOBS)
 
-# The committed seeds stay read-only: what libFuzzer finds goes to build-fuzz/corpus, and a crash
-# to build-fuzz/crash-*. Only the codec library and the core types under it are compiled for this
-# build.
+# The committed seeds stay read-only: what libFuzzer finds goes to build-fuzz/corpus/<name>, and a
+# crash to build-fuzz/<name>-crash-*. Only the fuzz targets and the libraries under them (the codec,
+# the link and the engine under it) are compiled for this build. Each target gets an equal share of
+# FUZZ_SECONDS, so the whole run takes as long as one target used to.
 fuzz: deps-fuzz
 	CC=clang CXX=clang++ cmake -S $(REPO_ROOT) -B $(FUZZ_DIR) -G Ninja \
 	  -DCMAKE_BUILD_TYPE=RelWithDebInfo -DKINFLY_FUZZ=ON -DKINFLY_SANITIZE=ON
-	cmake --build $(FUZZ_DIR) --target fuzz_depth_decode
-	mkdir -p $(FUZZ_DIR)/corpus
-	$(FUZZ_DIR)/tests/fuzz_depth_decode -max_total_time=$(FUZZ_SECONDS) -print_final_stats=1 \
-	  -artifact_prefix=$(FUZZ_DIR)/ $(FUZZ_DIR)/corpus $(FUZZ_SEEDS)
+	cmake --build $(FUZZ_DIR) -j $(JOBS) --target $(addprefix fuzz_,$(FUZZ_TARGETS))
+	for name in $(FUZZ_TARGETS); do \
+	  mkdir -p $(FUZZ_DIR)/corpus/$$name; \
+	  $(FUZZ_DIR)/tests/fuzz_$$name -max_total_time=$(FUZZ_SECONDS_EACH) \
+	    -print_final_stats=1 -artifact_prefix=$(FUZZ_DIR)/$$name- \
+	    $(FUZZ_DIR)/corpus/$$name $(FUZZ_SEEDS)/$$name; \
+	done
 
 fuzz-corpus: build
-	rm -rf $(FUZZ_SEEDS)
-	mkdir -p $(FUZZ_SEEDS)
-	$(BUILD_DIR)/tests/make_depth_decode_corpus $(FUZZ_SEEDS)
+	for name in $(FUZZ_TARGETS); do \
+	  rm -rf $(FUZZ_SEEDS)/$$name; \
+	  mkdir -p $(FUZZ_SEEDS)/$$name; \
+	  $(BUILD_DIR)/tests/make_$${name}_corpus $(FUZZ_SEEDS)/$$name; \
+	done
 
 # The drone (kinfly-fw replaying the shipped flight log) and the ground station (kinfly-ground)
 # over LCM multicast in a private network namespace; outputs in out/demo.

@@ -2,11 +2,13 @@
 # proto/CMakeLists.txt, Python in ground/CMakeLists.txt) read this list.
 set(KINFLY_LCM_TYPES
   camera_t
+  chunk_request_t
   depth_keyframe_t
   drone_status_t
   ground_status_t
   ground_truth_t
   imu_t
+  keyframe_chunk_t
   odometry_t
   pose3d_t
   pose_correction_t

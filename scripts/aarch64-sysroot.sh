@@ -18,7 +18,7 @@ source "$repo_root/scripts/aarch64-common.sh"
 # link dependency of the firmware goes here as its Debian -dev package.
 sysroot_packages=(
   libc6-dev libgomp1
-  libeigen3-dev libpng-dev libzstd-dev libsodium-dev liblcm-dev libglib2.0-0
+  libeigen3-dev libpng-dev libzstd-dev libsodium-dev libcm256cc-dev liblcm-dev libglib2.0-0
   libcli11-dev libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev
   libopenni2-dev libusb-1.0-0-dev

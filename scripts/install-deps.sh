@@ -26,9 +26,9 @@ cxx_packages=(
   g++ make cmake ninja-build pkg-config
   # shared/ and its tools (cmake/KinflyDependencies.cmake, shared/CMakeLists.txt)
   libeigen3-dev libpng-dev libzstd-dev libcli11-dev
-  # proto/ (lcm-gen: cmake/FindLCM.cmake) and firmware/link/ (signing); liblcm-bin also has the
-  # lcm-logger that records the demo's flight
-  liblcm-dev liblcm-bin libsodium-dev
+  # proto/ (lcm-gen: cmake/FindLCM.cmake) and firmware/link/ (signing; erasure coding of keyframe
+  # chunks); liblcm-bin also has the lcm-logger that records the demo's flight
+  liblcm-dev liblcm-bin libsodium-dev libcm256cc-dev
   # firmware/sources/ and app/ (kinfly-fw): logging, the OpenNI2 sensor source and libusb for
   # its hot-plug;
   # tests/tools/oni/ (the OpenNI2 test driver) finds the same OpenNI2

@@ -86,7 +86,7 @@ class Publisher {
   std::string last_problem_;
   bool started_once_ = false;
   bool was_down_ = false;  // since the last message that went out
-  std::array<std::string, static_cast<size_t>(link::Channel::kGroundTruth) + 1> channels_;
+  std::array<std::string, link::kChannelCount> channels_;
   std::vector<uint8_t> buffer_;
 };
 

@@ -86,7 +86,7 @@ Key testKey(uint8_t seed) {
 TEST(Channels, NamesCarryTheVehicleAndParseBack) {
   for (Channel c : {Channel::kDepth, Channel::kKeyframe, Channel::kOdometry, Channel::kImu,
                     Channel::kStatus, Channel::kCorrection, Channel::kGroundStatus,
-                    Channel::kGroundTruth}) {
+                    Channel::kGroundTruth, Channel::kKeyframeChunk, Channel::kChunkRequest}) {
     for (int vehicle : {0, 7, kMaxVehicleId}) {
       const std::string name = channelName(c, vehicle);
       EXPECT_NE(name.find(std::to_string(vehicle)), std::string::npos) << name;
@@ -125,11 +125,11 @@ void expectTrailingPayloadLayout(T message) {
 
 TEST(Channels, GroundSubscriptionsKeepKeyframesApart) {
   const Subscriptions one = groundSubscriptions(7);
-  EXPECT_EQ(one.keyframes, "KINFLY_7_KEYFRAME");
-  EXPECT_EQ(one.others, "KINFLY_7_(?!KEYFRAME$).*");
+  EXPECT_EQ(one.keyframes, "KINFLY_7_KEYFRAME(_CHUNK)?");
+  EXPECT_EQ(one.others, "KINFLY_7_(?!KEYFRAME(_CHUNK)?$).*");
   const Subscriptions every = groundSubscriptions(std::nullopt);
-  EXPECT_EQ(every.keyframes, "KINFLY_[0-9]+_KEYFRAME");
-  EXPECT_EQ(every.others, "KINFLY_[0-9]+_(?!KEYFRAME$).*");
+  EXPECT_EQ(every.keyframes, "KINFLY_[0-9]+_KEYFRAME(_CHUNK)?");
+  EXPECT_EQ(every.others, "KINFLY_[0-9]+_(?!KEYFRAME(_CHUNK)?$).*");
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -120,8 +120,8 @@ def test_channel_names_are_the_links() -> None:
     assert parse_channel("KINFLY_07_IMU") is None
     with pytest.raises(ValueError):
         channel_name(Channel.IMU, MAX_VEHICLE_ID + 1)
-    assert ground_subscriptions(None) == ("KINFLY_[0-9]+_KEYFRAME",
-                                          "KINFLY_[0-9]+_(?!KEYFRAME$).*")
+    assert ground_subscriptions(None) == ("KINFLY_[0-9]+_KEYFRAME(_CHUNK)?",
+                                          "KINFLY_[0-9]+_(?!KEYFRAME(_CHUNK)?$).*")
 
 
 def test_keygen_key_loads_with_the_same_id_and_bad_files_are_refused(tmp_path: Path) -> None:

@@ -11,11 +11,12 @@ from pathlib import Path
 import pytest
 
 from conftest import built
-from kinfly import (depth_keyframe_t, drone_status_t, ground_status_t, ground_truth_t, imu_t,
-                    odometry_t, pose3d_t, pose_correction_t, signed_t)
+from kinfly import (chunk_request_t, depth_keyframe_t, drone_status_t, ground_status_t,
+                    ground_truth_t, imu_t, keyframe_chunk_t, odometry_t, pose3d_t,
+                    pose_correction_t, signed_t)
 
 TYPES = (depth_keyframe_t, odometry_t, imu_t, ground_truth_t, pose_correction_t, drone_status_t,
-         ground_status_t, signed_t)
+         ground_status_t, signed_t, keyframe_chunk_t, chunk_request_t)
 
 # The same samples as tests/system/wire_roundtrip.cpp, written independently: every float is exact
 # in float32, so equal values mean equal bytes.
@@ -92,9 +93,21 @@ def samples() -> dict[type, object]:
     env.mac = bytes(255 - i for i in range(32))
     env.payload = sample_correction().encode()
     env.payload_size = len(env.payload)
+
+    chunk = keyframe_chunk_t()
+    chunk.utime, chunk.vehicle_id, chunk.keyframe_id = 1_700_000_000_123_456, 7, 56
+    chunk.sequence, chunk.message_bytes, chunk.message_digest = 2_024, 3_000, -1_234_567_890_123
+    chunk.groups, chunk.group, chunk.originals, chunk.recovery, chunk.index = 2, 1, 2, 2, 3
+    chunk.block = bytes((i * 13) % 256 for i in range(600))
+    chunk.block_size = len(chunk.block)
+
+    request = chunk_request_t()
+    request.utime, request.vehicle_id, request.keyframe_id = 1_700_000_000_123_456, 7, 56
+    request.group, request.indices = 1, bytes([0, 3, 6])
+    request.index_count = len(request.indices)
     return {depth_keyframe_t: kf, odometry_t: odo, imu_t: imu, ground_truth_t: truth,
             pose_correction_t: sample_correction(), drone_status_t: st, ground_status_t: gs,
-            signed_t: env}
+            signed_t: env, keyframe_chunk_t: chunk, chunk_request_t: request}
 
 
 @pytest.fixture(scope="module")

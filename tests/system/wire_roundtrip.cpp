@@ -159,6 +159,35 @@ signed_t sampleSigned() {
   return m;
 }
 
+keyframe_chunk_t sampleChunk() {
+  keyframe_chunk_t m;
+  m.utime = 1'700'000'000'123'456;
+  m.vehicle_id = 7;
+  m.keyframe_id = 56;
+  m.sequence = 2'024;
+  m.message_bytes = 3'000;
+  m.message_digest = -1'234'567'890'123;
+  m.groups = 2;
+  m.group = 1;
+  m.originals = 2;  // 3000 bytes in 600-byte blocks: 5 blocks, in groups of 3 and 2
+  m.recovery = 2;
+  m.index = 3;
+  for (int i = 0; i < 600; ++i) m.block.push_back(static_cast<uint8_t>((i * 13) % 256));
+  m.block_size = static_cast<int16_t>(m.block.size());
+  return m;
+}
+
+chunk_request_t sampleRequest() {
+  chunk_request_t m;
+  m.utime = 1'700'000'000'123'456;
+  m.vehicle_id = 7;
+  m.keyframe_id = 56;
+  m.group = 1;
+  m.indices = {0, 3, 6};
+  m.index_count = 3;
+  return m;
+}
+
 template <class T>
 std::vector<uint8_t> encode(const T& m) {
   std::vector<uint8_t> bytes(static_cast<size_t>(m.getEncodedSize()));
@@ -208,6 +237,8 @@ bool forEachSample(const std::string& dir) {
   ok &= Op<drone_status_t>::run(dir, sampleDroneStatus());
   ok &= Op<ground_status_t>::run(dir, sampleGroundStatus());
   ok &= Op<signed_t>::run(dir, sampleSigned());
+  ok &= Op<keyframe_chunk_t>::run(dir, sampleChunk());
+  ok &= Op<chunk_request_t>::run(dir, sampleRequest());
   return ok;
 }
 

@@ -9,7 +9,7 @@ namespace {
 
 constexpr const char* kPrefix = "KINFLY_";
 
-constexpr std::array<std::pair<Channel, const char*>, 8> kKinds{{
+constexpr std::array<std::pair<Channel, const char*>, kChannelCount> kKinds{{
     {Channel::kDepth, "DEPTH"},
     {Channel::kKeyframe, "KEYFRAME"},
     {Channel::kOdometry, "ODOMETRY"},
@@ -18,6 +18,8 @@ constexpr std::array<std::pair<Channel, const char*>, 8> kKinds{{
     {Channel::kCorrection, "CORRECTION"},
     {Channel::kGroundStatus, "GROUND_STATUS"},
     {Channel::kGroundTruth, "GROUND_TRUTH"},
+    {Channel::kKeyframeChunk, "KEYFRAME_CHUNK"},
+    {Channel::kChunkRequest, "CHUNK_REQUEST"},
 }};
 
 }  // namespace
@@ -53,8 +55,8 @@ std::string vehicleChannelsRegex(int vehicle_id) {
 
 Subscriptions groundSubscriptions(std::optional<int> vehicle_id) {
   const std::string vehicle = kPrefix + (vehicle_id ? std::to_string(*vehicle_id) : "[0-9]+") + "_";
-  const std::string keyframe = "KEYFRAME";
-  return {vehicle + keyframe, vehicle + "(?!" + keyframe + "$).*"};
+  const std::string keyframes = "KEYFRAME(_CHUNK)?";
+  return {vehicle + keyframes, vehicle + "(?!" + keyframes + "$).*"};
 }
 
 }  // namespace kinfly::link

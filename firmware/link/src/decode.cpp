@@ -5,25 +5,34 @@
 #include <type_traits>
 
 #include "kinfly/link/channels.h"
+#include "kinfly/link/chunking.h"
 
 namespace kinfly::link {
 namespace {
 
+// A signed big-endian integer of 2, 4 or 8 bytes.
 int64_t readBigEndian(const uint8_t* p, int bytes) {
   uint64_t v = 0;
   for (int i = 0; i < bytes; ++i) v = (v << 8) | p[i];
-  return bytes == 4 ? static_cast<int32_t>(static_cast<uint32_t>(v)) : static_cast<int64_t>(v);
+  if (bytes == 2) return static_cast<int16_t>(static_cast<uint16_t>(v));
+  if (bytes == 4) return static_cast<int32_t>(static_cast<uint32_t>(v));
+  return static_cast<int64_t>(v);
 }
 
-// Types whose last two fields are `int32_t payload_size; byte payload[payload_size];`
-// (a unit test checks the layout against the generated encoder).
+// Types whose last two fields are a count and a byte array of that many, `int32_t payload_size;
+// byte payload[payload_size];` or an int16 count (a unit test checks the layout against the
+// generated encoder): the count's width, 0 for the types without such an array.
 template <class T>
-constexpr bool kHasTrailingPayload =
-    std::is_same_v<T, depth_keyframe_t> || std::is_same_v<T, signed_t>;
+constexpr int kTrailingCountBytes =
+    std::is_same_v<T, depth_keyframe_t> || std::is_same_v<T, signed_t>              ? 4
+    : std::is_same_v<T, keyframe_chunk_t> || std::is_same_v<T, chunk_request_t> ? 2
+                                                                                  : 0;
 
 template <class T>
 int payloadBound(const DecodeBounds& bounds) {
   if constexpr (std::is_same_v<T, depth_keyframe_t>) return bounds.max_keyframe_payload_bytes;
+  if constexpr (std::is_same_v<T, keyframe_chunk_t>) return keyframe_chunk_t::MAX_BLOCK_BYTES;
+  if constexpr (std::is_same_v<T, chunk_request_t>) return chunk_request_t::MAX_INDICES;
   return bounds.max_signed_payload_bytes;
 }
 
@@ -131,6 +140,19 @@ std::string fieldProblem(const signed_t& m, const DecodeBounds&) {
   return vehicleProblem(m.vehicle_id);
 }
 
+std::string fieldProblem(const keyframe_chunk_t& m, const DecodeBounds& bounds) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  return chunkProblem(m, maxKeyframeMessageBytes(bounds));
+}
+
+std::string fieldProblem(const chunk_request_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (m.keyframe_id < 0) return "keyframe_id is negative";
+  if (m.group < 0) return "group is negative";
+  if (m.index_count < 1) return "no indices";
+  return {};
+}
+
 }  // namespace
 
 Status DecodeBounds::validate() const {
@@ -143,6 +165,10 @@ Status DecodeBounds::validate() const {
   if (max_signed_payload_bytes <= 0 || max_signed_payload_bytes > (1 << 20))
     return Status::error("max_signed_payload_bytes must be in (0, 1 MiB]");
   return {};
+}
+
+int64_t maxKeyframeMessageBytes(const DecodeBounds& bounds) {
+  return depth_keyframe_t().getEncodedSize() + int64_t{bounds.max_keyframe_payload_bytes};
 }
 
 const char* toString(DecodeStatus status) {
@@ -175,12 +201,13 @@ DecodeResult decodeMessage(const void* data, size_t size, const DecodeBounds& bo
   // Encoded size with an empty variable part: the fingerprint and every fixed field.
   const size_t fixed_size = static_cast<size_t>(T().getEncodedSize());
   size_t expected = fixed_size;
-  if constexpr (kHasTrailingPayload<T>) {
+  if constexpr (kTrailingCountBytes<T> != 0) {
     if (size < fixed_size) return fail(DecodeStatus::kTruncated, "header");
-    const int64_t declared = readBigEndian(bytes + fixed_size - 4, 4);
+    const int count_bytes = kTrailingCountBytes<T>;
+    const int64_t declared = readBigEndian(bytes + fixed_size - count_bytes, count_bytes);
     if (declared < 0 || declared > payloadBound<T>(bounds))
       return fail(DecodeStatus::kOutOfBounds,
-                  "payload_size " + std::to_string(declared) + " outside [0, " +
+                  "array size " + std::to_string(declared) + " outside [0, " +
                       std::to_string(payloadBound<T>(bounds)) + "]");
     expected += static_cast<size_t>(declared);
   }
@@ -209,6 +236,8 @@ KINFLY_INSTANTIATE_DECODE(imu_t)
 KINFLY_INSTANTIATE_DECODE(odometry_t)
 KINFLY_INSTANTIATE_DECODE(pose_correction_t)
 KINFLY_INSTANTIATE_DECODE(signed_t)
+KINFLY_INSTANTIATE_DECODE(keyframe_chunk_t)
+KINFLY_INSTANTIATE_DECODE(chunk_request_t)
 #undef KINFLY_INSTANTIATE_DECODE
 
 }  // namespace kinfly::link

@@ -4,6 +4,7 @@
 // KINFLY_<vehicle id>_<KIND>.
 #pragma once
 
+#include <cstddef>
 #include <optional>
 #include <string>
 #include <utility>
@@ -19,7 +20,11 @@ enum class Channel {
   kCorrection,    // signed_t around pose_correction_t (ground -> drone)
   kGroundStatus,  // ground_status_t (ground -> drone)
   kGroundTruth,   // ground_truth_t, in converted datasets and from the simulator
+  kKeyframeChunk, // keyframe_chunk_t, keyframes cut into FEC-coded datagrams (drone -> ground)
+  kChunkRequest,  // chunk_request_t, resends the ground asks for (ground -> drone)
 };
+// Channels are numbered from 0 in the order above (arrays of per-channel names index by it).
+constexpr size_t kChannelCount = static_cast<size_t>(Channel::kChunkRequest) + 1;
 
 constexpr int kMaxVehicleId = 65535;  // ids are 0..kMaxVehicleId
 
@@ -36,8 +41,8 @@ std::optional<ParsedChannel> parseChannel(const std::string& name);
 std::string vehicleChannelsRegex(int vehicle_id);
 
 // The ground station's two subscriptions (LCM anchors the patterns), so that keyframes have a
-// queue of their own: one vehicle's keyframes and its other channels, or every vehicle's when
-// vehicle_id is nullopt.
+// queue of their own: one vehicle's keyframes (whole or in chunks) and its other channels, or
+// every vehicle's when vehicle_id is nullopt.
 struct Subscriptions {
   std::string keyframes, others;
 };

@@ -8,12 +8,14 @@
 #include <cstdint>
 #include <string>
 
+#include "kinfly/chunk_request_t.hpp"
 #include "kinfly/core/status.h"
 #include "kinfly/depth_keyframe_t.hpp"
 #include "kinfly/drone_status_t.hpp"
 #include "kinfly/ground_status_t.hpp"
 #include "kinfly/ground_truth_t.hpp"
 #include "kinfly/imu_t.hpp"
+#include "kinfly/keyframe_chunk_t.hpp"
 #include "kinfly/odometry_t.hpp"
 #include "kinfly/pose_correction_t.hpp"
 #include "kinfly/signed_t.hpp"
@@ -28,6 +30,10 @@ struct DecodeBounds {
   int max_signed_payload_bytes = signed_t::MAX_PAYLOAD_BYTES;            // [bytes] (0, 1 MiB]
   Status validate() const;
 };
+
+// [bytes] An encoded depth_keyframe_t with the largest payload the bounds allow: the bound on a
+// chunked keyframe's message_bytes.
+int64_t maxKeyframeMessageBytes(const DecodeBounds& bounds);
 
 enum class DecodeStatus {
   kOk,

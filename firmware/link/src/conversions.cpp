@@ -96,6 +96,12 @@ void fillDroneStatus(const DroneHealth& h, drone_status_t* message) {
   s.keyframes_sent = h.keyframes_sent;
   s.keyframes_dropped = h.keyframes_dropped;
   s.last_keyframe_id = h.last_keyframe_id;
+  s.send_budget_bps = h.send_budget_bps;
+  s.redundancy = h.redundancy;
+  s.keyframe_scale = static_cast<int8_t>(h.keyframe_scale);
+  s.chunks_sent = h.chunks_sent;
+  s.chunks_resent = h.chunks_resent;
+  s.keyframes_skipped = h.keyframes_skipped;
   s.tracking_state = trackingCode(h.tracking);
   switch (h.link) {
     case LinkState::kUnknown: s.link_state = drone_status_t::LINK_UNKNOWN; break;

@@ -75,6 +75,12 @@ struct DroneHealth {
   int64_t keyframes_sent = 0;
   int64_t keyframes_dropped = 0;  // not sent: the link was busy or down
   int64_t last_keyframe_id = -1;  // the highest id sent, -1 before the first
+  float send_budget_bps = 0.f;    // [bit/s] what keyframe chunks may use now
+  float redundancy = 0.f;         // recovery chunks per original chunk, last keyframe
+  int keyframe_scale = 1;         // 1: full-size images, 2: half width and height, ...
+  int64_t chunks_sent = 0;        // keyframe chunks, resends included
+  int64_t chunks_resent = 0;      // answers to the ground's chunk requests
+  int64_t keyframes_skipped = 0;  // not sent: a newer keyframe was ready first
   std::optional<TrackingStatus> tracking;  // the odometry's last verdict; nullopt before a frame
   LinkState link = LinkState::kUnknown;
   SensorState sensor = SensorState::kStreaming;

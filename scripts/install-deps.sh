@@ -207,12 +207,13 @@ ensure_venv() {
 }
 
 # The ground package (ground/, built by scikit-build-core: lcm-gen for the Python messages and the
-# native module over shared/) is reinstalled into VENV whenever a file it is built from changes.
+# native module over shared/ and firmware/link) is reinstalled into VENV whenever a file it is
+# built from changes.
 ensure_ground_package() {
   local venv="$1"
   local stamp="$venv/.ground.sha256"
   local want
-  want="$(cd "$repo_root" && find ground proto cmake shared -type f \
+  want="$(cd "$repo_root" && find ground proto cmake shared firmware/link -type f \
             -not -path '*/__pycache__/*' -not -name '*.pyc' -print0 |
           sort -z | xargs -0 sha256sum | sha256sum | cut -d' ' -f1)"
   if [[ -f "$stamp" && "$(cat "$stamp")" == "$want" ]]; then

@@ -176,6 +176,44 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "when the source ends: the longest wait for the ground's last corrections; "
                   "with source.lockstep, for each keyframe's [s]")
       ->capture_default_str();
+  app->add_option("--link.mtu_bytes", l.chunks.mtu_bytes,
+                  "IP MTU of the link [bytes]: no keyframe chunk is larger, so IP never "
+                  "fragments one")
+      ->capture_default_str();
+  app->add_option("--link.fec_group_chunks", l.chunks.max_originals_per_group,
+                  "original chunks per erasure-coding group at most [1, 255]")
+      ->capture_default_str();
+  app->add_option("--link.fec_target_failure", l.redundancy.target_failure,
+                  "probability a keyframe group may be lost at the measured loss (0, 0.1]")
+      ->capture_default_str();
+  app->add_option("--link.fec_min_loss", l.redundancy.min_loss_fraction,
+                  "loss fraction assumed at least when choosing the redundancy [0, 0.5]")
+      ->capture_default_str();
+  app->add_option("--link.repair_keyframes", l.chunks.repair_keyframes,
+                  "last keyframes whose chunks are kept to answer the ground's requests")
+      ->capture_default_str();
+  app->add_option("--link.repair_chunks", l.chunks.repair_chunks_per_keyframe,
+                  "chunks resent per keyframe at most")
+      ->capture_default_str();
+  app->add_option("--link.start_rate_bps", l.rate.start_bps,
+                  "keyframes' send budget before the ground reports [bit/s]")
+      ->capture_default_str();
+  app->add_option("--link.min_rate_bps", l.rate.min_bps, "the budget never goes below [bit/s]")
+      ->capture_default_str();
+  app->add_option("--link.max_rate_bps", l.rate.max_bps, "the budget never goes above [bit/s]")
+      ->capture_default_str();
+  app->add_option("--link.queue_low_ms", l.rate.queue_low_ms,
+                  "chunks' queueing delay below which the budget may grow [ms]")
+      ->capture_default_str();
+  app->add_option("--link.queue_high_ms", l.rate.queue_high_ms,
+                  "chunks' queueing delay above which the budget shrinks [ms]")
+      ->capture_default_str();
+  app->add_option("--link.min_keyframe_rate_hz", l.scale.min_rate_hz,
+                  "keyframe rate below which keyframe images shrink [Hz]")
+      ->capture_default_str();
+  app->add_option("--link.max_scale", l.scale.max_scale,
+                  "smallest keyframe image: 1/max_scale of the width and height {1, 2, 4}")
+      ->capture_default_str();
   app->add_option("--corrections.history_keyframes", c->corrections.history_keyframes,
                   "keyframes whose onboard pose is kept for corrections")
       ->capture_default_str();
@@ -228,7 +266,16 @@ Status LinkConfig::validate() const {
                       outOfRange("link.keyframe_queue", keyframe_queue, 1, 64),
                       outOfRange("link.status_rate_hz", status_rate_hz, 1, 100),
                       outOfRange("link.timeout_s", timeout_s, 0, 60, Bound::kOpen),
-                      outOfRange("link.final_wait_s", final_wait_s, 0, 60));
+                      outOfRange("link.final_wait_s", final_wait_s, 0, 60),
+                      namingKeys(chunks.validate(),
+                                 {{"mtu_bytes", "link.mtu_bytes"},
+                                  {"max_originals_per_group", "link.fec_group_chunks"},
+                                  {"repair_keyframes", "link.repair_keyframes"},
+                                  {"repair_chunks_per_keyframe", "link.repair_chunks"}}),
+                      namingKeys(redundancy.validate(),
+                                 {{"target_failure", "link.fec_target_failure"},
+                                  {"min_loss_fraction", "link.fec_min_loss"}}),
+                      rate.validate(), scale.validate());
 }
 
 Status OutputConfig::validate() const {

@@ -14,7 +14,9 @@
 #include "kinfly/core/status.h"
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/fw/keyframe_selector.h"
+#include "kinfly/fw/send_budget.h"
 #include "kinfly/fw/sensor_watch.h"
+#include "kinfly/link/chunking.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/sources/dataset_source.h"
 #include "kinfly/sources/log_source.h"
@@ -73,6 +75,17 @@ struct LinkConfig {                              // [link]
   // wait for the ground's corrections of the last keyframes before exiting; with
   // source.lockstep, how long each keyframe waits for its own
   double final_wait_s = 5.0;
+  // Keyframes in chunks (docs/wire.md): mtu_bytes, fec_group_chunks (max_originals_per_group),
+  // repair_keyframes, repair_chunks (repair_chunks_per_keyframe).
+  link::ChunkEncoder::Params chunks;
+  // fec_target_failure (target_failure), fec_min_loss (min_loss_fraction): the recovery chunks
+  // per group, from the loss the ground reports.
+  link::RedundancyParams redundancy;
+  // start_rate_bps, min_rate_bps, max_rate_bps, queue_low_ms, queue_high_ms: the keyframes'
+  // send budget, which follows what the link carries.
+  LinkRate::Params rate;
+  // min_keyframe_rate_hz, max_scale: smaller keyframe images when the budget is short.
+  KeyframeScale::Params scale;
   Status validate() const;
 };
 

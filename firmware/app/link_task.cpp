@@ -14,13 +14,16 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
     : config_(config), anchor_(anchor), counters_(counters), keyframes_(keyframes),
       capture_queue_(capture_queue), stop_token_(stop), camera_(camera), depth_scale_m_(depth_scale_m),
       codec_(DepthCodec::Params()), job_(withDepthImage<KeyframeJob>(camera)),
-      watch_(config.source.watch),
+      scaled_(camera.width / 2, camera.height / 2), chunks_(config.link.chunks),
+      // A burst of two chunks: the budget's pace holds from the first keyframe on.
+      bucket_(config.link.rate.start_bps / 8.0, 2.0 * config.link.chunks.mtu_bytes),
+      rate_(config.link.rate), watch_(config.source.watch),
       publisher_("link", config.link.lcm_url, config.vehicle.id, [this](lcm::LCM& lcm) {
         // Every channel of this vehicle but its own keyframes, which multicast loops back: LCM
         // reassembles a fragmented message (an allocation the size of a keyframe) only on a
         // channel someone subscribed to. LCM's patterns are GLib (PCRE) regular expressions.
         const std::string channels =
-            "(?!" + link::channelName(link::Channel::kKeyframe, config_.vehicle.id) + "$)" +
+            "(?!" + link::channelName(link::Channel::kKeyframeChunk, config_.vehicle.id) + "$)" +
             link::vehicleChannelsRegex(config_.vehicle.id);
         lcm_subscribe(lcm.getUnderlyingLCM(), channels.c_str(), &LinkTask::onMessage, this);
       }) {
@@ -32,10 +35,14 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
 }
 
 void LinkTask::run() {
+  {
+    Clock::time_point next_status = Clock::now();
+    while (!stop_) serve(&next_status);
+  }
+  // What the odometry selected before it stopped still goes out (the newest of the queue), at
+  // the budget's pace, while the network is there.
   Clock::time_point next_status = Clock::now();
-  while (!stop_) serve(&next_status);
-  // What the odometry selected before it stopped still goes out (at most a queue's worth).
-  while (keyframes_->pop(&job_, std::chrono::milliseconds(0))) send(job_);
+  while ((sending() || keyframes_->size() > 0) && publisher_.up()) serve(&next_status);
   if (await_corrections_) awaitCorrections();
   watchSensor();
   publishStatus(/*is_final=*/true);
@@ -44,12 +51,30 @@ void LinkTask::run() {
 void LinkTask::serve(Clock::time_point* next_status) {
   using namespace std::chrono_literals;
   publisher_.maintain();
+  if (!sending()) takeKeyframe();
   if (lcm::LCM* lcm = publisher_.lcm()) {
-    lcm->handleTimeout(10);
-  } else if (keyframes_->pop(&job_, 10ms)) {  // nothing to hear: wait for work instead
-    send(job_);
+    // Listens until the next chunk is due (at most 10 ms, so a new keyframe waits no longer).
+    const double wait_s =
+        sending() ? bucket_.waitS(pending_.first[next_chunk_].getEncodedSize(),
+                                  secondsSince(began_))
+                  : 0.01;
+    lcm->handleTimeout(static_cast<int>(std::clamp(wait_s * 1e3, 0.0, 10.0)));
+    sendChunks();
+  } else {
+    // Nothing to hear and nothing can go out: what was being sent is lost (counted), and the
+    // odometry's keyframes are taken (and dropped) as they come.
+    if (sending()) {
+      ++counters_->keyframes_failed;
+      next_chunk_ = pending_.size();
+    }
+    if (keyframes_->pop(&job_, 10ms)) {
+      ++counters_->keyframes_failed;
+      if (send_log_.allow(secondsSince(began_)))
+        spdlog::warn("link: keyframe {} not sent: the network is down ({} more since the last "
+                     "report)",
+                     job_.keyframe_id, send_log_.suppressed());
+    }
   }
-  while (keyframes_->pop(&job_, 0ms)) send(job_);
   if (Clock::now() >= *next_status) {
     watchSensor();
     publishStatus();
@@ -107,6 +132,10 @@ void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
     onGroundStatus(rbuf);
     return;
   }
+  if (parsed->channel == link::Channel::kChunkRequest) {
+    onChunkRequest(rbuf);
+    return;
+  }
   if (parsed->channel != link::Channel::kCorrection) return;  // another drone's traffic
   last_ground_heard_ = Clock::now();
   if (!corrections_) {
@@ -148,28 +177,142 @@ void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {
     ++rejects_.malformed;
   else if (ground_status_.vehicle_id != config_.vehicle.id)
     ++rejects_.wrong_vehicle;
+  if (!ground_status_heard_) return;
+  rate_.onReport(ground_status_.goodput_bps, ground_status_.queue_delay_ms, limited_,
+                 secondsSince(began_));
+  bucket_.setRate(rate_.budgetBps() / 8.0);
+  limited_ = false;
 }
 
-void LinkTask::send(const KeyframeJob& job) {
+void LinkTask::onChunkRequest(const lcm_recv_buf_t* rbuf) {
+  last_ground_heard_ = Clock::now();
+  const link::DecodeResult r =
+      link::decodeMessage(rbuf->data, rbuf->data_size, link::DecodeBounds(), &request_);
+  if (!r.ok()) {
+    ++rejects_.malformed;
+    return;
+  }
+  if (request_.vehicle_id != config_.vehicle.id) {
+    ++rejects_.wrong_vehicle;
+    return;
+  }
+  // Answered at once, ahead of the keyframe being sent (the ground still wants this one), and
+  // paid from the same budget, so the next chunks wait for it.
+  for (int i = 0; i < request_.index_count; ++i) {
+    const keyframe_chunk_t* chunk = chunks_.resend(request_, i);
+    if (!chunk) break;  // no longer kept, or its repair budget spent
+    bucket_.charge(chunk->getEncodedSize(), secondsSince(began_));
+    if (!publishChunk(*chunk)) return;
+    ++chunks_resent_;
+  }
+}
+
+bool LinkTask::takeKeyframe() {
+  using namespace std::chrono_literals;
+  bool taken = false;
+  while (keyframes_->pop(&job_, 0ms)) {
+    if (taken) ++keyframes_skipped_;
+    taken = true;
+  }
+  if (taken) startKeyframe(job_);
+  return taken;
+}
+
+namespace {
+
+// Every scale-th pixel of every scale-th row, as PinholeCamera::scaled(scale) describes: raw
+// values are kept (an average would invent depths across edges).
+void subsample(ImageView<const uint16_t> in, int scale, ImageView<uint16_t> out) {
+  for (int y = 0; y < out.height(); ++y) {
+    const uint16_t* src = in.row(y * scale);
+    uint16_t* dst = out.row(y);
+    for (int x = 0; x < out.width(); ++x) dst[x] = src[x * scale];
+  }
+}
+
+}  // namespace
+
+void LinkTask::startKeyframe(const KeyframeJob& job) {
+  // Smaller images only when even a slow stream of these would not fit the budget.
+  const int scale = KeyframeScale::choose(config_.link.scale, scale_, rate_.budgetBps() / 8.0,
+                                          keyframe_wire_bytes_);
+  if (scale != scale_) {
+    spdlog::info("link: keyframes at 1/{} of the size from keyframe {} (send budget {:.2f} "
+                 "Mbit/s)",
+                 scale, job.keyframe_id, rate_.budgetBps() * 1e-6);
+    keyframe_wire_bytes_ *= static_cast<double>(scale_ * scale_) / (scale * scale);
+    scale_ = scale;
+  }
+  ImageView<const uint16_t> depth = job.depth.view();
+  if (scale_ > 1) {
+    ImageView<uint16_t> small(scaled_.view().data(), camera_.width / scale_,
+                              camera_.height / scale_);
+    subsample(depth, scale_, small);
+    depth = small;
+  }
   depth_keyframe_t& m = message_;
   m.vehicle_id = config_.vehicle.id;
   link::fillKeyframe({job.utime, job.frame_id, job.keyframe_id, job.T_world_cam, job.tracking}, &m);
-  const CodecResult r = link::encodeDepth(codec_, job.depth, camera_, depth_scale_m_, &m);
+  const CodecResult r =
+      link::encodeDepth(codec_, depth, camera_.scaled(scale_), depth_scale_m_, &m);
   if (!r.ok()) {
     ++counters_->keyframes_failed;
     spdlog::error("link: keyframe {} not encoded: {}", job.keyframe_id, toString(r.status));
     return;
   }
-  if (!publisher_.up() || !publisher_.publish(link::Channel::kKeyframe, m)) {
+  // Redundancy for the loss the ground measured (a floor until it has).
+  const link::LinkLoss loss{ground_status_heard_ ? ground_status_.link_loss : 0.0,
+                            ground_status_heard_ ? std::max(1.0f, ground_status_.link_loss_run)
+                                                 : 1.0};
+  const int originals = chunks_.originalsPerGroup(m.getEncodedSize());
+  const int recovery = link::recoveryChunks(originals, loss, config_.link.redundancy);
+  const StatusOr<link::ChunkSpan> chunks = chunks_.encode(m, recovery);
+  if (!chunks.ok()) {
     ++counters_->keyframes_failed;
-    if (send_log_.allow(secondsSince(began_)))
-      spdlog::warn("link: keyframe {} not sent: the network is down ({} more since the last "
-                   "report)",
-                   job.keyframe_id, send_log_.suppressed());
+    spdlog::error("link: keyframe {} not cut into chunks: {}", job.keyframe_id,
+                  chunks.status().message());
     return;
   }
-  ++counters_->keyframes_sent;
-  last_keyframe_sent_ = job.keyframe_id;
+  pending_ = *chunks;
+  next_chunk_ = 0;
+  pending_keyframe_id_ = job.keyframe_id;
+  redundancy_ = static_cast<float>(recovery) / static_cast<float>(originals);
+  keyframe_wire_bytes_ = 0.0;
+  for (const keyframe_chunk_t& c : pending_) keyframe_wire_bytes_ += c.getEncodedSize();
+}
+
+void LinkTask::sendChunks() {
+  while (sending()) {
+    const keyframe_chunk_t& chunk = pending_.first[next_chunk_];
+    if (!bucket_.take(chunk.getEncodedSize(), secondsSince(began_))) {
+      limited_ = true;
+      return;
+    }
+    if (!publishChunk(chunk)) {
+      ++counters_->keyframes_failed;
+      next_chunk_ = pending_.size();
+      if (send_log_.allow(secondsSince(began_)))
+        spdlog::warn("link: keyframe {} not sent: the network is down ({} more since the last "
+                     "report)",
+                     pending_keyframe_id_, send_log_.suppressed());
+      return;
+    }
+    if (++next_chunk_ == pending_.size()) {
+      ++counters_->keyframes_sent;
+      last_keyframe_sent_ = pending_keyframe_id_;
+    }
+  }
+}
+
+bool LinkTask::publishChunk(const keyframe_chunk_t& chunk) {
+  out_ = chunk;  // the block's capacity is kept: no allocation once it has grown
+  // Numbered in the order they leave, resends included, so the ground's loss count from the
+  // gaps sees no reordering that is not the network's.
+  out_.sequence = next_sequence_++;
+  out_.sent_utime = link::wallClockUtime();
+  if (!publisher_.publish(link::Channel::kKeyframeChunk, out_)) return false;
+  ++chunks_sent_;
+  return true;
 }
 
 void LinkTask::watchSensor() {
@@ -228,6 +371,12 @@ void LinkTask::publishStatus(bool is_final) {
   h.keyframes_sent = counters_->keyframes_sent;
   h.keyframes_dropped = counters_->keyframes_failed + keyframes_->dropped();
   h.last_keyframe_id = last_keyframe_sent_;
+  h.send_budget_bps = static_cast<float>(rate_.budgetBps());
+  h.redundancy = redundancy_;
+  h.keyframe_scale = scale_;
+  h.chunks_sent = chunks_sent_;
+  h.chunks_resent = chunks_resent_;
+  h.keyframes_skipped = keyframes_skipped_;
   h.tracking = counters_->tracking.load();
   const auto since = Clock::now() - last_ground_heard_;
   h.link = last_ground_heard_ == Clock::time_point()

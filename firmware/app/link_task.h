@@ -1,6 +1,8 @@
-// The link thread: keyframes out (compressed, docs/wire.md), signed corrections in, the drone's
-// status at 10 Hz, and the sensor watch. A slow or absent ground station, or no network at all,
-// costs keyframes here (counted), never odometry.
+// The link thread: keyframes out (compressed, in erasure-coded chunks, paced by a budget that
+// follows the link: docs/wire.md), signed corrections and chunk requests in, the drone's status
+// at 10 Hz, and the sensor watch. A slow or absent ground station, a narrow link, or no network
+// at all costs keyframes here (counted), never odometry. The small messages go first: a keyframe
+// is sent a few chunks at a time between them, never as one burst that they would queue behind.
 #pragma once
 
 #include <optional>
@@ -9,7 +11,9 @@
 #include "kinfly/codec/depth_codec.h"
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/log_throttle.h"
+#include "kinfly/fw/send_budget.h"
 #include "kinfly/fw/sensor_watch.h"
+#include "kinfly/link/chunking.h"
 #include "kinfly/link/counters.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
@@ -52,7 +56,16 @@ class LinkTask {
   // One turn of the loop: messages in (or a wait for a keyframe while the network is down),
   // queued keyframes out, the status when due.
   void serve(Clock::time_point* next_status);
-  void send(const KeyframeJob& job);
+  // Takes the newest queued keyframe (the older ones are skipped: the budget could not send
+  // them in time) and cuts it into chunks; false when none is queued.
+  bool takeKeyframe();
+  void startKeyframe(const KeyframeJob& job);
+  // Sends the current keyframe's chunks while the budget allows.
+  void sendChunks();
+  bool sending() const { return next_chunk_ < pending_.size(); }
+  // Publishes one chunk stamped with its send time and sequence number.
+  bool publishChunk(const keyframe_chunk_t& chunk);
+  void onChunkRequest(const lcm_recv_buf_t* rbuf);
   // Whether the ground station's status was heard within link.timeout_s.
   bool groundHeard() const;
   // Until the ground reports being done with the last keyframe sent: it sends that report after
@@ -73,6 +86,21 @@ class LinkTask {
   DepthCodec codec_;
   KeyframeJob job_;  // swapped with the queue's slots: its image circulates, never reallocated
   depth_keyframe_t message_{};
+  Image<uint16_t> scaled_;  // the keyframe at 1/2 (or, in its first quarter, 1/4) of the size
+  link::ChunkEncoder chunks_;
+  link::ChunkSpan pending_;  // the keyframe being sent
+  size_t next_chunk_ = 0;
+  int64_t pending_keyframe_id_ = -1;
+  keyframe_chunk_t out_;     // the chunk going out: copied to stamp it, its block's capacity kept
+  chunk_request_t request_;
+  int64_t next_sequence_ = 0;
+  TokenBucket bucket_;
+  LinkRate rate_;
+  bool limited_ = false;     // had chunks to send but no budget, since the last ground report
+  int scale_ = 1;
+  double keyframe_wire_bytes_ = 0.0;  // [bytes] the last keyframe's chunks, at scale_
+  float redundancy_ = 0.f;
+  int64_t chunks_sent_ = 0, chunks_resent_ = 0, keyframes_skipped_ = 0;
   drone_status_t status_{};  // its vehicle_id set once; link::fillDroneStatus the rest
   std::optional<link::CorrectionReceiver> corrections_;
   link::RejectCounters rejects_;
@@ -87,10 +115,7 @@ class LinkTask {
   Clock::time_point rate_window_start_ = Clock::now();
   int64_t captured_at_window_ = 0, processed_at_window_ = 0, sent_at_window_ = 0;
   float depth_rate_hz_ = 0.f, odometry_rate_hz_ = 0.f, keyframe_rate_hz_ = 0.f;
-  // Last: it may start LCM at once, and its start subscribes this task's handler. LCM reports
-  // send errors only for single-datagram messages: a fragmented one (a keyframe) returns success
-  // even when its datagrams could not be sent (lcm_udpm.c), so keyframes are sent only while the
-  // status messages go out.
+  // Last: it may start LCM at once, and its start subscribes this task's handler.
   Publisher publisher_;
 };
 

@@ -276,6 +276,9 @@ TEST(TokenBucket, WaitIsExactlyTheTimeTheTokensNeed) {
   EXPECT_FALSE(bucket.take(200.0, 0.1));
   EXPECT_TRUE(bucket.take(200.0, 0.2));
   EXPECT_DOUBLE_EQ(bucket.waitS(1.0, 0.2), 0.001);
+  // What had to go out at once is paid for by what can wait.
+  bucket.charge(1000.0, 0.2);
+  EXPECT_DOUBLE_EQ(bucket.waitS(100.0, 0.2), 1.1);
 }
 
 // A bottleneck as a fluid queue: the drone offers its whole budget (it always has keyframes to

@@ -30,6 +30,12 @@ class TokenBucket {
     tokens_ -= bytes;
     return true;
   }
+  // Spends `bytes` that had to go out now (an answer the ground waits for): the bucket may go
+  // into debt, which what can wait then pays off.
+  void charge(double bytes, double now_s) {
+    refill(now_s);
+    tokens_ -= bytes;
+  }
   // [s] until `bytes` can be taken, 0 when they can be now.
   double waitS(double bytes, double now_s) {
     refill(now_s);

@@ -38,7 +38,7 @@ from typing import Any
 
 import lcm
 
-from kinfly import odometry_t
+from kinfly import keyframe_chunk_t, odometry_t
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "tests" / "tools"))
@@ -79,12 +79,16 @@ def odometry_timing(tum: Path, out: Path, repeats: int) -> dict[str, Any]:
 
 
 def keyframe_traffic(published: Path) -> dict[str, Any]:
-    keyframes, frame_utimes = [], []
+    # What each keyframe cost on the link: its chunks' bytes, recovery chunks included.
+    chunk_bytes: dict[int, int] = {}
+    frame_utimes = []
     for event in lcm.EventLog(str(published), "r"):
-        if event.channel.endswith("_KEYFRAME"):
-            keyframes.append(len(event.data))
+        if event.channel.endswith("_KEYFRAME_CHUNK"):
+            keyframe_id = keyframe_chunk_t.decode(event.data).keyframe_id
+            chunk_bytes[keyframe_id] = chunk_bytes.get(keyframe_id, 0) + len(event.data)
         elif event.channel.endswith("_ODOMETRY"):
             frame_utimes.append(odometry_t.decode(event.data).utime)
+    keyframes = list(chunk_bytes.values())
     span_s = (max(frame_utimes) - min(frame_utimes)) * 1e-6 if frame_utimes else 0.0
     return {"keyframes": len(keyframes), "frames": len(frame_utimes),
             "sequence_s": round(span_s, 3),
@@ -106,7 +110,7 @@ def firmware_flight(tum: Path, out: Path) -> dict[str, Any]:
     # network namespace, as a ground station would hear it.
     with network_namespace("bench") as netns:
         logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--channel",
-                                   ".*_KEYFRAME|.*_ODOMETRY", str(published)],
+                                   ".*_KEYFRAME_CHUNK|.*_ODOMETRY", str(published)],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(0.5)  # the logger joins the group before the first message
         start = time.monotonic()

@@ -172,8 +172,10 @@ def test_recorded_flight_replays_offline(demo_run: Path, tmp_path: Path) -> None
     replayed = summary["vehicles"]["1"]
     # Every keyframe the logger heard is fused, and it heard what the live ground heard.
     import lcm
-    logged = sum(1 for event in lcm.EventLog(str(demo_run / "flight.lcmlog"), "r")
-                 if event.channel == "KINFLY_1_KEYFRAME")
+    from kinfly import keyframe_chunk_t
+    logged = len({keyframe_chunk_t.decode(event.data).keyframe_id
+                  for event in lcm.EventLog(str(demo_run / "flight.lcmlog"), "r")
+                  if event.channel == "KINFLY_1_KEYFRAME_CHUNK"})
     assert replayed["keyframes"]["keyframes_fused"] == logged
     assert logged == live["keyframes"]["keyframes_received"]
     # The drone's status is in the log too: the replay accounts for the link as the live run.

@@ -57,10 +57,9 @@ class LogSource : public DepthSource {
   double depthScaleM() const override { return depth_scale_m_; }
   std::string describe() const override {
     std::string what = "LCM log " + path_ + " (" + channel_ + ")";
-    if (bounce_)
-      what += ", bouncing forward and backward " +
-              (laps_ == 0 ? std::string("until stopped") : "for " + std::to_string(laps_) + " laps");
-    return what;
+    if (!bounce_) return what;
+    return what + ", bouncing forward and backward " +
+           (laps_ == 0 ? std::string("until stopped") : "for " + std::to_string(laps_) + " laps");
   }
 
   SourceStatus next(DepthCapture* out, std::string* why) override {

@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """`make soak`: an hours-long flight through the real programs, memory sampled on both ends.
 
-    .venv/bin/python tests/system/soak.py [--minutes 60] [--out out/soak] [--busy N] [--sequence]
+    .venv/bin/python tests/system/soak.py [--minutes 60] [--out out/soak] [--busy N]
+                                          [--allow-queue-drops] [--sequence]
 
 kinfly-fw replays a recorded flight bouncing (`source.loop = bounce`: forward, backward,
 forward ..., capture times increasing, docs/firmware.md) in real time for --minutes, to
@@ -28,8 +29,8 @@ It fails (exit 1, saying which) unless:
   - nothing was dropped that the link did not count: every keyframe the drone sent was received
     or counted as lost on the link, every one received was fused, counted as not refined, or
     counted as dropped by the ground's queue; the drone's capture and keyframe queues and the
-    ground's queue dropped nothing (reported, not failed, with --busy); the drone's odometry
-    lost no frame; no keyframe's handling failed;
+    ground's queue dropped nothing (reported, not failed, with --busy or --allow-queue-drops);
+    the drone's odometry lost no frame; no keyframe's handling failed;
   - no thread stalled: while the drone flew, no rate in either end's status (the drone's depth,
     odometry and keyframe rates, the ground's received, fused and correction rates) stayed at
     zero, and neither end's status went unheard, for longer than 5 s.
@@ -66,6 +67,7 @@ from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
 
 STATUS_WATCH = REPO_ROOT / "tests" / "tools" / "status_watch.py"
 DEPTH_CHANNEL = f"KINFLY_{demo.VEHICLE_ID}_DEPTH"
+RUN_FINAL = 1  # drone_status_t.RUN_FINAL
 
 # The figures a soak must hold.
 # Issue 14: kinfly-fw allocates everything at start (docs/firmware.md), so its resident memory
@@ -258,7 +260,7 @@ def counted_between(samples: list[dict[str, Any]], key: str) -> int:
     return window[-1] - window[0] if window else 0
 
 
-def judge(report: dict[str, Any], busy: int) -> list[tuple[str, bool, str]]:
+def judge(report: dict[str, Any], drops_reported: str | None) -> list[tuple[str, bool, str]]:
     """Each criterion: its name, whether it held, and the figures."""
     k, drone = report["keyframes"], report["drone"]
     fw, gr = report["rss"]["firmware"], report["rss"]["ground"]
@@ -297,18 +299,21 @@ def judge(report: dict[str, Any], busy: int) -> list[tuple[str, bool, str]]:
     drops = (drone.get("queue_drops"), drone.get("keyframes_dropped"), k["dropped_by_ground"])
     drops_text = (f"the drone's capture queue dropped {drops[0]} frames, its link "
                   f"{drops[1]} keyframes; the ground's queue {drops[2]} keyframes")
-    criteria.append(("no queue dropped anything" if busy == 0
-                     else f"queue drops (reported only: --busy {busy})",
-                     busy > 0 or drops == (0, 0, 0), drops_text))
+    criteria.append(("no queue dropped anything" if drops_reported is None
+                     else f"queue drops (reported only: {drops_reported})",
+                     drops_reported is not None or drops == (0, 0, 0), drops_text))
     zero = {f"{side}.{rate}": seconds for side in ("drone", "ground")
             for rate, seconds in stalls[side]["longest_zero_s"].items()}
     gaps = {side: stalls[side]["longest_gap_s"] for side in ("drone", "ground")}
     worst_rate = max(zero, key=zero.get)
-    criteria.append(("no stall", max(zero.values()) <= STALL_BOUND_S
+    # The watcher's figures cover the flight only if it heard the drone to its final status.
+    followed = stalls["drone"].get("run_state") == RUN_FINAL
+    criteria.append(("no stall", followed and max(zero.values()) <= STALL_BOUND_S
                      and max(gaps.values()) <= STALL_BOUND_S,
                      f"longest at zero: {worst_rate} {zero[worst_rate]:.1f} s; longest without a "
                      f"status: drone {gaps['drone']:.1f} s, ground {gaps['ground']:.1f} s (at most "
-                     f"{STALL_BOUND_S} s)"))
+                     f"{STALL_BOUND_S} s)"
+                     + ("" if followed else "; the watcher did not hear the drone's final status")))
     return criteria
 
 
@@ -430,6 +435,11 @@ def main() -> int:
     p.add_argument("--busy", type=int, default=0, metavar="N",
                    help="N processes each keeping a core busy beside the flight (queue drops "
                         "are then reported, not failed)")
+    p.add_argument("--allow-queue-drops", action="store_true",
+                   help="report queue drops instead of failing on them (as --busy does): on a "
+                        "machine loaded by other work the drone's odometry falls behind and drops "
+                        "frames, counted, as designed; make test's 2 minutes run so, since make "
+                        "test must hold beside busy loops (make test-runs)")
     p.add_argument("--sequence", action="store_true",
                    help="fly the shared 200-frame TUM sequence (KINFLY_DATA) instead of the "
                         "shipped 60-frame sample")
@@ -460,7 +470,10 @@ def main() -> int:
         return 1
     account(report, out)
     report["wall_s"] = time.monotonic() - started
-    criteria = judge(report, args.busy)
+    drops_reported = (f"--busy {args.busy}" if args.busy else
+                      "--allow-queue-drops" if args.allow_queue_drops else None)
+    report["queue_drops_reported_only"] = drops_reported is not None
+    criteria = judge(report, drops_reported)
     report["criteria"] = [{"name": n, "ok": ok, "detail": d} for n, ok, d in criteria]
     report["ok"] = all(ok for _, ok, _ in criteria)
     (out / "soak.json").write_text(json.dumps(report, indent=2) + "\n")

@@ -21,6 +21,11 @@
 #                   then DEMO_BUSY_RUNS times (10) beside two busy loops; out/bench/demo_runs_*.json
 #   make test-runs  make test, then its tests TEST_RUNS times (3) beside two busy loops;
 #                   out/bench/make_test_runs.json
+#   make soak       deps demo; an hours-long flight (SOAK_MINUTES, 60): the shipped flight log
+#                   bounced (forward, backward ...) through kinfly-fw and kinfly-ground in a
+#                   network namespace, memory sampled on both ends; fails on memory growth, an
+#                   uncounted drop or a stall (tests/system/soak.py); out/soak/soak.json. Not
+#                   part of make test, which flies a 2-minute soak (tests/system/test_soak.py)
 #   make eval       deps demo; accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      deps bench; depth codec and keyframe delivery over LCM on the TUM sequence; the
 #                   drone's figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions
@@ -86,7 +91,7 @@ DEPS_GROUPS := demo unit test fuzz aarch64 image bench
 DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
 
 .PHONY: deps $(DEPS_TARGETS) build test unit-test python-test test-asan fuzz fuzz-corpus demo \
-        demo-runs test-runs eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
+        demo-runs test-runs soak eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
 	@$(REPO_ROOT)/scripts/install-deps.sh all
@@ -175,6 +180,15 @@ demo-runs: deps-demo
 TEST_RUNS ?= 3
 test-runs: test
 	$(PY) $(REPO_ROOT)/tests/bench/make_test_runs.py --runs $(TEST_RUNS) --out $(REPO_ROOT)/out/bench
+
+# An hour of flight (SOAK_MINUTES) with memory sampled on both ends; SOAK_ARGS passes more
+# (--busy 2, --sequence: tests/system/soak.py --help).
+SOAK_MINUTES ?= 60
+SOAK_ARGS ?=
+soak: deps-demo
+	$(call build_programs,$(DEMO_PROGRAMS) kinfly-tum-to-log)
+	$(PY) $(REPO_ROOT)/tests/system/soak.py --minutes $(SOAK_MINUTES) --out $(REPO_ROOT)/out/soak \
+	  $(SOAK_ARGS)
 
 eval: deps-demo
 	@test -d $(KINFLY_DATA) || { echo "no shared data at $(KINFLY_DATA) (set KINFLY_DATA)"; exit 1; }

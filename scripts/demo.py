@@ -139,6 +139,11 @@ class Watched:
         with self._events:
             return "".join(self.lines)
 
+    def latest(self, text: str) -> str | None:
+        """The last line so far that contains TEXT (a progress line), or None."""
+        with self._events:
+            return next((line for line in reversed(self.lines) if text in line), None)
+
     def finish(self, timeout_s: float) -> int:
         """Its exit status, once it has exited (within TIMEOUT_S) and all it said is read."""
         self.process.wait(timeout_s)

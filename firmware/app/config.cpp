@@ -91,6 +91,12 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "realtime = false only: each keyframe's correction applied before the next "
                   "frame (waits up to link.final_wait_s for the ground)")
       ->capture_default_str();
+  app->add_option("--source.loop", s.log.loop,
+                  "log: none (play once) | bounce (forward, backward, forward ...: soak runs)")
+      ->capture_default_str();
+  app->add_option("--source.laps", s.log.laps,
+                  "log with loop = bounce: passes over the flight (0: until stopped)")
+      ->capture_default_str();
   addSharedOption<std::string>(app, "--source.intrinsics",
                                {&s.dataset.intrinsics, &s.openni.intrinsics,
                                 &s.synthetic.intrinsics},
@@ -243,9 +249,9 @@ Status SourceConfig::validate() const {
     deprecated = outOfRange("source.depth_units_per_m", *deprecated_depth_units_per_m, 0, 1e6,
                             Bound::kOpen);
   return firstError(outOfRange("source.speed", speed, 0, 100, Bound::kOpen),
-                      std::move(deprecated), dataset.validate(), synthetic.validate(),
-                      outOfRange("source.max_frames", max_frames, 0, 1e9), openni.validate(),
-                      watch.validate());
+                      std::move(deprecated), log.validate(), dataset.validate(),
+                      synthetic.validate(), outOfRange("source.max_frames", max_frames, 0, 1e9),
+                      openni.validate(), watch.validate());
 }
 
 Status OdometryConfig::validate() const {

@@ -48,13 +48,21 @@ class Summary:
     unknown: int
 
 
-def summary(stdout: str) -> Summary:
-    """The counts of kinfly-fw's last line; fails the test if there is none."""
-    match = _SUMMARY.search(stdout)
-    assert match, f"no summary line in {stdout!r}"
+def parse_summary(output: str) -> Summary | None:
+    """The counts of kinfly-fw's summary line in OUTPUT; None if there is none."""
+    match = _SUMMARY.search(output)
+    if match is None:
+        return None
     values = match.groupdict()
     how = values.pop("how")
     return Summary(how, **{k: int(v) for k, v in values.items()})
+
+
+def summary(stdout: str) -> Summary:
+    """The counts of kinfly-fw's last line; fails the test if there is none."""
+    counts = parse_summary(stdout)
+    assert counts is not None, f"no summary line in {stdout!r}"
+    return counts
 
 
 def read_tum(path: Path) -> np.ndarray:

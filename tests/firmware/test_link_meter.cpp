@@ -80,7 +80,8 @@ TEST(LinkMeter, GoodputOfARegularStream) {
   EXPECT_NEAR(meter.quality(last).goodput_bps, expected_bps, kRoundoff * expected_bps);
   // Half a window later half the stream is still in it (to within a bin: 1 %).
   const LinkMeter::Params p;
-  const double bin_fraction = static_cast<double>(p.bin_us) / p.goodput_window_us;
+  const double bin_fraction =
+      static_cast<double>(p.bin_us) / static_cast<double>(p.goodput_window_us);
   EXPECT_NEAR(meter.quality(last + p.goodput_window_us / 2).goodput_bps, expected_bps / 2,
               bin_fraction * expected_bps);
   // A window of silence: nothing.

@@ -119,15 +119,16 @@ def link_summary(link: LinkQuality) -> dict[str, Any]:
 
 
 def format_link(link: dict[str, Any] | None, drone: dict[str, Any] | None) -> str:
-    """One line of the link's quality (summary.json's "link") and, when heard, how the drone
-    sends (its budget, redundancy, image scale, keyframes skipped)."""
+    """One line of the link's quality (summary.json's "link") and how the drone sends (its
+    budget, redundancy, image scale, keyframes skipped); each only once chunks went over it (a
+    drone that sends whole keyframes has none of these figures)."""
     parts = []
-    if link is not None:
+    if link is not None and link["chunks_received"] > 0:
         parts.append(f"link: {100.0 * link['loss']:.1f}% chunks lost (runs of "
                      f"{link['loss_run']:.1f}), {link['goodput_bps'] * 1e-6:.2f} Mbit/s, "
                      f"{link['repair_requests']} repairs asked, {link['keyframes_recovered']} "
                      f"keyframes recovered, {link['keyframes_incomplete']} incomplete")
-    if drone is not None:
+    if drone is not None and drone["chunks_sent"] > 0:
         parts.append(f"drone: budget {drone['send_budget_bps'] * 1e-6:.2f} Mbit/s, redundancy "
                      f"{drone['redundancy']:.2f}, scale 1/{drone['keyframe_scale']}, "
                      f"{drone['keyframes_skipped']} keyframes skipped")

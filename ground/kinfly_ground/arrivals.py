@@ -1,9 +1,14 @@
 """Arrivals (the LCM thread): every received message goes through the native Receiver (the link's
-C++: channel, bounded decoding, depth), then keyframes are classified against the vehicle's last
-one (duplicate, late, a restarted drone: a new session) and handed to the worker; the drone's
-status tells what the link lost; odometry is forwarded to an autopilot, corrected. Nothing slow
-runs here (no viewer, no files, no fusion), or the next keyframes would wait in LCM's buffers
-until they overflow."""
+C++: channel, bounded decoding, keyframe chunks, depth), then keyframes are classified against the
+vehicle's last one (duplicate, late, a restarted drone: a new session) and handed to the worker;
+the drone's status tells what the link lost; odometry is forwarded to an autopilot, corrected.
+Nothing slow runs here (no viewer, no files, no fusion), or the next keyframes would wait in LCM's
+buffers until they overflow.
+
+Repairs (a station that sends): the chunks of a keyframe that did not all arrive are asked for
+again, once per group (the Receiver remembers what it asked), as soon as a chunk of a newer
+keyframe shows that the drone has moved on; the newest keyframe's once the drone's status says it
+was sent and no chunk has arrived for StationParams.repair_quiet_s."""
 from __future__ import annotations
 
 import time
@@ -12,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from ._native import Channel, DroneStatus, Keyframe, Receiver, Signer
+from ._native import Channel, DroneStatus, Keyframe, Receiver, Signer, channel_name
 from ._native import StampedPose as ReceivedPose
+from .uplink import Publish
 from .viewer import Viewer
 from .vehicle import Job, VehicleState
 
@@ -21,16 +27,18 @@ Forward = Callable[[int, np.ndarray, int], None]  # (utime, T_world_cam, reset_c
 
 
 class Arrivals:
-    """SUBMIT hands a keyframe to the worker. SIGNERS, PUBLISH: see Station."""
+    """SUBMIT hands a keyframe to the worker. SIGNERS, PUBLISH: see Station (PUBLISH sends the
+    repair requests here)."""
 
     def __init__(self, params: Any, viewer: Viewer, *, vehicle_id: int | None,
-                 signers: dict[int, Signer], sends: bool, forward: Forward | None,
+                 signers: dict[int, Signer], publish: Publish | None, forward: Forward | None,
                  submit: Callable[[Job], None], log: Callable[[str], None]) -> None:
         self.params = params
         self.viewer = viewer
         self.vehicle_id = vehicle_id
         self._signers = signers
-        self._sends = sends
+        self._publish = publish
+        self._sends = publish is not None
         self._forward = forward
         self._submit = submit
         self._log = log
@@ -79,9 +87,12 @@ class Arrivals:
         now_s = time.monotonic()
         if channel is Channel.KEYFRAME:
             self._on_keyframe(state, message, now_s)
+        elif channel is Channel.KEYFRAME_CHUNK:
+            self._on_chunk(state, message, now_s)
         elif channel is Channel.STATUS:
             state.drone_heard_s = now_s
             self._on_drone_status(state, message)
+            self._repair_newest(state, message, now_s)
         elif channel is Channel.GROUND_TRUTH:
             with state.lock:
                 state.pending_truth.append((state.session, message.utime, message.T_world_cam))
@@ -104,6 +115,31 @@ class Arrivals:
                       f"{message.last_keyframe_id}); {state.counters.lost_on_link} lost on the "
                       f"link; {message.queue_drops} frames its odometry could not keep up with, "
                       f"{message.keyframes_dropped} keyframes its link could not send")
+
+    def _on_chunk(self, state: VehicleState, message: Keyframe | None, now_s: float) -> None:
+        """A keyframe chunk; MESSAGE is the keyframe it completed, if it did."""
+        state.drone_heard_s = state.last_chunk_s = now_s
+        if message is not None:
+            self._on_keyframe(state, message, now_s)
+        # The Receiver leaves the newest keyframe out: only older ones, which the drone has
+        # finished sending, are asked for here.
+        self._send_repairs(state.vehicle_id, include_newest=False)
+
+    def _repair_newest(self, state: VehicleState, drone: DroneStatus, now_s: float) -> None:
+        """The newest keyframe's missing chunks, once the drone says it sent that keyframe (or a
+        later one) and the chunks have stopped coming."""
+        if (not self._sends or state.last_chunk_s is None
+                or now_s - state.last_chunk_s < self.params.repair_quiet_s):
+            return
+        link = self.receiver.link_quality(state.vehicle_id)
+        if link is not None and 0 <= link.newest_keyframe_id <= drone.last_keyframe_id:
+            self._send_repairs(state.vehicle_id, include_newest=True)
+
+    def _send_repairs(self, vehicle_id: int, *, include_newest: bool) -> None:
+        if self._publish is None:
+            return
+        for request in self.receiver.repair_requests(vehicle_id, include_newest):
+            self._publish(channel_name(Channel.CHUNK_REQUEST, vehicle_id), request)
 
     def _forward_odometry(self, state: VehicleState, message: ReceivedPose) -> None:
         """The drone's pose at the camera's rate, corrected: a drone that applies the ground's
@@ -146,6 +182,8 @@ class Arrivals:
         state.counters.lost_on_link = state.lost_on_link_now()
         state.counters.keyframes_received += 1
         state.rates["received"].tick(now_s)
+        # The link as this keyframe found it, for the viewer's link plot (mapping.py).
+        state.link_quality = self.receiver.link_quality(state.vehicle_id)
         self._submit(Job(state.vehicle_id, state.session, message, self._arrival_ns))
 
     def on_dropped(self, job: Job) -> None:

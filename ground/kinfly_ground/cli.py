@@ -324,11 +324,23 @@ def _progress(station: Station, elapsed_s: float) -> None:
     for vid, state in sorted(station.vehicles.items()):
         c = state.counters
         lat = state.latencies_ms[-50:]
-        log(f"[{elapsed_s:6.1f} s] vehicle {vid}: {c.keyframes_received} keyframes, "
-            f"{c.lost_on_link} lost on the link, {c.keyframes_fused} fused, "
-            f"{c.keyframes_lost} not refined, {c.keyframes_dropped} dropped; "
-            f"latency median {format_ms(percentile(lat, 50))} ms (last 50); queue "
-            f"{station.queue_length()}; map {state.map_blocks} blocks")
+        line = (f"[{elapsed_s:6.1f} s] vehicle {vid}: {c.keyframes_received} keyframes, "
+                f"{c.lost_on_link} lost on the link, {c.keyframes_fused} fused, "
+                f"{c.keyframes_lost} not refined, {c.keyframes_dropped} dropped; "
+                f"latency median {format_ms(percentile(lat, 50))} ms (last 50); queue "
+                f"{station.queue_length()}; map {state.map_blocks} blocks")
+        link = station.receiver.link_quality(vid)
+        if link is not None and link.chunks_received > 0:
+            line += (f"; link {100.0 * link.link_loss:.1f}% lost, "
+                     f"{link.goodput_bps * 1e-6:.2f} Mbit/s, {link.repair_requests} repairs, "
+                     f"{link.keyframes_recovered} recovered, {link.keyframes_incomplete} "
+                     "incomplete")
+        d = state.drone_status
+        if d is not None and d.chunks_sent > 0:
+            line += (f"; drone budget {d.send_budget_bps * 1e-6:.2f} Mbit/s, redundancy "
+                     f"{d.redundancy:.2f}, scale 1/{d.keyframe_scale}, {d.keyframes_skipped} "
+                     "skipped")
+        log(line)
 
 
 def _finish(station: Station, viewer: Viewer, args: argparse.Namespace, mode: str,
@@ -396,22 +408,27 @@ def replay(args: argparse.Namespace) -> int:
                       inline=True, log=log)
     size = max(1, log_file.size())
     next_progress = started
-    keyframes = 0
+    keyframe_messages = 0  # whole keyframes and keyframe chunks in the log
+
+    def received() -> int:
+        return sum(state.counters.keyframes_received for state in station.vehicles.values())
+
     for event in log_file:
         parsed = parse_channel(event.channel)
-        if parsed is not None and parsed[0] is Channel.KEYFRAME:
-            keyframes += 1
+        if parsed is not None and parsed[0] in (Channel.KEYFRAME, Channel.KEYFRAME_CHUNK):
+            keyframe_messages += 1
         station.on_message(event.channel, event.data)
         now = time.monotonic()
         if now >= next_progress:
             next_progress = now + PROGRESS_PERIOD_S
             log(f"replay: {100.0 * log_file.tell() / size:5.1f}% of {args.log.name}, "
-                f"{keyframes} keyframes, {now - started:.1f} s")
+                f"{received()} keyframes, {now - started:.1f} s")
     log_file.close()
-    if keyframes == 0:
-        raise UsageError(f"{args.log} holds no keyframes (KINFLY_<id>_KEYFRAME): a sensor "
-                         "recording is flown through kinfly-fw first (see `make demo`)")
-    log(f"replay: 100.0% of {args.log.name}, {keyframes} keyframes")
+    if keyframe_messages == 0:
+        raise UsageError(f"{args.log} holds no keyframes (KINFLY_<id>_KEYFRAME or "
+                         "KINFLY_<id>_KEYFRAME_CHUNK): a sensor recording is flown through "
+                         "kinfly-fw first (see `make demo`)")
+    log(f"replay: 100.0% of {args.log.name}, {received()} keyframes")
     return _finish(station, viewer, args, "replay", started, truth, {"log": str(args.log)})
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
+from ._native import LinkQuality
 from .outputs import (ate_figures, evaluate, memory, write_atomically, write_error_plot,
                       write_json, write_tum)
 from .station import Station
@@ -64,7 +65,8 @@ def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str
     return result
 
 
-def _vehicle_summary(state: VehicleState, out: Path, truth: list | None) -> dict[str, Any]:
+def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
+                     truth: list | None) -> dict[str, Any]:
     with state.lock:
         segment, finished = state.segment, list(state.finished_segments)
     summary: dict[str, Any] = {
@@ -79,6 +81,8 @@ def _vehicle_summary(state: VehicleState, out: Path, truth: list | None) -> dict
     summary["earlier_segments"] = [
         {"directory": f"segments/{i}", **_export_segment(s, out / "segments" / str(i), None)}
         for i, s in enumerate(finished, 1)]
+    if link is not None:
+        summary["link"] = link_summary(link)
     d = state.drone_status
     if d is not None:
         summary["drone_reported"] = {
@@ -86,9 +90,49 @@ def _vehicle_summary(state: VehicleState, out: Path, truth: list | None) -> dict
             "frames_captured": d.frames_captured, "queue_drops": d.queue_drops,
             "frames_lost": d.frames_lost, "keyframes_sent": d.keyframes_sent,
             "last_keyframe_id": d.last_keyframe_id, "keyframes_dropped": d.keyframes_dropped,
+            "send_budget_bps": d.send_budget_bps, "redundancy": d.redundancy,
+            "keyframe_scale": d.keyframe_scale, "keyframes_skipped": d.keyframes_skipped,
+            "chunks_sent": d.chunks_sent, "chunks_resent": d.chunks_resent,
             "corrections_accepted": d.corrections_accepted,
             "rejected_wrong_key": d.rejected_wrong_key, "rejected_bad_mac": d.rejected_bad_mac}
     return summary
+
+
+def link_summary(link: LinkQuality) -> dict[str, Any]:
+    """The keyframe link's figures (Receiver.link_quality) for summary.json: the ground's status
+    fields, and the chunks by outcome."""
+    c = link.chunks
+    return {
+        "loss": link.link_loss, "loss_run": link.link_loss_run,
+        "goodput_bps": link.goodput_bps, "queue_delay_ms": link.queue_delay_ms,
+        "redundancy": link.redundancy, "keyframe_age_ms": link.keyframe_age_ms,
+        "chunks_received": link.chunks_received,
+        "keyframes_completed": c.keyframes_completed,
+        "keyframes_recovered": link.keyframes_recovered,
+        "keyframes_repaired": link.keyframes_repaired,
+        "keyframes_incomplete": link.keyframes_incomplete,
+        "repair_requests": link.repair_requests,
+        "chunks": {name: getattr(c, name) for name in (
+            "stored", "duplicate", "surplus", "stale", "mismatch", "oversized", "malformed",
+            "digest_mismatch", "restarts")},
+    }
+
+
+def format_link(link: dict[str, Any] | None, drone: dict[str, Any] | None) -> str:
+    """One line of the link's quality (summary.json's "link") and how the drone sends (its
+    budget, redundancy, image scale, keyframes skipped); each only once chunks went over it (a
+    drone that sends whole keyframes has none of these figures)."""
+    parts = []
+    if link is not None and link["chunks_received"] > 0:
+        parts.append(f"link: {100.0 * link['loss']:.1f}% chunks lost (runs of "
+                     f"{link['loss_run']:.1f}), {link['goodput_bps'] * 1e-6:.2f} Mbit/s, "
+                     f"{link['repair_requests']} repairs asked, {link['keyframes_recovered']} "
+                     f"keyframes recovered, {link['keyframes_incomplete']} incomplete")
+    if drone is not None and drone["chunks_sent"] > 0:
+        parts.append(f"drone: budget {drone['send_budget_bps'] * 1e-6:.2f} Mbit/s, redundancy "
+                     f"{drone['redundancy']:.2f}, scale 1/{drone['keyframe_scale']}, "
+                     f"{drone['keyframes_skipped']} keyframes skipped")
+    return "; ".join(parts)
 
 
 def export(station: Station, out: Path, mode: str, started: float, truth: list | None,
@@ -100,11 +144,14 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
     vehicles = {}
     for vid, state in sorted(list(station.vehicles.items())):
         where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
-        vehicles[str(vid)] = {"directory": str(where), **_vehicle_summary(state, where, truth)}
+        link = station.receiver.link_quality(vid)
+        vehicles[str(vid)] = {"directory": str(where),
+                              **_vehicle_summary(state, link, where, truth)}
     received = station.receiver.rejects  # what the ground can reject (the rest are the drone's)
     rejects = {"malformed": received.malformed, "unknown_channel": received.unknown_channel,
                "wrong_vehicle": received.wrong_vehicle}
     rejects["too_many_vehicles"] = station.rejected_too_many_vehicles
+    rejects["too_many_link_vehicles"] = station.receiver.link_vehicles_refused
     rejects["handler_errors"] = station.handler_errors
     summary = {
         "kinfly_ground": __version__, "mode": mode, "duration_s": time.monotonic() - started,
@@ -135,6 +182,8 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
               "corrections sent")
         print(f"    correction latency: median {format_ms(lat['median'])} ms, "
               f"p99 {format_ms(lat['p99'])} ms")
+        if line := format_link(v.get("link"), drone):
+            print(f"    {line}")
         a = v["ate"]
         if a["available"]:
             parts = [f"{n} {a[n]['rmse_m'] * 100:.2f} cm ({a[n]['matched_poses']} poses)"

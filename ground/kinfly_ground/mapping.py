@@ -147,6 +147,16 @@ class Mapper:
         }
         if T_corrected is not None and state.latencies_ms:
             health["link/latency_ms"] = state.latencies_ms[-1]
+        link = state.link_quality
+        if link is not None:
+            # The link as this keyframe found it (what the ground's status tells the drone).
+            health.update({
+                "link/loss_percent": 100.0 * link.link_loss,
+                "link/goodput_mbps": link.goodput_bps * 1e-6,
+                "link/redundancy": link.redundancy,
+                "link/keyframe_age_ms": link.keyframe_age_ms,
+                "link/queue_delay_ms": link.queue_delay_ms,
+            })
         if result.status is not TrackingStatus.FIRST_FRAME:
             health["tracking/inlier_fraction"] = result.inlier_fraction
             health["tracking/rmse_mm"] = result.rmse_m * 1e3

@@ -5,14 +5,17 @@ puts its parts together:
   a restarted drone), sessions, the drone's status, odometry forwarding;
 - mapping.py (the worker thread): refine and fuse, the correction policy, the viewer, ground truth;
 - uplink.py: signed corrections out;
-- status.py: the ground's status;
+- conversions.py: the ground's status;
 - runner.py: the threads and the bounded queue; vehicle.py: what is held per vehicle.
 
 Losses are counted where they happen: the drone's own (its status: frames its odometry could not
 keep up with, keyframes its link could not send), the link's (keyframe ids the drone's status says
 it sent that never arrived: `lost_on_link`), and the station's (`keyframes_dropped` from a full
-queue, `keyframes_lost` that could not be refined). `replay` runs the same steps on the caller's
-thread (`inline=True`): every keyframe, nothing dropped.
+queue, `keyframes_lost` that could not be refined). Keyframes that arrive in chunks are rebuilt by
+the native Receiver, which also measures each vehicle's link (`Receiver.link_quality`: loss,
+goodput, queue delay, keyframe age) for the ground's status; a station that sends asks the drone
+once per incomplete chunk group to resend what is missing (arrivals.py). `replay` runs the same
+steps on the caller's thread (`inline=True`): every keyframe, nothing dropped.
 """
 from __future__ import annotations
 
@@ -26,7 +29,7 @@ from ._native import FusionPipelineParams, HashedVolumeParams, Receiver, Signer
 from .arrivals import Arrivals, Forward
 from .mapping import Mapper
 from .runner import Runner
-from .status import ground_status
+from .conversions import ground_status
 from .uplink import Publish, Uplink
 from .vehicle import Job, StampedPose, VehicleState
 from .viewer import Viewer
@@ -48,6 +51,9 @@ class StationParams:
     reorder_window_s: float = 5.0       # [s] > 0
     mesh_interval_s: float = 5.0        # [s] >= 0.5 between meshes sent to the viewer; 0: none
     max_vehicles: int = 16              # [1, 1000] maps held when serving every vehicle
+    # The newest keyframe's missing chunks are asked for only once the drone's status says it
+    # sent that keyframe and no chunk has arrived for this long: until then they may still come.
+    repair_quiet_s: float = 0.05        # [s] [0.005, 1]
 
     def volume_params(self) -> HashedVolumeParams:
         """The engine's parameters for each map's hashed volume."""
@@ -74,6 +80,7 @@ class StationParams:
             (self.mesh_interval_s == 0 or self.mesh_interval_s >= 0.5,
              "mesh interval must be 0 (off) or >= 0.5 s"),
             (1 <= self.max_vehicles <= 1000, "max vehicles must be in [1, 1000]"),
+            (0.005 <= self.repair_quiet_s <= 1.0, "repair quiet time must be in [0.005, 1] s"),
         ]
         if why := next((why for ok, why in checks if not ok), ""):
             return why
@@ -104,7 +111,7 @@ class Station:
             # and gets this one.
             viewer.vehicle(vehicle_id, "")
         self.arrivals = Arrivals(params, viewer, vehicle_id=vehicle_id, signers=signers,
-                                 sends=publish is not None, forward=forward,
+                                 publish=publish, forward=forward,
                                  submit=lambda job: self.runner.submit(job), log=log)
         self.vehicles = self.arrivals.vehicles
         self.mapper = Mapper(params, self.vehicles, Uplink(publish),
@@ -149,4 +156,6 @@ class Station:
 
     def ground_status(self, state: VehicleState, now_s: float, link_timeout_s: float,
                       run_state: int = ground_status_t.RUN_ACTIVE) -> ground_status_t:
-        return ground_status(state, self.receiver.rejects, now_s, link_timeout_s, run_state)
+        return ground_status(state, self.receiver.rejects,
+                             self.receiver.link_quality(state.vehicle_id), now_s, link_timeout_s,
+                             run_state)

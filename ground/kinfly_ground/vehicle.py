@@ -1,5 +1,6 @@
 """What the station holds about each vehicle, shared by its parts (arrivals.py on the LCM thread,
-mapping.py on the worker thread, status.py): counters, sessions and their maps (segments)."""
+mapping.py on the worker thread, conversions.py for the status): counters, sessions and their maps
+(segments)."""
 from __future__ import annotations
 
 import collections
@@ -10,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ._native import DroneStatus, Fusion, Keyframe, MapSnapshot, Signer
+from ._native import DroneStatus, Fusion, Keyframe, LinkQuality, MapSnapshot, Signer
 from .viewer import VehicleView
 
 StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4 T_world_cam)
@@ -103,6 +104,9 @@ class VehicleState:
         self.last_keyframe: tuple[int, int] | None = None  # (keyframe_id, utime)
         self.worker_session = 0
         self.drone_heard_s: float | None = None
+        self.last_chunk_s: float | None = None  # time.monotonic() of the last keyframe chunk
+        # The link as the last keyframe found it (Receiver.link_quality), for the viewer.
+        self.link_quality: LinkQuality | None = None
         # The drone's latest status in this session, and what the link lost in earlier ones.
         self.drone_status: DroneStatus | None = None
         self.session_keyframe_ids: set[int] = set()

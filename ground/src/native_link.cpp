@@ -1,17 +1,22 @@
 // kinfly_ground._native's link: the ground station's end of the wire is firmware/link, the same
-// C++ as the drone's (channel names, bounded decoding, depth payloads, signing, reject counters),
-// so the wire is parsed, checked and signed in one implementation. Python sees typed results
-// (Keyframe, GroundTruth, Odometry, the drone's status), never raw messages.
+// C++ as the drone's (channel names, bounded decoding, depth payloads, keyframes in chunks, signing,
+// reject counters), so the wire is parsed, checked and signed in one implementation. Python sees
+// typed results (Keyframe, GroundTruth, Odometry, the drone's status, the link's quality), never
+// raw messages.
 #include <nanobind/stl/filesystem.h>
 #include <nanobind/stl/optional.h>
 #include <nanobind/stl/pair.h>
 #include <nanobind/stl/string.h>
 
+#include <algorithm>
+#include <array>
 #include <cstring>
 #include <filesystem>
+#include <memory>
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "arrays.h"
@@ -19,9 +24,11 @@
 #include "kinfly/codec/depth_codec.h"
 #include "kinfly/tracking/icp_tracker.h"
 #include "kinfly/link/channels.h"
+#include "kinfly/link/chunking.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/counters.h"
 #include "kinfly/link/decode.h"
+#include "kinfly/link/link_meter.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
 
@@ -79,17 +86,51 @@ nb::bytes bytesOf(const std::vector<uint8_t>& data) {
   return nb::bytes(reinterpret_cast<const char*>(data.data()), data.size());
 }
 
+// One vehicle's keyframe link as the ground sees it (Receiver.link_quality): ground_status_t's link
+// figures and the chunk assembler's counters.
+struct LinkReport {
+  // ground_status_t's fields of the same names.
+  double link_loss = 0.0;       // [0, 1] chunks lost (sequence gaps)
+  double link_loss_run = 1.0;   // [chunks] mean run of lost chunks
+  double goodput_bps = 0.0;     // [bit/s]
+  double queue_delay_ms = 0.0;  // [ms]
+  double redundancy = 0.0;      // m / k of the last keyframe
+  double keyframe_age_ms = 0.0; // [ms] the last keyframe's capture to arrival
+  int64_t chunks_received = 0;
+  int64_t keyframes_recovered = 0;   // with recovery chunks or after a repair request
+  int64_t keyframes_incomplete = 0;  // given up with chunks missing
+  int64_t repair_requests = 0;       // chunk_request_t handed out (one per group, once)
+  // More detail.
+  link::ChunkCounters chunks;        // the assembler's, by outcome
+  int64_t keyframes_repaired = 0;    // completed after a repair request (and not by FEC alone)
+  int64_t newest_keyframe_id = -1;   // the newest keyframe chunks arrived of; -1: none
+};
+
 // Everything the ground station hears goes through one Receiver: the channel is parsed, the
-// message decoded within bounds, a depth payload decoded, and the vehicle checked against the
-// channel; each rejection is counted by reason. Its own channels (corrections, its status) are
-// ignored when they loop back on multicast.
+// message decoded within bounds, keyframe chunks assembled, a depth payload decoded, and the
+// vehicle checked against the channel; each rejection is counted by reason. Its own channels
+// (corrections, chunk requests, its status) are ignored when they loop back on multicast.
 class Receiver {
  public:
-  Receiver() : codec_(codecParams(bounds_)) {}
+  // Vehicles whose keyframe link is followed (an assembler and a meter each, a few hundred KB
+  // once grown); chunks of further vehicles are refused and counted.
+  static constexpr size_t kMaxLinkVehicles = 16;
+  // (keyframe, group) pairs remembered as asked for: a group is asked for once, never again.
+  // Far more than the groups of the keyframes an assembler holds at once.
+  static constexpr size_t kAskedGroups = 256;
 
-  // None, or (channel, vehicle id, what arrived: Keyframe, Odometry/GroundTruth (StampedPose),
-  // the drone's status, or None for IMU samples).
-  nb::object receive(const std::string& channel, const nb::bytes& data) {
+  Receiver() : codec_(codecParams(bounds_)) {
+    if (const Status valid = assembler_params_.validate(); !valid.ok())
+      throw std::logic_error(valid.message());
+    if (const Status valid = meter_params_.validate(); !valid.ok())
+      throw std::logic_error(valid.message());
+  }
+
+  // None, or (channel, vehicle id, what arrived: Keyframe (whole, or the chunk that completed
+  // one), Odometry/GroundTruth (StampedPose), the drone's status, or None for IMU samples and
+  // chunks that completed nothing). ARRIVAL_UTIME: the ground's wall clock by default.
+  nb::object receive(const std::string& channel, const nb::bytes& data,
+                     std::optional<int64_t> arrival_utime) {
     const std::optional<link::ParsedChannel> parsed = link::parseChannel(channel);
     if (!parsed) {
       ++rejects_.unknown_channel;
@@ -99,27 +140,41 @@ class Receiver {
     const auto result = [&](nb::object message) {
       return nb::make_tuple(parsed->channel, vehicle, message);
     };
+    const auto now = [&] { return arrival_utime.value_or(link::wallClockUtime()); };
     switch (parsed->channel) {
       case link::Channel::kKeyframe:
       case link::Channel::kDepth: {
         if (!decode(data, &keyframe_)) return nb::none();
-        if (!link::decodeDepth(codec_, keyframe_, &depth_).ok()) {
-          ++rejects_.malformed;
-          return nb::none();
-        }
-        if (!sameVehicle(keyframe_.vehicle_id, vehicle)) return nb::none();
-        auto* k = new Keyframe();
-        k->utime = keyframe_.utime;
-        k->vehicle_id = keyframe_.vehicle_id;
-        k->frame_id = keyframe_.frame_id;
-        k->keyframe_id = keyframe_.keyframe_id;
-        k->camera = link::cameraOf(keyframe_);
-        k->depth_scale_m = keyframe_.depth_scale_m;
-        k->tracking = link::trackingOf(keyframe_.tracking_status);
-        if (k->tracking) k->T_world_cam = link::readPose(keyframe_.T_world_cam);
-        k->depth = Image<uint16_t>(depth_.width(), depth_.height());
-        k->depth.copyFrom(depth_.view());
-        return result(nb::cast(k, nb::rv_policy::take_ownership));
+        nb::object k = keyframeObject(vehicle);
+        if (k.is_none()) return k;
+        // Whole keyframes (flight logs, wired links, older drones) still tell the keyframe's age.
+        if (parsed->channel == link::Channel::kKeyframe)
+          if (VehicleLink* v = linkOf(vehicle)) v->meter.onKeyframe(keyframe_.utime, now(), 0.0);
+        return result(k);
+      }
+      case link::Channel::kKeyframeChunk: {
+        if (!decode(data, &chunk_) || !sameVehicle(chunk_.vehicle_id, vehicle)) return nb::none();
+        VehicleLink* v = linkOf(vehicle);
+        if (v == nullptr) return nb::none();
+        const int64_t arrival = now();
+        v->meter.onChunk(chunk_, arrival, data.size());
+        const link::ChunkCounters before = v->assembler.counters();
+        const link::ChunkStatus status = v->assembler.add(chunk_);
+        const link::ChunkCounters& after = v->assembler.counters();
+        if (after.restarts > before.restarts) v->newest_keyframe_id = -1;
+        if (status != link::ChunkStatus::kMalformed && status != link::ChunkStatus::kMismatch)
+          v->newest_keyframe_id = std::max(v->newest_keyframe_id, chunk_.keyframe_id);
+        if (status != link::ChunkStatus::kCompleted) return result(nb::none());
+        if (after.keyframes_recovered == before.keyframes_recovered &&
+            v->wasAsked(chunk_.utime, chunk_.keyframe_id))
+          ++v->keyframes_repaired;
+        const std::vector<uint8_t>& message = v->assembler.message();
+        if (!decode(message.data(), message.size(), &keyframe_)) return nb::none();
+        nb::object k = keyframeObject(vehicle);
+        if (k.is_none()) return k;
+        v->meter.onKeyframe(keyframe_.utime, arrival,
+                            static_cast<double>(chunk_.recovery) / chunk_.originals);
+        return result(k);
       }
       case link::Channel::kOdometry: {
         odometry_t m;
@@ -143,14 +198,86 @@ class Receiver {
         return result(nb::none());
       }
       case link::Channel::kCorrection:
-      case link::Channel::kGroundStatus: return nb::none();
+      case link::Channel::kGroundStatus:
+      case link::Channel::kChunkRequest: return nb::none();
     }
     return nb::none();
   }
 
+  // The vehicle's keyframe link as of NOW_UTIME (the wall clock by default); None before
+  // anything of the vehicle's keyframes arrived.
+  std::optional<LinkReport> linkQuality(int vehicle_id, std::optional<int64_t> now_utime) const {
+    const VehicleLink* v = findLink(vehicle_id);
+    if (v == nullptr) return std::nullopt;
+    const link::LinkQuality q = v->meter.quality(now_utime.value_or(link::wallClockUtime()));
+    const link::LossStats loss = v->assembler.loss();
+    LinkReport r;
+    r.link_loss = loss.lossFraction();
+    r.link_loss_run = loss.meanLossRun();
+    r.goodput_bps = q.goodput_bps;
+    r.queue_delay_ms = q.queue_delay_ms;
+    r.redundancy = q.redundancy;
+    r.keyframe_age_ms = q.keyframe_age_ms;
+    r.chunks = v->assembler.counters();
+    r.chunks_received = r.chunks.chunks;
+    r.keyframes_recovered = r.chunks.keyframes_recovered + v->keyframes_repaired;
+    r.keyframes_incomplete = r.chunks.keyframes_evicted;
+    r.repair_requests = v->repair_requests;
+    r.keyframes_repaired = v->keyframes_repaired;
+    r.newest_keyframe_id = v->newest_keyframe_id;
+    return r;
+  }
+
+  // Encoded chunk_request_t for the vehicle's incomplete groups not asked for before (each
+  // (keyframe, group) at most once: a resend that is lost too is not chased). The newest
+  // keyframe may still be arriving, so it is left out unless INCLUDE_NEWEST.
+  nb::list repairRequests(int vehicle_id, bool include_newest) {
+    nb::list out;
+    VehicleLink* v = findLink(vehicle_id);
+    if (v == nullptr) return out;
+    const int n = v->assembler.repairRequests(include_newest, &v->requests);
+    for (int i = 0; i < n; ++i) {
+      const chunk_request_t& request = v->requests[static_cast<size_t>(i)];
+      if (v->wasAsked(request.utime, request.keyframe_id, request.group)) continue;
+      v->asked[v->next_asked] = {request.utime, request.keyframe_id, request.group};
+      v->next_asked = (v->next_asked + 1) % v->asked.size();
+      ++v->repair_requests;
+      out.append(bytesOf(encoded(request)));
+    }
+    return out;
+  }
+
   const link::RejectCounters& rejects() const { return rejects_; }
+  // Keyframe chunks refused because kMaxLinkVehicles vehicles were followed already.
+  int64_t linkVehiclesRefused() const { return link_vehicles_refused_; }
 
  private:
+  struct AskedGroup {
+    int64_t utime = 0;  // the keyframe's capture time: ids start again when the drone restarts
+    int64_t keyframe_id = -1;
+    int16_t group = -1;
+  };
+  struct VehicleLink {
+    VehicleLink(int32_t id, const link::ChunkAssembler::Params& assembler_params,
+                const link::LinkMeter::Params& meter_params)
+        : vehicle_id(id), assembler(id, assembler_params), meter(meter_params) {}
+    // Any group of the keyframe when group < 0.
+    bool wasAsked(int64_t utime, int64_t keyframe_id, int16_t group = -1) const {
+      return std::any_of(asked.begin(), asked.end(), [&](const AskedGroup& a) {
+        return a.keyframe_id == keyframe_id && a.utime == utime && (group < 0 || a.group == group);
+      });
+    }
+    int32_t vehicle_id;
+    link::ChunkAssembler assembler;
+    link::LinkMeter meter;
+    std::array<AskedGroup, kAskedGroups> asked;  // a ring
+    size_t next_asked = 0;
+    int64_t repair_requests = 0;
+    int64_t keyframes_repaired = 0;
+    int64_t newest_keyframe_id = -1;
+    std::vector<chunk_request_t> requests;  // repairRequests()'s, reused
+  };
+
   static DepthCodec::Params codecParams(const link::DecodeBounds& bounds) {
     DepthCodec::Params params;
     params.max_width_px = bounds.max_width_px;
@@ -158,10 +285,14 @@ class Receiver {
     return params;
   }
   template <class T>
-  bool decode(const nb::bytes& data, T* out) {
-    const link::DecodeResult r = link::decodeMessage(data.c_str(), data.size(), bounds_, out);
+  bool decode(const void* data, size_t size, T* out) {
+    const link::DecodeResult r = link::decodeMessage(data, size, bounds_, out);
     rejects_.count(r.status);
     return r.ok();
+  }
+  template <class T>
+  bool decode(const nb::bytes& data, T* out) {
+    return decode(data.c_str(), data.size(), out);
   }
   bool sameVehicle(int32_t in_message, int in_channel) {
     if (in_message == in_channel) return true;
@@ -169,11 +300,58 @@ class Receiver {
     return false;
   }
 
+  // The one path of a decoded depth_keyframe_t (keyframe_), whole or rebuilt from chunks: its
+  // depth decoded, its vehicle checked, a typed Keyframe; None (counted) when refused.
+  nb::object keyframeObject(int vehicle) {
+    if (!link::decodeDepth(codec_, keyframe_, &depth_).ok()) {
+      ++rejects_.malformed;
+      return nb::none();
+    }
+    if (!sameVehicle(keyframe_.vehicle_id, vehicle)) return nb::none();
+    auto* k = new Keyframe();
+    k->utime = keyframe_.utime;
+    k->vehicle_id = keyframe_.vehicle_id;
+    k->frame_id = keyframe_.frame_id;
+    k->keyframe_id = keyframe_.keyframe_id;
+    k->camera = link::cameraOf(keyframe_);
+    k->depth_scale_m = keyframe_.depth_scale_m;
+    k->tracking = link::trackingOf(keyframe_.tracking_status);
+    if (k->tracking) k->T_world_cam = link::readPose(keyframe_.T_world_cam);
+    k->depth = Image<uint16_t>(depth_.width(), depth_.height());
+    k->depth.copyFrom(depth_.view());
+    return nb::cast(k, nb::rv_policy::take_ownership);
+  }
+
+  const VehicleLink* findLink(int vehicle_id) const {
+    for (const auto& v : links_)
+      if (v->vehicle_id == vehicle_id) return v.get();
+    return nullptr;
+  }
+  VehicleLink* findLink(int vehicle_id) {
+    return const_cast<VehicleLink*>(std::as_const(*this).findLink(vehicle_id));
+  }
+  // The vehicle's link, made at its first keyframe or chunk; nullptr (counted) beyond
+  // kMaxLinkVehicles.
+  VehicleLink* linkOf(int vehicle_id) {
+    if (VehicleLink* v = findLink(vehicle_id)) return v;
+    if (links_.size() >= kMaxLinkVehicles) {
+      ++link_vehicles_refused_;
+      return nullptr;
+    }
+    links_.push_back(std::make_unique<VehicleLink>(vehicle_id, assembler_params_, meter_params_));
+    return links_.back().get();
+  }
+
   link::DecodeBounds bounds_;
   DepthCodec codec_;
   link::RejectCounters rejects_;
   depth_keyframe_t keyframe_;  // reused: its payload keeps its capacity
+  keyframe_chunk_t chunk_;     // reused: its block keeps its capacity
   Image<uint16_t> depth_;      // reused: the codec's output
+  link::ChunkAssembler::Params assembler_params_;
+  link::LinkMeter::Params meter_params_;
+  std::vector<std::unique_ptr<VehicleLink>> links_;
+  int64_t link_vehicles_refused_ = 0;
 };
 
 // Signs the ground's corrections for one vehicle.
@@ -276,7 +454,9 @@ void bindLink(nb::module_& m) {
       .value("STATUS", link::Channel::kStatus)
       .value("CORRECTION", link::Channel::kCorrection)
       .value("GROUND_STATUS", link::Channel::kGroundStatus)
-      .value("GROUND_TRUTH", link::Channel::kGroundTruth);
+      .value("GROUND_TRUTH", link::Channel::kGroundTruth)
+      .value("KEYFRAME_CHUNK", link::Channel::kKeyframeChunk)
+      .value("CHUNK_REQUEST", link::Channel::kChunkRequest);
   m.attr("MAX_VEHICLE_ID") = link::kMaxVehicleId;
   m.def("channel_name",
         [](link::Channel channel, int vehicle_id) {
@@ -347,7 +527,9 @@ void bindLink(nb::module_& m) {
       KINFLY_FIELD(utime) KINFLY_FIELD(vehicle_id) KINFLY_FIELD(depth_rate_hz)
       KINFLY_FIELD(odometry_rate_hz) KINFLY_FIELD(keyframe_rate_hz) KINFLY_FIELD(frames_captured)
       KINFLY_FIELD(queue_drops) KINFLY_FIELD(keyframes_sent) KINFLY_FIELD(keyframes_dropped)
-      KINFLY_FIELD(last_keyframe_id) KINFLY_FIELD(run_state) KINFLY_FIELD(tracking_state)
+      KINFLY_FIELD(last_keyframe_id) KINFLY_FIELD(send_budget_bps) KINFLY_FIELD(redundancy)
+      KINFLY_FIELD(keyframe_scale) KINFLY_FIELD(chunks_sent) KINFLY_FIELD(chunks_resent)
+      KINFLY_FIELD(keyframes_skipped) KINFLY_FIELD(run_state) KINFLY_FIELD(tracking_state)
       KINFLY_FIELD(link_state) KINFLY_FIELD(sensor_state) KINFLY_FIELD(sensor_connects)
       KINFLY_FIELD(sensor_stalls) KINFLY_FIELD(frames_skipped) KINFLY_FIELD(frames_lost)
       KINFLY_FIELD(rejected_unsigned) KINFLY_FIELD(rejected_wrong_key)
@@ -360,13 +542,47 @@ void bindLink(nb::module_& m) {
         return s.run_state == drone_status_t::RUN_FINAL;
       }, "its last status before kinfly-fw exits");
 
+  nb::class_<link::ChunkCounters>(m, "ChunkCounters",
+                                  "Keyframe chunks by outcome (firmware/link/chunking.h)")
+#define KINFLY_FIELD(name) .def_ro(#name, &link::ChunkCounters::name)
+      KINFLY_FIELD(chunks) KINFLY_FIELD(stored) KINFLY_FIELD(duplicate) KINFLY_FIELD(surplus)
+      KINFLY_FIELD(stale) KINFLY_FIELD(mismatch) KINFLY_FIELD(oversized) KINFLY_FIELD(malformed)
+      KINFLY_FIELD(digest_mismatch) KINFLY_FIELD(keyframes_completed)
+      KINFLY_FIELD(keyframes_recovered) KINFLY_FIELD(keyframes_evicted) KINFLY_FIELD(restarts);
+#undef KINFLY_FIELD
+
+  nb::class_<LinkReport>(m, "LinkQuality",
+                         "One vehicle's keyframe link: ground_status_t's link figures, and the "
+                         "chunk assembler's counters (`chunks`)")
+#define KINFLY_FIELD(name) .def_ro(#name, &LinkReport::name)
+      KINFLY_FIELD(link_loss) KINFLY_FIELD(link_loss_run) KINFLY_FIELD(goodput_bps)
+      KINFLY_FIELD(queue_delay_ms) KINFLY_FIELD(redundancy) KINFLY_FIELD(keyframe_age_ms)
+      KINFLY_FIELD(chunks_received) KINFLY_FIELD(keyframes_recovered)
+      KINFLY_FIELD(keyframes_incomplete) KINFLY_FIELD(repair_requests) KINFLY_FIELD(chunks)
+      KINFLY_FIELD(keyframes_repaired) KINFLY_FIELD(newest_keyframe_id);
+#undef KINFLY_FIELD
+
   nb::class_<Receiver>(m, "Receiver",
                        "Parses, decodes within bounds and checks every received message "
-                       "(firmware/link), counting what it rejects")
+                       "(firmware/link), assembles keyframe chunks and measures each vehicle's "
+                       "link, counting what it rejects")
       .def(nb::init<>())
       .def("receive", &Receiver::receive, nb::arg("channel"), nb::arg("data"),
-           "None when rejected or not for the ground; else (Channel, vehicle id, message)")
-      .def_prop_ro("rejects", &Receiver::rejects, nb::rv_policy::reference_internal);
+           nb::arg("arrival_utime") = nb::none(),
+           "None when rejected or not for the ground; else (Channel, vehicle id, message). "
+           "arrival_utime [us]: the ground's wall clock by default")
+      .def("link_quality", &Receiver::linkQuality, nb::arg("vehicle_id"),
+           nb::arg("now_utime") = nb::none(),
+           "The vehicle's LinkQuality as of now_utime (wall clock by default); None before any "
+           "of its keyframes arrived")
+      .def("repair_requests", &Receiver::repairRequests, nb::arg("vehicle_id"),
+           nb::arg("include_newest"),
+           "Encoded chunk_request_t for incomplete groups not asked for before (each group "
+           "once); the newest keyframe only with include_newest")
+      .def_prop_ro("rejects", &Receiver::rejects, nb::rv_policy::reference_internal)
+      .def_prop_ro("link_vehicles_refused", &Receiver::linkVehiclesRefused,
+                   "keyframe chunks refused: too many vehicles' links followed already");
+  m.attr("MAX_LINK_VEHICLES") = Receiver::kMaxLinkVehicles;
 
   nb::exception<KeyFileError>(m, "KeyFileError");
   m.def("load_key_file",

@@ -2,7 +2,9 @@
 (memq://): good messages come out typed (a Keyframe with its depth decoded, the drone's status,
 poses); unknown channels, wrong fingerprints, truncated messages, absurd sizes, payloads longer
 than declared, undecodable depth and another vehicle's messages are rejected and counted, and
-nothing raises. Then the rest of the link as Python sees it: channel names, key files, signing."""
+nothing raises. Keyframes in chunks (made here from docs/wire.md's layout) come out as the same
+Keyframe, a missing chunk is asked for once, and the link's quality is measured. Then the rest of
+the link as Python sees it: channel names, key files, signing."""
 from __future__ import annotations
 
 import os
@@ -15,11 +17,12 @@ import numpy as np
 import pytest
 
 from conftest import built
-from kinfly import depth_keyframe_t, drone_status_t, odometry_t
-from kinfly_ground._native import (MAX_VEHICLE_ID, Channel, CorrectionReceiver, DepthCodec,
-                                   KeyFileError, PinholeCamera, Receiver, Signer, TrackingStatus,
-                                   channel_name, ground_subscriptions, key_id, load_key_file,
-                                   parse_channel)
+from keyframe_chunks import chunks_of
+from kinfly import chunk_request_t, depth_keyframe_t, drone_status_t, odometry_t
+from kinfly_ground._native import (MAX_LINK_VEHICLES, MAX_VEHICLE_ID, Channel, CorrectionReceiver,
+                                   DepthCodec, KeyFileError, PinholeCamera, Receiver, Signer,
+                                   TrackingStatus, channel_name, ground_subscriptions, key_id,
+                                   load_key_file, parse_channel)
 
 VEHICLE = 4
 SEED = 20261122
@@ -111,6 +114,128 @@ def test_receiver_passes_the_good_and_counts_each_bad_kind() -> None:
     status.vehicle_id, status.keyframes_sent, status.run_state = VEHICLE, 5, drone_status_t.RUN_FINAL
     channel, _, s = receiver.receive(channel_name(Channel.STATUS, VEHICLE), status.encode())
     assert channel is Channel.STATUS and s.keyframes_sent == 5 and s.final
+
+
+# --- keyframes in chunks ------------------------------------------------------------------------
+
+BLOCK_BYTES = 500        # small blocks: the test's small keyframe is several chunks
+CHUNK_PERIOD_US = 1_000  # the chunks arrive a millisecond apart
+LINK_DELAY_US = 3_000    # one-way: arrival - sent_utime on the test's one clock
+RECOVERY = 2             # declared in the headers (never sent): the redundancy reported
+# The figures are exact functions of the arrival times given; only float round-off is left.
+ROUNDOFF = 1e-9
+
+
+def small_depth(seed: int = SEED) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    depth = rng.integers(0, 20000, size=(48, 64), dtype=np.uint16)
+    depth[rng.random(depth.shape) < 0.2] = 0
+    return depth
+
+
+def chunked(message: depth_keyframe_t, first_sequence: int, first_arrival: int,
+            **kwargs) -> list[tuple[int, bytes]]:
+    """(arrival_utime, datagram) of each chunk of MESSAGE, CHUNK_PERIOD_US apart."""
+    chunks = chunks_of(message.encode(), utime=message.utime, vehicle_id=message.vehicle_id,
+                       keyframe_id=message.keyframe_id, first_sequence=first_sequence,
+                       sent_utime=0, block_bytes=BLOCK_BYTES, **kwargs)
+    out = []
+    for i, c in enumerate(chunks):
+        arrival = first_arrival + i * CHUNK_PERIOD_US
+        c.sent_utime = arrival - LINK_DELAY_US
+        out.append((arrival, c.encode()))
+    return out
+
+
+def test_a_chunked_keyframe_arrives_as_a_whole_one_would() -> None:
+    depth = small_depth()
+    message = keyframe(depth, DepthCodec())
+    chunks = chunked(message, first_sequence=0, first_arrival=NOW, recovery=RECOVERY)
+    assert len(chunks) >= 3
+    receiver = Receiver()
+    channel = channel_name(Channel.KEYFRAME_CHUNK, VEHICLE)
+    results = [receiver.receive(channel, data, arrival_utime=t) for t, data in chunks]
+    assert all(r == (Channel.KEYFRAME_CHUNK, VEHICLE, None) for r in results[:-1])
+    kind, vehicle, k = results[-1]
+    assert (kind, vehicle) == (Channel.KEYFRAME_CHUNK, VEHICLE)
+
+    last_arrival = chunks[-1][0]
+    q = receiver.link_quality(VEHICLE, now_utime=last_arrival)
+    assert (q.chunks_received, q.chunks.stored, q.chunks.keyframes_completed) == (len(chunks),) * 2 + (1,)
+    assert (q.keyframes_recovered, q.keyframes_incomplete, q.repair_requests) == (0, 0, 0)
+    assert q.link_loss == 0.0 and q.link_loss_run == 1.0
+    assert q.redundancy == pytest.approx(RECOVERY / len(chunks), abs=ROUNDOFF)
+    assert q.keyframe_age_ms == pytest.approx((last_arrival - message.utime) * 1e-3, abs=ROUNDOFF)
+    # Every datagram within the last second, and one link delay for all: no queueing.
+    bits = 8 * sum(len(data) for _, data in chunks)
+    assert q.goodput_bps == pytest.approx(bits, rel=ROUNDOFF)
+    assert q.queue_delay_ms == pytest.approx(0.0, abs=ROUNDOFF)
+    assert q.newest_keyframe_id == message.keyframe_id
+    assert receiver.link_quality(VEHICLE + 1) is None
+    assert receiver.rejects.total() == 0
+
+    # The same Keyframe as the whole message gives.
+    whole = receiver.receive(channel_name(Channel.KEYFRAME, VEHICLE), message.encode())[2]
+    for name in ("utime", "frame_id", "keyframe_id", "depth_scale_m", "camera", "tracking"):
+        assert getattr(k, name) == getattr(whole, name), name
+    assert np.array_equal(k.depth, depth) and np.array_equal(k.T_world_cam, whole.T_world_cam)
+
+    # A chunk that does not decode is counted like any malformed message; the ground's own
+    # requests looping back are ignored.
+    assert receiver.receive(channel, chunks[0][1][:-1]) is None
+    assert receiver.receive(channel_name(Channel.CHUNK_REQUEST, VEHICLE), b"anything") is None
+    assert (receiver.rejects.malformed, receiver.rejects.total()) == (1, 1)
+
+
+def test_a_missing_chunk_is_asked_for_once() -> None:
+    codec = DepthCodec()
+    first = keyframe(small_depth(), codec)
+    second = keyframe(small_depth(SEED + 1), codec)
+    second.keyframe_id, second.utime = first.keyframe_id + 1, first.utime + 200_000
+    one = chunked(first, first_sequence=0, first_arrival=NOW)
+    two = chunked(second, first_sequence=len(one), first_arrival=NOW + 200_000)
+    missing = 1
+    receiver = Receiver()
+    channel = channel_name(Channel.KEYFRAME_CHUNK, VEHICLE)
+    for t, data in one[:missing] + one[missing + 1:]:
+        assert receiver.receive(channel, data, arrival_utime=t)[2] is None
+    # Still the newest keyframe: its chunk may be on its way.
+    assert receiver.repair_requests(VEHICLE, include_newest=False) == []
+    receiver.receive(channel, two[0][1], arrival_utime=two[0][0])
+    requests = receiver.repair_requests(VEHICLE, include_newest=False)
+    assert len(requests) == 1
+    request = chunk_request_t.decode(requests[0])
+    assert (request.utime, request.vehicle_id, request.keyframe_id, request.group) == \
+        (first.utime, VEHICLE, first.keyframe_id, 0)
+    assert list(request.indices) == [missing]
+    assert receiver.repair_requests(VEHICLE, include_newest=False) == []  # never twice
+    # The newest, while it arrives, only when asked to include it: its missing chunks, once.
+    newest = receiver.repair_requests(VEHICLE, include_newest=True)
+    assert [chunk_request_t.decode(r).keyframe_id for r in newest] == [second.keyframe_id]
+    assert receiver.repair_requests(VEHICLE, include_newest=True) == []
+
+    # The drone resends the chunk (a new sequence number): the keyframe is complete, repaired.
+    resent = chunks_of(first.encode(), utime=first.utime, vehicle_id=VEHICLE,
+                       keyframe_id=first.keyframe_id, first_sequence=0,
+                       sent_utime=NOW + 210_000, block_bytes=BLOCK_BYTES)[missing]
+    resent.sequence = len(one) + len(two)
+    _, _, k = receiver.receive(channel, resent.encode(), arrival_utime=NOW + 213_000)
+    assert k is not None and k.keyframe_id == first.keyframe_id
+    q = receiver.link_quality(VEHICLE, now_utime=NOW + 213_000)
+    assert (q.repair_requests, q.keyframes_recovered, q.keyframes_repaired) == (2, 1, 1)
+    assert q.chunks.keyframes_completed == 1 and q.newest_keyframe_id == second.keyframe_id
+
+
+def test_chunks_of_too_many_vehicles_are_refused_and_counted() -> None:
+    receiver = Receiver()
+    message = keyframe(small_depth(), DepthCodec())
+    for vehicle in range(MAX_LINK_VEHICLES + 2):
+        message.vehicle_id = vehicle
+        (t, data), *_ = chunked(message, first_sequence=0, first_arrival=NOW)
+        receiver.receive(channel_name(Channel.KEYFRAME_CHUNK, vehicle), data, arrival_utime=t)
+    assert receiver.link_vehicles_refused == 2
+    assert receiver.link_quality(MAX_LINK_VEHICLES - 1) is not None
+    assert receiver.link_quality(MAX_LINK_VEHICLES) is None
 
 
 def test_channel_names_are_the_links() -> None:

@@ -3,7 +3,7 @@ the committed TUM teddy sample, with onboard poses from its ground truth, are fe
 Station.on_message as the LCM thread would, and what it publishes is decoded and checked: one
 signed correction per keyframe near the truth, reset counting, duplicates, reordering, restarts,
 camera changes, malformed data, a vehicle without a key, the bounded queue, the ground's status and
-several vehicles. Then kinfly_ground.outputs: atomic writes, TUM round trips and the ATE."""
+several vehicles, keyframes in chunks and the repair of a lost one. Then kinfly_ground.outputs: atomic writes, TUM round trips and the ATE."""
 from __future__ import annotations
 
 import math
@@ -16,8 +16,9 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from kinfly import (depth_keyframe_t, drone_status_t, ground_status_t, ground_truth_t,
-                    odometry_t, pose3d_t, pose_correction_t, signed_t)
+from keyframe_chunks import chunks_of
+from kinfly import (chunk_request_t, depth_keyframe_t, drone_status_t, ground_status_t,
+                    ground_truth_t, odometry_t, pose3d_t, pose_correction_t, signed_t)
 from kinfly_ground._native import (Channel, CorrectionReceiver, DepthCodec, Signer, channel_name,
                                    key_id)
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
@@ -662,3 +663,87 @@ def test_station_params_build_the_engines_parameters() -> None:
     assert params.volume_params().voxel_size_m == pytest.approx(0.02)
     assert params.pipeline_params().integrate.truncation_m == pytest.approx(0.08)  # four voxels
     assert "voxel size" in StationParams(voxel_size_m=0.001).validate()
+
+
+# --- keyframes in chunks --------------------------------------------------------------------
+
+REPAIR_QUIET_S = 0.01  # StationParams.repair_quiet_s for the test (the default is 0.05)
+
+
+def test_chunked_keyframes_are_mapped_and_each_lost_chunk_is_asked_for_once(sample) -> None:
+    """Keyframes in chunks get their corrections like whole ones. The newest keyframe's lost
+    chunk is asked for once the drone's status says it sent it and the chunks have been quiet;
+    an older one's as soon as a newer keyframe's chunk arrives; never twice. The ground's status
+    carries the link's figures."""
+    keyframes = [m for m, _ in flight(sample, 4)]
+    rig = Rig(StationParams(mesh_interval_s=0, repair_quiet_s=REPAIR_QUIET_S))
+    channel = channel_name(Channel.KEYFRAME_CHUNK, VEHICLE)
+    status_channel = channel_name(Channel.STATUS, VEHICLE)
+    chunks, sequence = [], 0
+    for m in keyframes:
+        chunks.append(chunks_of(m.encode(), utime=m.utime, vehicle_id=VEHICLE,
+                                keyframe_id=m.keyframe_id, first_sequence=sequence,
+                                sent_utime=time.time_ns() // 1000))
+        sequence += len(chunks[-1])
+    lost = 2
+
+    def send(chunk) -> None:
+        rig.station.on_message(channel, chunk.encode())
+
+    def requests() -> list[tuple[int, list[int]]]:
+        return [(r.keyframe_id, list(r.indices))
+                for r in (chunk_request_t.decode(data) for on, data in rig.published
+                          if on == channel_name(Channel.CHUNK_REQUEST, VEHICLE))]
+
+    def resend(keyframe_id: int) -> None:
+        nonlocal sequence
+        chunk = chunks[keyframe_id][lost]
+        chunk.sequence, sequence = sequence, sequence + 1
+        send(chunk)
+
+    for chunk in chunks[0]:
+        send(chunk)
+    for chunk in chunks[1][:lost] + chunks[1][lost + 1:]:
+        send(chunk)
+    time.sleep(2 * REPAIR_QUIET_S)
+    # The drone has not said it sent keyframe 1: its chunk may still come.
+    rig.station.on_message(status_channel, drone_status(1, 0))
+    assert requests() == []
+    rig.station.on_message(status_channel, drone_status(2, 1))
+    assert requests() == [(1, [lost])]
+    rig.station.on_message(status_channel, drone_status(2, 1))
+    assert requests() == [(1, [lost])]  # once
+    resend(1)
+    assert [c.keyframe_id for c in rig.corrections()] == [0, 1]
+
+    # Keyframe 2 loses a chunk; keyframe 3's first chunk says the drone has moved on.
+    for chunk in chunks[2][:lost] + chunks[2][lost + 1:] + chunks[3][:1]:
+        send(chunk)
+    assert requests() == [(1, [lost]), (2, [lost])]
+    for chunk in chunks[3][1:]:
+        send(chunk)
+    resend(2)
+    assert requests() == [(1, [lost]), (2, [lost])]
+    # Keyframe 2 arrived after 3: late, counted, not fused.
+    state = rig.state()
+    assert [c.keyframe_id for c in rig.corrections()] == [0, 1, 3]
+    assert state.counters.out_of_order == 1
+
+    s = rig.station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
+    assert s.chunks_received == sum(len(c) for c in chunks)
+    assert (s.repair_requests, s.keyframes_recovered, s.keyframes_incomplete) == (2, 2, 0)
+    assert s.redundancy == 0.0  # originals only
+    assert s.goodput_bps > 0.0 and s.link_loss_run >= 1.0
+    assert s.keyframes_received == 3
+
+
+def test_a_station_that_sends_nothing_asks_for_nothing(sample) -> None:
+    (m, _), = flight(sample, 1)
+    station = Station(QUIET, Viewer(), vehicle_id=VEHICLE, signers={}, publish=None, inline=True)
+    chunks = chunks_of(m.encode(), utime=m.utime, vehicle_id=VEHICLE, keyframe_id=0,
+                       first_sequence=0, sent_utime=time.time_ns() // 1000)
+    for chunk in chunks[1:]:
+        station.on_message(channel_name(Channel.KEYFRAME_CHUNK, VEHICLE), chunk.encode())
+    time.sleep(2 * QUIET.repair_quiet_s)
+    station.on_message(channel_name(Channel.STATUS, VEHICLE), drone_status(1, 0))
+    assert station.receiver.link_quality(VEHICLE).repair_requests == 0

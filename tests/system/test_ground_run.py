@@ -118,6 +118,13 @@ def test_demo_flies_the_sample_end_to_end(demo_run: Path) -> None:
     assert applied == k["corrections_sent"]
     drone = vehicle["drone_reported"]
     assert drone["rejected_bad_mac"] == drone["rejected_wrong_key"] == 0
+    # The link's quality, whether keyframes came whole or in chunks; nothing was lost, so
+    # nothing was asked for again; and how the drone sent them.
+    link = vehicle["link"]
+    assert link["keyframes_incomplete"] == link["repair_requests"] == 0, link
+    assert link["keyframe_age_ms"] > 0
+    assert {"send_budget_bps", "redundancy", "keyframe_scale", "keyframes_skipped",
+            "chunks_sent", "chunks_resent"} <= drone.keys()
     check_accuracy(vehicle)
     assert summary["rejected_messages"]["malformed"] == 0
     assert 0 < summary["memory"]["rss_mb"] <= summary["memory"]["peak_rss_mb"]

@@ -73,6 +73,8 @@ def samples() -> dict[type, object]:
     st.sensor_state, st.sensor_connects, st.sensor_stalls = drone_status_t.SENSOR_STALLED, 2, 3
     st.frames_skipped, st.frames_lost = 11, 13
     st.last_keyframe_id, st.run_state = 1503, drone_status_t.RUN_FINAL
+    st.send_budget_bps, st.redundancy, st.keyframe_scale = 8e6, 0.25, 2  # exact in float32
+    st.chunks_sent, st.chunks_resent, st.keyframes_skipped = 55_000, 120, 7
     (st.rejected_unsigned, st.rejected_wrong_key, st.rejected_bad_mac, st.rejected_stale,
      st.rejected_replayed, st.rejected_malformed, st.rejected_unknown_channel,
      st.rejected_wrong_vehicle) = range(1, 9)
@@ -85,6 +87,10 @@ def samples() -> dict[type, object]:
      gs.corrections_sent, gs.last_keyframe_id) = 1490, 3, 2, 5, 1480, 1499
     gs.run_state, gs.tracking_state = ground_status_t.RUN_ACTIVE, odometry_t.TRACKING_OK
     gs.link_state = ground_status_t.LINK_STALE
+    gs.link_loss, gs.link_loss_run, gs.goodput_bps = 0.0625, 2.5, 6.5e6  # exact in float32
+    gs.queue_delay_ms, gs.redundancy, gs.keyframe_age_ms = 12.5, 0.25, 85.5
+    (gs.chunks_received, gs.keyframes_recovered, gs.keyframes_incomplete,
+     gs.repair_requests) = 54_000, 40, 2, 17
     gs.rejected_malformed, gs.rejected_unknown_channel, gs.rejected_wrong_vehicle = 6, 7, 8
 
     env = signed_t()
@@ -97,6 +103,7 @@ def samples() -> dict[type, object]:
     chunk = keyframe_chunk_t()
     chunk.utime, chunk.vehicle_id, chunk.keyframe_id = 1_700_000_000_123_456, 7, 56
     chunk.sequence, chunk.message_bytes, chunk.message_digest = 2_024, 3_000, -1_234_567_890_123
+    chunk.sent_utime = 1_700_000_000_124_000
     chunk.groups, chunk.group, chunk.originals, chunk.recovery, chunk.index = 2, 1, 2, 2, 3
     chunk.block = bytes((i * 13) % 256 for i in range(600))
     chunk.block_size = len(chunk.block)

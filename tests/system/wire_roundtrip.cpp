@@ -102,6 +102,12 @@ drone_status_t sampleDroneStatus() {
   m.keyframes_sent = 1500;
   m.keyframes_dropped = 4;
   m.last_keyframe_id = 1503;
+  m.send_budget_bps = 8e6f;
+  m.redundancy = 0.25f;
+  m.keyframe_scale = 2;
+  m.chunks_sent = 55'000;
+  m.chunks_resent = 120;
+  m.keyframes_skipped = 7;
   m.run_state = drone_status_t::RUN_FINAL;
   m.tracking_state = odometry_t::TRACKING_OK;
   m.link_state = drone_status_t::LINK_UP;
@@ -139,6 +145,16 @@ ground_status_t sampleGroundStatus() {
   m.run_state = ground_status_t::RUN_ACTIVE;
   m.tracking_state = odometry_t::TRACKING_OK;
   m.link_state = ground_status_t::LINK_STALE;
+  m.link_loss = 0.0625f;
+  m.link_loss_run = 2.5f;
+  m.goodput_bps = 6.5e6f;
+  m.queue_delay_ms = 12.5f;
+  m.redundancy = 0.25f;
+  m.keyframe_age_ms = 85.5f;
+  m.chunks_received = 54'000;
+  m.keyframes_recovered = 40;
+  m.keyframes_incomplete = 2;
+  m.repair_requests = 17;
   m.rejected_malformed = 6;
   m.rejected_unknown_channel = 7;
   m.rejected_wrong_vehicle = 8;
@@ -165,6 +181,7 @@ keyframe_chunk_t sampleChunk() {
   m.vehicle_id = 7;
   m.keyframe_id = 56;
   m.sequence = 2'024;
+  m.sent_utime = 1'700'000'000'124'000;
   m.message_bytes = 3'000;
   m.message_digest = -1'234'567'890'123;
   m.groups = 2;

@@ -31,6 +31,10 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
     corrections_.emplace(*key, config.vehicle.id, config.link.signing, link::DecodeBounds());
   }
   codec_.reserve(camera.width, camera.height, &message_.payload);
+  // The largest keyframe this camera can make, at any redundancy: no allocation while flying.
+  chunks_.reserve(depth_keyframe_t().getEncodedSize() +
+                  static_cast<int64_t>(message_.payload.capacity()));
+  out_.block.reserve(static_cast<size_t>(chunks_.blockBytes()));
   status_.vehicle_id = config.vehicle.id;
 }
 

@@ -227,6 +227,22 @@ ChunkEncoder::ChunkEncoder(const Params& params)
 
 ChunkEncoder::~ChunkEncoder() = default;
 
+void ChunkEncoder::reserve(int64_t max_message_bytes) {
+  const size_t block = static_cast<size_t>(block_bytes_);
+  const int blocks = blockCount(std::max<int64_t>(max_message_bytes, 1), block_bytes_);
+  const int groups = (blocks + params_.max_originals_per_group - 1) / params_.max_originals_per_group;
+  // Each group holds at most MAX_GROUP_CHUNKS chunks, whatever its share of recovery.
+  const size_t chunks = static_cast<size_t>(std::min(blocks + groups * (kMaxGroupChunks - 1),
+                                                     groups * kMaxGroupChunks));
+  encoded_.reserve(static_cast<size_t>(max_message_bytes));
+  padded_.reserve(static_cast<size_t>(blocks) * block);
+  recovery_.reserve(static_cast<size_t>(kMaxGroupChunks - 1) * block);
+  for (Kept& kept : kept_) {
+    if (kept.chunks.size() < chunks) kept.chunks.resize(chunks);
+    for (keyframe_chunk_t& c : kept.chunks) c.block.reserve(block);
+  }
+}
+
 int ChunkEncoder::originalsPerGroup(int64_t message_bytes) const {
   const int blocks = blockCount(std::max<int64_t>(message_bytes, 1), block_bytes_);
   const int groups = (blocks + params_.max_originals_per_group - 1) / params_.max_originals_per_group;

@@ -94,8 +94,8 @@ class ChunkEncoder {
     // Larger groups need relatively fewer recovery chunks for the same loss; k + m <= 256.
     int max_originals_per_group = 128;
     // [keyframes] [1, 64]: the last keyframes whose chunks are kept for resend() (the one just
-    // encoded included).
-    int repair_keyframes = 8;
+    // encoded included); the ground asks within a keyframe or two.
+    int repair_keyframes = 4;
     // [chunks] [0, 4096]: resends per kept keyframe at most, whatever the requests ask.
     int repair_chunks_per_keyframe = 64;
     Status validate() const;
@@ -110,6 +110,11 @@ class ChunkEncoder {
   ~ChunkEncoder();
   ChunkEncoder(const ChunkEncoder&) = delete;
   ChunkEncoder& operator=(const ChunkEncoder&) = delete;
+
+  // Grows every buffer, the kept keyframes' chunks included, for messages up to max_message_bytes
+  // at any redundancy, so that encode() and resend() never allocate after this (a drone's link
+  // thread reserves for its camera's largest keyframe at start).
+  void reserve(int64_t max_message_bytes);
 
   int blockBytes() const { return block_bytes_; }
   // k of the largest group of a message of message_bytes: what recoveryChunks() is asked about.

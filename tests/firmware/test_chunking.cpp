@@ -468,6 +468,36 @@ TEST(ChunkAssembler, ARestartedDroneStartsAfresh) {
   EXPECT_EQ(assembler.message(), other);
 }
 
+TEST(ChunkAssembler, ARestartSoonAfterTheStartIsToldApartFromReordering) {
+  ChunkAssembler assembler(kVehicle, {});  // restart_gap_chunks 1024, reorder_chunks 32
+  const auto message = randomMessage(100'000, 15);  // 74 originals
+  ChunkEncoder first({});
+  // The sender stamps send times in sending order (kinfly-fw's link thread), 1 ms apart.
+  int64_t sent_us = 1'000'000;
+  std::vector<keyframe_chunk_t> late;
+  for (int64_t id = 0; id < 3; ++id)
+    for (auto chunk : chunksOf(first, message, id, 1)) {
+      chunk.sent_utime = sent_us += 1000;
+      if (id == 1 && chunk.index == 0) {
+        late.push_back(chunk);  // held back: it arrives after keyframe 2, 75 chunks late
+        continue;
+      }
+      feed(assembler, chunk);
+    }
+  // Reordered: a lower number, sent earlier than the highest. Not a restart.
+  feed(assembler, late.front());
+  EXPECT_EQ(assembler.counters().restarts, 0);
+  // A drone restarted after 225 chunks numbers from 0 again, sending later: a restart.
+  ChunkEncoder second({});
+  const auto other = randomMessage(100'000, 16);
+  for (auto chunk : chunksOf(second, other, 0, 1)) {
+    chunk.sent_utime = sent_us += 1000;
+    feed(assembler, chunk);
+  }
+  EXPECT_EQ(assembler.counters().restarts, 1);
+  EXPECT_EQ(assembler.message(), other);
+}
+
 // ---------------------------------------------------------------------------------------------
 // Repair
 

@@ -445,7 +445,7 @@ ChunkStatus ChunkAssembler::add(const keyframe_chunk_t& chunk) {
   if (chunk.vehicle_id != vehicle_id_) return count(ChunkStatus::kMismatch);
   if (!chunkProblem(chunk, maxKeyframeMessageBytes(params_.bounds)).empty())
     return count(ChunkStatus::kMalformed);
-  noteSequence(chunk.sequence);
+  noteSequence(chunk.sequence, chunk.sent_utime);
   if (chunk.message_bytes > params_.max_message_bytes) return count(ChunkStatus::kOversized);
 
   if (chunk.keyframe_id > newest_id_) {
@@ -613,18 +613,26 @@ void ChunkAssembler::restart() {
   highest_sequence_ = -1;
 }
 
-void ChunkAssembler::noteSequence(int64_t sequence) {
+void ChunkAssembler::noteSequence(int64_t sequence, int64_t sent_utime) {
   const int64_t window = params_.loss_window_chunks;
-  if (highest_sequence_ >= 0 && sequence < highest_sequence_ - params_.restart_gap_chunks) restart();
+  // A drone that restarted numbers from 0 again: far below the highest number, or below it by
+  // more than reordering explains while sent later than the chunk that had the highest (a chunk
+  // the network reordered was sent earlier).
+  if (highest_sequence_ >= 0 &&
+      (sequence < highest_sequence_ - params_.restart_gap_chunks ||
+       (sequence < highest_sequence_ - params_.reorder_chunks && sent_utime > highest_sent_utime_)))
+    restart();
   if (highest_sequence_ < 0) {
     std::fill(seen_.begin(), seen_.end(), false);
     highest_sequence_ = lowest_tracked_ = sequence;
+    highest_sent_utime_ = sent_utime;
   }
   if (sequence > highest_sequence_) {
     // The positions the window moves over are unseen until their chunk arrives.
     for (int64_t s = std::max(highest_sequence_ + 1, sequence - window + 1); s <= sequence; ++s)
       seen_[static_cast<size_t>(s % window)] = false;
     highest_sequence_ = sequence;
+    highest_sent_utime_ = sent_utime;
     lowest_tracked_ = std::max(lowest_tracked_, sequence - window + 1);
   }
   if (sequence >= lowest_tracked_) seen_[static_cast<size_t>(sequence % window)] = true;

@@ -214,7 +214,8 @@ class ChunkAssembler {
     // be worth repairing) and its chunks are stale.
     int window_keyframes = 8;
     // [chunks] [1, 2^40]: a sequence number this far below the highest seen means the drone
-    // restarted (its counters went back to 0): everything being assembled is given up.
+    // restarted (its counters went back to 0): everything being assembled is given up. So does
+    // one more than reorder_chunks below it that was sent later than the highest.
     int64_t restart_gap_chunks = 1024;
     // [chunks] [64, 65536]: loss() covers the last this many sequence numbers.
     int loss_window_chunks = 2048;
@@ -277,7 +278,7 @@ class ChunkAssembler {
   Slot* newSlot(const keyframe_chunk_t& chunk);
   void evict(Slot& slot);
   void release(Slot& slot);
-  void noteSequence(int64_t sequence);
+  void noteSequence(int64_t sequence, int64_t sent_utime);
   void restart();
   ChunkStatus count(ChunkStatus status);
 
@@ -295,6 +296,7 @@ class ChunkAssembler {
   // Sequence numbers seen: a ring of loss_window_chunks bits ending at the highest one.
   std::vector<bool> seen_;
   int64_t highest_sequence_ = -1;  // -1: none yet
+  int64_t highest_sent_utime_ = 0;  // [us] that chunk's sent_utime
   int64_t lowest_tracked_ = 0;     // the window's first sequence number
 };
 

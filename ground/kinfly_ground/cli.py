@@ -39,14 +39,16 @@ LINK_TIMEOUT_S = 1.0       # the drone is STALE after this long unheard (as kinf
 PROGRESS_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 30.0     # at exit, the longest wait for queued keyframes to be fused
 # The kernel's receive buffer of the LCM socket holds what arrives while LCM's receive thread
-# cannot run (a loaded laptop). A 50 KB keyframe costs about 64 KB of buffer on loopback and
-# about 90 KB as 37 fragments of a 1500-byte MTU: 4 MB holds two seconds of keyframes at 20 Hz.
+# cannot run (a loaded laptop). A 50 KB keyframe costs about 90 KB of buffer as some 40 chunks
+# of a 1500-byte MTU: 4 MB holds two seconds of keyframes at 20 Hz.
 RECV_BUFFER_BYTES = 4 << 20
 RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
 # Messages LCM queues for this process's handler thread, per subscription, before it drops the
-# newest: keyframes (50 KB each) apart from the small messages, which arrive at up to 200 Hz
-# (odometry, ground truth, status), so a burst of those never pushes a keyframe out.
-KEYFRAME_QUEUE_MESSAGES = 64
+# newest: keyframe chunks (some 40 of 1.4 KB a keyframe; 4096 are about 100 keyframes, 6 MB)
+# apart from the small messages, which arrive at up to 200 Hz (odometry, ground truth, status),
+# so a burst of those never pushes a chunk out. A chunk dropped here would count as lost on the
+# link and raise the drone's redundancy.
+KEYFRAME_QUEUE_MESSAGES = 4096
 SMALL_QUEUE_MESSAGES = 2000
 
 

@@ -63,7 +63,7 @@ import demo  # noqa: E402  (scripts/demo.py: the demo's commands and process han
 import kinfly_eval  # noqa: E402  (where the shared data is)
 from busy import busy_cores  # noqa: E402
 from firmware_run import parse_summary  # noqa: E402
-from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
+from netns import LinkShape, NetnsUnavailable, network_namespace, send_signal  # noqa: E402
 
 STATUS_WATCH = REPO_ROOT / "tests" / "tools" / "status_watch.py"
 DEPTH_CHANNEL = f"KINFLY_{demo.VEHICLE_ID}_DEPTH"
@@ -332,7 +332,12 @@ def fly(args: argparse.Namespace, out: Path) -> dict[str, Any]:
                               "load_average_at_start": os.getloadavg(),
                               "frames_per_lap": flight.frames, "lap_s": flight.lap_s,
                               "laps": laps, "flight_s": flight_s, "sample_period_s": period_s}
-    with busy_cores(args.busy), network_namespace("soak") as netns:
+    # A Wi-Fi-like link when asked (scripts/netns.py): the chunks' erasure coding and repair
+    # requests then work for the whole flight, and what they could not save is counted lost.
+    shape = (LinkShape(loss=args.loss, loss_run_packets=args.loss_run)
+             if args.loss > 0.0 else None)
+    report["link"] = shape.label() if shape else "loopback"
+    with busy_cores(args.busy), network_namespace("soak", shape) as netns:
         ground = demo.Watched([*netns, *demo.ground_command(ground_out, key=key), "--no-record"],
                               "[ground] ", quiet=not args.verbose)
         watcher = drone = sampler = None
@@ -443,6 +448,12 @@ def main() -> int:
     p.add_argument("--sequence", action="store_true",
                    help="fly the shared 200-frame TUM sequence (KINFLY_DATA) instead of the "
                         "shipped 60-frame sample")
+    p.add_argument("--loss", type=float, default=0.0, metavar="P",
+                   help="fly over a Wi-Fi-like link losing this fraction of packets "
+                        "(scripts/netns.py LinkShape: MTU 1500, nftables drops); default 0: "
+                        "plain loopback")
+    p.add_argument("--loss-run", type=float, default=1.0, metavar="L",
+                   help="with --loss: mean length of a run of lost packets (1: independent)")
     p.add_argument("--verbose", action="store_true", help="echo both programs' output")
     args = p.parse_args()
     if args.minutes <= 0:

@@ -151,8 +151,8 @@ void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
   const int64_t rejected_before = corrections_->rejects().total();
   const auto correction =
       corrections_->receive(rbuf->data, rbuf->data_size, link::wallClockUtime());
-  if (!correction) {  // the receiver counts every refusal by its reason
-    if (reject_log_.allow(now_s))
+  if (!correction) {  // the receiver counts every refusal by its reason (and copies apart)
+    if (corrections_->rejects().total() > rejected_before && reject_log_.allow(now_s))
       spdlog::warn("link: correction rejected ({} rejected in all, by reason in the status)",
                    rejected_before + 1);
     return;

@@ -10,6 +10,7 @@ void RejectCounters::count(Verdict verdict) {
     case Verdict::kBadMac: ++bad_mac; return;
     case Verdict::kStale: ++stale; return;
     case Verdict::kReplayed: ++replayed; return;
+    case Verdict::kDuplicate: return;  // not a rejection: CorrectionReceiver counts copies
   }
 }
 

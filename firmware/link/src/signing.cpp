@@ -168,6 +168,7 @@ const char* toString(Verdict verdict) {
     case Verdict::kBadMac: return "bad MAC";
     case Verdict::kStale: return "stale";
     case Verdict::kReplayed: return "replayed";
+    case Verdict::kDuplicate: return "duplicate";
   }
   return "?";
 }
@@ -191,8 +192,13 @@ Verdict Verifier::verify(const signed_t& envelope, int64_t now_utime) {
     return Verdict::kBadMac;
   const double age_s = static_cast<double>(now_utime - envelope.utime) * 1e-6;
   if (!(std::abs(age_s) <= params_.window_s)) return Verdict::kStale;
+  for (size_t i = 0; i < recent_count_; ++i)
+    if (recent_[i] == envelope.sequence) return Verdict::kDuplicate;
   if (last_sequence_ && envelope.sequence <= *last_sequence_) return Verdict::kReplayed;
   last_sequence_ = envelope.sequence;
+  recent_[next_recent_] = envelope.sequence;
+  next_recent_ = (next_recent_ + 1) % recent_.size();
+  recent_count_ = std::min(recent_count_ + 1, recent_.size());
   return Verdict::kAccepted;
 }
 

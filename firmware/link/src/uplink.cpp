@@ -18,6 +18,7 @@ std::optional<pose_correction_t> CorrectionReceiver::receive(const void* data, s
   }
   if (const Verdict verdict = verifier_.verify(envelope_, now_utime);
       verdict != Verdict::kAccepted) {
+    if (verdict == Verdict::kDuplicate) ++duplicates_;
     rejects_.count(verdict);
     return std::nullopt;
   }

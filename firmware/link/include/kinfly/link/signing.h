@@ -55,6 +55,7 @@ enum class Verdict {
   kBadMac,
   kStale,         // signing time outside the window
   kReplayed,      // sequence not above the last accepted one
+  kDuplicate,     // a copy of an envelope accepted lately: the ground sends each more than once
 };
 const char* toString(Verdict verdict);
 
@@ -69,14 +70,20 @@ class Verifier {
 
   // Checks an envelope decoded with decodeMessage(). Checks run cheapest-first but the MAC comes
   // before the time and sequence, so forged envelopes count as kBadMac, never as stale or
-  // replayed, and cannot move the replay window. Only kAccepted advances the sequence.
+  // replayed, and cannot move the replay window. Only kAccepted advances the sequence. An
+  // authentic envelope whose sequence is one of the last kRecentSequences accepted is a copy
+  // (kDuplicate: one signer never signs two messages with one sequence number).
   Verdict verify(const signed_t& envelope, int64_t now_utime);
+
+  static constexpr size_t kRecentSequences = 16;
 
  private:
   Key key_;
   int32_t vehicle_id_;
   VerifierParams params_;
   std::optional<int64_t> last_sequence_;
+  std::array<int64_t, kRecentSequences> recent_{};  // accepted sequences, a ring
+  size_t recent_count_ = 0, next_recent_ = 0;
 };
 
 // [us] since the Unix epoch: the clock signing times are stamped with and checked against (both

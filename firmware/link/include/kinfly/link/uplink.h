@@ -23,13 +23,16 @@ class CorrectionReceiver {
 
   const RejectCounters& rejects() const { return rejects_; }
   int64_t accepted() const { return accepted_; }
+  // Copies of corrections already accepted (the ground sends each more than once): not applied
+  // again, and not rejections.
+  int64_t duplicates() const { return duplicates_; }
 
  private:
   int32_t vehicle_id_;
   Verifier verifier_;
   DecodeBounds bounds_;
   RejectCounters rejects_;
-  int64_t accepted_ = 0;
+  int64_t accepted_ = 0, duplicates_ = 0;
   signed_t envelope_;  // reused: its payload buffer keeps its capacity between messages
 };
 

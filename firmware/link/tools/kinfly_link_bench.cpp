@@ -68,6 +68,12 @@ constexpr double kDroneLingerS = 1.0;
 constexpr double kDroneQuietS = 0.5;
 // [s] the ground waits for the answers to its last repair round.
 constexpr double kLastRepairWaitS = 0.5;
+// Messages LCM queues for a subscription before it drops the newest (its default is 30): a
+// keyframe is ~45 chunks, which arrive within the spread while the handler may wait for a core
+// on a loaded machine. 4096 chunks (~6 MB) hold some 90 keyframes.
+constexpr int kChunkQueueMessages = 4096;
+// The drone's subscription: corrections and chunk requests, a few per keyframe.
+constexpr int kUplinkQueueMessages = 256;
 
 std::atomic<bool> g_stop{false};
 void onSignal(int) { g_stop = true; }
@@ -331,7 +337,7 @@ int runDrone(const Options& options) {
   const std::string channels =
       "(?!" + link::channelName(link::Channel::kKeyframeChunk, options.vehicle_id) + "$)" +
       link::vehicleChannelsRegex(options.vehicle_id);
-  lcm.subscribe(channels, &DroneEnd::onMessage, &end);
+  lcm.subscribe(channels, &DroneEnd::onMessage, &end)->setQueueCapacity(kUplinkQueueMessages);
 
   DepthCodec codec(codec_params);
   PinholeCamera camera;
@@ -527,7 +533,9 @@ class GroundEnd {
     const bool newer = chunk_.keyframe_id > newest_id_;
     const int64_t recovered_before = assembler_.counters().keyframes_recovered;
     const link::ChunkStatus status = assembler_.add(chunk_);
-    if (newer) newest_id_ = chunk_.keyframe_id;
+    const bool kept =
+        status == link::ChunkStatus::kStored || status == link::ChunkStatus::kCompleted;
+    if (newer && kept) newest_id_ = chunk_.keyframe_id;
     if (status == link::ChunkStatus::kCompleted) {
       const bool repaired = repaired_ids_.count(chunk_.keyframe_id) > 0;
       repaired_ += repaired;
@@ -536,7 +544,7 @@ class GroundEnd {
       onKeyframe(now);
     }
     // The keyframe before a newer one's first chunk has had all its chunks sent.
-    if (newer && options_.repair) askRepairs(/*include_newest=*/false);
+    if (newer && kept && options_.repair) askRepairs(/*include_newest=*/false);
   }
 
   void onKeyframe(int64_t now) {
@@ -626,7 +634,8 @@ int runGround(const Options& options) {
   lcm::LCM lcm(options.lcm_url);
   if (!lcm.good()) return fail("cannot start LCM on \"" + options.lcm_url + "\"");
   GroundEnd end(options, &lcm, std::move(reference), key);
-  lcm.subscribe(link::vehicleChannelsRegex(options.vehicle_id), &GroundEnd::onMessage, &end);
+  lcm.subscribe(link::vehicleChannelsRegex(options.vehicle_id), &GroundEnd::onMessage, &end)
+      ->setQueueCapacity(kChunkQueueMessages);
   // Ready line for the driving script: it starts the sender only after the subscription exists.
   std::fprintf(stderr, "kinfly-link-bench: ground listening\n");
   const Clock::time_point start = Clock::now();

@@ -5,9 +5,10 @@ is the short check that the path works.
 
 The threshold, 95 % of keyframes, is far below what the link should do (the redundancy is chosen
 for a modelled failure of 1e-3 a keyframe, so 60 keyframes lose none or one nearly always) on
-purpose: on a loaded machine a receiving socket may overflow while the ground's thread waits
-for a core, which loses chunks beyond the link's loss; 3 keyframes of 60 leave room for that,
-and a broken FEC or repair path (tens of keyframes lost at 5 % loss) still fails."""
+purpose: on a loaded machine a receiving socket or LCM's queue may overflow while the ground's
+thread waits for a core, which loses chunks beyond the link's loss; 3 keyframes of 60 leave
+room for that, and a broken FEC or repair path (tens of keyframes lost at 5 % loss) still
+fails. Both tests together take ~16 s, beside two busy loops too."""
 from __future__ import annotations
 
 import json

@@ -10,15 +10,15 @@
 //       drone_status_t at 10 Hz, the last one marked final. With --repair it answers
 //       chunk_request_t; with --key it verifies every message on its correction channel,
 //       counting each rejection and timing each accepted correction (receive time minus
-//       signing time, one host's CLOCK_REALTIME); either way it stays listening 1 s after its
-//       final status. Prints one JSON summary.
+//       signing time, one host's CLOCK_REALTIME); either way it stays listening 1.5 s after
+//       its final status. Prints one JSON summary.
 //   kinfly-link-bench ground --seconds S [--expect N] [--tum DIR] [--repair] [--key FILE]
 //       assembles chunks, decodes keyframes within bounds, measures latency (receive time minus
 //       the keyframe's utime, stamped after encoding) and loss (of keyframes: those the drone's
 //       final status says it sent; of chunks: sequence gaps); with --tum checks every keyframe
 //       bit for bit; with --repair asks once per incomplete group, when the next keyframe starts
 //       and at the end; with --key signs a correction of each keyframe. Ends after the drone's
-//       final status (or 0.5 s without its status) and a last repair round. Prints one JSON
+//       final status (or 1 s without its status) and a last repair round. Prints one JSON
 //       summary.
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
@@ -63,9 +63,10 @@ constexpr double kStatusPeriodS = 0.1;  // drone_status_t at 10 Hz
 // ground ends after its quiet time instead.
 constexpr int kFinalStatusCopies = 10;
 // [s] the drone keeps answering chunk requests and taking corrections after its final status.
-constexpr double kDroneLingerS = 1.0;
-// [s] without a drone status the ground takes the drone to have stopped (its last status lost).
-constexpr double kDroneQuietS = 0.5;
+constexpr double kDroneLingerS = 1.5;
+// [s] without a drone status, and nothing left to handle, the ground takes the drone to have
+// stopped (its final statuses lost); within the drone's linger, so the last repairs are answered.
+constexpr double kDroneQuietS = 1.0;
 // [s] the ground waits for the answers to its last repair round.
 constexpr double kLastRepairWaitS = 0.5;
 // Messages LCM queues for a subscription before it drops the newest (its default is 30): a
@@ -643,8 +644,11 @@ int runGround(const Options& options) {
     return !g_stop && secondsSince(start) < options.seconds &&
            (options.expect == 0 || end.received() < options.expect);
   };
-  while (running() && !end.droneDone() && end.sinceDroneStatus() < kDroneQuietS)
-    lcm.handleTimeout(waitMs(options.seconds - secondsSince(start)));
+  while (running() && !end.droneDone()) {
+    // Quiet only when nothing is queued: a ground that waited for a core has statuses to read.
+    const int handled = lcm.handleTimeout(waitMs(options.seconds - secondsSince(start)));
+    if (handled == 0 && end.sinceDroneStatus() > kDroneQuietS) break;
+  }
   // The drone has stopped: one last round for what is still incomplete, the newest included.
   if (running()) {
     if (options.repair) end.askRepairs(/*include_newest=*/true);

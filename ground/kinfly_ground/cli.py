@@ -316,6 +316,7 @@ def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, sta
 
 
 def _publish_status(lc: Any, station: Station, run_state: int) -> None:
+    station.uplink.send_copies()
     now = time.monotonic()
     for state in list(station.vehicles.values()):
         lc.publish(channel_name(Channel.GROUND_STATUS, state.vehicle_id),

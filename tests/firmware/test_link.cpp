@@ -416,9 +416,16 @@ TEST_F(Signing, RejectsReplayedAndReorderedSequences) {
   const signed_t first = signCorrection(1, kNow);
   const signed_t second = signCorrection(2, kNow);
   EXPECT_EQ(verifier_.verify(second, kNow), Verdict::kAccepted);
-  EXPECT_EQ(verifier_.verify(second, kNow), Verdict::kReplayed);
+  // A copy of what was accepted (the ground sends each correction more than once).
+  EXPECT_EQ(verifier_.verify(second, kNow), Verdict::kDuplicate);
+  // Never accepted, and older than what was: a replay.
   EXPECT_EQ(verifier_.verify(first, kNow), Verdict::kReplayed);
   EXPECT_EQ(verifier_.verify(signCorrection(3, kNow), kNow), Verdict::kAccepted);
+  EXPECT_EQ(verifier_.verify(second, kNow), Verdict::kDuplicate);  // still among the recent
+  // Once it has left the recent ones, a copy is a replay again.
+  for (int i = 0; i < static_cast<int>(Verifier::kRecentSequences); ++i)
+    ASSERT_EQ(verifier_.verify(signCorrection(10 + i, kNow), kNow), Verdict::kAccepted);
+  EXPECT_EQ(verifier_.verify(second, kNow), Verdict::kReplayed);
 }
 
 // A fixed vector computed with Python's hmac from the layout in docs/wire.md; the Python signer's

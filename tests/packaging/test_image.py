@@ -78,7 +78,8 @@ def test_package_holds_the_firmware_config_and_unit(deb: Path) -> None:
     assert fields["Package"] == "kinfly-fw"
     assert fields["Architecture"] == "arm64"
     # Computed from the binaries' DT_NEEDED, so the engine's libraries and the link's must be there.
-    for runtime in ("libc6", "libstdc++6", "libgomp1", "liblcm1", "libsodium23", "libzstd1"):
+    for runtime in ("libc6", "libstdc++6", "libgomp1", "liblcm1", "libsodium23", "libzstd1",
+                    "libcm256cc1"):
         assert re.search(rf"(^|, ){re.escape(runtime)}( |,|$)", fields["Depends"]), fields
     files = run("dpkg-deb", "--contents", deb)
     for path in ("./usr/bin/kinfly-fw", "./usr/bin/kinfly-keygen", "./etc/kinfly/kinfly-fw.toml",

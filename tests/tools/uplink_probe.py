@@ -74,10 +74,15 @@ def main() -> int:
     key = load_key_file(args.key)
     signer = Signer(key, args.vehicle)
     channel = channel_name(Channel.CORRECTION, args.vehicle)
+    # Signed first, sent last: a sequence number below the last accepted one, never accepted
+    # itself (a recorded message played back later). A copy of an accepted one is not a replay
+    # but a duplicate (the ground sends each correction more than once): not applied, not refused.
+    held_back = signed(signer, 99)
     good = [signed(signer, i) for i in range(args.good)]
     for envelope in good:
         lc.publish(channel, envelope)
         time.sleep(0.01)
+    lc.publish(channel, good[-1])
 
     bad_mac = signed_t.decode(signed(signer, 100))
     bad_mac.mac = bytes([bad_mac.mac[0] ^ 1]) + bad_mac.mac[1:]
@@ -87,7 +92,7 @@ def main() -> int:
         bad_mac.encode(),                                                         # bad MAC
         signed(Signer(load_key_file(args.other_key), args.vehicle), 102),         # wrong key
         signed(signer, 103, now_us - int(STALE_BY_S * 1e6)),                      # stale
-        good[-1],                                                                 # replayed
+        held_back,                                                                # replayed
         signed(signer, 104)[:-3],                                                 # malformed
         signed(Signer(key, args.vehicle + 1), 105),                               # wrong vehicle
     ]

@@ -13,6 +13,7 @@
 //       signing time, one host's CLOCK_REALTIME); either way it stays listening 1.5 s after
 //       its final status. Prints one JSON summary.
 //   kinfly-link-bench ground --seconds S [--expect N] [--tum DIR] [--repair] [--key FILE]
+//                            [--correction-copies N] [--copy-interval-ms MS]
 //       assembles chunks, decodes keyframes within bounds, measures latency (receive time minus
 //       the keyframe's utime, stamped after encoding) and loss (of keyframes: those the drone's
 //       final status says it sent; of chunks: sequence gaps); with --tum checks every keyframe
@@ -30,6 +31,7 @@
 #include <csignal>
 #include <cstdio>
 #include <cstring>
+#include <deque>
 #include <iostream>
 #include <optional>
 #include <set>
@@ -145,6 +147,10 @@ struct Options {
   double rate_kbit = 0.0;  // 0: no cap
   // ground
   int64_t expect = 0;
+  // Each correction goes out this many times, copy_interval_ms apart (as the ground station
+  // sends them: at once, then with its next statuses), so a loss run rarely takes them all.
+  int correction_copies = 3;
+  double copy_interval_ms = 100.0;
 };
 
 // ---- drone end ------------------------------------------------------------------------------
@@ -240,6 +246,7 @@ class DroneEnd {
     return all;
   }
   int64_t accepted() const { return corrections_ ? corrections_->accepted() : 0; }
+  int64_t duplicates() const { return corrections_ ? corrections_->duplicates() : 0; }
   int64_t chunksSent() const { return next_sequence_; }
   int64_t originalsSent() const { return originals_sent_; }
   int64_t recoverySent() const { return recovery_sent_; }
@@ -396,7 +403,8 @@ int runDrone(const Options& options) {
       "{\"role\": \"drone\", \"sent\": %lld, \"skipped\": %lld, \"rate_hz\": %g, "
       "\"payload_bytes_median\": %.0f, \"chunks_sent\": %lld, \"originals\": %lld, "
       "\"recovery\": %lld, \"resent\": %lld, \"overhead\": %.4f, \"overhead_with_resent\": %.4f, "
-      "\"corrections_accepted\": %lld, \"correction_latency_ms\": %s, \"rejected\": %s}\n",
+      "\"corrections_accepted\": %lld, \"corrections_duplicate\": %lld, "
+      "\"correction_latency_ms\": %s, \"rejected\": %s}\n",
       static_cast<long long>(sent), static_cast<long long>(skipped), options.rate_hz,
       tools::percentile(payload_bytes, 0.5), static_cast<long long>(end.chunksSent()),
       static_cast<long long>(originals), static_cast<long long>(end.recoverySent()),
@@ -405,7 +413,8 @@ int runDrone(const Options& options) {
       originals ? static_cast<double>(end.recoverySent() + end.resent()) /
                       static_cast<double>(originals)
                 : 0.0,
-      static_cast<long long>(end.accepted()), latencyJson(end.correctionLatencyMs()).c_str(),
+      static_cast<long long>(end.accepted()), static_cast<long long>(end.duplicates()),
+      latencyJson(end.correctionLatencyMs()).c_str(),
       countersJson(end.rejects()).c_str());
   return 0;
 }
@@ -591,7 +600,40 @@ class GroundEnd {
     signer_->sign(inner_.data(), inner_.size(), link::wallClockUtime(), &envelope_);
     lcm_->publish(correction_channel_, &envelope_);
     ++corrections_sent_;
+    if (options_.correction_copies > 1)
+      copies_.push_back({envelope_, Clock::now() + copyInterval(), options_.correction_copies - 1});
   }
+
+ public:
+  // [s] until the next copy of a correction is due (`limit_s` when none is).
+  double nextCopyS(double limit_s) const {
+    if (copies_.empty()) return limit_s;
+    return std::min(limit_s, std::chrono::duration<double>(copies_.front().due - Clock::now()).count());
+  }
+  // Sends the copies that are due; the envelope is the same, so the drone counts a duplicate.
+  void sendDueCopies() {
+    while (!copies_.empty() && copies_.front().due <= Clock::now()) {
+      Copy copy = copies_.front();
+      copies_.pop_front();
+      lcm_->publish(correction_channel_, &copy.envelope);
+      if (--copy.left > 0) {
+        copy.due += copyInterval();
+        copies_.push_back(copy);
+      }
+    }
+  }
+
+ private:
+  struct Copy {
+    signed_t envelope;
+    Clock::time_point due;
+    int left;
+  };
+  Clock::duration copyInterval() const {
+    return std::chrono::duration_cast<Clock::duration>(
+        std::chrono::duration<double, std::milli>(options_.copy_interval_ms));
+  }
+  std::deque<Copy> copies_;
 
   const Options& options_;
   lcm::LCM* lcm_;
@@ -646,14 +688,19 @@ int runGround(const Options& options) {
   };
   while (running() && !end.droneDone()) {
     // Quiet only when nothing is queued: a ground that waited for a core has statuses to read.
-    const int handled = lcm.handleTimeout(waitMs(options.seconds - secondsSince(start)));
+    const int handled = lcm.handleTimeout(
+        static_cast<int>(1e3 * std::max(0.0, end.nextCopyS(options.seconds - secondsSince(start)))));
+    end.sendDueCopies();
     if (handled == 0 && end.sinceDroneStatus() > kDroneQuietS) break;
   }
   // The drone has stopped: one last round for what is still incomplete, the newest included.
   if (running()) {
     if (options.repair) end.askRepairs(/*include_newest=*/true);
     const Clock::time_point last_round = Clock::now();
-    while (running() && secondsSince(last_round) < kLastRepairWaitS) lcm.handleTimeout(50);
+    while (running() && secondsSince(last_round) < kLastRepairWaitS) {
+      lcm.handleTimeout(static_cast<int>(1e3 * std::max(0.0, end.nextCopyS(0.05))));
+      end.sendDueCopies();
+    }
   }
   end.print(!options.tum_dir.empty());
   return 0;
@@ -719,6 +766,14 @@ int main(int argc, char** argv) {
   ground->add_flag("--repair", o.repair, "ask the drone for the chunks incomplete groups lack");
   ground->add_option("--key", o.key_path,
                      "vehicle key file: send a signed correction of each keyframe received");
+  ground->add_option("--correction-copies", o.correction_copies,
+                     "times each correction is sent (the drone applies the first, counts the "
+                     "rest as duplicates)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 10));
+  ground->add_option("--copy-interval-ms", o.copy_interval_ms, "between a correction's copies")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 1000.0));
   CLI11_PARSE(app, argc, argv);
 
   std::signal(SIGINT, onSignal);

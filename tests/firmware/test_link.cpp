@@ -527,13 +527,15 @@ TEST(CorrectionReceiver, AcceptsTheGoodAndCountsEachBadKind) {
     return e;
   };
 
+  const signed_t held_back = envelope(sampleCorrection(3), kNow);  // sent after a later one
   const signed_t good = envelope(sampleCorrection(4), kNow);
   const auto accepted = send(encode(good), kNow);
   ASSERT_TRUE(accepted);
   EXPECT_EQ(accepted->keyframe_id, 4);
 
+  EXPECT_FALSE(send(encode(good), kNow));                             // a copy: duplicate
   EXPECT_FALSE(send(encode(sampleCorrection(5)), kNow));              // unsigned
-  EXPECT_FALSE(send(encode(good), kNow));                             // replayed
+  EXPECT_FALSE(send(encode(held_back), kNow));                        // replayed
   EXPECT_FALSE(send(encode(envelope(sampleCorrection(6), kNow - 10 * kSecond)), kNow));  // stale
   signed_t forged = envelope(sampleCorrection(7), kNow);
   forged.payload[30] ^= 4;
@@ -552,6 +554,7 @@ TEST(CorrectionReceiver, AcceptsTheGoodAndCountsEachBadKind) {
 
   const RejectCounters& r = receiver.rejects();
   EXPECT_EQ(receiver.accepted(), 1);
+  EXPECT_EQ(receiver.duplicates(), 1);
   EXPECT_EQ(r.unsigned_messages, 1);
   EXPECT_EQ(r.replayed, 1);
   EXPECT_EQ(r.stale, 1);

@@ -149,7 +149,7 @@ class Receiver {
         if (k.is_none()) return k;
         // Whole keyframes (flight logs, wired links, older drones) still tell the keyframe's age.
         if (parsed->channel == link::Channel::kKeyframe)
-          if (VehicleLink* v = linkOf(vehicle)) v->meter.onKeyframe(keyframe_.utime, now(), 0.0);
+          if (VehicleLink* v = linkOf(vehicle)) v->meter.onKeyframe(-1, keyframe_.utime, now(), 0.0);
         return result(k);
       }
       case link::Channel::kKeyframeChunk: {
@@ -172,7 +172,7 @@ class Receiver {
         if (!decode(message.data(), message.size(), &keyframe_)) return nb::none();
         nb::object k = keyframeObject(vehicle);
         if (k.is_none()) return k;
-        v->meter.onKeyframe(keyframe_.utime, arrival,
+        v->meter.onKeyframe(keyframe_.keyframe_id, keyframe_.utime, arrival,
                             static_cast<double>(chunk_.recovery) / chunk_.originals);
         return result(k);
       }

@@ -140,16 +140,42 @@ TEST(LinkMeter, ADelayStepShowsAndIsForgottenAfterTheBaseWindow) {
   EXPECT_NEAR(down.quality(last).queue_delay_ms, 0.0, kRoundoff);
 }
 
-TEST(LinkMeter, TheLastKeyframesAgeAndRedundancy) {
+TEST(LinkMeter, WholeKeyframesAgeFromCaptureAndTheirRedundancy) {
   LinkMeter meter({});
-  meter.onKeyframe(kStart, kStart + 85'000, 8.0 / 37.0);
-  meter.onKeyframe(kStart + 200'000, kStart + 262'500, 3.0 / 37.0);
+  meter.onKeyframe(-1, kStart, kStart + 85'000, 8.0 / 37.0);
+  meter.onKeyframe(-1, kStart + 200'000, kStart + 262'500, 3.0 / 37.0);
   const LinkQuality q = meter.quality(kStart + 300'000);
   EXPECT_TRUE(q.has_keyframe);
   EXPECT_NEAR(q.keyframe_age_ms, 62.5, kRoundoff);
   EXPECT_NEAR(q.redundancy, 3.0 / 37.0, kRoundoff);
-  meter.onKeyframe(kStart, kStart + 1, 0.0);  // a whole keyframe: no redundancy
+  meter.onKeyframe(-1, kStart, kStart + 1, 0.0);  // a whole keyframe: no redundancy
   EXPECT_EQ(meter.quality(kStart + 1).redundancy, 0.0);
+}
+
+TEST(LinkMeter, AChunkedKeyframesAgeIsItsTimeOnTheLinkWhateverTheClocks) {
+  // The drone's clock an hour ahead, a replayed flight's capture times years old: neither shows.
+  constexpr int64_t kOffsetUs = 3'600'000'000, kBaseDelayUs = 2'000, kCaptureUs = 42;
+  for (const int64_t queued_us : {int64_t{0}, int64_t{30'000}}) {
+    LinkMeter meter({});
+    keyframe_chunk_t chunk;
+    // Keyframe 4 alone on an empty link: the least delay is learnt from it.
+    chunk.keyframe_id = 4;
+    for (int i = 0; i < 40; ++i) {
+      chunk.sent_utime = kStart + kOffsetUs + i * 1'000;
+      meter.onChunk(chunk, kStart + i * 1'000 + kBaseDelayUs, kDatagramBytes);
+    }
+    // Keyframe 5: its 40 chunks sent over 39 ms, the last one queued queued_us more.
+    chunk.keyframe_id = 5;
+    int64_t arrival = 0;
+    for (int i = 0; i < 40; ++i) {
+      chunk.sent_utime = kStart + kOffsetUs + 100'000 + i * 1'000;
+      arrival = kStart + 100'000 + i * 1'000 + kBaseDelayUs + (i == 39 ? queued_us : 0);
+      meter.onChunk(chunk, arrival, kDatagramBytes);
+    }
+    meter.onKeyframe(5, kCaptureUs, arrival, 3.0 / 37.0);
+    EXPECT_NEAR(meter.quality(arrival).keyframe_age_ms, 39.0 + queued_us * 1e-3, kRoundoff)
+        << queued_us;
+  }
 }
 
 TEST(LinkMeter, MemoryIsFixedAtConstructionWhateverArrives) {

@@ -36,6 +36,11 @@ void LinkMeter::forgetDelays() {
 
 void LinkMeter::onChunk(const keyframe_chunk_t& chunk, int64_t arrival_utime,
                         size_t datagram_bytes) {
+  if (chunk.keyframe_id >= 0) {
+    FirstSent& first = first_sent_[static_cast<size_t>(chunk.keyframe_id % 8)];
+    if (first.keyframe_id != chunk.keyframe_id) first = {chunk.keyframe_id, chunk.sent_utime};
+    first.sent_utime = std::min(first.sent_utime, chunk.sent_utime);
+  }
   const int64_t index = floorDiv(arrival_utime, params_.bin_us);
   const auto size = static_cast<int64_t>(bins_.size());
   Bin& bin = bins_[static_cast<size_t>(((index % size) + size) % size)];
@@ -72,12 +77,33 @@ void LinkMeter::onChunk(const keyframe_chunk_t& chunk, int64_t arrival_utime,
   }
 }
 
-void LinkMeter::onKeyframe(int64_t capture_utime, int64_t arrival_utime, double redundancy) {
+void LinkMeter::onKeyframe(int64_t keyframe_id, int64_t capture_utime, int64_t arrival_utime,
+                           double redundancy) {
   int64_t age_us = 0;
-  if (__builtin_sub_overflow(arrival_utime, capture_utime, &age_us)) age_us = 0;
+  const FirstSent& first = first_sent_[static_cast<size_t>(std::max<int64_t>(keyframe_id, 0) % 8)];
+  int64_t base_us = 0, delay_us = 0;
+  if (keyframe_id >= 0 && first.keyframe_id == keyframe_id && has_reference_ &&
+      baseDelay(arrival_utime, &base_us) &&
+      !__builtin_sub_overflow(arrival_utime, first.sent_utime, &delay_us)) {
+    // Both differences hold the clocks' offset once: it cancels.
+    age_us = std::max<int64_t>(0, delay_us - reference_delay_us_ - base_us);
+  } else if (__builtin_sub_overflow(arrival_utime, capture_utime, &age_us)) {
+    age_us = 0;
+  }
   keyframe_.keyframe_age_ms = static_cast<double>(age_us) * 1e-3;
   keyframe_.redundancy = redundancy;
   keyframe_.has_keyframe = true;
+}
+
+bool LinkMeter::baseDelay(int64_t now_utime, int64_t* base_us) const {
+  const int64_t bucket = floorDiv(now_utime, params_.base_window_us / 2);
+  bool has_base = false;
+  for (const MinBucket* b : {&current_, &previous_}) {
+    if (b->index < 0 || b->index < bucket - 1 || b->index > bucket) continue;
+    *base_us = has_base ? std::min(*base_us, b->min_delay_us) : b->min_delay_us;
+    has_base = true;
+  }
+  return has_base;
 }
 
 LinkQuality LinkMeter::quality(int64_t now_utime) const {
@@ -98,15 +124,8 @@ LinkQuality LinkMeter::quality(int64_t now_utime) const {
   q.goodput_bps = static_cast<double>(bytes) * 8.0 /
                   (static_cast<double>(goodput_bins * params_.bin_us) * 1e-6);
 
-  const int64_t bucket = floorDiv(now_utime, params_.base_window_us / 2);
-  bool has_base = false;
   int64_t base_us = 0;
-  for (const MinBucket* b : {&current_, &previous_}) {
-    if (b->index < 0 || b->index < bucket - 1 || b->index > bucket) continue;
-    base_us = has_base ? std::min(base_us, b->min_delay_us) : b->min_delay_us;
-    has_base = true;
-  }
-  if (samples > 0 && has_base) {
+  if (samples > 0 && baseDelay(now_utime, &base_us)) {
     const double mean_us = static_cast<double>(delay_sum_us) / static_cast<double>(samples);
     q.queue_delay_ms = std::max(0.0, mean_us - static_cast<double>(base_us)) * 1e-3;
     q.has_delay = true;

@@ -17,6 +17,7 @@
 // meter holds goodput_window_us / bin_us bins and two minima.
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <vector>
@@ -30,7 +31,10 @@ namespace kinfly::link {
 struct LinkQuality {
   double goodput_bps = 0.0;     // [bit/s]
   double queue_delay_ms = 0.0;  // [ms] >= 0
-  double keyframe_age_ms = 0.0; // [ms] of the last keyframe; 0 before the first
+  // [ms] the last keyframe's time on the link: from its first chunk's sending to its
+  // completion here, less the link's least one-way delay (so the clocks' offset cancels); for a
+  // whole keyframe, capture to arrival (the clocks must agree). 0 before the first.
+  double keyframe_age_ms = 0.0;
   double redundancy = 0.0;      // m / k of the last keyframe; 0 for a whole (unchunked) one
   bool has_delay = false;       // chunks arrived within delay_window_us
   bool has_keyframe = false;    // a keyframe arrived since the start
@@ -59,7 +63,8 @@ class LinkMeter {
   // link too). datagram_bytes: the LCM datagram's payload as received.
   void onChunk(const keyframe_chunk_t& chunk, int64_t arrival_utime, size_t datagram_bytes);
   // A keyframe that arrived whole or was rebuilt from chunks; redundancy m / k (0: whole).
-  void onKeyframe(int64_t capture_utime, int64_t arrival_utime, double redundancy);
+  void onKeyframe(int64_t keyframe_id, int64_t capture_utime, int64_t arrival_utime,
+                  double redundancy);
 
   // The link as of now_utime (normally the latest arrival or later). Arrivals older than the
   // oldest bin still held are not counted.
@@ -79,8 +84,14 @@ class LinkMeter {
     int64_t index = -1;  // arrival_utime / (base_window_us / 2); -1: empty
     int64_t min_delay_us = 0;
   };
+  struct FirstSent {
+    int64_t keyframe_id = -1;
+    int64_t sent_utime = 0;  // [us] the earliest of its chunks seen, on the drone's clock
+  };
   static int64_t floorDiv(int64_t a, int64_t b);
   void forgetDelays();
+  // The least delay (relative to reference_delay_us_) of the base window ending at now_utime.
+  bool baseDelay(int64_t now_utime, int64_t* base_us) const;
 
   Params params_;
   // Delays are held relative to the first one (exact int64 sums whatever the clocks' offset);
@@ -91,6 +102,7 @@ class LinkMeter {
   std::vector<Bin> bins_;  // a ring indexed by bin index mod size
   MinBucket current_, previous_;
   LinkQuality keyframe_;  // keyframe_age_ms, redundancy, has_keyframe
+  std::array<FirstSent, 8> first_sent_;  // the keyframes being received, by id mod 8
 };
 
 }  // namespace kinfly::link

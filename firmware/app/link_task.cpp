@@ -2,6 +2,9 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
+#include <cmath>
+
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
 
@@ -57,12 +60,14 @@ void LinkTask::serve(Clock::time_point* next_status) {
   publisher_.maintain();
   if (!sending()) takeKeyframe();
   if (lcm::LCM* lcm = publisher_.lcm()) {
-    // Listens until the next chunk is due (at most 10 ms, so a new keyframe waits no longer).
+    // Listens until the next chunk is due (at most 10 ms, so a new keyframe waits no longer),
+    // rounded up to whole milliseconds: the thread sleeps rather than spins on the odometry's
+    // core.
     const double wait_s =
         sending() ? bucket_.waitS(pending_.first[next_chunk_].getEncodedSize(),
                                   secondsSince(began_))
                   : 0.01;
-    lcm->handleTimeout(static_cast<int>(std::clamp(wait_s * 1e3, 0.0, 10.0)));
+    lcm->handleTimeout(static_cast<int>(std::clamp(std::ceil(wait_s * 1e3), 0.0, 10.0)));
     sendChunks();
   } else {
     // Nothing to hear and nothing can go out: what was being sent is lost (counted), and the

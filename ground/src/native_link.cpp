@@ -396,6 +396,7 @@ class CorrectionReceiver {
   }
   const link::RejectCounters& rejects() const { return receiver_.rejects(); }
   int64_t accepted() const { return receiver_.accepted(); }
+  int64_t duplicates() const { return receiver_.duplicates(); }
 
  private:
   static link::VerifierParams verifierParams(double window_s) {
@@ -611,7 +612,9 @@ void bindLink(nb::module_& m) {
       .def("receive", &CorrectionReceiver::receive, nb::arg("data"), nb::arg("now_utime"),
            "The correction (a StampedPose) if authentic, fresh and well formed; else None")
       .def_prop_ro("rejects", &CorrectionReceiver::rejects, nb::rv_policy::reference_internal)
-      .def_prop_ro("accepted", &CorrectionReceiver::accepted);
+      .def_prop_ro("accepted", &CorrectionReceiver::accepted)
+      .def_prop_ro("duplicates", &CorrectionReceiver::duplicates,
+                   "copies of corrections already accepted: not applied again, not rejected");
 }
 
 }  // namespace kinfly::native

@@ -275,7 +275,8 @@ def test_signed_corrections_pass_the_drones_receiver() -> None:
     correction = drone.receive(first, NOW)
     assert (correction.keyframe_id, correction.utime, correction.reset_counter) == (12, NOW - 1000, 3)
     assert np.allclose(correction.T_world_cam, T)
-    assert drone.receive(first, NOW) is None  # replayed
+    assert drone.receive(first, NOW) is None  # a copy (the ground sends each more than once)
     other = CorrectionReceiver(bytes(range(1, 33)), VEHICLE)
     assert other.receive(first, NOW) is None  # another key
-    assert (drone.rejects.replayed, other.rejects.wrong_key, drone.accepted) == (1, 1, 1)
+    assert (drone.duplicates, drone.rejects.replayed, other.rejects.wrong_key,
+            drone.accepted) == (1, 0, 1, 1)

@@ -299,6 +299,7 @@ def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, sta
             if not (stop.is_set() or export_now.is_set()):
                 raise
         now = time.monotonic()
+        station.uplink.send_copies(now)
         if args.duration is not None and now - started >= args.duration:
             break
         if export_now.is_set():
@@ -316,7 +317,6 @@ def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, sta
 
 
 def _publish_status(lc: Any, station: Station, run_state: int) -> None:
-    station.uplink.send_copies()
     now = time.monotonic()
     for state in list(station.vehicles.values()):
         lc.publish(channel_name(Channel.GROUND_STATUS, state.vehicle_id),

@@ -18,12 +18,14 @@ Publish = Callable[[str, bytes], None]
 class Uplink:
     """PUBLISH sends an encoded message on a channel (None: nothing is sent, as in replay)."""
 
-    def __init__(self, publish: Publish | None, copies: int = 1) -> None:
+    def __init__(self, publish: Publish | None, copies: int = 1,
+                 copy_interval_s: float = 0.03) -> None:
         self._publish = publish
         self._copies = copies
-        # (channel, envelope, copies still to send): the fusion thread adds, the status loop
-        # sends (send_copies).
-        self._pending: list[tuple[str, bytes, int]] = []
+        self._interval_s = copy_interval_s
+        # (when due [monotonic s], channel, envelope, copies still to send): the fusion thread
+        # adds, the LCM thread's loop sends (send_copies).
+        self._pending: list[tuple[float, str, bytes, int]] = []
         self._lock = threading.Lock()
 
     def send(self, state: VehicleState, m: Keyframe, T_corrected: np.ndarray,
@@ -39,19 +41,23 @@ class Uplink:
             self._publish(channel, envelope)
             if self._copies > 1:
                 with self._lock:
-                    self._pending.append((channel, envelope, self._copies - 1))
+                    self._pending.append((time.monotonic() + self._interval_s, channel,
+                                          envelope, self._copies - 1))
             state.counters.corrections_sent += 1
             state.rates["corrections"].tick(time.monotonic())
         # Replay has nothing to send: its latency is the time to refine and fuse.
         state.latencies_ms.append((time.monotonic_ns() - arrival_ns) / 1e6)
 
-    def send_copies(self) -> None:
-        """One more copy of each correction that has copies left (the status loop calls this
-        with every status, 0.1 s apart: spaced copies survive a run of lost packets)."""
+    def send_copies(self, now_s: float) -> None:
+        """The copies due by NOW_S (monotonic), each once; the LCM thread's loop calls this
+        every turn (at least every 20 ms)."""
         if self._publish is None:
             return
         with self._lock:
-            due, self._pending = self._pending, [(c, e, n - 1) for c, e, n in self._pending
-                                                 if n > 1]
-        for channel, envelope, _ in due:
+            due = [p for p in self._pending if p[0] <= now_s]
+            if not due:
+                return
+            self._pending = [p for p in self._pending if p[0] > now_s] + [
+                (t + self._interval_s, c, e, n - 1) for t, c, e, n in due if n > 1]
+        for _, channel, envelope, _ in due:
             self._publish(channel, envelope)

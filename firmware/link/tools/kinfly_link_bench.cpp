@@ -148,9 +148,9 @@ struct Options {
   // ground
   int64_t expect = 0;
   // Each correction goes out this many times, copy_interval_ms apart (as the ground station
-  // sends them: at once, then with its next statuses), so a loss run rarely takes them all.
+  // sends them), so a loss run rarely takes them all, and all before the next keyframe's.
   int correction_copies = 3;
-  double copy_interval_ms = 100.0;
+  double copy_interval_ms = 30.0;
 };
 
 // ---- drone end ------------------------------------------------------------------------------

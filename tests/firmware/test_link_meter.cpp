@@ -14,15 +14,7 @@
 
 #include "kinfly/link/link_meter.h"
 
-// Heap allocations by this program, for the memory test below (as in test_chunking.cpp).
-static std::atomic<int64_t> g_allocations{0};
-[[gnu::noinline]] void* operator new(size_t size) {
-  ++g_allocations;
-  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
-  throw std::bad_alloc();
-}
-[[gnu::noinline]] void operator delete(void* p) noexcept { std::free(p); }
-[[gnu::noinline]] void operator delete(void* p, size_t) noexcept { std::free(p); }
+#include "count_allocations.h"  // g_allocations: for the steady-state test
 
 namespace kinfly::link {
 namespace {

@@ -334,8 +334,9 @@ def fly(args: argparse.Namespace, out: Path) -> dict[str, Any]:
                               "laps": laps, "flight_s": flight_s, "sample_period_s": period_s}
     # A Wi-Fi-like link when asked (scripts/netns.py): the chunks' erasure coding and repair
     # requests then work for the whole flight, and what they could not save is counted lost.
-    shape = (LinkShape(loss=args.loss, loss_run_packets=args.loss_run)
-             if args.loss > 0.0 else None)
+    shape = (LinkShape(loss=args.loss, loss_run_packets=args.loss_run,
+                       rate_kbit_s=args.rate_kbit)
+             if args.loss > 0.0 or args.rate_kbit is not None else None)
     report["link"] = shape.label() if shape else "loopback"
     with busy_cores(args.busy), network_namespace("soak", shape) as netns:
         ground = demo.Watched([*netns, *demo.ground_command(ground_out, key=key), "--no-record"],
@@ -454,6 +455,9 @@ def main() -> int:
                         "plain loopback")
     p.add_argument("--loss-run", type=float, default=1.0, metavar="L",
                    help="with --loss: mean length of a run of lost packets (1: independent)")
+    p.add_argument("--rate-kbit", type=float, default=None, metavar="R",
+                   help="cap the link at R kbit/s (a tbf queue, as scripts/netns.py shapes it): "
+                        "the drone's send budget must find it")
     p.add_argument("--verbose", action="store_true", help="echo both programs' output")
     args = p.parse_args()
     if args.minutes <= 0:

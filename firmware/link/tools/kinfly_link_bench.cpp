@@ -149,7 +149,7 @@ struct Options {
   int64_t expect = 0;
   // Each correction goes out this many times, copy_interval_ms apart (as the ground station
   // sends them), so a loss run rarely takes them all, and all before the next keyframe's.
-  int correction_copies = 3;
+  int correction_copies = 4;
   double copy_interval_ms = 30.0;
 };
 

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "kinfly/link/channels.h"
+#include "kinfly/link/chunking.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/decode.h"
 #include "kinfly/link/signing.h"
@@ -343,6 +344,12 @@ TEST(Decode, RandomCorruptionNeverCrashes) {
   const auto inner = encode(sampleCorrection(5));
   signer.sign(inner.data(), inner.size(), kNow, &envelope);
   fuzzDecode<signed_t>(encode(envelope), 4);
+  // A chunk of a 3000-byte message, as the drone's encoder makes it.
+  ChunkEncoder chunks({});
+  const std::vector<uint8_t> message(3000, 7);
+  const auto encoded = chunks.encode(message.data(), message.size(), {kNow, kVehicle, 1}, 1);
+  ASSERT_TRUE(encoded.ok());
+  fuzzDecode<keyframe_chunk_t>(encode(*encoded->first), 6);
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -152,8 +152,9 @@ class Watched:
 
 
 def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]], *,
-        record: Path | None = None, during: Callable[[], None] | None = None,
-        quiet: bool = False, drone_heard: bool = True) -> Flight:
+        record: Path | None = None, record_url: str = LCM_URL,
+        during: Callable[[], None] | None = None, quiet: bool = False,
+        drone_heard: bool = True) -> Flight:
     """Starts the GROUND command in the namespace, waits until it says it is listening, runs each
     of DRONES to its end in turn (a second one is the drone restarting), calls DURING while the
     last one flies, then stops the ground with SIGTERM, as Ctrl-C would. With DRONE_HEARD (the
@@ -162,7 +163,7 @@ def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]]
     the ground's corrections before it exited."""
     logger = None
     if record is not None:
-        logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", LCM_URL,
+        logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", record_url,
                                    str(record)], stdout=subprocess.DEVNULL,
                                   start_new_session=True)
     ground_proc = Watched([*netns, *ground], "[ground] ", quiet)

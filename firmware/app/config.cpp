@@ -166,7 +166,14 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "only from frames tracked at least this well (ICP inlier fraction)")
       ->capture_default_str();
   LinkConfig& l = c->link;
-  app->add_option("--link.lcm_url", l.lcm_url, "LCM URL (empty: LCM_DEFAULT_URL or default)");
+  app->add_option("--link.lcm_url", l.lcm_url,
+                  "LCM URL (empty: LCM_DEFAULT_URL or default; memq:// with link.peers)");
+  app->add_option("--link.peers", l.peers,
+                  "HOST:PORT[,HOST:PORT]: ground stations to send to by UDP unicast as well "
+                  "(on Wi-Fi, docs/wire.md); empty: LCM multicast only");
+  app->add_option("--link.peer_port", l.peer_port,
+                  "UDP port the ground stations' unicast comes to")
+      ->capture_default_str();
   app->add_option("--link.signing_window_s", l.signing.window_s,
                   "accepted age of a signed correction [s]; both clocks must agree this well")
       ->capture_default_str();
@@ -268,7 +275,11 @@ Status OdometryConfig::validate() const {
 }
 
 Status LinkConfig::validate() const {
-  return firstError(namingKeys(signing.validate(), {{"window_s", "link.signing_window_s"}}),
+  std::vector<link::PeerAddress> addresses;
+  const Status parsed = link::parsePeers(peers, &addresses);
+  return firstError(parsed.ok() ? parsed : Status::error("link.peers: " + parsed.message()),
+                      outOfRange("link.peer_port", peer_port, 1, 65535),
+                      namingKeys(signing.validate(), {{"window_s", "link.signing_window_s"}}),
                       outOfRange("link.keyframe_queue", keyframe_queue, 1, 64),
                       outOfRange("link.status_rate_hz", status_rate_hz, 1, 100),
                       outOfRange("link.timeout_s", timeout_s, 0, 60, Bound::kOpen),
@@ -282,6 +293,10 @@ Status LinkConfig::validate() const {
                                  {{"target_failure", "link.fec_target_failure"},
                                   {"min_loss_fraction", "link.fec_min_loss"}}),
                       rate.validate(), scale.validate());
+}
+
+std::string LinkConfig::effectiveLcmUrl() const {
+  return lcm_url.empty() && !peers.empty() ? "memq://" : lcm_url;
 }
 
 Status OutputConfig::validate() const {

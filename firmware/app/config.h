@@ -17,6 +17,7 @@
 #include "kinfly/fw/send_budget.h"
 #include "kinfly/fw/sensor_watch.h"
 #include "kinfly/link/chunking.h"
+#include "kinfly/link/peer.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/sources/dataset_source.h"
 #include "kinfly/sources/log_source.h"
@@ -66,7 +67,12 @@ struct OdometryConfig {                          // [odometry]
 };
 
 struct LinkConfig {                              // [link]
-  std::string lcm_url;           // lcm_url; empty: LCM_DEFAULT_URL or LCM's default
+  std::string lcm_url;           // lcm_url; empty: LCM_DEFAULT_URL or LCM's default (memq://
+                                 // with peers)
+  // peers: "HOST:PORT[,HOST:PORT]", ground stations sent to by UDP unicast (docs/wire.md,
+  // "Unicast on Wi-Fi"); empty: LCM multicast only
+  std::string peers;
+  int peer_port = link::PeerLink::kDefaultPort;  // peer_port [1, 65535]: where peers send to
   link::VerifierParams signing;  // signing_window_s (window_s): accepted age of a correction
   int keyframe_queue = 4;        // keyframe_queue [1, 64]: keyframes waiting for the link
   double status_rate_hz = 10.0;  // status_rate_hz [Hz] [1, 100]
@@ -87,6 +93,9 @@ struct LinkConfig {                              // [link]
   // min_keyframe_rate_hz, max_scale: smaller keyframe images when the budget is short.
   KeyframeScale::Params scale;
   Status validate() const;
+  // The URL the tasks use: lcm_url, or with peers and no lcm_url, memq:// (nothing multicast,
+  // no route needed).
+  std::string effectiveLcmUrl() const;
 };
 
 struct OutputConfig {                            // [output]

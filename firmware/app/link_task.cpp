@@ -21,15 +21,22 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
       // A burst of two chunks: the budget's pace holds from the first keyframe on.
       bucket_(config.link.rate.start_bps / 8.0, 2.0 * config.link.chunks.mtu_bytes),
       rate_(config.link.rate), watch_(config.source.watch),
-      publisher_("link", config.link.lcm_url, config.vehicle.id, [this](lcm::LCM& lcm) {
-        // Every channel of this vehicle but its own keyframes, which multicast loops back: LCM
-        // reassembles a fragmented message (an allocation the size of a keyframe) only on a
-        // channel someone subscribed to. LCM's patterns are GLib (PCRE) regular expressions.
-        const std::string channels =
-            "(?!" + link::channelName(link::Channel::kKeyframeChunk, config_.vehicle.id) + "$)" +
-            link::vehicleChannelsRegex(config_.vehicle.id);
-        lcm_subscribe(lcm.getUnderlyingLCM(), channels.c_str(), &LinkTask::onMessage, this);
-      }) {
+      publisher_(
+          "link", config.link.effectiveLcmUrl(), config.vehicle.id,
+          [this](lcm::LCM& lcm) {
+            // Every channel of this vehicle but its own keyframes, which multicast loops back:
+            // LCM reassembles a fragmented message (an allocation the size of a keyframe) only
+            // on a channel someone subscribed to. LCM's patterns are GLib (PCRE) regular
+            // expressions.
+            const std::string channels =
+                "(?!" + link::channelName(link::Channel::kKeyframeChunk, config_.vehicle.id) +
+                "$)" + link::vehicleChannelsRegex(config_.vehicle.id);
+            lcm_subscribe(lcm.getUnderlyingLCM(), channels.c_str(), &LinkTask::onMessage, this);
+          },
+          unicastPeers(config.link, static_cast<uint16_t>(config.link.peer_port),
+                [this](const lcm_recv_buf_t* message, const char* channel) {
+                  handle(message, channel);
+                })) {
   if (key) {
     corrections_.emplace(*key, config.vehicle.id, config.link.signing, link::DecodeBounds());
   }
@@ -53,13 +60,20 @@ void LinkTask::run() {
   if (await_corrections_) awaitCorrections();
   watchSensor();
   publishStatus(/*is_final=*/true);
+  if (const link::PeerLink* peer = publisher_.peer()) {
+    const link::PeerCounters& c = peer->counters();
+    spdlog::info("link: unicast: {} datagrams sent, {} not ({} too large); {} received, dropped: "
+                 "{} from other hosts, {} malformed, {} on other channels",
+                 c.sent, c.send_failed, c.too_large, c.received, c.foreign, c.malformed,
+                 c.unexpected_channel);
+  }
 }
 
 void LinkTask::serve(Clock::time_point* next_status) {
   using namespace std::chrono_literals;
   publisher_.maintain();
   if (!sending()) takeKeyframe();
-  if (lcm::LCM* lcm = publisher_.lcm()) {
+  if (publisher_.up()) {
     // Listens until the next chunk is due (at most 10 ms, so a new keyframe waits no longer),
     // rounded up to whole milliseconds: the thread sleeps rather than spins on the odometry's
     // core.
@@ -67,7 +81,7 @@ void LinkTask::serve(Clock::time_point* next_status) {
         sending() ? bucket_.waitS(pending_.first[next_chunk_].getEncodedSize(),
                                   secondsSince(began_))
                   : 0.01;
-    lcm->handleTimeout(static_cast<int>(std::clamp(std::ceil(wait_s * 1e3), 0.0, 10.0)));
+    publisher_.handle(static_cast<int>(std::clamp(std::ceil(wait_s * 1e3), 0.0, 10.0)));
     sendChunks();
   } else {
     // Nothing to hear and nothing can go out: what was being sent is lost (counted), and the

@@ -19,6 +19,8 @@
 
 #include "capture.h"
 #include "config.h"
+#include "kinfly/fw/range_check.h"
+#include "kinfly/link/chunking.h"
 #include "kinfly/link/signing.h"
 #include "link_task.h"
 #include "odometry_task.h"
@@ -106,6 +108,7 @@ std::optional<int> parseArguments(CLI::App* app, int argc, char** argv) {
 }
 
 int run(int argc, char** argv) {
+  link::restoreIeeeFloatingPoint();  // before any thread: chunking.h says why
   CLI::App app{
       "kinfly-fw: the drone's program. Onboard KinectFusion odometry at QVGA, keyframes to the "
       "ground station over LCM, signed pose corrections back. Every option can also be set in "
@@ -137,7 +140,11 @@ int run(int argc, char** argv) {
                  "= {} (metres per raw unit) instead of source.depth_units_per_m = {}",
                  config.source.dataset.depth_scale_m, *config.source.deprecated_depth_units_per_m);
   // A URL LCM cannot use is a configuration error; a network that is not up yet is not.
-  if (const Status url = Publisher::checkUrl(config.link.lcm_url); !url.ok()) {
+  const std::string lcm_url = config.link.effectiveLcmUrl();
+  if (Status url = firstError(Publisher::checkUrl(lcm_url), config.link.peers.empty()
+                                                               ? Status()
+                                                               : Publisher::checkPeerUrl(lcm_url));
+      !url.ok()) {
     spdlog::critical("invalid configuration: {}", url.message());
     return 2;
   }

@@ -1,16 +1,37 @@
 #include "publisher.h"
 
+#include <poll.h>
 #include <spdlog/spdlog.h>
+
+#include <cstring>
 
 namespace kinfly::fw {
 
 Publisher::Publisher(std::string name, const std::string& url, int vehicle_id,
-                     std::function<void(lcm::LCM&)> on_start)
+                     std::function<void(lcm::LCM&)> on_start, UnicastPeers peers)
     : name_(std::move(name)), url_(url), target_(link::multicastTarget(url)),
-      on_start_(std::move(on_start)) {
+      on_start_(std::move(on_start)), on_peer_message_(std::move(peers.on_message)) {
   for (size_t i = 0; i < channels_.size(); ++i)
     channels_[i] = link::channelName(static_cast<link::Channel>(i), vehicle_id);
+  if (!peers.addresses.empty()) {
+    // Only this vehicle's channels that the ground sends: nothing else has a handler here.
+    peer_ = std::make_unique<link::PeerLink>(
+        std::move(peers.addresses), peers.listen_port, [vehicle_id](std::string_view channel) {
+          const auto parsed = link::parseChannel(channel);
+          return parsed && parsed->vehicle_id == vehicle_id && link::sentByGround(parsed->channel);
+        });
+  }
   maintain();
+}
+
+Status Publisher::checkPeerUrl(const std::string& url) {
+  const auto target = link::multicastTarget(url);
+  if (target && target->ttl > 0)
+    return Status::error("link.lcm_url \"" + url + "\" sends multicast off the drone (ttl=" +
+                         std::to_string(target->ttl) +
+                         "); with link.peers it must stay on it (memq://, or ttl=0), else every "
+                         "message crosses the Wi-Fi twice");
+  return Status();
 }
 
 Status Publisher::checkUrl(const std::string& url) {
@@ -25,21 +46,36 @@ Status Publisher::checkUrl(const std::string& url) {
 }
 
 void Publisher::maintain() {
-  if (lcm_ || Clock::now() < next_attempt_) return;
-  // Only when the kernel has a route: LCM itself would print a page of advice on every try.
-  const Status route = target_ ? link::checkMulticastRoute(*target_) : Status();
-  std::string problem = route.ok() ? std::string() : route.message();
-  if (route.ok()) {
-    auto lcm = std::make_unique<lcm::LCM>(url_);
-    if (lcm->good()) {
-      lcm_ = std::move(lcm);
-      if (on_start_) on_start_(*lcm_);
-      if (!started_once_) spdlog::info("{}: LCM started on \"{}\"", name_, url_);
-      started_once_ = true;
-      last_problem_.clear();
-      return;
+  if (up() || Clock::now() < next_attempt_) return;
+  std::string problem;
+  if (!lcm_) {
+    // Only when the kernel has a route: LCM itself would print a page of advice on every try.
+    const Status route = target_ ? link::checkMulticastRoute(*target_) : Status();
+    problem = route.ok() ? std::string() : route.message();
+    if (route.ok()) {
+      auto lcm = std::make_unique<lcm::LCM>(url_);
+      if (lcm->good()) {
+        lcm_ = std::move(lcm);
+        if (on_start_) on_start_(*lcm_);
+      } else {
+        problem = "LCM cannot start on \"" + url_ + "\" (link.lcm_url)";
+      }
     }
-    problem = "LCM cannot start on \"" + url_ + "\" (link.lcm_url)";
+  }
+  if (lcm_ && peer_) {
+    // A peer's name may resolve only once the Wi-Fi is up.
+    const Status opened = peer_->open();
+    if (!opened.ok()) problem = "unicast: " + opened.message();
+  }
+  if (up()) {
+    if (!started_once_)
+      spdlog::info("{}: LCM started on \"{}\"{}", name_, url_,
+                   peer_ ? fmt::format(", unicast to {} peer(s) from UDP port {}",
+                                       peer_->peerCount(), peer_->listenPort())
+                         : std::string());
+    started_once_ = true;
+    last_problem_.clear();
+    return;
   }
   scheduleRetry();
   // One line when the reason changes, not one per attempt: a drone without Wi-Fi for an hour
@@ -50,6 +86,42 @@ void Publisher::maintain() {
                  name_, problem, kRetryMaxS);
   was_down_ = true;
   last_problem_ = std::move(problem);
+}
+
+bool Publisher::handle(int timeout_ms) {
+  if (!up()) return false;
+  if (!peer_) {
+    lcm_->handleTimeout(timeout_ms);
+    return true;
+  }
+  pollfd ready[2] = {{lcm_->getFileno(), POLLIN, 0}, {peer_->fd(), POLLIN, 0}};
+  if (poll(ready, 2, timeout_ms) <= 0) return true;
+  if (ready[0].revents != 0) lcm_->handleTimeout(0);
+  if (ready[1].revents != 0 && on_peer_message_) {
+    peer_->receive([this](const char* channel, const uint8_t* data, size_t size) {
+      lcm_recv_buf_t message{};
+      message.data = const_cast<uint8_t*>(data);
+      message.data_size = static_cast<uint32_t>(size);
+      message.recv_utime = link::wallClockUtime();
+      message.lcm = lcm_->getUnderlyingLCM();
+      on_peer_message_(&message, channel);
+    });
+  }
+  return true;
+}
+
+bool Publisher::sendToPeers(const std::string& channel, int size) {
+  if (peer_->send(channel, buffer_.data(), static_cast<size_t>(size))) {
+    if (peer_failing_) spdlog::info("{}: unicast: the peers take messages again", name_);
+    peer_failing_ = false;
+    return true;
+  }
+  // Not put down: the socket stays good while the route comes back (the Wi-Fi at boot).
+  if (!peer_failing_)
+    spdlog::warn("{}: unicast: no peer takes messages ({}); nothing is sent until one does",
+                 name_, std::strerror(peer_->lastSendError()));
+  peer_failing_ = true;
+  return false;
 }
 
 void Publisher::down() {
@@ -70,6 +142,16 @@ void Publisher::sentAgain() {
 void Publisher::scheduleRetry() {
   next_attempt_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                      std::chrono::duration<double>(backoff_.next()));
+}
+
+UnicastPeers unicastPeers(const LinkConfig& link, uint16_t listen_port,
+                          MessageHandler on_message) {
+  UnicastPeers peers;
+  // LinkConfig::validate has refused peers that do not parse.
+  static_cast<void>(link::parsePeers(link.peers, &peers.addresses));
+  peers.listen_port = listen_port;
+  peers.on_message = std::move(on_message);
+  return peers;
 }
 
 }  // namespace kinfly::fw

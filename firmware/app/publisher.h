@@ -9,6 +9,9 @@
 // LCM again, with backoff, once the kernel has a route to the group. A failed send also puts it
 // down: the next start makes fresh sockets, whose multicast membership follows the interface
 // that carries the route then.
+//
+// With unicast peers (link.peers, docs/wire.md "Unicast on Wi-Fi") every message also goes to
+// each peer by UDP unicast, and what the peers send reaches the same handler as LCM's.
 #pragma once
 
 #include <lcm/lcm-cpp.hpp>
@@ -20,12 +23,22 @@
 #include <string>
 #include <vector>
 
+#include "config.h"
 #include "kinfly/fw/backoff.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/multicast.h"
+#include "kinfly/link/peer.h"
 #include "runtime.h"
 
 namespace kinfly::fw {
+
+using MessageHandler = std::function<void(const lcm_recv_buf_t* message, const char* channel)>;
+
+struct UnicastPeers {
+  std::vector<link::PeerAddress> addresses;  // empty: no unicast
+  uint16_t listen_port = 0;                  // 0: this publisher only sends
+  MessageHandler on_message;                 // what arrives from the peers (listening only)
+};
 
 class Publisher {
  public:
@@ -37,24 +50,32 @@ class Publisher {
   // configuration error: waiting cannot mend it).
   static Status checkUrl(const std::string& url);
 
-  // `name` starts its log lines. `on_start` runs after every start of LCM, on the owner's
-  // thread (the link subscribes there).
-  Publisher(std::string name, const std::string& url, int vehicle_id,
-            std::function<void(lcm::LCM&)> on_start = {});
+  // Ok when `url` suits unicast peers: one that keeps messages on this machine (memq://, or
+  // udpm with ttl=0), else every message would cross the Wi-Fi twice.
+  static Status checkPeerUrl(const std::string& url);
 
-  // Starts LCM if it is down and an attempt is due; cheap otherwise. Owner's thread only.
+  // `name` starts its log lines. `on_start` runs after every start of LCM, on the owner's
+  // thread (the link subscribes there). The peers' channels are this vehicle's that the ground
+  // sends.
+  Publisher(std::string name, const std::string& url, int vehicle_id,
+            std::function<void(lcm::LCM&)> on_start = {}, UnicastPeers peers = {});
+
+  // Starts LCM (and opens the peers' socket) if down and an attempt is due; cheap otherwise.
+  // Owner's thread only.
   void maintain();
-  // Whether LCM runs and no send has failed since it started.
-  bool up() const { return lcm_ != nullptr; }
-  // The running instance, nullptr while down.
-  lcm::LCM* lcm() { return lcm_.get(); }
+  // Whether LCM runs (and the peers' socket is open) and no send has failed since it started.
+  bool up() const { return lcm_ != nullptr && (!peer_ || peer_->isOpen()); }
+  // Handles what LCM and the peers deliver within timeout_ms; false while down.
+  bool handle(int timeout_ms);
+  // nullptr without peers.
+  const link::PeerLink* peer() const { return peer_.get(); }
 
   // False when the message could not be encoded or sent (the network is down); the caller
   // counts it.
   template <class Message>
   bool publish(link::Channel channel, const Message& message) {
     maintain();
-    if (!lcm_) return false;
+    if (!up()) return false;
     const int size = message.getEncodedSize();
     if (size <= 0) return false;
     if (buffer_.size() < static_cast<size_t>(size)) buffer_.resize(static_cast<size_t>(size));
@@ -64,6 +85,7 @@ class Publisher {
       down();
       return false;
     }
+    if (peer_ && !sendToPeers(channels_[static_cast<size_t>(channel)], size)) return false;
     if (was_down_) sentAgain();
     return true;
   }
@@ -76,11 +98,15 @@ class Publisher {
   void down();
   void sentAgain();
   void scheduleRetry();
+  bool sendToPeers(const std::string& channel, int size);
 
   std::string name_, url_;
   std::optional<link::MulticastTarget> target_;
   std::function<void(lcm::LCM&)> on_start_;
   std::unique_ptr<lcm::LCM> lcm_;
+  std::unique_ptr<link::PeerLink> peer_;
+  MessageHandler on_peer_message_;
+  bool peer_failing_ = false;  // since the last send a peer took
   Backoff backoff_{kRetryMinS, kRetryMaxS};
   Clock::time_point next_attempt_{};
   std::string last_problem_;
@@ -89,5 +115,9 @@ class Publisher {
   std::array<std::string, link::kChannelCount> channels_;
   std::vector<uint8_t> buffer_;
 };
+
+// The unicast peers of the link's configuration (validated at start), listening on
+// listen_port (0: sending only) and handing what arrives to on_message.
+UnicastPeers unicastPeers(const LinkConfig& link, uint16_t listen_port, MessageHandler on_message);
 
 }  // namespace kinfly::fw

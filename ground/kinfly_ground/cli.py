@@ -24,16 +24,23 @@ from typing import Any
 from kinfly import ground_status_t
 
 from . import __version__
-from ._native import (MAX_VEHICLE_ID, Channel, KeyFileError, Signer, channel_name,
-                      ground_subscriptions, load_key_file, parse_channel)
+from ._native import (DEFAULT_PEER_PORT, MAX_VEHICLE_ID, Channel, KeyFileError, PeerLink, Signer,
+                      channel_name, ground_subscriptions, load_key_file, parse_channel)
 from .export import export, format_ms, print_summary
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
 from .outputs import OutputError, check_writable, memory, read_tum
 from .station import Station, StationParams
+from .transport import Transport
 from .vehicle import percentile
 from .viewer import Viewer, ViewerError
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=1"  # LCM's default group; ttl 1: one hop (Wi-Fi)
+# With unicast peers, multicast stays on this machine (for lcm-logger): the drones' traffic would
+# otherwise cross the Wi-Fi twice.
+PEER_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
+# The unicast link's counters in summary.json (PeerCounters, firmware/link peer.h).
+PEER_COUNTERS = ("sent", "send_failed", "too_large", "received", "foreign", "malformed",
+                 "unexpected_channel")
 STATUS_PERIOD_S = 0.1      # the ground_status_t at 10 Hz, as the drone's status
 LINK_TIMEOUT_S = 1.0       # the drone is STALE after this long unheard (as kinfly-fw's default)
 PROGRESS_PERIOD_S = 2.0
@@ -103,8 +110,16 @@ def parser() -> argparse.ArgumentParser:
                                      "or SIGTERM: finish the queued keyframes, write the outputs "
                                      "and exit; SIGUSR1: write the outputs now and go on.")
     _add_common(run)
-    run.add_argument("--lcm-url", default=os.environ.get("LCM_DEFAULT_URL", DEFAULT_LCM_URL),
-                     help=f"LCM provider URL (default $LCM_DEFAULT_URL or {DEFAULT_LCM_URL})")
+    run.add_argument("--lcm-url", default=os.environ.get("LCM_DEFAULT_URL"),
+                     help=f"LCM provider URL (default $LCM_DEFAULT_URL, else {DEFAULT_LCM_URL}, "
+                          f"with --peer {PEER_LCM_URL}: it must keep messages on this machine)")
+    run.add_argument("--peer", metavar="HOST:PORT[,HOST:PORT]",
+                     help="drones to talk to by UDP unicast besides LCM, for Wi-Fi where "
+                          "multicast is slow and lossy (docs/wire.md, \"Unicast on Wi-Fi\"); "
+                          "PORT is the drone's link.peer_port")
+    run.add_argument("--peer-port", type=int, default=DEFAULT_PEER_PORT, metavar="PORT",
+                     help="UDP port the drones' unicast comes to: their link.peers "
+                          f"(default {DEFAULT_PEER_PORT})")
     run.add_argument("--key", type=Path, metavar="FILE",
                      help="the vehicle's 32-byte signing key (kinfly-keygen; with --vehicle)")
     run.add_argument("--key-dir", type=Path, metavar="DIR",
@@ -223,6 +238,28 @@ def check_receive_buffer(url: str) -> None:
             "/etc/sysctl.d/ to keep it)")
 
 
+def lcm_url_for(given: str | None, peers: bool) -> str:
+    """The LCM URL to use; UsageError for one that sends multicast off the machine besides the
+    unicast peers."""
+    if given is None:
+        return PEER_LCM_URL if peers else DEFAULT_LCM_URL
+    ttl = re.search(r"[?&]ttl=(\d+)", given)
+    if peers and given.startswith("udpm://") and ttl is not None and int(ttl.group(1)) > 0:
+        raise UsageError(f"--lcm-url {given} sends multicast off this machine (ttl="
+                         f"{ttl.group(1)}); with --peer it must stay on it (ttl=0), else every "
+                         "message crosses the Wi-Fi twice")
+    return given
+
+
+def _peers(args: argparse.Namespace) -> PeerLink | None:
+    if args.peer is None:
+        return None
+    try:
+        return PeerLink(args.peer, args.peer_port, args.vehicle)
+    except ValueError as error:
+        raise UsageError(f"--peer {args.peer} --peer-port {args.peer_port}: {error}") from error
+
+
 def run(args: argparse.Namespace) -> int:
     import lcm
 
@@ -231,18 +268,21 @@ def run(args: argparse.Namespace) -> int:
     signers = _signers(args)
     truth = read_tum(args.ground_truth) if args.ground_truth else None
     check_writable(args.out)
+    url = with_receive_buffer(lcm_url_for(args.lcm_url, args.peer is not None))
+    peers = _peers(args)
     bridge = _mavlink(args)
-    url = with_receive_buffer(args.lcm_url)
     check_receive_buffer(url)
     try:
         lc = lcm.LCM(url)
     except (OSError, RuntimeError) as error:
         raise UsageError(f"cannot open LCM at {url}: {error} (multicast needs a route: "
                          "see docs/ground.md)") from error
+    transport = Transport(lc, peers)
     viewer = _viewer(args)
     started = time.monotonic()
     station = Station(params, viewer, vehicle_id=args.vehicle, signers=signers,
-                      publish=lc.publish, forward=bridge.send_pose if bridge else None, log=log)
+                      publish=transport.publish, forward=bridge.send_pose if bridge else None,
+                      log=log)
     keyframes, others = ground_subscriptions(args.vehicle)
     lc.subscribe(keyframes, station.on_message).set_queue_capacity(KEYFRAME_QUEUE_MESSAGES)
     lc.subscribe(others, station.on_message).set_queue_capacity(SMALL_QUEUE_MESSAGES)
@@ -254,7 +294,9 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGUSR1, lambda *_: export_now.set())
     # Only now, with the viewer, the recording and the outputs set up: whoever waits for this
     # line may send keyframes at once.
-    log(f"listening on {url} for "
+    unicast = (f" and UDP port {peers.listen_port} (unicast with {args.peer})"
+               if peers is not None else "")
+    log(f"listening on {url}{unicast} for "
         f"{'every vehicle' if args.vehicle is None else f'vehicle {args.vehicle}'}; "
         f"outputs in {args.out}")
 
@@ -267,7 +309,7 @@ def run(args: argparse.Namespace) -> int:
 
     failure = None
     try:
-        _serve(lc, station, bridge, args, started, stop, export_now, snapshot_outputs)
+        _serve(transport, station, bridge, args, started, stop, export_now, snapshot_outputs)
     except Exception as error:  # whatever it was, what was mapped so far is still written
         failure = error
         log(f"stopping on an error: {type(error).__name__}: {error}")
@@ -276,8 +318,11 @@ def run(args: argparse.Namespace) -> int:
         log(f"{station.queue_length()} keyframes still queued after {DRAIN_TIMEOUT_S:.0f} s: "
             "left out")
     station.stop()
-    _publish_status(lc, station, ground_status_t.RUN_FINAL)
-    extra = {}
+    _publish_status(transport, station, ground_status_t.RUN_FINAL)
+    extra: dict[str, Any] = {}
+    if peers is not None:
+        extra["unicast"] = {"peers": args.peer, "listen_port": peers.listen_port,
+                            **{name: getattr(peers.counters, name) for name in PEER_COUNTERS}}
     if bridge is not None:
         extra["mavlink"] = {"url": args.mavlink, **dataclasses.asdict(bridge.counters),
                             "autopilot": dataclasses.asdict(bridge.state)}
@@ -286,14 +331,14 @@ def run(args: argparse.Namespace) -> int:
     return 1 if failure is not None else rc
 
 
-def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, started: float,
-           stop: threading.Event, export_now: threading.Event,
+def _serve(transport: Transport, station: Station, bridge: Any, args: argparse.Namespace,
+           started: float, stop: threading.Event, export_now: threading.Event,
            snapshot_outputs: Callable[[], None]) -> None:
     """The LCM thread's loop: messages, status at 10 Hz, MAVLink, progress, until told to stop."""
     next_status = next_progress = time.monotonic()
     while not stop.is_set():
         try:
-            lc.handle_timeout(20)
+            transport.handle(20)
         except OSError:
             # Our signals interrupt the wait (EINTR); anything else is real.
             if not (stop.is_set() or export_now.is_set()):
@@ -310,16 +355,16 @@ def _serve(lc: Any, station: Station, bridge: Any, args: argparse.Namespace, sta
                                                           bridge.state.as_metrics())
         if now >= next_status:
             next_status = now + STATUS_PERIOD_S
-            _publish_status(lc, station, ground_status_t.RUN_ACTIVE)
+            _publish_status(transport, station, ground_status_t.RUN_ACTIVE)
         if now >= next_progress:
             next_progress = now + PROGRESS_PERIOD_S
             _progress(station, now - started)
 
 
-def _publish_status(lc: Any, station: Station, run_state: int) -> None:
+def _publish_status(transport: Transport, station: Station, run_state: int) -> None:
     now = time.monotonic()
     for state in list(station.vehicles.values()):
-        lc.publish(channel_name(Channel.GROUND_STATUS, state.vehicle_id),
+        transport.publish(channel_name(Channel.GROUND_STATUS, state.vehicle_id),
                    station.ground_status(state, now, LINK_TIMEOUT_S, run_state).encode())
 
 

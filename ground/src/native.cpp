@@ -20,6 +20,7 @@
 #include "arrays.h"
 #include "kinfly/core/camera.h"
 #include "kinfly/codec/depth_codec.h"
+#include "kinfly/link/chunking.h"
 #include "kinfly/mesh/incremental_mesher.h"
 #include "kinfly/pipeline/fusion_pipeline.h"
 #include "kinfly/mesh/mesh.h"
@@ -383,6 +384,9 @@ NB_MODULE(_native, m) {
   // Python does not promise to destroy every object before it exits (an uncaught exception's
   // traceback keeps the station alive), so nanobind's exit-time leak report would be noise.
   nb::set_leak_warnings(false);
+  // Loading the module loaded libcm256cc, whose constructor flushed denormals to zero for the
+  // importing thread and every thread it makes later (chunking.h): numpy and the engine too.
+  kinfly::link::restoreIeeeFloatingPoint();
   kinfly::native::bindLink(m);
   m.def("rotation_angle_rad",
         [](PoseIn T) { return kinfly::rotationAngleRad(poseOf(T)); }, nb::arg("T"),

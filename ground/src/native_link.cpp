@@ -7,6 +7,8 @@
 #include <nanobind/stl/optional.h>
 #include <nanobind/stl/pair.h>
 #include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
+#include <nanobind/stl/vector.h>
 
 #include <algorithm>
 #include <array>
@@ -29,6 +31,7 @@
 #include "kinfly/link/counters.h"
 #include "kinfly/link/decode.h"
 #include "kinfly/link/link_meter.h"
+#include "kinfly/link/peer.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
 
@@ -409,6 +412,55 @@ class CorrectionReceiver {
   link::CorrectionReceiver receiver_;
 };
 
+// The ground's end of the unicast link (peer.h): it takes only what drones send, of one vehicle
+// or of any, from the peers' hosts.
+class GroundPeers {
+ public:
+  GroundPeers(const std::string& peers, int listen_port, std::optional<int> vehicle_id)
+      : link_(parsed(peers), checkedPort(listen_port), [vehicle_id](std::string_view channel) {
+          const auto parsed = link::parseChannel(channel);
+          return parsed && !link::sentByGround(parsed->channel) &&
+                 (!vehicle_id || parsed->vehicle_id == *vehicle_id);
+        }) {
+    if (const Status opened = link_.open(); !opened.ok())
+      throw std::invalid_argument(opened.message());
+  }
+
+  int fileno() const { return link_.fd(); }
+  int listenPort() const { return link_.listenPort(); }
+
+  bool send(const std::string& channel, const nb::bytes& data) {
+    return link_.send(channel, static_cast<const uint8_t*>(data.data()), data.size());
+  }
+
+  std::vector<std::tuple<std::string, nb::bytes>> receive() {
+    std::vector<std::tuple<std::string, nb::bytes>> messages;
+    link_.receive([&](const char* channel, const uint8_t* data, size_t size) {
+      messages.emplace_back(channel, nb::bytes(reinterpret_cast<const char*>(data), size));
+    });
+    return messages;
+  }
+
+  const link::PeerCounters& counters() const { return link_.counters(); }
+
+ private:
+  static std::vector<link::PeerAddress> parsed(const std::string& text) {
+    std::vector<link::PeerAddress> peers;
+    if (const Status status = link::parsePeers(text, &peers); !status.ok())
+      throw std::invalid_argument(status.message());
+    if (peers.empty()) throw std::invalid_argument("no peer given (HOST:PORT[,HOST:PORT])");
+    return peers;
+  }
+  static uint16_t checkedPort(int port) {
+    if (port < 0 || port > 65535)
+      throw std::invalid_argument("listen port " + std::to_string(port) +
+                                  " is not in [0, 65535]");
+    return static_cast<uint16_t>(port);
+  }
+
+  link::PeerLink link_;
+};
+
 }  // namespace
 
 void bindLink(nb::module_& m) {
@@ -584,6 +636,32 @@ void bindLink(nb::module_& m) {
       .def_prop_ro("link_vehicles_refused", &Receiver::linkVehiclesRefused,
                    "keyframe chunks refused: too many vehicles' links followed already");
   m.attr("MAX_LINK_VEHICLES") = Receiver::kMaxLinkVehicles;
+
+  nb::class_<link::PeerCounters>(m, "PeerCounters", "Unicast datagrams, by fate (peer.h)")
+      .def_ro("sent", &link::PeerCounters::sent)
+      .def_ro("send_failed", &link::PeerCounters::send_failed)
+      .def_ro("too_large", &link::PeerCounters::too_large)
+      .def_ro("received", &link::PeerCounters::received)
+      .def_ro("foreign", &link::PeerCounters::foreign)
+      .def_ro("malformed", &link::PeerCounters::malformed)
+      .def_ro("unexpected_channel", &link::PeerCounters::unexpected_channel);
+  nb::class_<GroundPeers>(m, "PeerLink",
+                          "The ground's end of the unicast link (docs/wire.md, \"Unicast on "
+                          "Wi-Fi\"): LCM messages by UDP unicast to and from the drones")
+      .def(nb::init<const std::string&, int, std::optional<int>>(), nb::arg("peers"),
+           nb::arg("listen_port") = link::PeerLink::kDefaultPort,
+           nb::arg("vehicle_id") = nb::none(),
+           "PEERS: \"HOST:PORT[,HOST:PORT]\", the drones; takes what they send (of VEHICLE_ID "
+           "only, if given) on LISTEN_PORT (0: any free port). ValueError names a bad peer or "
+           "a port in use")
+      .def("fileno", &GroundPeers::fileno, "the socket, for select()")
+      .def_prop_ro("listen_port", &GroundPeers::listenPort)
+      .def("send", &GroundPeers::send, nb::arg("channel"), nb::arg("data"),
+           "Sends an encoded message to every peer; False if none took it")
+      .def("receive", &GroundPeers::receive,
+           "[(channel, data)] of every datagram waiting, without blocking")
+      .def_prop_ro("counters", &GroundPeers::counters, nb::rv_policy::reference_internal);
+  m.attr("DEFAULT_PEER_PORT") = link::PeerLink::kDefaultPort;
 
   nb::exception<KeyFileError>(m, "KeyFileError");
   m.def("load_key_file",

@@ -11,6 +11,7 @@
 #include <cstdio>
 #include <numeric>
 #include <random>
+#include <thread>
 #include <vector>
 
 #include "kinfly/link/channels.h"
@@ -59,6 +60,17 @@ ChunkStatus feed(ChunkAssembler& assembler, const keyframe_chunk_t& chunk) {
 
 // ---------------------------------------------------------------------------------------------
 // Wire types
+
+// Debian's cm256cc turns on flush-to-zero when it loads (this test program links it); the
+// programs undo it.
+TEST(ChunkWire, IeeeArithmeticIsRestoredAfterTheErasureCoderLoads) {
+  restoreIeeeFloatingPoint();
+  EXPECT_TRUE(denormalsKept());
+  // On a thread made afterwards too.
+  bool kept_on_thread = false;
+  std::thread([&] { kept_on_thread = denormalsKept(); }).join();
+  EXPECT_TRUE(kept_on_thread);
+}
 
 TEST(ChunkWire, ArraysAreTheLastFields) {
   // decodeMessage bounds the block and the index list by the int16 count just before them.

@@ -103,7 +103,8 @@ TEST(Channels, NamesCarryTheVehicleAndParseBack) {
 TEST(Channels, ForeignOrMalformedNamesDoNotParse) {
   for (const char* name : {"", "KINFLY_", "KINFLY_7", "KINFLY_7_", "KINFLY_7_NOPE", "KINFLY_x_IMU",
                            "KINFLY_07_IMU", "KINFLY_65536_IMU", "KINFLY_123456_IMU",
-                           "OTHER_7_IMU", "kinfly_7_imu", "KINFLY_7_IMU_"})
+                           "OTHER_7_IMU", "kinfly_7_imu", "KINFLY_7_IMU_", "KINFLY_-1_IMU",
+                           "KINFLY_+1_IMU", "KINFLY_99999999999999999999_IMU"})
     EXPECT_FALSE(parseChannel(name)) << name;
 }
 

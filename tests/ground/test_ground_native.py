@@ -6,6 +6,7 @@ Python errors, a frame without depth is lost without touching the map, and refin
 Python threads run."""
 from __future__ import annotations
 
+import subprocess
 import sys
 import threading
 from pathlib import Path
@@ -350,3 +351,16 @@ def test_refine_releases_the_gil(frames) -> None:
         sys.setswitchinterval(old_interval)
     assert len(during) == len(keyframes)
     assert min(during) >= GIL_FREE_ITERATIONS, during
+
+
+def test_loading_the_module_keeps_ieee_arithmetic() -> None:
+    """Debian's libcm256cc, which the module links for keyframe chunks, turns on flush-to-zero
+    when it loads (it is built with -ffast-math): the module undoes it, so numpy and the engine
+    keep denormal numbers, and numpy does not warn on every start."""
+    code = ("import warnings\n"
+            "warnings.simplefilter('error')\n"
+            "import numpy as np\n"
+            "import kinfly_ground._native\n"
+            "assert np.finfo(np.float32).smallest_subnormal > 0\n"
+            "assert np.float32(1e-38) * np.float32(1e-3) > 0\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

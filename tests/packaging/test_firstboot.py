@@ -91,14 +91,26 @@ def test_provisioning_file_configures_the_drone_and_leaves(tree: dict[str, Path]
     assert "\nName=wlan1\n" in network and "\nDestination=239.0.0.0/8\n" in network
 
 
+def test_a_ground_peer_turns_on_unicast(tree: dict[str, Path]) -> None:
+    root, boot = tree["root"], tree["boot"]
+    (boot / "kinfly.conf").write_text("ground_peer=192.168.4.10:7668\n")
+    assert "unicast to the ground station at 192.168.4.10:7668" in firstboot(tree).stdout
+    config = (root / "etc" / "kinfly" / "kinfly-fw.toml").read_text()
+    changed = [b for a, b in zip(CONFIG.read_text().splitlines(), config.splitlines()) if a != b]
+    assert len(changed) == 1 and changed[0].startswith('peers = "192.168.4.10:7668"  # ')
+    # Nothing multicast leaves the drone: the peers carry it all.
+    assert "LCM_DEFAULT_URL=memq://" in (root / "etc" / "default" / "kinfly-fw").read_text()
+
+
 def test_bad_values_change_nothing(tree: dict[str, Path]) -> None:
     root, boot = tree["root"], tree["boot"]
     (boot / "kinfly.conf").write_text("wifi_ssid=net\nwifi_passphrase=short\nvehicle_id=70000\n"
-                                      "hostname=bad;name\n")
+                                      "hostname=bad;name\nground_peer=ground;reboot\n")
     run = firstboot(tree)
     assert "8..63 characters" in run.stdout
     assert "out of range" in run.stdout
     assert "hostname 'bad;name'" in run.stdout
+    assert "ground_peer 'ground;reboot' is not HOST:PORT" in run.stdout
     assert not (root / "etc" / "wpa_supplicant").exists()
     assert (root / "etc" / "kinfly" / "kinfly-fw.toml").read_text() == CONFIG.read_text()
     assert (root / "etc" / "hostname").read_text() == "kinfly\n"

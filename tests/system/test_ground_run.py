@@ -38,6 +38,9 @@ ATE_BOUND_M = 0.03
 DRAWN_POSITION_TOLERANCE_M = 1e-5
 # Busy loops beside the loaded-machine flight: one per core of the 2-core machines this runs on.
 BUSY_CORES = 2
+# The ground's LCM in the unicast test: another port than the drone's default, so that nothing
+# but the unicast link joins the two.
+UNICAST_GROUND_LCM_URL = "udpm://239.255.76.67:7671?ttl=0"
 OUTPUTS = ("mesh.ply", "trajectory_onboard.tum", "trajectory_corrected.tum", "session.rrd",
            "summary.json", "ate.png")
 
@@ -291,16 +294,63 @@ def test_drone_restart_and_malformed_traffic(tmp_path: Path, netns: list[str]) -
     check_accuracy(vehicle)  # the second flight's map, on its own
 
 
+def test_unicast_peers_carry_the_flight(tmp_path: Path, netns: list[str]) -> None:
+    """With unicast peers (docs/wire.md, "Unicast on Wi-Fi") the drone multicasts nothing (its
+    LCM is memq://) and the ground listens on a multicast port the drone never uses: keyframes,
+    status and corrections cross by unicast alone, and what reaches the ground is on its local
+    LCM for an lcm-logger beside it."""
+    import lcm
+
+    key = demo.make_key(tmp_path / "vehicle.key")
+    out = tmp_path / "out"
+    ground_port, drone_port = 7669, 7670
+    ground = demo.ground_command(out, key=key)
+    ground[ground.index(demo.LCM_URL)] = UNICAST_GROUND_LCM_URL
+    ground += ["--peer", f"127.0.0.1:{drone_port}", "--peer-port", str(ground_port)]
+    drone = demo.drone_command(demo.SAMPLE_LOG, key=key)
+    drone[drone.index(demo.LCM_URL)] = ""  # memq:// with peers
+    drone += ["--link.peers", f"127.0.0.1:{ground_port}", "--link.peer_port", str(drone_port)]
+    record = tmp_path / "ground.lcmlog"
+    flight = demo.fly(netns, ground, [drone], quiet=True, record=record,
+                      record_url=UNICAST_GROUND_LCM_URL)
+    assert flight.ground_rc == 0 and flight.drone_rcs == [0], flight.ground_output
+    assert "LCM started on \"memq://\", unicast to 1 peer(s)" in flight.drone_output
+    vehicle = read_summary(out)["vehicles"]["1"]
+    k = vehicle["keyframes"]
+    assert k["keyframes_received"] >= 5
+    check_every_keyframe_fused(vehicle)
+    assert drone_summary(flight.drone_output).applied == k["corrections_sent"] > 0
+    unicast = read_summary(out)["unicast"]
+    assert unicast["received"] > 0 and unicast["sent"] > 0
+    assert unicast["foreign"] == unicast["malformed"] == unicast["unexpected_channel"] == 0
+    drone_counts = re.search(r"unicast: (\d+) datagrams sent, (\d+) not .* (\d+) received, "
+                             r"dropped: (\d+) from other hosts, (\d+) malformed, (\d+) on other",
+                             flight.drone_output)
+    assert drone_counts is not None, flight.drone_output
+    sent, not_sent, received, *dropped = map(int, drone_counts.groups())
+    assert sent > 0 and received > 0 and dropped == [0, 0, 0]
+    channels = {event.channel for event in lcm.EventLog(str(record), "r")}
+    assert {"KINFLY_1_KEYFRAME_CHUNK", "KINFLY_1_STATUS", "KINFLY_1_CORRECTION"} <= channels
+
+
 @pytest.mark.parametrize("problem", ["key mode 0644", "key too short", "output under a file",
                                      "ground truth unreadable", "log without keyframes",
-                                     "log of random bytes", "empty log"])
+                                     "log of random bytes", "empty log", "peer without a port",
+                                     "peer beside multicast off the machine"])
 def test_bad_input_is_refused_with_its_name(problem: str, tmp_path: Path) -> None:
     key = demo.make_key(tmp_path / "vehicle.key")
     out = tmp_path / "out"
     command = [GROUND, "run", "--vehicle", "1", "--key", key, "--out", out, "--lcm-url",
                "memq://", "--duration", "0.5"]
-    named: Path = key
-    if problem == "key mode 0644":
+    named: Path | str = key
+    if problem == "peer without a port":
+        named = "drone.local"
+        command += ["--peer", named]
+    elif problem == "peer beside multicast off the machine":
+        named = "udpm://239.255.76.67:7667?ttl=1"
+        command[command.index("memq://")] = named
+        command += ["--peer", "127.0.0.1:7668"]
+    elif problem == "key mode 0644":
         key.chmod(0o644)
     elif problem == "key too short":
         key.write_bytes(b"short")

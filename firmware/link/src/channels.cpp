@@ -1,7 +1,7 @@
 #include "kinfly/link/channels.h"
 
 #include <array>
-#include <cstdlib>
+#include <charconv>
 #include <utility>
 
 namespace kinfly::link {
@@ -30,23 +30,29 @@ std::string channelName(Channel channel, int vehicle_id) {
   return {};
 }
 
-std::optional<ParsedChannel> parseChannel(const std::string& name) {
-  const std::string prefix = kPrefix;
-  if (name.compare(0, prefix.size(), prefix) != 0) return std::nullopt;
-  size_t pos = prefix.size();
-  size_t digits_end = pos;
-  while (digits_end < name.size() && name[digits_end] >= '0' && name[digits_end] <= '9')
-    ++digits_end;
+std::optional<ParsedChannel> parseChannel(std::string_view name) {
+  const std::string_view prefix = kPrefix;
+  if (name.substr(0, prefix.size()) != prefix) return std::nullopt;
+  name.remove_prefix(prefix.size());
+  int vehicle_id = 0;
+  const auto [digits_end, error] =
+      std::from_chars(name.data(), name.data() + name.size(), vehicle_id);
   // At most 5 digits and no leading zero, so every id has exactly one name.
-  const size_t digits = digits_end - pos;
-  if (digits == 0 || digits > 5 || (digits > 1 && name[pos] == '0')) return std::nullopt;
-  if (digits_end >= name.size() || name[digits_end] != '_') return std::nullopt;
-  const int vehicle_id = std::atoi(name.substr(pos, digits).c_str());
+  const size_t digits = static_cast<size_t>(digits_end - name.data());
+  if (error != std::errc() || name[0] == '-' || name[0] == '+' || digits > 5 ||
+      (digits > 1 && name[0] == '0'))
+    return std::nullopt;
+  if (digits >= name.size() || name[digits] != '_') return std::nullopt;
   if (vehicle_id > kMaxVehicleId) return std::nullopt;
-  const std::string suffix = name.substr(digits_end + 1);
+  const std::string_view suffix = name.substr(digits + 1);
   for (const auto& [kind, kind_suffix] : kKinds)
     if (suffix == kind_suffix) return ParsedChannel{kind, vehicle_id};
   return std::nullopt;
+}
+
+bool sentByGround(Channel channel) {
+  return channel == Channel::kCorrection || channel == Channel::kGroundStatus ||
+         channel == Channel::kChunkRequest;
 }
 
 std::string vehicleChannelsRegex(int vehicle_id) {

@@ -9,6 +9,9 @@
 #endif
 #include <cm256cc/cm256.h>
 #include <sodium.h>
+#if defined(__x86_64__) || defined(__i386__)
+#include <xmmintrin.h>
+#endif
 
 #include <algorithm>
 #include <array>
@@ -680,6 +683,28 @@ int ChunkAssembler::repairRequests(bool include_newest, std::vector<chunk_reques
     }
   }
   return n;
+}
+
+void restoreIeeeFloatingPoint() {
+#if defined(__x86_64__) || defined(__i386__)
+  constexpr unsigned kFlushToZero = 1u << 15, kDenormalsAreZero = 1u << 6;  // MXCSR
+  _mm_setcsr(_mm_getcsr() & ~(kFlushToZero | kDenormalsAreZero));
+#elif defined(__aarch64__)
+  constexpr uint64_t kFlushToZero = uint64_t{1} << 24;  // FPCR.FZ
+  uint64_t fpcr = 0;
+  asm volatile("mrs %0, fpcr" : "=r"(fpcr));
+  fpcr &= ~kFlushToZero;
+  asm volatile("msr fpcr, %0" : : "r"(fpcr));
+#endif
+}
+
+bool denormalsKept() {
+  // volatile: computed now, under this thread's mode, not folded by the compiler.
+  volatile float smallest_normal = std::numeric_limits<float>::min();
+  volatile float denormal = std::numeric_limits<float>::denorm_min();
+  const float halved = smallest_normal * 0.5f;  // a denormal result
+  const float kept = denormal * 1.0f;           // a denormal input
+  return halved != 0.0f && kept != 0.0f;
 }
 
 }  // namespace kinfly::link

@@ -21,8 +21,14 @@ std::optional<MulticastTarget> multicastTarget(const std::string& lcm_url) {
   if (url.compare(0, scheme.size(), scheme) != 0) return std::nullopt;
   // udpm://GROUP:PORT?options, where LCM fills in whichever of GROUP and PORT is missing.
   std::string address = url.substr(scheme.size());
-  address = address.substr(0, address.find('?'));
-  MulticastTarget target{"239.255.76.67", 7667};
+  const size_t query = address.find('?');
+  MulticastTarget target{"239.255.76.67", 7667, 0};
+  if (query != std::string::npos) {
+    const std::string options = "&" + address.substr(query + 1);
+    if (const size_t ttl = options.find("&ttl="); ttl != std::string::npos)
+      target.ttl = std::atoi(options.c_str() + ttl + 5);
+  }
+  address = address.substr(0, query);
   const size_t colon = address.find(':');
   if (!address.empty() && colon != 0) target.group = address.substr(0, colon);
   if (colon != std::string::npos && colon + 1 < address.size())

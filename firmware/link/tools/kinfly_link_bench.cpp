@@ -709,6 +709,7 @@ int runGround(const Options& options) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  link::restoreIeeeFloatingPoint();  // before any thread: chunking.h says why
   CLI::App app{"Both ends of kinfly's link over real LCM: keyframes in chunks and signed uplink."};
   app.require_subcommand(1);
   Options o;

@@ -7,6 +7,7 @@
 #include <cstddef>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <utility>
 
 namespace kinfly::link {
@@ -35,7 +36,11 @@ struct ParsedChannel {
   int vehicle_id;
 };
 // Parses a kinfly channel name; nullopt for anything else (another vehicle's channels parse).
-std::optional<ParsedChannel> parseChannel(const std::string& name);
+std::optional<ParsedChannel> parseChannel(std::string_view name);
+
+// Whether the ground station sends on the channel (to the drone); every other channel the
+// drone sends, or a converted dataset or the simulator.
+bool sentByGround(Channel channel);
 
 // Regular expression (LCM subscription syntax) matching every kinfly channel of one vehicle.
 std::string vehicleChannelsRegex(int vehicle_id);

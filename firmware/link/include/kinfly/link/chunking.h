@@ -300,4 +300,13 @@ class ChunkAssembler {
   int64_t lowest_tracked_ = 0;     // the window's first sequence number
 };
 
+// Debian's libcm256cc is built with -ffast-math, so loading it runs GCC's crtfastmath
+// constructor: flush-to-zero and denormals-are-zero for the thread that loads it, and every
+// thread made after (they inherit the mode): the engine's arithmetic, numpy in the ground
+// station. kinfly computes in IEEE arithmetic, so each program that links the chunk code calls
+// this first thing, before it makes a thread.
+void restoreIeeeFloatingPoint();
+// Whether this thread keeps denormal numbers (as input and as result) now.
+bool denormalsKept();
+
 }  // namespace kinfly::link

@@ -14,6 +14,7 @@ namespace kinfly::link {
 struct MulticastTarget {
   std::string group;  // dotted IPv4 address
   uint16_t port = 0;
+  int ttl = 0;        // LCM's default: nothing leaves the machine
 };
 
 // LCM's URL when none is given and LCM_DEFAULT_URL is not set.

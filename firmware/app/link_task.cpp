@@ -46,6 +46,7 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
                   static_cast<int64_t>(message_.payload.capacity()));
   out_.block.reserve(static_cast<size_t>(chunks_.blockBytes()));
   status_.vehicle_id = config.vehicle.id;
+  publisher_.chargeTo(&counters->priority_bytes);
 }
 
 void LinkTask::run() {
@@ -74,6 +75,9 @@ void LinkTask::serve(Clock::time_point* next_status) {
   publisher_.maintain();
   if (!sending()) takeKeyframe();
   if (publisher_.up()) {
+    // What went first (status, odometry, telemetry) is paid for by the keyframes.
+    bucket_.charge(static_cast<double>(counters_->priority_bytes.exchange(0)),
+                   secondsSince(began_));
     // Listens until the next chunk is due (at most 10 ms, so a new keyframe waits no longer),
     // rounded up to whole milliseconds: the thread sleeps rather than spins on the odometry's
     // core.

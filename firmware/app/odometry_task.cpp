@@ -32,10 +32,12 @@ OdometryTask::OdometryTask(const FirmwareConfig& config, const PinholeCamera& ca
                            BoundedQueue<DepthCapture>* frames,
                            BoundedQueue<KeyframeJob>* keyframes, const StopToken* stop)
     : config_(config), volume_(volume), pipeline_(camera, pipeline, &volume_),
-      selector_(config.keyframe), publisher_("odometry", config.link.effectiveLcmUrl(), config.vehicle.id, {},
+      selector_(config.keyframe),
+      publisher_("odometry", config.link.effectiveLcmUrl(), config.vehicle.id, {},
                  unicastPeers(config.link, /*listen_port=*/0, {})),
       anchor_(anchor), counters_(counters),
       frames_(frames), keyframes_(keyframes), stop_(stop), job_(withDepthImage<KeyframeJob>(camera)) {
+  publisher_.chargeTo(&counters->priority_bytes);
   odometry_.vehicle_id = config.vehicle.id;
   truth_.vehicle_id = config.vehicle.id;
 }

@@ -124,6 +124,13 @@ bool Publisher::sendToPeers(const std::string& channel, int size) {
   return false;
 }
 
+int64_t Publisher::linkBytes(link::Channel channel, int size) const {
+  // IPv4 and UDP, LCM's small-message header, the channel and its NUL: one datagram each.
+  constexpr int64_t kHeaderBytes = 20 + 8 + 8 + 1;
+  const int64_t datagram = kHeaderBytes + static_cast<int64_t>(channels_[static_cast<size_t>(channel)].size()) + size;
+  return datagram * static_cast<int64_t>(peer_ ? peer_->peerCount() : 1);
+}
+
 void Publisher::down() {
   lcm_.reset();
   scheduleRetry();

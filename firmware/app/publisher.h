@@ -17,6 +17,7 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include <array>
+#include <atomic>
 #include <functional>
 #include <memory>
 #include <optional>
@@ -70,6 +71,11 @@ class Publisher {
   // nullptr without peers.
   const link::PeerLink* peer() const { return peer_.get(); }
 
+  // Adds to *bytes what each message but a keyframe chunk puts on the link (headers and every
+  // unicast copy included): the small messages go first, and the keyframes' budget pays for them
+  // (docs/wire.md, "Priorities").
+  void chargeTo(std::atomic<int64_t>* bytes) { charge_to_ = bytes; }
+
   // False when the message could not be encoded or sent (the network is down); the caller
   // counts it.
   template <class Message>
@@ -87,6 +93,8 @@ class Publisher {
     }
     if (peer_ && !sendToPeers(channels_[static_cast<size_t>(channel)], size)) return false;
     if (was_down_) sentAgain();
+    if (charge_to_ && channel != link::Channel::kKeyframeChunk)
+      charge_to_->fetch_add(linkBytes(channel, size), std::memory_order_relaxed);
     return true;
   }
 
@@ -99,6 +107,7 @@ class Publisher {
   void sentAgain();
   void scheduleRetry();
   bool sendToPeers(const std::string& channel, int size);
+  int64_t linkBytes(link::Channel channel, int size) const;
 
   std::string name_, url_;
   std::optional<link::MulticastTarget> target_;
@@ -107,6 +116,7 @@ class Publisher {
   std::unique_ptr<link::PeerLink> peer_;
   MessageHandler on_peer_message_;
   bool peer_failing_ = false;  // since the last send a peer took
+  std::atomic<int64_t>* charge_to_ = nullptr;
   Backoff backoff_{kRetryMinS, kRetryMaxS};
   Clock::time_point next_attempt_{};
   std::string last_problem_;

@@ -281,6 +281,26 @@ TEST(TokenBucket, WaitIsExactlyTheTimeTheTokensNeed) {
   EXPECT_DOUBLE_EQ(bucket.waitS(100.0, 0.2), 1.1);
 }
 
+// The drone's order of precedence (docs/wire.md, "Priorities"): small messages go out at once
+// and are charged to the bucket; keyframes get what they leave of the budget.
+TEST(TokenBucket, SmallMessagesGoFirstAndKeyframesGetWhatTheyLeave) {
+  constexpr double kRate_Bps = 10000.0, kBurst = 3000.0, kChunk = 1000.0, kStep_s = 1e-3;
+  constexpr double kSmall = 50.0, kSmallPeriod_s = 0.025;  // 2000 B/s of status and poses
+  TokenBucket bucket(kRate_Bps, kBurst);
+  double keyframe_bytes = 0.0, small_bytes = 0.0, next_small_s = 0.0;
+  for (double t = 0.0; t < 10.0; t += kStep_s) {
+    if (t >= next_small_s) {
+      bucket.charge(kSmall, t);
+      small_bytes += kSmall;
+      next_small_s += kSmallPeriod_s;
+    }
+    while (bucket.take(kChunk, t)) keyframe_bytes += kChunk;
+  }
+  EXPECT_NEAR(small_bytes, 10.0 * 2000.0, kSmall);
+  // Together no more than the budget (and its first burst); keyframes had the rest.
+  EXPECT_NEAR(keyframe_bytes + small_bytes, 10.0 * kRate_Bps + kBurst, kChunk + kSmall);
+}
+
 // A bottleneck as a fluid queue: the drone offers its whole budget (it always has keyframes to
 // send), the link carries capacity_bps, the excess waits in the queue; the ground reports the
 // goodput over the last second and the queueing delay, one report every 0.1 s, heard 20 ms

@@ -29,9 +29,11 @@
 #   make eval       deps demo; accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
 #   make bench      deps bench; depth codec and keyframe delivery over LCM on the TUM sequence; the
 #                   drone's figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions
-#                   per frame); incremental meshing against a full re-mesh (out/bench/mesh.json);
-#                   kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never fails on
-#                   timings
+#                   per frame); kinfly-fw and kinfly-ground flying 3 minutes each uncapped and
+#                   through 2 and 0.3 Mbit/s caps: the drone's send budget, keyframe sizes and
+#                   age at the ground, odometry rate (out/bench/fw_link.json); incremental
+#                   meshing against a full re-mesh (out/bench/mesh.json); kinfly-fuse vs Open3D
+#                   dense SLAM (own .venv-bench); prints, never fails on timings
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
 #   make test-aarch64  deps demo, unit, image; the above + the image; unit tests and a replay
@@ -197,14 +199,16 @@ eval: deps-demo
 	  --out $(REPO_ROOT)/out/eval
 
 # Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
-# runs on one thread and fails only if a frame does not come back bit for bit. The link bench
-# needs root (or sudo) for its network namespace, and nft for its lossy links.
+# runs on one thread and fails only if a frame does not come back bit for bit. The link benches
+# need root (or sudo) for their network namespaces, nft for the lossy links and tc for the caps;
+# bench_fw_link fails only if kinfly-fw or kinfly-ground does.
 bench: deps-bench
 	$(call build_programs,$(BENCH_PROGRAMS))
 	mkdir -p $(REPO_ROOT)/out/bench
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	$(MESH_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/mesh.json
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
+	$(PY) $(REPO_ROOT)/tests/bench/bench_fw_link.py --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_ground.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	OMP_NUM_THREADS=2 $(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_vs_open3d.py --fuse $(FUSE) \

@@ -67,6 +67,8 @@ from netns import LinkShape, NetnsUnavailable, network_namespace, send_signal  #
 
 STATUS_WATCH = REPO_ROOT / "tests" / "tools" / "status_watch.py"
 DEPTH_CHANNEL = f"KINFLY_{demo.VEHICLE_ID}_DEPTH"
+# drone_status_t and ground_status_t (an LCM channel regular expression, matched whole).
+STATUS_CHANNELS = f"KINFLY_{demo.VEHICLE_ID}_(GROUND_)?STATUS"
 RUN_FINAL = 1  # drone_status_t.RUN_FINAL
 
 # The figures a soak must hold.
@@ -120,6 +122,19 @@ class Flight:
     log: Path
     frames: int
     lap_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class SoakPlan:
+    """What one soak flight is: how long, which flight, beside what load, over which link, and
+    what it keeps beyond its report (tests/bench/bench_fw_link.py flies several)."""
+    minutes: float
+    sequence: bool = False  # the shared 200-frame TUM sequence instead of the shipped sample
+    busy: int = 0  # processes each keeping a core busy beside the flight
+    shape: LinkShape | None = None  # None: plain loopback
+    status_log: Path | None = None  # both ends' status messages, recorded there by lcm-logger
+    label: str = "soak"  # what its progress lines start with
+    verbose: bool = False  # echo both programs' output
 
 
 def depth_only(source: Path, out: Path) -> Flight:
@@ -189,8 +204,9 @@ class Sampler:
     a thread of its own, and prints a progress line every REPORT_PERIOD_S."""
 
     def __init__(self, drone_pid: int, ground_pid: int, ground: demo.Watched,
-                 watcher: demo.Watched, period_s: float, total_s: float) -> None:
+                 watcher: demo.Watched, period_s: float, total_s: float, label: str) -> None:
         self.samples: list[dict[str, Any]] = []
+        self._label = label
         self._pids = {"firmware": drone_pid, "ground": ground_pid}
         self._ground, self._watcher = ground, watcher
         self._period_s, self._total_s = period_s, total_s
@@ -227,7 +243,7 @@ class Sampler:
             self.samples.append(sample)
             if time.monotonic() >= next_report:
                 next_report += REPORT_PERIOD_S
-                print(f"soak: {sample['t_s'] / 60:5.1f} of {self._total_s / 60:.1f} min: "
+                print(f"{self._label}: {sample['t_s'] / 60:5.1f} of {self._total_s / 60:.1f} min: "
                       f"kinfly-fw {sample['firmware_rss_mb']:.1f} MB, kinfly-ground "
                       f"{sample['ground_rss_mb']:.1f} MB; {sample.get('keyframes_sent')} "
                       f"keyframes sent, {sample.get('keyframes_received')} received; map "
@@ -260,16 +276,22 @@ def counted_between(samples: list[dict[str, Any]], key: str) -> int:
     return window[-1] - window[0] if window else 0
 
 
+def clean_exit(report: dict[str, Any]) -> tuple[bool, str]:
+    """Whether both programs exited 0 and the ground heard the drone's final status, and what
+    happened."""
+    final = report["drone"].get("final", False)
+    return (report["firmware_exit"] == 0 and report["ground_exit"] == 0 and final,
+            f"kinfly-fw exited {report['firmware_exit']}, kinfly-ground {report['ground_exit']}; "
+            f"the drone's final status {'heard' if final else 'NOT heard'}")
+
+
 def judge(report: dict[str, Any], drops_reported: str | None) -> list[tuple[str, bool, str]]:
     """Each criterion: its name, whether it held, and the figures."""
     k, drone = report["keyframes"], report["drone"]
     fw, gr = report["rss"]["firmware"], report["rss"]["ground"]
     stalls = report["stalls"]
     criteria = [
-        ("clean exit", report["firmware_exit"] == 0 and report["ground_exit"] == 0
-         and drone.get("final", False),
-         f"kinfly-fw exited {report['firmware_exit']}, kinfly-ground {report['ground_exit']}; "
-         f"the drone's final status {'heard' if drone.get('final') else 'NOT heard'}"),
+        ("clean exit", *clean_exit(report)),
         ("firmware memory flat", fw["growth_after_warm_up_mb"] <= FIRMWARE_GROWTH_LIMIT_MB,
          f"kinfly-fw RSS grew {fw['growth_after_warm_up_mb']:+.2f} MB over the "
          f"{fw['window_s'] / 60:.1f} min after the warm-up (at most "
@@ -317,32 +339,35 @@ def judge(report: dict[str, Any], drops_reported: str | None) -> list[tuple[str,
     return criteria
 
 
-def fly(args: argparse.Namespace, out: Path) -> dict[str, Any]:
-    flight = flight_log(args.sequence, out)
-    laps = max(1, math.ceil(args.minutes * 60.0 / flight.lap_s))
+def fly(plan: SoakPlan, out: Path) -> dict[str, Any]:
+    """Flies PLAN with its outputs in OUT; the report so far (account() adds the ground's
+    summary)."""
+    flight = flight_log(plan.sequence, out)
+    laps = max(1, math.ceil(plan.minutes * 60.0 / flight.lap_s))
     flight_s = laps * flight.lap_s
-    print(f"soak: {flight.log.name}: {flight.frames} frames, {flight.lap_s:.2f} s a lap; "
+    print(f"{plan.label}: {flight.log.name}: {flight.frames} frames, {flight.lap_s:.2f} s a lap; "
           f"{laps} laps bounced, {flight_s / 60:.1f} min of flight"
-          f"{f', {args.busy} busy loops beside it' if args.busy else ''}", flush=True)
+          f"{f', {plan.busy} busy loops beside it' if plan.busy else ''}", flush=True)
     key = demo.make_key(out / "vehicle.key")
     ground_out = out / "ground"
     period_s = min(max(flight_s / SAMPLES_PER_RUN, SAMPLE_PERIOD_RANGE_S[0]),
                    SAMPLE_PERIOD_RANGE_S[1])
-    report: dict[str, Any] = {"minutes": args.minutes, "busy": args.busy, "log": str(flight.log),
+    report: dict[str, Any] = {"minutes": plan.minutes, "busy": plan.busy, "log": str(flight.log),
                               "load_average_at_start": os.getloadavg(),
                               "frames_per_lap": flight.frames, "lap_s": flight.lap_s,
                               "laps": laps, "flight_s": flight_s, "sample_period_s": period_s}
-    # A Wi-Fi-like link when asked (scripts/netns.py): the chunks' erasure coding and repair
-    # requests then work for the whole flight, and what they could not save is counted lost.
-    shape = (LinkShape(loss=args.loss, loss_run_packets=args.loss_run,
-                       rate_kbit_s=args.rate_kbit)
-             if args.loss > 0.0 or args.rate_kbit is not None else None)
-    report["link"] = shape.label() if shape else "loopback"
-    with busy_cores(args.busy), network_namespace("soak", shape) as netns:
+    report["link"] = plan.shape.label() if plan.shape else "loopback"
+    with busy_cores(plan.busy), network_namespace("soak", plan.shape) as netns:
         ground = demo.Watched([*netns, *demo.ground_command(ground_out, key=key), "--no-record"],
-                              "[ground] ", quiet=not args.verbose)
-        watcher = drone = sampler = None
+                              "[ground] ", quiet=not plan.verbose)
+        logger = watcher = drone = sampler = None
         try:
+            # It listens within a moment, long before the drone starts: it has all its statuses.
+            if plan.status_log is not None:
+                logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url",
+                                           demo.LCM_URL, "--channel", STATUS_CHANNELS,
+                                           str(plan.status_log)],
+                                          stdout=subprocess.DEVNULL, start_new_session=True)
             if not ground.wait_for("listening on", 1, demo.GROUND_READY_TIMEOUT_S):
                 raise RuntimeError("kinfly-ground did not start listening:\n" + ground.output())
             watcher = demo.Watched([*netns, sys.executable, str(STATUS_WATCH), "--vehicle",
@@ -351,7 +376,7 @@ def fly(args: argparse.Namespace, out: Path) -> dict[str, Any]:
                 raise RuntimeError("the status watcher did not start:\n" + watcher.output())
             drone = demo.Watched([*netns, *demo.drone_command(flight.log, key=key),
                                   "--source.loop", "bounce", "--source.laps", str(laps)],
-                                 "[drone]  ", quiet=not args.verbose)
+                                 "[drone]  ", quiet=not plan.verbose)
             if not drone.wait_for("kinfly-fw ", 1, DRONE_START_TIMEOUT_S):
                 raise RuntimeError("kinfly-fw did not start:\n" + drone.output())
             drone_pid = program_pid(drone.process.pid, "kinfly-fw")
@@ -359,7 +384,8 @@ def fly(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             if drone_pid is None or ground_pid is None:
                 raise RuntimeError(f"cannot find the programs' processes (kinfly-fw {drone_pid}, "
                                    f"kinfly-ground {ground_pid})")
-            sampler = Sampler(drone_pid, ground_pid, ground, watcher, period_s, flight_s)
+            sampler = Sampler(drone_pid, ground_pid, ground, watcher, period_s, flight_s,
+                              plan.label)
             try:
                 report["firmware_exit"] = drone.finish(flight_s + DRONE_EXIT_MARGIN_S)
             except subprocess.TimeoutExpired:
@@ -368,7 +394,8 @@ def fly(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             sampler.stop()
             if report["firmware_exit"] == 0 and not ground.wait_for(
                     demo.DRONE_STOPPED, 1, demo.DRONE_FINAL_TIMEOUT_S):
-                print("soak: the ground did not hear the drone's final status", file=sys.stderr)
+                print(f"{plan.label}: the ground did not hear the drone's final status",
+                      file=sys.stderr)
         finally:
             if sampler is not None:
                 sampler.stop()
@@ -380,6 +407,9 @@ def fly(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             if watcher is not None:
                 send_signal(watcher.process, signal.SIGTERM)
                 watcher.finish(demo.DRONE_FINAL_TIMEOUT_S)
+            if logger is not None:
+                send_signal(logger, signal.SIGINT)
+                logger.wait(demo.DRONE_FINAL_TIMEOUT_S)
     (out / "ground.txt").write_text(ground.output())
     (out / "drone.txt").write_text(drone.output())
     report["load_average_at_end"] = os.getloadavg()
@@ -429,6 +459,20 @@ def account(report: dict[str, Any], out: Path) -> None:
     report["ground_memory"] = summary["memory"]
 
 
+def fly_and_account(plan: SoakPlan, out: Path) -> dict[str, Any]:
+    """fly() then account(): the whole report but the criteria. RuntimeError, saying what, when
+    a program did not start, did not exit or wrote no summary (NetnsUnavailable, one of them,
+    when there is no namespace)."""
+    try:
+        report = fly(plan, out)
+    except subprocess.TimeoutExpired as error:
+        raise RuntimeError(f"{error.cmd[0]} did not exit within {error.timeout:.0f} s") from None
+    if not (out / "ground" / "summary.json").is_file():
+        raise RuntimeError("kinfly-ground wrote no summary.json (ground.txt has its output)")
+    account(report, out)
+    return report
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -467,23 +511,21 @@ def main() -> int:
         shutil.rmtree(out)
     out.mkdir(parents=True)
     started = time.monotonic()
+    # A Wi-Fi-like link when asked (scripts/netns.py): the chunks' erasure coding and repair
+    # requests then work for the whole flight, and what they could not save is counted lost.
+    shape = (LinkShape(loss=args.loss, loss_run_packets=args.loss_run,
+                       rate_kbit_s=args.rate_kbit)
+             if args.loss > 0.0 or args.rate_kbit is not None else None)
+    plan = SoakPlan(minutes=args.minutes, sequence=args.sequence, busy=args.busy, shape=shape,
+                    verbose=args.verbose)
     try:
-        report = fly(args, out)
+        report = fly_and_account(plan, out)
     except NetnsUnavailable as error:
         print(f"soak: {error}", file=sys.stderr)
         return 1
     except RuntimeError as error:
         print(f"soak: FAILED: {error}", file=sys.stderr)
         return 1
-    except subprocess.TimeoutExpired as error:
-        print(f"soak: FAILED: {error.cmd[0]} did not exit within {error.timeout:.0f} s",
-              file=sys.stderr)
-        return 1
-    if not (out / "ground" / "summary.json").is_file():
-        print("soak: FAILED: kinfly-ground wrote no summary.json (ground.txt has its output)",
-              file=sys.stderr)
-        return 1
-    account(report, out)
     report["wall_s"] = time.monotonic() - started
     drops_reported = (f"--busy {args.busy}" if args.busy else
                       "--allow-queue-drops" if args.allow_queue_drops else None)

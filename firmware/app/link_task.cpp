@@ -262,12 +262,11 @@ void subsample(ImageView<const uint16_t> in, int scale, ImageView<uint16_t> out)
 void LinkTask::startKeyframe(const KeyframeJob& job) {
   // Smaller images only when even a slow stream of these would not fit the budget.
   const int scale = KeyframeScale::choose(config_.link.scale, scale_, rate_.budgetBps() / 8.0,
-                                          keyframe_wire_bytes_);
+                                          wire_costs_);
   if (scale != scale_) {
     spdlog::info("link: keyframes at 1/{} of the size from keyframe {} (send budget {:.2f} "
                  "Mbit/s)",
                  scale, job.keyframe_id, rate_.budgetBps() * 1e-6);
-    keyframe_wire_bytes_ *= static_cast<double>(scale_ * scale_) / (scale * scale);
     scale_ = scale;
   }
   ImageView<const uint16_t> depth = job.depth.view();
@@ -304,8 +303,9 @@ void LinkTask::startKeyframe(const KeyframeJob& job) {
   next_chunk_ = 0;
   pending_keyframe_id_ = job.keyframe_id;
   redundancy_ = static_cast<float>(recovery) / static_cast<float>(originals);
-  keyframe_wire_bytes_ = 0.0;
-  for (const keyframe_chunk_t& c : pending_) keyframe_wire_bytes_ += c.getEncodedSize();
+  double& cost = wire_costs_[KeyframeScale::index(scale_)];
+  cost = 0.0;
+  for (const keyframe_chunk_t& c : pending_) cost += c.getEncodedSize();
 }
 
 void LinkTask::sendChunks() {

@@ -98,7 +98,7 @@ class LinkTask {
   LinkRate rate_;
   bool limited_ = false;     // had chunks to send but no budget, since the last ground report
   int scale_ = 1;
-  double keyframe_wire_bytes_ = 0.0;  // [bytes] the last keyframe's chunks, at scale_
+  KeyframeScale::Costs wire_costs_{};  // [bytes] the last keyframe's chunks at each scale
   float redundancy_ = 0.f;
   int64_t chunks_sent_ = 0, chunks_resent_ = 0, keyframes_skipped_ = 0;
   drone_status_t status_{};  // its vehicle_id set once; link::fillDroneStatus the rest

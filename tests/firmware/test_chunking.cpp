@@ -607,6 +607,33 @@ TEST(ChunkLoss, SequenceGapsMeasureTheChannel) {
   }
 }
 
+// A slow link's queue drops at the start (a drone that began too fast) are forgotten after
+// loss_window_s, though the chunk window still holds them: they must not set the redundancy for
+// minutes.
+TEST(ChunkLoss, OnlyTheLastSecondsCount) {
+  constexpr int64_t kChunkEvery_us = 20'000;  // 50 chunks a second: 2048 of them span 41 s
+  const auto fly = [](ChunkAssembler* assembler) {
+    for (int64_t s = 0; s < 1500; ++s) {
+      keyframe_chunk_t chunk = tinyChunk(s);
+      chunk.sent_utime = s * kChunkEvery_us;
+      // Half of the first 200 (4 s) dropped, none after.
+      if (s >= 200 || s % 2 == 0) assembler->add(chunk);
+    }
+    return assembler->loss();
+  };
+  ChunkAssembler::Params params;  // 2048 chunks, 10 s
+  ChunkAssembler assembler(kVehicle, params);
+  const LossStats recent = fly(&assembler);
+  EXPECT_EQ(recent.lossFraction(), 0.0);
+  // The last 10 s of sequence numbers (500 of them, less the newest not yet counted).
+  EXPECT_NEAR(static_cast<double>(recent.expected), 500.0 - params.reorder_chunks, 1.0);
+  // With a window long enough to hold the start, its drops count.
+  params.loss_window_s = 60.0;
+  ChunkAssembler longer(kVehicle, params);
+  const LossStats all = fly(&longer);
+  EXPECT_EQ(all.expected - all.received, 100);
+}
+
 TEST(ChunkLoss, ReorderingIsNotLoss) {
   ChunkAssembler assembler(kVehicle, {});
   for (int64_t s = 0; s < 1000; s += 2)

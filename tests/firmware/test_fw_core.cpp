@@ -306,15 +306,16 @@ TEST(TokenBucket, SmallMessagesGoFirstAndKeyframesGetWhatTheyLeave) {
 // goodput over the last second and the queueing delay, one report every 0.1 s, heard 20 ms
 // later. Returns the budget's and the queue's medians over [from_s, to_s).
 struct Bottleneck {
-  explicit Bottleneck(double capacity, double random_loss = 0.0)
-      : capacity_bps(capacity), loss(random_loss) {}
+  explicit Bottleneck(double capacity, double random_loss = 0.0, double queue_limit = 1e9)
+      : capacity_bps(capacity), loss(random_loss), queue_limit_ms(queue_limit) {}
   double capacity_bps;
   double loss;  // random loss: fewer bits arrive, nothing queues
+  double queue_limit_ms;  // beyond it the queue drops what is offered, as a tbf cap
   double queue_bits = 0.0;
   std::vector<double> delivered_bps;  // per 10 ms step, the last second's worth
 
   void step(double offered_bps, double dt_s) {
-    queue_bits += offered_bps * dt_s;
+    queue_bits = std::min(queue_bits + offered_bps * dt_s, queue_limit_ms * 1e-3 * capacity_bps);
     const double out = std::min(queue_bits, capacity_bps * dt_s);
     queue_bits -= out;
     delivered_bps.push_back(out * (1.0 - loss) / dt_s);
@@ -391,6 +392,19 @@ TEST(LinkRate, FollowsACapacityDropWithinTwoSeconds) {
   EXPECT_LT(f.medianOf(f.queue_ms, 25.0, 40.0), LinkRate::Params().queue_high_ms);
 }
 
+// A start at 8 Mbit/s into a 2 Mbit/s link whose first reported second was mostly idle (the
+// first keyframe came late in it): the budget halves at most per report, so it does not drop to
+// the floor and spend seconds climbing back.
+TEST(LinkRate, AColdStartIntoASlowLinkDoesNotFallToTheFloor) {
+  LinkRate rate{LinkRate::Params()};  // starts at 8 Mbit/s
+  Bottleneck link(2e6, 0.0, /*queue_limit_ms=*/100.0);  // a tbf cap's queue
+  link.delivered_bps.assign(90, 0.0);  // 0.9 s idle before the first keyframe
+  const Flight f = fly(&rate, &link, 10.0);
+  EXPECT_GT(*std::min_element(f.budget_bps.begin(), f.budget_bps.end()), 0.5 * 2e6);
+  EXPECT_GT(f.medianOf(f.budget_bps, 2.0, 10.0), 0.7 * 2e6);
+  EXPECT_LT(f.medianOf(f.queue_ms, 2.0, 10.0), LinkRate::Params().queue_high_ms);
+}
+
 TEST(LinkRate, RandomLossWithoutAQueueIsNoReasonToSendLess) {
   LinkRate::Params params;
   params.start_bps = 4e6;
@@ -417,13 +431,31 @@ TEST(LinkRate, ValidateNamesTheBadValue) {
 TEST(KeyframeScale, ShrinksBelowTheMinimumRateAndGrowsBackWithSpare) {
   const KeyframeScale::Params p;  // 1 Hz minimum, hysteresis 1.5, down to 1/4
   constexpr double kFull = 100e3;  // [bytes] a full-size keyframe on the wire
-  EXPECT_EQ(KeyframeScale::choose(p, 1, 2 * kFull, kFull), 1);
-  EXPECT_EQ(KeyframeScale::choose(p, 1, 0.5 * kFull, kFull), 2);
-  EXPECT_EQ(KeyframeScale::choose(p, 2, 0.1 * kFull, kFull / 4), 4);
-  EXPECT_EQ(KeyframeScale::choose(p, 4, 0.01 * kFull, kFull / 16), 4);  // the smallest there is
+  EXPECT_EQ(KeyframeScale::choose(p, 1, 2 * kFull, {kFull, 0, 0}), 1);
+  EXPECT_EQ(KeyframeScale::choose(p, 1, 0.5 * kFull, {kFull, 0, 0}), 2);
+  EXPECT_EQ(KeyframeScale::choose(p, 2, 0.1 * kFull, {kFull, kFull / 4, 0}), 4);
+  EXPECT_EQ(KeyframeScale::choose(p, 4, 0.01 * kFull, {0, 0, kFull / 16}), 4);  // the smallest
   // Back to full size only when full-size keyframes would come at 1.5 Hz.
-  EXPECT_EQ(KeyframeScale::choose(p, 2, 1.2 * kFull, kFull / 4), 2);
-  EXPECT_EQ(KeyframeScale::choose(p, 2, 1.6 * kFull, kFull / 4), 1);
+  EXPECT_EQ(KeyframeScale::choose(p, 2, 1.2 * kFull, {0, kFull / 4, 0}), 2);
+  EXPECT_EQ(KeyframeScale::choose(p, 2, 1.6 * kFull, {0, kFull / 4, 0}), 1);
+  EXPECT_EQ(KeyframeScale::choose(p, 1, kFull, {0, 0, 0}), 1);  // nothing sent yet
+}
+
+// A subsampled image compresses worse: what a larger size cost when it was last sent decides
+// when it returns, not the four times the bytes a step would cost by the pixel count.
+TEST(KeyframeScale, AMeasuredCostWinsOverTheEstimate) {
+  const KeyframeScale::Params p;
+  constexpr double kQuarter = 6e3, kHalf = 14e3;  // [bytes] as measured: 2.3 times, not 4
+  EXPECT_DOUBLE_EQ(KeyframeScale::cost({0, 0, kQuarter}, 2), 4 * kQuarter);
+  EXPECT_DOUBLE_EQ(KeyframeScale::cost({0, 0, kQuarter}, 1), 16 * kQuarter);
+  EXPECT_DOUBLE_EQ(KeyframeScale::cost({0, kHalf, kQuarter}, 1), 4 * kHalf);
+  // 25 kB/s: half-size keyframes at 1.8 Hz as measured, above 1.5 x 1 Hz; by the estimate only
+  // at 1.04 Hz.
+  EXPECT_EQ(KeyframeScale::choose(p, 4, 25e3, {0, kHalf, kQuarter}), 2);
+  EXPECT_EQ(KeyframeScale::choose(p, 4, 25e3, {0, 0, kQuarter}), 4);
+}
+
+TEST(KeyframeScale, ParamsAreValidated) {
   KeyframeScale::Params bad;
   bad.max_scale = 3;
   EXPECT_EQ(bad.validate().message(), "link.max_scale must be 1, 2 or 4 (got 3)");

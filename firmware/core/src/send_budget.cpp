@@ -14,6 +14,7 @@ Status LinkRate::Params::validate() const {
                     outOfRange("link.queue_high_ms", queue_high_ms, queue_low_ms, 10000.0,
                                Bound::kOpen),
                     outOfRange("link.rate_decrease", decrease, 0.0, 0.99, Bound::kOpen),
+                    outOfRange("link.rate_max_cut", max_cut, 0.0, 1.0, Bound::kOpen),
                     outOfRange("link.rate_increase_per_s", increase_per_s, 0.0, 10.0,
                                Bound::kOpen),
                     outOfRange("link.rate_hold_s", hold_s, 0.0, 10.0));
@@ -26,8 +27,9 @@ void LinkRate::onReport(double goodput_bps, double queue_ms, bool limited, doubl
   if (queue_ms > p_.queue_high_ms) {
     // What arrived is what the link carries now; a little less lets its queue drain. Never
     // more than the budget was: a goodput measured over a second may include a faster past.
-    budget_bps_ = std::clamp(std::min(budget_bps_, goodput_bps) * p_.decrease, p_.min_bps,
-                             p_.max_bps);
+    budget_bps_ = std::clamp(std::max(std::min(budget_bps_, goodput_bps) * p_.decrease,
+                                      budget_bps_ * p_.max_cut),
+                             p_.min_bps, p_.max_bps);
     hold_until_s_ = now_s + p_.hold_s;
     ++decreases_;
   } else if (queue_ms < p_.queue_low_ms && limited) {
@@ -45,12 +47,24 @@ Status KeyframeScale::Params::validate() const {
                           ")"));
 }
 
-int KeyframeScale::choose(const Params& p, int scale, double budget_Bps, double bytes_at_scale) {
-  if (bytes_at_scale <= 0.0) return scale;
-  const double rate_hz = budget_Bps / bytes_at_scale;
-  if (rate_hz < p.min_rate_hz && scale < p.max_scale) return scale * 2;
-  // One step larger costs four times the bytes.
-  if (scale > 1 && rate_hz / 4.0 >= p.min_rate_hz * p.hysteresis) return scale / 2;
+double KeyframeScale::cost(const Costs& costs, int scale) {
+  if (costs[index(scale)] > 0.0) return costs[index(scale)];
+  for (int distance = 1; distance <= 2; ++distance) {
+    for (const int other : {scale >> distance, scale << distance}) {
+      if (other < 1 || other > 4 || costs[index(other)] <= 0.0) continue;
+      const double ratio = static_cast<double>(other) / scale;
+      return costs[index(other)] * ratio * ratio;
+    }
+  }
+  return 0.0;
+}
+
+int KeyframeScale::choose(const Params& p, int scale, double budget_Bps, const Costs& costs) {
+  const double here = cost(costs, scale);
+  if (here <= 0.0) return scale;
+  if (budget_Bps / here < p.min_rate_hz && scale < p.max_scale) return scale * 2;
+  if (scale > 1 && budget_Bps / cost(costs, scale / 2) >= p.min_rate_hz * p.hysteresis)
+    return scale / 2;
   return scale;
 }
 

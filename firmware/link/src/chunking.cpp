@@ -398,6 +398,8 @@ Status ChunkAssembler::Params::validate() const {
     return Status::error("loss_window_chunks must be in [64, 65536]");
   if (reorder_chunks < 0 || reorder_chunks > loss_window_chunks / 2)
     return Status::error("reorder_chunks must be in [0, loss_window_chunks / 2]");
+  if (!(loss_window_s > 0.0 && loss_window_s <= 3600.0))
+    return Status::error("loss_window_s must be in (0, 3600]");
   return bounds.validate();
 }
 
@@ -410,7 +412,8 @@ ChunkAssembler::ChunkAssembler(int32_t vehicle_id, const Params& params)
       params_(params),
       slots_(static_cast<size_t>(params.max_keyframes)),
       done_(static_cast<size_t>(params.window_keyframes)),
-      seen_(static_cast<size_t>(params.loss_window_chunks), false) {}
+      seen_(static_cast<size_t>(params.loss_window_chunks), false),
+      seen_sent_utime_(static_cast<size_t>(params.loss_window_chunks), 0) {}
 
 ChunkAssembler::~ChunkAssembler() = default;
 
@@ -638,15 +641,27 @@ void ChunkAssembler::noteSequence(int64_t sequence, int64_t sent_utime) {
     highest_sent_utime_ = sent_utime;
     lowest_tracked_ = std::max(lowest_tracked_, sequence - window + 1);
   }
-  if (sequence >= lowest_tracked_) seen_[static_cast<size_t>(sequence % window)] = true;
+  if (sequence >= lowest_tracked_) {
+    seen_[static_cast<size_t>(sequence % window)] = true;
+    seen_sent_utime_[static_cast<size_t>(sequence % window)] = sent_utime;
+  }
 }
 
 LossStats ChunkAssembler::loss() const {
   LossStats stats;
   if (highest_sequence_ < 0) return stats;
   const int64_t window = params_.loss_window_chunks;
+  // From just after the newest chunk seen that was sent more than loss_window_s before the
+  // newest: what was missing before it was sent before it too.
+  const auto cutoff_utime =
+      highest_sent_utime_ - static_cast<int64_t>(params_.loss_window_s * 1e6);
+  int64_t first = lowest_tracked_;
+  for (int64_t s = lowest_tracked_; s <= highest_sequence_; ++s)
+    if (seen_[static_cast<size_t>(s % window)] &&
+        seen_sent_utime_[static_cast<size_t>(s % window)] < cutoff_utime)
+      first = s + 1;
   bool in_run = false;
-  for (int64_t s = lowest_tracked_; s <= highest_sequence_ - params_.reorder_chunks; ++s) {
+  for (int64_t s = first; s <= highest_sequence_ - params_.reorder_chunks; ++s) {
     const bool seen = seen_[static_cast<size_t>(s % window)];
     ++stats.expected;
     if (seen) ++stats.received;

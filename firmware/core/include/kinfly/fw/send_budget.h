@@ -9,6 +9,7 @@
 #pragma once
 
 #include <algorithm>
+#include <array>
 
 #include "kinfly/core/status.h"
 
@@ -68,6 +69,11 @@ class LinkRate {
     double queue_high_ms = 40.0;          // [ms] (queue_low_ms, 10000]: queueing: send less
     double queue_low_ms = 15.0;           // [ms] [0, queue_high_ms): no queue: may send more
     double decrease = 0.85;               // (0, 1): the new budget, as a part of the goodput
+    // (0, 1]: a decrease keeps at least this part of the budget. The goodput of a second that
+    // began idle (the flight's first keyframe, the first after a pause) understates the link:
+    // cutting to it would drop a start at 8 Mbit/s into a 2 Mbit/s link to the floor, from
+    // which the budget needs many seconds to climb back. A real drop takes one hold per halving.
+    double max_cut = 0.5;
     double increase_per_s = 0.3;          // [1/s] (0, 10]: growth per second, relative
     double hold_s = 0.5;                  // [s] [0, 10]: after a decrease, let it take effect
     Status validate() const;
@@ -92,7 +98,9 @@ class LinkRate {
 
 // Smaller keyframes when even a slow stream of full-size ones exceeds the budget: the depth
 // image is sent at 1/scale of its width and height (stated in the message's camera), so a
-// keyframe costs about 1/scale² of the bytes.
+// keyframe costs about 1/scale² of the bytes: about, because a subsampled depth image
+// compresses worse (measured: a half-size keyframe costs 2.3 times a quarter-size one, not 4),
+// so what a size cost when it was last sent wins over the estimate.
 struct KeyframeScale {
   struct Params {
     double min_rate_hz = 1.0;  // [Hz] (0, 100]: below this keyframe rate the images shrink
@@ -100,9 +108,15 @@ struct KeyframeScale {
     int max_scale = 4;         // {1, 2, 4}: the smallest image is 1/max_scale per side
     Status validate() const;
   };
-  // The scale for the next keyframe. budget_Bps [bytes/s] for keyframes; bytes_at_scale: what
-  // the last keyframe cost on the wire (with redundancy) at `scale`.
-  static int choose(const Params& params, int scale, double budget_Bps, double bytes_at_scale);
+  // [bytes] what the last keyframe sent at scale 1, 2 and 4 cost on the wire (with
+  // redundancy); 0 for a scale not sent yet.
+  using Costs = std::array<double, 3>;
+  static size_t index(int scale) { return scale >= 4 ? 2 : scale >= 2 ? 1 : 0; }
+  // [bytes] a keyframe at `scale`: its cost, or one estimated from the nearest scale sent (a
+  // step costing four times the bytes); 0 before any keyframe was sent.
+  static double cost(const Costs& costs, int scale);
+  // The scale for the next keyframe. budget_Bps [bytes/s] for keyframes.
+  static int choose(const Params& params, int scale, double budget_Bps, const Costs& costs);
 };
 
 }  // namespace kinfly::fw

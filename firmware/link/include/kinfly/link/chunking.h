@@ -219,6 +219,10 @@ class ChunkAssembler {
     int64_t restart_gap_chunks = 1024;
     // [chunks] [64, 65536]: loss() covers the last this many sequence numbers.
     int loss_window_chunks = 2048;
+    // [s] (0, 3600]: ... and only those sent in the last this many seconds. On a slow link
+    // 2048 chunks span minutes, and the queue drops of a start that sent too fast would set the
+    // drone's redundancy, and with it the keyframes' size, for all that time.
+    double loss_window_s = 10.0;
     // [chunks] [0, loss_window_chunks / 2]: the newest this many sequence numbers are not yet
     // counted as lost, so that a chunk reordered by up to this much still counts as received.
     int reorder_chunks = 32;
@@ -293,8 +297,10 @@ class ChunkAssembler {
   keyframe_chunk_t chunk_;  // receive()'s decoded datagram; its block keeps its capacity
   ChunkCounters counters_;
 
-  // Sequence numbers seen: a ring of loss_window_chunks bits ending at the highest one.
+  // Sequence numbers seen: a ring of loss_window_chunks bits ending at the highest one, and
+  // the sent_utime of each chunk seen.
   std::vector<bool> seen_;
+  std::vector<int64_t> seen_sent_utime_;
   int64_t highest_sequence_ = -1;  // -1: none yet
   int64_t highest_sent_utime_ = 0;  // [us] that chunk's sent_utime
   int64_t lowest_tracked_ = 0;     // the window's first sequence number

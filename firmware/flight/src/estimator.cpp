@@ -55,7 +55,7 @@ struct Transition {
   Matrix3d dv_dtheta;      // -R [f]x dt
   Matrix3d dv_dba;         // -R dt
   Matrix3d dtheta_dtheta;  // Exp(omega dt)^T
-  // F X for any X with 15 rows; the rows of the velocity and angle blocks read the old X.
+  // F X; the velocity and angle rows read the old X.
   Covariance times(const Covariance& X) const {
     Covariance FX = X;
     FX.middleRows<3>(kP) += dt_s * X.middleRows<3>(kV);
@@ -414,11 +414,16 @@ bool Estimator::applyReset(const OdomReset& reset) {
     entry.x.q_world_body = (q_yaw * entry.x.q_world_body).normalized();
     // Heading in the body-local δθ: the world's z seen from the body.
     const Vector3d u = entry.x.q_world_body.conjugate() * Vector3d::UnitZ();
-    Covariance G = Covariance::Identity();
-    G.block<3, 3>(kP, kP).setZero();
-    G.block<3, 3>(kV, kV) = R_yaw;
-    G.block<3, 3>(kTheta, kTheta) -= u * u.transpose();
-    entry.P = (G * entry.P * G.transpose()).eval();
+    const Matrix3d tilt_only = Matrix3d::Identity() - u * u.transpose();
+    // G X, G the identity but for these blocks: by blocks, as the whole ring goes through it.
+    const auto G_times = [&](const Covariance& X) {
+      Covariance GX = X;
+      GX.middleRows<3>(kP).setZero();
+      GX.middleRows<3>(kV) = R_yaw * X.middleRows<3>(kV);
+      GX.middleRows<3>(kTheta) = tilt_only * X.middleRows<3>(kTheta);
+      return GX;
+    };
+    entry.P = G_times(G_times(entry.P).transpose());  // G P G^T, P symmetric
     entry.P.block<3, 3>(kP, kP).diagonal().array() += std::pow(reset.pos_std_m, 2);
     entry.P.block<3, 3>(kTheta, kTheta) += std::pow(reset.yaw_std_rad, 2) * u * u.transpose();
     symmetrise(entry.P);

@@ -1,0 +1,220 @@
+// The drone's state estimator: an error-state Kalman filter (Solà, "Quaternion kinematics for the
+// error-state Kalman filter", 2017, §5 and §6) over IMU samples, with the onboard odometry's
+// delayed poses and the ground's corrections (docs/flight.md, "State estimator").
+//
+// Frames: body FRD; `world` gravity-aligned with z down (g_world = (0, 0, +g)); `odom` the
+// odometry's frame (its first keyframe's optical camera frame). q_world_body is Hamilton and
+// maps body to world. Error state, in this order: δp, δv (world), δθ (body, R_true = R ⊗ Exp(δθ)),
+// δb_g, δb_a.
+//
+// Delayed poses are fused at their capture time: every IMU step stores the state, its covariance
+// and the sample in a ring allocated at construction; a pose rolls the filter back to its capture
+// time, is fused there, and the stored samples are integrated again up to now. Nothing allocates
+// after construction.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <cstdint>
+#include <vector>
+
+#include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
+
+namespace kinfly::flight {
+
+constexpr int kErrorStates = 15;
+using Covariance = Eigen::Matrix<double, kErrorStates, kErrorStates>;
+
+struct EstimatorParams {
+  // IMU noise, continuous-time densities: the ADIS16448 of the EuRoC MAV dataset as its
+  // sensor.yaml gives them (Burri et al., IJRR 2016).
+  double gyro_noise_rad_s_rthz = 1.6968e-4;        // [rad/s/√Hz] (0, 1]
+  double accel_noise_m_s2_rthz = 2.0e-3;           // [m/s²/√Hz] (0, 10]
+  double gyro_bias_walk_rad_s2_rthz = 1.9393e-5;   // [rad/s²/√Hz] (0, 1]
+  double accel_bias_walk_m_s3_rthz = 3.0e-3;       // [m/s³/√Hz] (0, 10]
+  double gravity_m_s2 = 9.81;                      // [m/s²] [9.7, 9.9]
+  // A longer step between samples is counted as a gap (and still integrated).
+  double imu_gap_s = 0.02;                         // [s] (0, 1]
+
+  // 1σ uncertainty of the initial state.
+  double init_pos_std_m = 0.01;                    // [m] (0, 100]
+  double init_vel_std_m_s = 0.05;                  // [m/s] (0, 100]
+  double init_att_std_rad = 0.02;                  // [rad] (0, 3.15]
+  double init_gyro_bias_std_rad_s = 0.005;         // [rad/s] (0, 1]
+  double init_accel_bias_std_m_s2 = 0.05;          // [m/s²] (0, 10]
+  // At rest before the first pose: the accelerometer's mean over this long gives the tilt.
+  double init_still_s = 0.5;                       // [s] [0.01, 10]
+
+  // Camera (optical) to body; the default looks forward: optical z = body x, x = y, y = z.
+  Pose T_body_cam = defaultBodyCam();              // rotation orthonormal, |t| <= 1 m
+  // Odometry pose noise, 1σ per axis: position in `odom`, rotation in the camera frame.
+  double vision_pos_std_m = 0.01;                  // [m] (0, 10]
+  double vision_att_std_rad = 0.01;                // [rad] (0, 1]
+  // Chi-square gate on the 6-DoF pose innovation; 22.46 is the 99.9 % quantile for 6 dof.
+  double vision_gate_chi2 = 22.46;                 // [-] [1, 1000]
+  // Vision counts as fused while its last fused pose is at most this old.
+  double vision_timeout_s = 0.2;                   // [s] (0, 10]
+
+  // The state history poses can reach back into; the ring holds history_s * imu_rate_max_hz.
+  double history_s = 0.4;                          // [s] [0.3, 2]
+  double imu_rate_max_hz = 1000.0;                 // [Hz] [50, 4000]
+
+  // Diverged: the position's 1σ beyond this, or this many poses in a row outside the gate.
+  double diverged_pos_std_m = 2.0;                 // [m] (0, 1000]
+  int diverged_rejections = 15;                    // [-] [1, 1000]
+
+  Status validate() const;
+  static Pose defaultBodyCam();
+};
+
+struct ImuSample {
+  int64_t utime = 0;                                  // [µs] capture
+  Eigen::Vector3d gyro_rad_s = Eigen::Vector3d::Zero();  // body FRD
+  Eigen::Vector3d accel_m_s2 = Eigen::Vector3d::Zero();  // specific force, body FRD
+};
+
+// The onboard odometry's camera pose.
+struct VisionPose {
+  int64_t utime = 0;  // [µs] capture of the depth frame
+  Pose T_odom_cam = Pose::Identity();
+};
+
+// The ground's correction: the odometry's frame jumped (new odom coordinates = T_new_old * old).
+struct OdomReset {
+  int64_t utime = 0;  // [µs] from this capture time on, poses are in the new frame
+  Pose T_odomNew_odomOld = Pose::Identity();
+  int32_t reset_counter = 0;  // the ground's counter, passed through
+  double pos_std_m = 0.05;    // [m] 1σ of the corrected position
+  double yaw_std_rad = 0.02;  // [rad] 1σ of the corrected heading
+};
+
+// A known start (tests, a restart from a stored state).
+struct EstimatorInit {
+  int64_t utime = 0;  // [µs]
+  Eigen::Vector3d p_world_body_m = Eigen::Vector3d::Zero();
+  Eigen::Vector3d v_world_body_m_s = Eigen::Vector3d::Zero();
+  Eigen::Quaterniond q_world_body = Eigen::Quaterniond::Identity();
+  Eigen::Vector3d gyro_bias_rad_s = Eigen::Vector3d::Zero();
+  Eigen::Vector3d accel_bias_m_s2 = Eigen::Vector3d::Zero();
+  Pose T_world_odom = Pose::Identity();
+};
+
+struct EstimatorState {
+  int64_t utime = 0;  // [µs] of the last IMU sample
+  Eigen::Vector3d p_world_body_m = Eigen::Vector3d::Zero();
+  Eigen::Vector3d v_world_body_m_s = Eigen::Vector3d::Zero();
+  Eigen::Quaterniond q_world_body = Eigen::Quaterniond::Identity();
+  Eigen::Vector3d gyro_bias_rad_s = Eigen::Vector3d::Zero();
+  Eigen::Vector3d accel_bias_m_s2 = Eigen::Vector3d::Zero();
+  Eigen::Vector3d omega_body_rad_s = Eigen::Vector3d::Zero();  // gyro less its bias
+};
+
+enum class VisionOutcome {
+  kFused,
+  kNotInitialised,  // before the start; the pose may start the filter (see addVision)
+  kRejectedGate,    // innovation outside the chi-square gate
+  kRejectedTooOld,  // older than the history, or captured before the last reset
+  kRejectedOutOfOrder,  // captured before the last fused pose
+  kRejectedInvalid,     // non-finite pose
+};
+
+struct EstimatorHealth {
+  bool initialised = false;
+  bool imu_fused = false;     // samples arrive within imu_gap_s
+  bool vision_fused = false;  // a pose fused within vision_timeout_s
+  bool diverged = false;
+  double time_since_vision_s = -1.0;  // [s] to the last fused pose's capture; -1 before any
+  // Innovation test ratios of the last pose: NIS / gate (≤ 1 passes), whole and split.
+  double vision_test_ratio = 0.0;
+  double vision_pos_test_ratio = 0.0;
+  double vision_att_test_ratio = 0.0;
+  int64_t imu_samples = 0;
+  int64_t imu_rejected = 0;  // time not increasing
+  int64_t imu_gaps = 0;
+  int64_t vision_fused_count = 0;
+  int64_t vision_rejected_gate = 0;
+  int64_t vision_rejected_too_old = 0;
+  int64_t vision_rejected_out_of_order = 0;
+  int64_t vision_rejected_invalid = 0;
+  int consecutive_gate_rejections = 0;
+  int32_t reset_counter = 0;  // the last applied reset's
+  int64_t resets = 0;
+  int64_t resets_rejected = 0;
+};
+
+class Estimator {
+ public:
+  // params must validate.
+  explicit Estimator(const EstimatorParams& params);
+
+  void initialise(const EstimatorInit& init);
+
+  // Before the start, samples feed the still-start average. Returns false for a sample whose
+  // time does not increase (counted, ignored).
+  bool addImu(const ImuSample& sample);
+  // Before the start, the first pose after init_still_s of samples starts the filter there:
+  // world's origin at the body, its heading the body's, its tilt from the mean specific force.
+  VisionOutcome addVision(const VisionPose& pose);
+  // Resets position and heading to follow the jump; velocity and tilt stay continuous. False
+  // (counted, nothing changes) before the start or for a non-finite jump or a std not > 0.
+  bool applyReset(const OdomReset& reset);
+
+  bool initialised() const { return count_ > 0; }
+  EstimatorState state() const;
+  // Of the error state, in the order above; only when initialised().
+  const Covariance& covariance() const;
+  const Pose& T_world_odom() const { return T_world_odom_; }
+  EstimatorHealth health() const;
+
+ private:
+  struct Nominal {
+    Eigen::Vector3d p_world_body_m = Eigen::Vector3d::Zero();
+    Eigen::Vector3d v_world_body_m_s = Eigen::Vector3d::Zero();
+    Eigen::Quaterniond q_world_body = Eigen::Quaterniond::Identity();
+    Eigen::Vector3d gyro_bias_rad_s = Eigen::Vector3d::Zero();
+    Eigen::Vector3d accel_bias_m_s2 = Eigen::Vector3d::Zero();
+  };
+  // The filter after the sample `imu` (which held over the step that ends at imu.utime).
+  struct Entry {
+    ImuSample imu;
+    Nominal x;
+    Covariance P = Covariance::Zero();
+  };
+
+  void start(int64_t utime, const Nominal& x);
+  VisionOutcome startFromStill(const VisionPose& pose);
+  void predict(Nominal& x, Covariance& P, const ImuSample& imu, double dt_s) const;
+  // Fuses the pose into (x, P); false when gated out.
+  bool fuse(Nominal& x, Covariance& P, const Pose& T_world_cam);
+  // Index 0 is the oldest stored state.
+  Entry& at(int index) { return ring_[(head_ + index) % ring_.size()]; }
+  const Entry& at(int index) const { return ring_[(head_ + index) % ring_.size()]; }
+  const Entry& newest() const { return at(count_ - 1); }
+  int newestAtOrBefore(int64_t utime) const;
+  // Predicts the newest state over the sample into the next slot, dropping the oldest when full.
+  void push(const ImuSample& sample, double dt_s);
+  void updateDivergence();
+
+  EstimatorParams params_;
+  Covariance Q_density_;  // diagonal, per second: times dt gives the step's process noise
+  std::vector<Entry> ring_;  // oldest at head_, count_ entries
+  int head_ = 0;
+  int count_ = 0;
+  Pose T_world_odom_ = Pose::Identity();
+  // Poses captured before this would meet states that do not yet hold the last fusion.
+  int64_t barrier_utime_ = 0;
+  // Poses captured before the last reset are in the odometry's old frame.
+  int64_t reset_utime_ = 0;
+  int64_t last_vision_utime_ = -1;
+  Eigen::Vector3d still_accel_sum_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d still_gyro_sum_ = Eigen::Vector3d::Zero();
+  int64_t still_samples_ = 0;
+  int64_t still_first_utime_ = -1;
+  int64_t last_imu_utime_ = -1;
+  EstimatorHealth health_;
+};
+
+const char* toString(VisionOutcome outcome);
+
+}  // namespace kinfly::flight

@@ -58,7 +58,7 @@ struct LqrDesign {
   double closed_loop_spectral_radius = 0.0;  // of A - B K: below 1 is stable
 };
 
-// Fails when the Riccati solve does not converge or the loop it gives is not stable.
+// Fails when the Riccati equation has no stabilising solution (riccati.h).
 StatusOr<LqrDesign> designAttitudeLqr(const LqrAttitudeParams& params, const Vehicle& vehicle);
 
 // The attitude error as a rotation vector in the body frame, from q_world_body towards

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <string>
 
@@ -19,10 +20,12 @@ struct RiccatiSolution {
   Eigen::Matrix<double, N, N> P;
   Eigen::Matrix<double, M, N> K;  // (R + B'PB)^-1 B'PA: u = -K x
   int doubling_steps = 0;
+  double closed_loop_spectral_radius = 0.0;  // of A - B K: below 1 for the stabilising P
 };
 
-// Fails when the doubling does not settle within max_steps, or P does not satisfy the equation
-// to relative_tolerance (an unstabilisable pair, a Q or R that is not positive definite).
+// Fails when the doubling does not settle within max_steps, P does not satisfy the equation to
+// relative_tolerance, or the P found does not stabilise A - B K (the equation then has other,
+// non-stabilising solutions: an unstabilisable pair, a Q that does not see an unstable mode).
 template <int N, int M>
 StatusOr<RiccatiSolution<N, M>> solveDiscreteRiccati(const Eigen::Matrix<double, N, N>& A,
                                                      const Eigen::Matrix<double, N, M>& B,
@@ -53,6 +56,9 @@ StatusOr<RiccatiSolution<N, M>> solveDiscreteRiccati(const Eigen::Matrix<double,
       const MatrixN residual =
           A.transpose() * h * A - A.transpose() * h * B * solution.K + Q - h;
       if (residual.norm() > 1e3 * relative_tolerance * h.norm()) break;
+      solution.closed_loop_spectral_radius =
+          Eigen::EigenSolver<MatrixN>(A - B * solution.K, false).eigenvalues().cwiseAbs().maxCoeff();
+      if (!(solution.closed_loop_spectral_radius < 1.0)) break;
       return solution;
     }
   }

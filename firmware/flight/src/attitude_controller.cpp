@@ -130,6 +130,7 @@ AttitudeController::AttitudeController(const Params& params, const Vehicle& vehi
 
 StatusOr<AttitudeController> AttitudeController::create(const Params& params,
                                                         const Vehicle& vehicle) {
+  if (Status valid = params.validate(); !valid.ok()) return valid;
   auto lqr = designAttitudeLqr(params.lqr, vehicle);
   if (!lqr.ok()) return lqr.status();
   return AttitudeController(params, vehicle, *lqr);

@@ -83,7 +83,8 @@ class AttitudeController {
     Status validate() const;
   };
 
-  // Solves the LQR gain (whatever the law, so that switching laws in flight needs no solve).
+  // Checks params and solves the LQR gain (whatever the law, so that switching laws in flight
+  // needs no solve). The vehicle must be valid.
   static StatusOr<AttitudeController> create(const Params& params, const Vehicle& vehicle);
 
   // Allocation-free. dt_s: since the previous update; saturation: the mixer's previous report.

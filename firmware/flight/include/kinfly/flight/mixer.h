@@ -30,6 +30,7 @@ struct MixerOutput {
 // Works on squared rotor speeds, where the allocation is linear; stateless.
 class Mixer {
  public:
+  // Keeps a reference: the vehicle outlives the mixer (both live as long as the control task).
   explicit Mixer(const Vehicle& vehicle);
   MixerOutput mix(const Wrench& demanded) const;
 

@@ -94,18 +94,19 @@ inline StepResponse flyRateStep(const Vehicle& vehicle, const RateController::Pa
   return response;
 }
 
-// From level hover, a step of kAttitudeStepRad in the roll setpoint, with the given law.
-inline StepResponse flyAttitudeStep(const Vehicle& vehicle, AttitudeController controller,
-                                    double gyro_noise_density, uint32_t seed) {
+// From level hover, the attitude q_world_body every tick after the setpoint jumps to
+// q_world_body_sp, with the given controller.
+inline std::vector<Eigen::Quaterniond> flyAttitude(const Vehicle& vehicle,
+                                                   AttitudeController controller,
+                                                   const Eigen::Quaterniond& q_world_body_sp,
+                                                   double gyro_noise_density, uint32_t seed) {
   FlightPlant plant(vehicle, gyro_noise_density, seed);
   plant.startHovering();
   const Mixer mixer(vehicle);
   MixerSaturation saturation;
-  const Eigen::Quaterniond q_world_body_sp(
-      Eigen::AngleAxisd(kAttitudeStepRad, Eigen::Vector3d::UnitX()));
-  StepResponse response{{}, kAttitudeStepRad};
   const int ticks = static_cast<int>(kStepDurationS / kControlDtS);
-  response.y.reserve(ticks);
+  std::vector<Eigen::Quaterniond> q_world_body;
+  q_world_body.reserve(ticks);
   for (int k = 0; k < ticks; ++k) {
     const Eigen::Vector3d moment_body_nm =
         controller.update(plant.state().q_world_body, q_world_body_sp, plant.gyroBodyRadS(),
@@ -116,7 +117,20 @@ inline StepResponse flyAttitudeStep(const Vehicle& vehicle, AttitudeController c
     const MixerOutput out = mixer.mix({thrust_n, moment_body_nm});
     saturation = out.saturation;
     plant.step(out.rotor_speed_rad_s, kControlDtS);
-    response.y.push_back(rollRad(plant.state().q_world_body));
+    q_world_body.push_back(plant.state().q_world_body);
+  }
+  return q_world_body;
+}
+
+// The roll response to a step of kAttitudeStepRad about x from level hover.
+inline StepResponse flyAttitudeStep(const Vehicle& vehicle, const AttitudeController& controller,
+                                    double gyro_noise_density, uint32_t seed) {
+  const Eigen::Quaterniond q_world_body_sp(
+      Eigen::AngleAxisd(kAttitudeStepRad, Eigen::Vector3d::UnitX()));
+  StepResponse response{{}, kAttitudeStepRad};
+  for (const Eigen::Quaterniond& q_world_body :
+       flyAttitude(vehicle, controller, q_world_body_sp, gyro_noise_density, seed)) {
+    response.y.push_back(rollRad(q_world_body));
   }
   return response;
 }

@@ -96,6 +96,18 @@ TEST_F(FlightRate, IntegratorIsClampedAndFrozenOnlyTowardsTheCut) {
   EXPECT_LT(rate.integratorRadS2().x(), 0.0);  // a negative error leaves the cut: it moves
 }
 
+TEST_F(FlightRate, RepeatedSampleMovesNoState) {
+  RateController rate(params_, vehicle_);
+  RateSetpoint setpoint;
+  setpoint.omega_body_rad_s.x() = 1.0;
+  rate.update(setpoint, Eigen::Vector3d::Zero(), kDtS, unsaturated_);
+  const Eigen::Vector3d integrator = rate.integratorRadS2();
+  const Eigen::Vector3d moment_nm =
+      rate.update(setpoint, Eigen::Vector3d(0.5, 0.0, 0.0), 0.0, unsaturated_);
+  EXPECT_TRUE(moment_nm.allFinite());
+  EXPECT_EQ(rate.integratorRadS2(), integrator);
+}
+
 TEST(FlightRateParams, ValidateNamesTheAxis) {
   RateController::Params params;
   EXPECT_TRUE(params.validate().ok());

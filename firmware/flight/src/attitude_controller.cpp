@@ -162,7 +162,7 @@ Eigen::Vector3d AttitudeController::update(const Eigen::Quaterniond& q_world_bod
   state << error_rad, omega_body_rad_s, integral_rad_s_;
   const Eigen::Vector3d moment_body_nm = -lqr_.K * state;
   // An axis the mixer cut keeps its integral, whichever way: the gain couples no axes.
-  for (int axis = 0; axis < 3; ++axis) {
+  for (int axis = 0; axis < 3 && dt_s > 0.0; ++axis) {  // no time, no integral (as the rate PID)
     if (saturation.moment_cut_positive[axis] || saturation.moment_cut_negative[axis]) continue;
     if (std::abs(error_rad(axis)) > params_.lqr.integral_band_rad) continue;
     const double limit = params_.lqr.integral_limit_rad_s(axis);

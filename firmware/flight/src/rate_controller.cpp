@@ -43,8 +43,11 @@ void RateController::reset() {
 Eigen::Vector3d RateController::update(const RateSetpoint& setpoint,
                                        const Eigen::Vector3d& omega_body_rad_s, double dt_s,
                                        const MixerSaturation& saturation) {
+  // A repeated or out-of-order sample (dt_s <= 0) still gets its moment, but moves no state
+  // in time: the derivative and the integrator wait for a real step.
+  const bool time_moved = dt_s > 0.0;
   // On the measurement, not the error: a setpoint step would otherwise kick the motors.
-  if (has_previous_) {
+  if (has_previous_ && time_moved) {
     const double tau_s = 1.0 / (2.0 * M_PI * params_.d_cutoff_hz);
     const double blend = dt_s / (dt_s + tau_s);
     const Eigen::Vector3d raw_rad_s2 = (omega_body_rad_s - previous_omega_body_rad_s_) / dt_s;
@@ -60,7 +63,7 @@ Eigen::Vector3d RateController::update(const RateSetpoint& setpoint,
 
   // The integrator moves after the output (it acts from the next tick, as PX4's), unless the
   // rotors already cut this axis in the direction the error pushes.
-  for (int axis = 0; axis < 3; ++axis) {
+  for (int axis = 0; axis < 3 && time_moved; ++axis) {
     const bool pushes_cut = (error_rad_s(axis) > 0.0 && saturation.moment_cut_positive[axis]) ||
                             (error_rad_s(axis) < 0.0 && saturation.moment_cut_negative[axis]);
     if (pushes_cut) continue;

@@ -34,7 +34,8 @@ class RateController {
   RateController(const Params& params, const Vehicle& vehicle);
 
   // Allocation-free. saturation: the mixer's report of the previous tick; an axis it cut in the
-  // direction the error pushes keeps its integrator (PX4's anti-windup).
+  // direction the error pushes keeps its integrator (PX4's anti-windup). dt_s <= 0 moves no
+  // state (a repeated sample), so the output stays finite.
   Eigen::Vector3d update(const RateSetpoint& setpoint, const Eigen::Vector3d& omega_body_rad_s,
                          double dt_s, const MixerSaturation& saturation);
   void reset();

@@ -19,7 +19,7 @@ namespace kinfly::flight {
 enum class AttitudeLaw { kGeometric, kLqr };
 
 struct GeometricAttitudeParams {
-  Eigen::Vector3d p_gain_1_s{22.0, 22.0, 8.0};       // [1/s] [0, 100] rate per attitude error
+  Eigen::Vector3d p_gain_1_s{25.0, 25.0, 8.0};       // [1/s] [0, 100] rate per attitude error
   Eigen::Vector3d rate_limit_rad_s{6.0, 6.0, 3.0};   // [rad/s] (0, 30] of the rate setpoint
   Status validate() const;
 };

@@ -19,7 +19,8 @@ enum class RotorLayout { kX, kPlus };
 // The defaults are RotorPy's AscTec Hummingbird (spencerfolk/rotorpy,
 // rotorpy/vehicles/hummingbird_params.py), so that the benchmark against RotorPy flies the same
 // vehicle. RotorPy numbers its rotors FLU-wise (r1 front-left, r2 front-right, r3 rear-right, r4
-// rear-left): kinfly's 1, 2, 3, 4 are its r2, r4, r1, r3, with the same spin directions.
+// rear-left): kinfly's 1, 2, 3, 4 are its r2, r4, r1, r3, with the same yaw moments (its
+// rotor_directions +1 turns the body about z up: kinfly's CW rotors).
 struct VehicleParams {
   double mass_kg = 0.500;                     // [kg] (0, 50]
   double inertia_xx_kg_m2 = 3.65e-3;          // [kg m^2] (0, 10] about x_body

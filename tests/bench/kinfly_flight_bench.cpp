@@ -1,0 +1,110 @@
+// kinfly-flight-bench: the inner loops' step responses on the test plant (tests/firmware/
+// flight_plant.h: RotorPy's Hummingbird, RK4 at 1 kHz, 5 ms motor lag, noisy gyros), at the
+// default gains, beside the targets of issue 15: a 1 rad/s roll-rate step through the rate PID,
+// and a 10 degree roll step through each attitude law; and the cost of one control tick
+// (attitude law, rate loop where the law has one, mixer) on this machine's core. Prints JSON;
+// exit 1 only when the controllers cannot be built.
+#include <cstdio>
+#include <ctime>
+
+#include "flight_loop.h"
+
+namespace {
+
+using kinfly::flight::AttitudeController;
+using kinfly::flight::AttitudeLaw;
+using kinfly::flight::Vehicle;
+using kinfly::flight::VehicleParams;
+namespace test = kinfly::flight::test;
+
+constexpr uint32_t kSeed = 7;
+// Issue 15's targets.
+constexpr double kRateRiseTargetS = 0.050;
+constexpr double kRateOvershootTarget = 0.10;
+constexpr double kAttitudeRiseTargetS = 0.10;
+constexpr double kAttitudeSettleTargetS = 0.25;
+
+constexpr int kCostTicks = 200000;
+
+// [us] mean CPU time of one tick, over attitudes that change every tick so nothing is hoisted.
+double tickCostUs(const Vehicle& vehicle, AttitudeController controller) {
+  const kinfly::flight::Mixer mixer(vehicle);
+  kinfly::flight::MixerSaturation saturation;
+  const Eigen::Quaterniond q_world_body_sp(Eigen::AngleAxisd(0.1, Eigen::Vector3d::UnitX()));
+  double sink = 0.0;
+  const std::clock_t start = std::clock();
+  for (int k = 0; k < kCostTicks; ++k) {
+    const double angle_rad = 1e-6 * k;
+    const Eigen::Quaterniond q_world_body(Eigen::AngleAxisd(angle_rad, Eigen::Vector3d::UnitY()));
+    const Eigen::Vector3d omega_body_rad_s(angle_rad, -angle_rad, 0.5 * angle_rad);
+    const Eigen::Vector3d moment_body_nm = controller.update(
+        q_world_body, q_world_body_sp, omega_body_rad_s, test::kControlDtS, saturation);
+    const kinfly::flight::MixerOutput out = mixer.mix({vehicle.weightN(), moment_body_nm});
+    saturation = out.saturation;
+    sink += out.rotor_speed_rad_s.sum();
+  }
+  const double seconds = static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
+  if (!(sink > 0.0)) std::fprintf(stderr, "kinfly-flight-bench: no rotor turned\n");
+  return 1e6 * seconds / kCostTicks;
+}
+
+void printAttitude(const char* name, const test::StepFigures& f, double cost_us, bool last) {
+  std::printf(
+      "    \"%s\": {\"rise_time_s\": %.4f, \"settling_time_2pct_s\": %.4f, \"overshoot\": %.4f, "
+      "\"final_error\": %.5f, \"tick_cpu_us\": %.3f, \"meets_targets\": %s}%s\n",
+      name, f.rise_time_s, f.settling_time_s, f.overshoot, f.final_error, cost_us,
+      f.rise_time_s <= kAttitudeRiseTargetS && f.settling_time_s <= kAttitudeSettleTargetS
+          ? "true" : "false",
+      last ? "" : ",");
+}
+
+}  // namespace
+
+int main() {
+  const VehicleParams vehicle_params;
+  AttitudeController::Params params;
+  for (const kinfly::Status& status : {vehicle_params.validate(), params.validate()}) {
+    if (status.ok()) continue;
+    std::fprintf(stderr, "kinfly-flight-bench: %s\n", status.message().c_str());
+    return 1;
+  }
+  const Vehicle vehicle(vehicle_params);
+  const test::StepFigures rate = test::stepFigures(
+      test::flyRateStep(vehicle, params.rate, test::kGyroNoiseDensity, kSeed));
+  test::StepFigures attitude[2];
+  double cost_us[2];
+  for (const AttitudeLaw law : {AttitudeLaw::kGeometric, AttitudeLaw::kLqr}) {
+    params.law = law;
+    auto controller = AttitudeController::create(params, vehicle);
+    if (!controller.ok()) {
+      std::fprintf(stderr, "kinfly-flight-bench: %s\n", controller.status().message().c_str());
+      return 1;
+    }
+    attitude[static_cast<int>(law)] = test::stepFigures(
+        test::flyAttitudeStep(vehicle, *controller, test::kGyroNoiseDensity, kSeed));
+    cost_us[static_cast<int>(law)] = tickCostUs(vehicle, *controller);
+  }
+  std::printf("{\n  \"plant\": {\"vehicle\": \"rotorpy hummingbird\", \"rate_hz\": %.0f, "
+              "\"motor_time_constant_s\": %.4f, \"gyro_noise_density_rad_s_rt_hz\": %g},\n",
+              1.0 / test::kControlDtS, vehicle_params.motor_time_constant_s,
+              test::kGyroNoiseDensity);
+  std::printf("  \"targets\": {\"rate_rise_time_s\": %.3f, \"rate_overshoot\": %.2f, "
+              "\"attitude_rise_time_s\": %.2f, \"attitude_settling_time_2pct_s\": %.2f},\n",
+              kRateRiseTargetS, kRateOvershootTarget, kAttitudeRiseTargetS,
+              kAttitudeSettleTargetS);
+  std::printf("  \"rate_step\": {\"step_rad_s\": %.2f, \"rise_time_s\": %.4f, \"overshoot\": "
+              "%.4f, \"settling_time_2pct_s\": %.4f, \"final_error\": %.5f, "
+              "\"meets_targets\": %s},\n",
+              test::kRateStepRadS, rate.rise_time_s, rate.overshoot, rate.settling_time_s,
+              rate.final_error,
+              rate.rise_time_s <= kRateRiseTargetS && rate.overshoot < kRateOvershootTarget
+                  ? "true" : "false");
+  std::printf("  \"attitude_step\": {\n    \"step_deg\": %.1f,\n",
+              test::kAttitudeStepRad * 180.0 / M_PI);
+  for (const AttitudeLaw law : {AttitudeLaw::kGeometric, AttitudeLaw::kLqr}) {
+    const int i = static_cast<int>(law);
+    printAttitude(toString(law), attitude[i], cost_us[i], law == AttitudeLaw::kLqr);
+  }
+  std::printf("  }\n}\n");
+  return 0;
+}

@@ -1,0 +1,128 @@
+// A test plant for the flight stack's closed-loop tests and its benchmark, not part of the
+// library (the simulator proper is sim/'s): a 6-DoF rigid body in the flight stack's world
+// (z down, gravity +z), the rotors' thrust and drag quadratic in their speed, each rotor
+// following its command with a first-order lag, integrated by RK4 with the command held over the
+// step. The wrench comes from the rotor positions and spins by cross products, not from the
+// library's allocation matrix, so a wrong matrix shows. Gyro readings optionally carry white
+// noise of a given density from a seeded generator.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <cmath>
+#include <cstdint>
+#include <random>
+
+#include "kinfly/flight/vehicle.h"
+
+namespace kinfly::flight::test {
+
+struct PlantState {
+  Eigen::Vector3d p_world_m = Eigen::Vector3d::Zero();
+  Eigen::Vector3d v_world_m_s = Eigen::Vector3d::Zero();
+  Eigen::Quaterniond q_world_body = Eigen::Quaterniond::Identity();
+  Eigen::Vector3d omega_body_rad_s = Eigen::Vector3d::Zero();
+  Vector4d rotor_speed_rad_s = Vector4d::Zero();
+};
+
+class FlightPlant {
+ public:
+  // gyro_noise_density_rad_s_rt_hz: 0 for exact gyros; a MEMS gyro (ICM-42688) has ~5e-5.
+  FlightPlant(const Vehicle& vehicle, double gyro_noise_density_rad_s_rt_hz = 0.0,
+              uint32_t seed = 1)
+      : vehicle_(vehicle), gyro_noise_density_(gyro_noise_density_rad_s_rt_hz), rng_(seed) {}
+
+  // At rest in the air, the rotors already at hover speed.
+  void startHovering() {
+    state_ = PlantState{};
+    state_.rotor_speed_rad_s.setConstant(vehicle_.hoverRotorSpeedRadS());
+  }
+  void setAttitude(const Eigen::Quaterniond& q_world_body) { state_.q_world_body = q_world_body; }
+
+  void step(const Vector4d& rotor_speed_cmd_rad_s, double dt_s) {
+    // Without lag the rotors are where they are told, and derivative() leaves them there.
+    if (vehicle_.params().motor_time_constant_s == 0.0) {
+      state_.rotor_speed_rad_s = rotor_speed_cmd_rad_s;
+    }
+    const Derivative k1 = derivative(state_, rotor_speed_cmd_rad_s);
+    const Derivative k2 = derivative(advanced(state_, k1, 0.5 * dt_s), rotor_speed_cmd_rad_s);
+    const Derivative k3 = derivative(advanced(state_, k2, 0.5 * dt_s), rotor_speed_cmd_rad_s);
+    const Derivative k4 = derivative(advanced(state_, k3, dt_s), rotor_speed_cmd_rad_s);
+    Derivative sum;
+    sum.p = k1.p + 2.0 * k2.p + 2.0 * k3.p + k4.p;
+    sum.v = k1.v + 2.0 * k2.v + 2.0 * k3.v + k4.v;
+    sum.q = k1.q + 2.0 * k2.q + 2.0 * k3.q + k4.q;
+    sum.omega = k1.omega + 2.0 * k2.omega + 2.0 * k3.omega + k4.omega;
+    sum.rotor = k1.rotor + 2.0 * k2.rotor + 2.0 * k3.rotor + k4.rotor;
+    state_ = advanced(state_, sum, dt_s / 6.0);
+    sample_rate_hz_ = 1.0 / dt_s;
+  }
+
+  const PlantState& state() const { return state_; }
+
+  // The gyro's reading of the present state: white noise at the rate of the last step.
+  Eigen::Vector3d gyroBodyRadS() {
+    if (gyro_noise_density_ == 0.0) return state_.omega_body_rad_s;
+    const double sigma = gyro_noise_density_ * std::sqrt(sample_rate_hz_);
+    return state_.omega_body_rad_s + sigma * Eigen::Vector3d(normal_(rng_), normal_(rng_),
+                                                             normal_(rng_));
+  }
+
+ private:
+  // Time derivative of the state; q holds dq/dt as a 4-vector (x, y, z, w).
+  struct Derivative {
+    Eigen::Vector3d p = Eigen::Vector3d::Zero();
+    Eigen::Vector3d v = Eigen::Vector3d::Zero();
+    Eigen::Vector4d q = Eigen::Vector4d::Zero();
+    Eigen::Vector3d omega = Eigen::Vector3d::Zero();
+    Vector4d rotor = Vector4d::Zero();
+  };
+
+  Derivative derivative(const PlantState& s, const Vector4d& rotor_speed_cmd_rad_s) const {
+    const VehicleParams& params = vehicle_.params();
+    double thrust_n = 0.0;
+    Eigen::Vector3d moment_body_nm = Eigen::Vector3d::Zero();
+    for (int i = 0; i < 4; ++i) {
+      const double speed_sq = s.rotor_speed_rad_s(i) * s.rotor_speed_rad_s(i);
+      const Eigen::Vector3d force_body_n(0.0, 0.0, -params.thrust_coeff_n_s2_rad2 * speed_sq);
+      thrust_n += -force_body_n.z();
+      moment_body_nm += vehicle_.rotorPositionBodyM(i).cross(force_body_n);
+      moment_body_nm.z() += vehicle_.spinDirection(i) * params.moment_coeff_nm_s2_rad2 * speed_sq;
+    }
+    const Eigen::Vector3d inertia = vehicle_.inertiaDiagKgM2();
+    Derivative d;
+    d.p = s.v_world_m_s;
+    d.v = Eigen::Vector3d(0.0, 0.0, kGravityMS2) +
+          s.q_world_body.normalized() * Eigen::Vector3d(0.0, 0.0, -thrust_n / params.mass_kg);
+    const Eigen::Quaterniond omega_quat(0.0, s.omega_body_rad_s.x(), s.omega_body_rad_s.y(),
+                                        s.omega_body_rad_s.z());
+    d.q = 0.5 * (s.q_world_body * omega_quat).coeffs();
+    d.omega = (moment_body_nm -
+               s.omega_body_rad_s.cross(inertia.cwiseProduct(s.omega_body_rad_s)))
+                  .cwiseQuotient(inertia);
+    if (params.motor_time_constant_s > 0.0) {
+      d.rotor = (rotor_speed_cmd_rad_s - s.rotor_speed_rad_s) / params.motor_time_constant_s;
+    }
+    return d;
+  }
+
+  PlantState advanced(const PlantState& s, const Derivative& d, double dt_s) const {
+    PlantState next = s;
+    next.p_world_m += dt_s * d.p;
+    next.v_world_m_s += dt_s * d.v;
+    next.q_world_body.coeffs() += dt_s * d.q;
+    next.q_world_body.normalize();
+    next.omega_body_rad_s += dt_s * d.omega;
+    next.rotor_speed_rad_s += dt_s * d.rotor;
+    return next;
+  }
+
+  const Vehicle& vehicle_;
+  PlantState state_;
+  double gyro_noise_density_;
+  double sample_rate_hz_ = 1000.0;
+  std::mt19937 rng_;
+  std::normal_distribution<double> normal_{0.0, 1.0};
+};
+
+}  // namespace kinfly::flight::test

@@ -32,8 +32,10 @@
 #                   per frame); kinfly-fw and kinfly-ground flying 3 minutes each uncapped and
 #                   through 2 and 0.3 Mbit/s caps: the drone's send budget, keyframe sizes and
 #                   age at the ground, odometry rate (out/bench/fw_link.json); incremental
-#                   meshing against a full re-mesh (out/bench/mesh.json); kinfly-fuse vs Open3D
-#                   dense SLAM (own .venv-bench); prints, never fails on timings
+#                   meshing against a full re-mesh (out/bench/mesh.json); the flight stack's
+#                   body-rate and attitude step responses, geometric and LQR, on the test plant
+#                   (out/bench/flight.json); kinfly-fuse vs Open3D dense SLAM (own
+#                   .venv-bench); prints, never fails on timings
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
 #   make test-aarch64  deps demo, unit, image; the above + the image; unit tests and a replay
@@ -120,7 +122,7 @@ endef
 DEMO_PROGRAMS := kinfly-fw kinfly-keygen
 # What the benchmarks run from build/bin (tests/bench/*.py; bench_ground flies the demo's way).
 BENCH_PROGRAMS := kinfly-codec-bench kinfly-mesh-bench kinfly-link-bench kinfly-fuse kinfly-tum-to-log \
-                  $(DEMO_PROGRAMS)
+                  kinfly-flight-bench $(DEMO_PROGRAMS)
 
 test: deps-test build unit-test python-test
 
@@ -207,6 +209,7 @@ bench: deps-bench
 	mkdir -p $(REPO_ROOT)/out/bench
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	$(MESH_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/mesh.json
+	$(BUILD_DIR)/bin/kinfly-flight-bench | tee $(REPO_ROOT)/out/bench/flight.json
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_fw_link.py --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

@@ -1,5 +1,6 @@
 #include "config.h"
 
+#include <cstdlib>
 #include <initializer_list>
 #include <string_view>
 #include <utility>
@@ -169,7 +170,8 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--link.lcm_url", l.lcm_url,
                   "LCM URL (empty: LCM_DEFAULT_URL or default; memq:// with link.peers)");
   app->add_option("--link.peers", l.peers,
-                  "HOST:PORT[,HOST:PORT]: ground stations to send to by UDP unicast as well "
+                  "ADDRESS:PORT[,ADDRESS:PORT]: ground stations' IPv4 addresses to send to by UDP "
+                  "unicast as well "
                   "(on Wi-Fi, docs/wire.md); empty: LCM multicast only");
   app->add_option("--link.peer_port", l.peer_port,
                   "UDP port the ground stations' unicast comes to")
@@ -296,7 +298,9 @@ Status LinkConfig::validate() const {
 }
 
 std::string LinkConfig::effectiveLcmUrl() const {
-  return lcm_url.empty() && !peers.empty() ? "memq://" : lcm_url;
+  if (!lcm_url.empty() || peers.empty()) return lcm_url;
+  const char* env = std::getenv("LCM_DEFAULT_URL");
+  return env != nullptr && *env != '\0' ? env : "memq://";
 }
 
 Status OutputConfig::validate() const {

@@ -67,9 +67,9 @@ struct OdometryConfig {                          // [odometry]
 };
 
 struct LinkConfig {                              // [link]
-  std::string lcm_url;           // lcm_url; empty: LCM_DEFAULT_URL or LCM's default (memq://
+  std::string lcm_url;           // lcm_url; empty: LCM_DEFAULT_URL, else LCM's default (memq://
                                  // with peers)
-  // peers: "HOST:PORT[,HOST:PORT]", ground stations sent to by UDP unicast (docs/wire.md,
+  // peers: "ADDRESS:PORT[,ADDRESS:PORT]", ground stations' IPv4 addresses sent to by UDP unicast (docs/wire.md,
   // "Unicast on Wi-Fi"); empty: LCM multicast only
   std::string peers;
   int peer_port = link::PeerLink::kDefaultPort;  // peer_port [1, 65535]: where peers send to
@@ -93,8 +93,8 @@ struct LinkConfig {                              // [link]
   // min_keyframe_rate_hz, max_scale: smaller keyframe images when the budget is short.
   KeyframeScale::Params scale;
   Status validate() const;
-  // The URL the tasks use: lcm_url, or with peers and no lcm_url, memq:// (nothing multicast,
-  // no route needed).
+  // The URL the tasks use: lcm_url; with peers and no lcm_url, LCM_DEFAULT_URL if set, else
+  // memq:// (nothing multicast, no route needed).
   std::string effectiveLcmUrl() const;
 };
 

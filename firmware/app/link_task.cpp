@@ -24,13 +24,18 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
       publisher_(
           "link", config.link.effectiveLcmUrl(), config.vehicle.id,
           [this](lcm::LCM& lcm) {
-            // Every channel of this vehicle but its own keyframes, which multicast loops back:
-            // LCM reassembles a fragmented message (an allocation the size of a keyframe) only
-            // on a channel someone subscribed to. LCM's patterns are GLib (PCRE) regular
-            // expressions.
+            // Every channel of this vehicle but those the drone sends itself, which multicast
+            // loops back: LCM reassembles a fragmented message (an allocation the size of a
+            // keyframe) only on a channel someone subscribed to, and memq:// allocates for each
+            // message a subscription takes. LCM's patterns are GLib (PCRE) regular expressions.
+            std::string own;
+            for (size_t i = 0; i < link::kChannelCount; ++i) {
+              const auto channel = static_cast<link::Channel>(i);
+              if (link::sentByGround(channel)) continue;
+              own += (own.empty() ? "" : "|") + link::channelName(channel, config_.vehicle.id);
+            }
             const std::string channels =
-                "(?!" + link::channelName(link::Channel::kKeyframeChunk, config_.vehicle.id) +
-                "$)" + link::vehicleChannelsRegex(config_.vehicle.id);
+                "(?!(" + own + ")$)" + link::vehicleChannelsRegex(config_.vehicle.id);
             lcm_subscribe(lcm.getUnderlyingLCM(), channels.c_str(), &LinkTask::onMessage, this);
           },
           unicastPeers(config.link, static_cast<uint16_t>(config.link.peer_port),
@@ -76,8 +81,9 @@ void LinkTask::serve(Clock::time_point* next_status) {
   if (!sending()) takeKeyframe();
   if (publisher_.up()) {
     // What went first (status, odometry, telemetry) is paid for by the keyframes.
-    bucket_.charge(static_cast<double>(counters_->priority_bytes.exchange(0)),
-                   secondsSince(began_));
+    const int64_t priority_bytes = counters_->priority_bytes.exchange(0);
+    priority_window_bytes_ += priority_bytes;
+    bucket_.charge(static_cast<double>(priority_bytes), secondsSince(began_));
     // Listens until the next chunk is due (at most 10 ms, so a new keyframe waits no longer),
     // rounded up to whole milliseconds: the thread sleeps rather than spins on the odometry's
     // core.
@@ -88,6 +94,8 @@ void LinkTask::serve(Clock::time_point* next_status) {
     publisher_.handle(static_cast<int>(std::clamp(std::ceil(wait_s * 1e3), 0.0, 10.0)));
     sendChunks();
   } else {
+    // What the odometry sent meanwhile is not the keyframes' debt once the link is back.
+    counters_->priority_bytes.exchange(0);
     // Nothing to hear and nothing can go out: what was being sent is lost (counted), and the
     // odometry's keyframes are taken (and dropped) as they come.
     if (sending()) {
@@ -143,11 +151,6 @@ void LinkTask::onMessage(const lcm_recv_buf_t* rbuf, const char* channel, void* 
 }
 
 void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
-  // The drone's own traffic, looped back by multicast.
-  for (link::Channel own : {link::Channel::kOdometry, link::Channel::kKeyframe,
-                            link::Channel::kStatus, link::Channel::kGroundTruth,
-                            link::Channel::kImu, link::Channel::kDepth})
-    if (publisher_.channel(own) == channel) return;
   const double now_s = secondsSince(began_);
   const auto parsed = link::parseChannel(channel);
   if (!parsed) {
@@ -205,8 +208,15 @@ void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {
   else if (ground_status_.vehicle_id != config_.vehicle.id)
     ++rejects_.wrong_vehicle;
   if (!ground_status_heard_) return;
-  rate_.onReport(ground_status_.goodput_bps, ground_status_.queue_delay_ms, limited_,
-                 secondsSince(began_));
+  // The ground's goodput counts keyframe chunks only; the budget covers all the drone sends.
+  const double window_s = secondsSince(priority_window_start_);
+  if (window_s >= 1.0) {
+    priority_bps_ = 8.0 * static_cast<double>(priority_window_bytes_) / window_s;
+    priority_window_bytes_ = 0;
+    priority_window_start_ = Clock::now();
+  }
+  rate_.onReport(ground_status_.goodput_bps + priority_bps_, ground_status_.queue_delay_ms,
+                 limited_, secondsSince(began_));
   bucket_.setRate(rate_.budgetBps() / 8.0);
   limited_ = false;
 }

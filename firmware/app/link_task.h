@@ -97,6 +97,11 @@ class LinkTask {
   TokenBucket bucket_;
   LinkRate rate_;
   bool limited_ = false;     // had chunks to send but no budget, since the last ground report
+  // What went before the keyframes (Counters::priority_bytes): bytes since the window began,
+  // and the rate over the last whole window.
+  int64_t priority_window_bytes_ = 0;
+  Clock::time_point priority_window_start_ = Clock::now();
+  double priority_bps_ = 0.0;
   int scale_ = 1;
   KeyframeScale::Costs wire_costs_{};  // [bytes] the last keyframe's chunks at each scale
   float redundancy_ = 0.f;

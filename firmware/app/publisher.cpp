@@ -15,11 +15,15 @@ Publisher::Publisher(std::string name, const std::string& url, int vehicle_id,
     channels_[i] = link::channelName(static_cast<link::Channel>(i), vehicle_id);
   if (!peers.addresses.empty()) {
     // Only this vehicle's channels that the ground sends: nothing else has a handler here.
+    // A publisher that only sends keeps the kernel's receive buffer.
+    const int receive_buffer_bytes = peers.listen_port == 0 ? 0 : 4 << 20;
     peer_ = std::make_unique<link::PeerLink>(
-        std::move(peers.addresses), peers.listen_port, [vehicle_id](std::string_view channel) {
+        std::move(peers.addresses), peers.listen_port,
+        [vehicle_id](std::string_view channel) {
           const auto parsed = link::parseChannel(channel);
           return parsed && parsed->vehicle_id == vehicle_id && link::sentByGround(parsed->channel);
-        });
+        },
+        receive_buffer_bytes);
   }
   maintain();
 }
@@ -96,6 +100,8 @@ bool Publisher::handle(int timeout_ms) {
   }
   pollfd ready[2] = {{lcm_->getFileno(), POLLIN, 0}, {peer_->fd(), POLLIN, 0}};
   if (poll(ready, 2, timeout_ms) <= 0) return true;
+  // A handler's answer may fail and put LCM down: it is released only after the dispatch.
+  dispatching_ = true;
   if (ready[0].revents != 0) lcm_->handleTimeout(0);
   if (ready[1].revents != 0 && on_peer_message_) {
     peer_->receive([this](const char* channel, const uint8_t* data, size_t size) {
@@ -103,10 +109,11 @@ bool Publisher::handle(int timeout_ms) {
       message.data = const_cast<uint8_t*>(data);
       message.data_size = static_cast<uint32_t>(size);
       message.recv_utime = link::wallClockUtime();
-      message.lcm = lcm_->getUnderlyingLCM();
       on_peer_message_(&message, channel);
     });
   }
+  dispatching_ = false;
+  if (going_down_) down();
   return true;
 }
 
@@ -132,7 +139,8 @@ int64_t Publisher::linkBytes(link::Channel channel, int size) const {
 }
 
 void Publisher::down() {
-  lcm_.reset();
+  going_down_ = dispatching_;
+  if (!dispatching_) lcm_.reset();
   scheduleRetry();
   if (!was_down_)
     spdlog::warn("{}: LCM cannot send: the network is down; nothing is sent until it is back",

@@ -65,7 +65,7 @@ class Publisher {
   // Owner's thread only.
   void maintain();
   // Whether LCM runs (and the peers' socket is open) and no send has failed since it started.
-  bool up() const { return lcm_ != nullptr && (!peer_ || peer_->isOpen()); }
+  bool up() const { return lcm_ != nullptr && !going_down_ && (!peer_ || peer_->isOpen()); }
   // Handles what LCM and the peers deliver within timeout_ms; false while down.
   bool handle(int timeout_ms);
   // nullptr without peers.
@@ -116,6 +116,9 @@ class Publisher {
   std::unique_ptr<link::PeerLink> peer_;
   MessageHandler on_peer_message_;
   bool peer_failing_ = false;  // since the last send a peer took
+  // handle() is dispatching (LCM is in use); a send that failed meanwhile put it down, to be
+  // released once the dispatch is over.
+  bool dispatching_ = false, going_down_ = false;
   std::atomic<int64_t>* charge_to_ = nullptr;
   Backoff backoff_{kRetryMinS, kRetryMaxS};
   Clock::time_point next_attempt_{};

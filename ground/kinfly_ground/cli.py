@@ -113,10 +113,10 @@ def parser() -> argparse.ArgumentParser:
     run.add_argument("--lcm-url", default=os.environ.get("LCM_DEFAULT_URL"),
                      help=f"LCM provider URL (default $LCM_DEFAULT_URL, else {DEFAULT_LCM_URL}, "
                           f"with --peer {PEER_LCM_URL}: it must keep messages on this machine)")
-    run.add_argument("--peer", metavar="HOST:PORT[,HOST:PORT]",
+    run.add_argument("--peer", metavar="ADDRESS:PORT[,ADDRESS:PORT]",
                      help="drones to talk to by UDP unicast besides LCM, for Wi-Fi where "
-                          "multicast is slow and lossy (docs/wire.md, \"Unicast on Wi-Fi\"); "
-                          "PORT is the drone's link.peer_port")
+                          "multicast is slow and lossy (docs/wire.md, \"Unicast on Wi-Fi\"): "
+                          "their IPv4 addresses, and PORT their link.peer_port")
     run.add_argument("--peer-port", type=int, default=DEFAULT_PEER_PORT, metavar="PORT",
                      help="UDP port the drones' unicast comes to: their link.peers "
                           f"(default {DEFAULT_PEER_PORT})")

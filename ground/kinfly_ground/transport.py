@@ -16,9 +16,10 @@ class Transport:
         self.peers = peers
 
     def publish(self, channel: str, data: bytes) -> None:
-        self._lc.publish(channel, data)
+        # The peers first: LCM raises when this machine lost its multicast route.
         if self.peers is not None:
             self.peers.send(channel, data)
+        self._lc.publish(channel, data)
 
     def handle(self, timeout_ms: int) -> None:
         """Handles what arrives within timeout_ms. OSError: a signal interrupted the wait."""

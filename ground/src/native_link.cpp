@@ -448,7 +448,7 @@ class GroundPeers {
     std::vector<link::PeerAddress> peers;
     if (const Status status = link::parsePeers(text, &peers); !status.ok())
       throw std::invalid_argument(status.message());
-    if (peers.empty()) throw std::invalid_argument("no peer given (HOST:PORT[,HOST:PORT])");
+    if (peers.empty()) throw std::invalid_argument("no peer given (ADDRESS:PORT[,ADDRESS:PORT])");
     return peers;
   }
   static uint16_t checkedPort(int port) {
@@ -651,7 +651,7 @@ void bindLink(nb::module_& m) {
       .def(nb::init<const std::string&, int, std::optional<int>>(), nb::arg("peers"),
            nb::arg("listen_port") = link::PeerLink::kDefaultPort,
            nb::arg("vehicle_id") = nb::none(),
-           "PEERS: \"HOST:PORT[,HOST:PORT]\", the drones; takes what they send (of VEHICLE_ID "
+           "PEERS: \"ADDRESS:PORT[,ADDRESS:PORT]\", the drones' IPv4 addresses; takes what they send (of VEHICLE_ID "
            "only, if given) on LISTEN_PORT (0: any free port). ValueError names a bad peer or "
            "a port in use")
       .def("fileno", &GroundPeers::fileno, "the socket, for select()")

@@ -93,10 +93,12 @@ def test_dataset_replay_matches_the_log_replay(sample_log: Path, sample_dir: Pat
      'link.lcm_url "udpm://10.1.2.3:7667": 10.1.2.3 is not a multicast group'),
     (["--link.lcm_url", "udpm://239.255.76.67:0"], "the port must be in [1, 65535]"),
     (["--link.lcm_url", "udpm://drone.local:7667"], '"drone.local" is not an IPv4 address'),
-    (["--link.peers", "ground"], 'link.peers: peer "ground" is not HOST:PORT'),
+    (["--link.peers", "ground"], 'link.peers: peer "ground" is not ADDRESS:PORT'),
     (["--link.peers", "10.0.0.2:7668,ground:0"],
      'link.peers: peer "ground:0": the port must be a number in [1, 65535]'),
     (["--link.peer_port", "0"], "link.peer_port must be in [1, 65535]"),
+    (["--link.peers", "ground.local:7668"],
+     'link.peers: peer "ground.local:7668": "ground.local" is not an IPv4 address'),
     # Unicast beside multicast that leaves the drone would send everything twice.
     (["--link.peers", "10.0.0.2:7668", "--link.lcm_url", "udpm://239.255.76.67:7667?ttl=1"],
      "sends multicast off the drone (ttl=1); with link.peers it must stay on it"),

@@ -100,6 +100,12 @@ def test_a_ground_peer_turns_on_unicast(tree: dict[str, Path]) -> None:
     assert len(changed) == 1 and changed[0].startswith('peers = "192.168.4.10:7668"  # ')
     # Nothing multicast leaves the drone: the peers carry it all.
     assert "LCM_DEFAULT_URL=memq://" in (root / "etc" / "default" / "kinfly-fw").read_text()
+    # Provisioned again without it: multicast again.
+    (boot / "kinfly.conf").write_text("vehicle_id=3\n")
+    firstboot(tree)
+    config = (root / "etc" / "kinfly" / "kinfly-fw.toml").read_text()
+    assert '\npeers = ""  # ' in config
+    assert "LCM_DEFAULT_URL=udpm://" in (root / "etc" / "default" / "kinfly-fw").read_text()
 
 
 def test_bad_values_change_nothing(tree: dict[str, Path]) -> None:
@@ -110,7 +116,7 @@ def test_bad_values_change_nothing(tree: dict[str, Path]) -> None:
     assert "8..63 characters" in run.stdout
     assert "out of range" in run.stdout
     assert "hostname 'bad;name'" in run.stdout
-    assert "ground_peer 'ground;reboot' is not HOST:PORT" in run.stdout
+    assert "ground_peer 'ground;reboot' is not ADDRESS:PORT" in run.stdout
     assert not (root / "etc" / "wpa_supplicant").exists()
     assert (root / "etc" / "kinfly" / "kinfly-fw.toml").read_text() == CONFIG.read_text()
     assert (root / "etc" / "hostname").read_text() == "kinfly\n"

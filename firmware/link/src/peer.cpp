@@ -2,7 +2,6 @@
 
 #include <arpa/inet.h>
 #include <fcntl.h>
-#include <netdb.h>
 #include <sys/socket.h>
 #include <sys/uio.h>
 #include <unistd.h>
@@ -27,7 +26,7 @@ Status parsePeer(std::string_view entry, PeerAddress* peer) {
   const std::string quoted = "\"" + std::string(entry) + "\"";
   const size_t colon = entry.rfind(':');
   if (colon == std::string_view::npos || colon == 0)
-    return Status::error("peer " + quoted + " is not HOST:PORT");
+    return Status::error("peer " + quoted + " is not ADDRESS:PORT");
   const std::string_view port = entry.substr(colon + 1);
   unsigned value = 0;
   const auto [end, error] = std::from_chars(port.data(), port.data() + port.size(), value);
@@ -35,6 +34,9 @@ Status parsePeer(std::string_view entry, PeerAddress* peer) {
       value > 65535)
     return Status::error("peer " + quoted + ": the port must be a number in [1, 65535]");
   peer->host = std::string(entry.substr(0, colon));
+  in_addr address{};
+  if (inet_pton(AF_INET, peer->host.c_str(), &address) != 1)
+    return Status::error("peer " + quoted + ": \"" + peer->host + "\" is not an IPv4 address");
   peer->port = static_cast<uint16_t>(value);
   return Status();
 }
@@ -68,21 +70,18 @@ Status PeerLink::open() {
   if (fd_ >= 0) return Status();
   std::vector<sockaddr_in> resolved;
   for (const PeerAddress& peer : peers_) {
-    addrinfo hints{};
-    hints.ai_family = AF_INET;
-    hints.ai_socktype = SOCK_DGRAM;
-    addrinfo* found = nullptr;
-    if (const int error = getaddrinfo(peer.host.c_str(), nullptr, &hints, &found); error != 0)
-      return Status::error("cannot resolve peer \"" + peer.host + "\": " + gai_strerror(error));
-    sockaddr_in address = *reinterpret_cast<const sockaddr_in*>(found->ai_addr);
-    freeaddrinfo(found);
+    sockaddr_in address{};
+    address.sin_family = AF_INET;
     address.sin_port = htons(peer.port);
+    if (inet_pton(AF_INET, peer.host.c_str(), &address.sin_addr) != 1)
+      return Status::error("peer \"" + peer.host + "\" is not an IPv4 address");
     resolved.push_back(address);
   }
   const int fd = socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0);
   if (fd < 0) return Status::error(std::string("socket: ") + std::strerror(errno));
   // Best effort, as LCM's own recv_buf_size: the kernel caps it at net.core.rmem_max.
-  setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &receive_buffer_bytes_, sizeof receive_buffer_bytes_);
+  if (receive_buffer_bytes_ > 0)
+    setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &receive_buffer_bytes_, sizeof receive_buffer_bytes_);
   sockaddr_in local{};
   local.sin_family = AF_INET;
   local.sin_addr.s_addr = htonl(INADDR_ANY);
@@ -124,7 +123,7 @@ bool PeerLink::send(const std::string& channel, const uint8_t* data, size_t size
     message.msg_namelen = sizeof to;
     message.msg_iov = parts;
     message.msg_iovlen = 3;
-    if (sendmsg(fd_, &message, 0) >= 0) {
+    if (sendmsg(fd_, &message, MSG_DONTWAIT) >= 0) {
       ++counters_.sent;
       any = true;
     } else {
@@ -137,7 +136,7 @@ bool PeerLink::send(const std::string& channel, const uint8_t* data, size_t size
 
 int PeerLink::receive(const Handler& handler) {
   int handed = 0;
-  while (fd_ >= 0) {
+  for (int datagrams = 0; fd_ >= 0 && datagrams < kMaxReceivePerCall; ++datagrams) {
     sockaddr_in from{};
     socklen_t length = sizeof from;
     const ssize_t got = recvfrom(fd_, datagram_.data(), datagram_.size(), MSG_DONTWAIT,

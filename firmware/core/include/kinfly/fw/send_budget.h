@@ -31,12 +31,14 @@ class TokenBucket {
     tokens_ -= bytes;
     return true;
   }
-  // Spends `bytes` that had to go out now (an answer the ground waits for): the bucket may go
-  // into debt, which what can wait then pays off.
+  // Spends `bytes` that had to go out now (an answer the ground waits for, the small messages):
+  // the bucket may go into debt, which what can wait then pays off; a second's worth at most,
+  // so that what must go out can never starve what waits for good.
   void charge(double bytes, double now_s) {
     refill(now_s);
-    tokens_ -= bytes;
+    tokens_ = std::max(tokens_ - bytes, -rate_Bps_ * kMaxDebtS);
   }
+  static constexpr double kMaxDebtS = 1.0;
   // [s] until `bytes` can be taken, 0 when they can be now.
   double waitS(double bytes, double now_s) {
     refill(now_s);

@@ -29,17 +29,19 @@
 namespace kinfly::link {
 
 struct PeerAddress {
-  std::string host;  // IPv4 address or a name the resolver knows
+  std::string host;  // dotted IPv4 address
   uint16_t port = 0;
 };
 
-// "HOST:PORT[,HOST:PORT...]" (spaces allowed around commas); an error names the bad entry.
-// Empty text: no peers (unicast off).
+// "ADDRESS:PORT[,ADDRESS:PORT...]" (spaces allowed around commas), IPv4 addresses only: a name
+// would need the resolver, which blocks for seconds while the Wi-Fi comes up, on the threads
+// that send (give the ground station a fixed address or a DHCP reservation). An error names the
+// bad entry. Empty text: no peers (unicast off).
 Status parsePeers(std::string_view text, std::vector<PeerAddress>* peers);
 
 struct PeerCounters {
   int64_t sent = 0;         // datagrams sent, one per message and peer
-  int64_t send_failed = 0;  // sendto() failed (no route yet, buffer full): not sent
+  int64_t send_failed = 0;  // not sent: no route yet, the send buffer full, not open
   int64_t too_large = 0;    // messages above one datagram: not sent (chunk keyframes)
   int64_t received = 0;     // datagrams accepted and handed on
   int64_t foreign = 0;      // datagrams from a host that is not a peer: dropped
@@ -60,16 +62,19 @@ class PeerLink {
   using Handler = std::function<void(const char* channel, const uint8_t* data, size_t size)>;
   using ChannelFilter = std::function<bool(std::string_view channel)>;
 
+  // At most this many datagrams per receive(): a flood cannot hold the owner's thread.
+  static constexpr int kMaxReceivePerCall = 256;
+
   // Listens on listen_port (0: any free port, for a side that only sends) for datagrams from
-  // the peers' hosts on channels `accept` takes; sends to every peer.
+  // the peers' hosts on channels `accept` takes; sends to every peer. receive_buffer_bytes: the
+  // socket's, 0 to leave the kernel's default (a side that only sends).
   PeerLink(std::vector<PeerAddress> peers, uint16_t listen_port, ChannelFilter accept,
            int receive_buffer_bytes = 4 << 20);
   ~PeerLink();
   PeerLink(const PeerLink&) = delete;
   PeerLink& operator=(const PeerLink&) = delete;
 
-  // Resolves the peers and opens the socket; an error says why (a name not resolved yet, a
-  // port in use). The owner retries while the network comes up.
+  // Opens the socket; an error says why (a port in use). The owner retries.
   Status open();
   bool isOpen() const { return fd_ >= 0; }
   // The socket to poll for reading; -1 until open.
@@ -77,9 +82,11 @@ class PeerLink {
   uint16_t listenPort() const { return bound_port_; }
   size_t peerCount() const { return peers_.size(); }
 
-  // Sends one encoded message to every peer; false if it reached none (counted).
+  // Sends one encoded message to every peer without blocking (a full send buffer drops it);
+  // false if it reached none (counted).
   bool send(const std::string& channel, const uint8_t* data, size_t size);
-  // Hands every datagram waiting on the socket to `handler`, without blocking; how many.
+  // Hands the datagrams waiting on the socket (kMaxReceivePerCall at most) to `handler`,
+  // without blocking; how many.
   int receive(const Handler& handler);
 
   const PeerCounters& counters() const { return counters_; }

@@ -588,7 +588,7 @@ TEST(Estimator, StartsAtRestFromTheAccelerometerAndTheFirstPose) {
                                    Eigen::AngleAxisd(0.09, Vector3d::UnitX());
   Gaussian gaussian(7);
   const double dt_s = static_cast<double>(kImuPeriodUs) * 1e-6;
-  auto noisy = [&](double density) {
+  auto noisy = [&](double density) -> Vector3d {  // evaluated: gaussian() is a temporary
     return density / std::sqrt(dt_s) * gaussian();
   };
   Estimator estimator(params);

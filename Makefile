@@ -133,11 +133,11 @@ unit-test:
 python-test:
 	$(PY) -m pytest $(REPO_ROOT)/tests -v -m "not aarch64"
 
-# Sanitizers slow everything down, so only the unit tests (synthetic, small) run here.
+# Sanitizers slow everything down, so only the unit tests (synthetic, small) are built and run here.
 test-asan: deps-unit
 	cmake -S $(REPO_ROOT) -B $(ASAN_DIR) -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
 	  -DKINFLY_SANITIZE=ON
-	cmake --build $(ASAN_DIR) -j $(JOBS)
+	cmake --build $(ASAN_DIR) -j $(JOBS) --target kinfly-unit-tests
 	ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1 \
 	  ctest --test-dir $(ASAN_DIR) --output-on-failure -j $(JOBS)
 

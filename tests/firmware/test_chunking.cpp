@@ -9,6 +9,7 @@
 #include <new>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <numeric>
 #include <random>
 #include <thread>
@@ -150,6 +151,9 @@ TEST(ChunkWire, DecodesWithinBoundsAndRejectsImpossibleHeaders) {
   c = good;
   c.sequence = -1;
   expectBad(c, "negative sequence");
+  c = good;
+  c.sent_utime = std::numeric_limits<int64_t>::min();
+  expectBad(c, "sent before the epoch");
 
   chunk_request_t request{};
   request.vehicle_id = kVehicle;

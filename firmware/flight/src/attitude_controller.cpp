@@ -77,7 +77,7 @@ StatusOr<LqrDesign> designAttitudeLqr(const LqrAttitudeParams& params, const Veh
       params.integral_weight_1_rad2_s2;
   design.R = (params.accel_weight_s4_rad2 * inertia_kg_m2.cwiseAbs2().cwiseInverse()).asDiagonal();
 
-  auto solved = solveDiscreteRiccati<9, 3>(design.A, design.B, design.Q, design.R);
+  auto solved = solveDiscreteRiccati(design.A, design.B, design.Q, design.R);
   if (!solved.ok()) return Status::error("attitude.lqr: " + solved.status().message());
   design.P = solved->P;
   design.K = solved->K;

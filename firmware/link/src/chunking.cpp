@@ -86,6 +86,8 @@ int64_t messageDigest(const uint8_t* data, size_t size) {
 std::string chunkProblem(const keyframe_chunk_t& c, int64_t max_message_bytes) {
   if (c.keyframe_id < 0) return "keyframe_id is negative";
   if (c.sequence < 0) return "sequence is negative";
+  // Sent times are differenced for the loss window: a time before the epoch is forged.
+  if (c.sent_utime < 0) return "sent_utime is negative";
   if (c.block_size < 1 || c.block_size > keyframe_chunk_t::MAX_BLOCK_BYTES)
     return "block_size " + std::to_string(c.block_size) + " outside [1, " +
            std::to_string(keyframe_chunk_t::MAX_BLOCK_BYTES) + "]";

@@ -3,6 +3,8 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
+#include <atomic>
 #include <cmath>
 #include <chrono>
 #include <thread>
@@ -12,6 +14,7 @@
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/fw/keyframe_selector.h"
+#include "kinfly/fw/latest_value.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/fw/range_check.h"
 #include "kinfly/fw/send_budget.h"
@@ -94,6 +97,56 @@ TEST(BoundedQueue, ImagesKeepTheirBuffersThroughTheSlots) {
   // Six pushes through two slots and the producer's own image: three buffers, reused.
   std::sort(buffers.begin(), buffers.end());
   EXPECT_LE(std::unique(buffers.begin(), buffers.end()) - buffers.begin(), 3);
+}
+
+// ---- LatestValue ------------------------------------------------------------------------------
+
+TEST(LatestValue, TheReaderGetsTheNewestPublishedValueOnce) {
+  LatestValue<int> latest(-1);
+  EXPECT_FALSE(latest.fetch());  // nothing published yet
+  latest.back() = 1;
+  latest.publish();
+  latest.back() = 2;
+  latest.publish();  // overwrites 1, which was never fetched
+  ASSERT_TRUE(latest.fetch());
+  EXPECT_EQ(latest.front(), 2);
+  EXPECT_FALSE(latest.fetch());  // no newer value: front() stays
+  EXPECT_EQ(latest.front(), 2);
+  latest.back() = 3;
+  latest.publish();
+  ASSERT_TRUE(latest.fetch());
+  EXPECT_EQ(latest.front(), 3);
+}
+
+TEST(LatestValue, AReaderBesideAWriterNeverSeesATornOrOlderValue) {
+  // Every word of a value is the same sequence number: a torn read mixes two of them.
+  using Value = std::array<int64_t, 32>;
+  constexpr int64_t kWrites = 200000;
+  LatestValue<Value> latest(Value{});
+  std::atomic<bool> done{false};
+  std::thread writer([&] {
+    for (int64_t n = 1; n <= kWrites; ++n) {
+      latest.back().fill(n);
+      latest.publish();
+    }
+    done = true;
+  });
+  int64_t last = 0, fetched = 0, torn = 0, backwards = 0;
+  // The last fetch after `done` is read is sure to find the writer's final value.
+  for (bool finished = false; !finished;) {
+    finished = done.load();
+    if (!latest.fetch()) continue;
+    const Value& v = latest.front();
+    ++fetched;
+    if (std::any_of(v.begin(), v.end(), [&](int64_t w) { return w != v[0]; })) ++torn;
+    if (v[0] <= last) ++backwards;
+    last = v[0];
+  }
+  writer.join();
+  EXPECT_EQ(torn, 0);
+  EXPECT_EQ(backwards, 0);
+  EXPECT_EQ(last, kWrites);
+  EXPECT_GT(fetched, 0);
 }
 
 // ---- KeyframeSelector -------------------------------------------------------------------------

@@ -135,6 +135,19 @@ EOF
     "$repo_root/firmware/image/kinfly.conf.example" "$dir/"
 }
 
+# Every mount point at or below $1, deepest first, lazily unmounted (a killed build's leftovers).
+unmount_below() {
+  local dir mounts
+  dir="$(realpath -m "$1")"
+  mounts="$(awk -v d="$dir" '$2 == d || index($2, d "/") == 1 { print $2 }' /proc/self/mounts |
+    sort -r)"
+  [[ -z "$mounts" ]] && return 0
+  log "unmounting what a previous build left mounted under $dir"
+  while read -r mount_point; do
+    umount -l "$mount_point" || die "cannot unmount $mount_point (left by a previous build)"
+  done <<<"$mounts"
+}
+
 main() {
   local deb="" out="" work=""
   while (($#)); do
@@ -159,7 +172,10 @@ main() {
   boot_uuid="$(echo "${boot_id^^}" | sed 's/^\(....\)\(....\)$/\1-\2/')"
   disk_id="$(od -An -N4 -tx4 /dev/urandom | tr -d ' ')"
 
-  rm -rf "$root"
+  # A build that was killed may have left mmdebstrap's /proc, /sys and /dev mounts in the tree:
+  # unmount them, then never let the removal cross into a file system that is still mounted.
+  unmount_below "$root"
+  rm -rf --one-file-system "$root"
   mkdir -p "$work"
   # file-mirror-automount recreates the .deb's host path inside the tree; a unique folder under
   # /tmp is one that can be removed from the tree afterwards without touching anything else.

@@ -38,8 +38,8 @@ enum class AttitudeLimitAction {
 
 struct FlightModeParams {
   // Arming and every command that flies to a point need the IMU and a fused pose this recent.
-  double imu_timeout_s = 0.02;         // [s] (0, 1] the estimator's gap
-  double vision_fresh_s = 0.2;         // [s] (0, vision_lost_s] the estimator's vision timeout
+  double imu_timeout_s = 0.02;         // [s] (0, 1] as the estimator's imu_gap_s
+  double vision_fresh_s = 0.2;         // [s] (0, vision_lost_s] as its vision_timeout_s
   // A lower take-off would end barely above the landed detector's height band.
   double takeoff_height_min_m = 0.5;   // [m] [0.1, 100]
   // Take-off and go-to end in hold once the position is this close to the target.

@@ -1,0 +1,248 @@
+// The flight mode manager and its failsafes (docs/flight.md, "Modes and failsafes"): which mode
+// the drone is in, which commands it takes, and what the position loop is to do. Pure, like the
+// rest of kinfly::flight: no threads, no I/O, no clock; every update brings its time, the
+// estimator's health and state, and the sensors' and the ground's last times. Every mode change
+// and every failsafe comes back as an event for the caller to log, and is counted.
+//
+// Frames: `world` gravity-aligned with z down (heights are negative z), body FRD.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <cstdint>
+#include <optional>
+
+#include "kinfly/core/status.h"
+#include "kinfly/flight/estimator.h"
+
+namespace kinfly::flight {
+
+enum class FlightMode {
+  kDisarmed,
+  kArmed,     // on the ground, rotors at idle
+  kTakeOff,   // climbing to the take-off target
+  kHold,      // holding a point
+  kGoTo,      // flying to a point
+  kMission,   // following the mission's trajectory
+  kLand,      // descending over the point where the landing began
+  kDescend,   // failsafe: vision lost, level attitude and a slow descent, no position
+  kMotorsCut,   // failsafe: attitude out of limits, rotors stopped (the simulator)
+  kHandedOver,  // failsafe: attitude out of limits, the autopilot flies
+};
+
+// What happens when the tilt or the body rate stays beyond its limit.
+enum class AttitudeLimitAction {
+  kHandOver,  // the autopilot takes over (the mavlink backend)
+  kCutMotors,  // the rotors stop (the motors backend: the simulator)
+};
+
+struct FlightModeParams {
+  // Arming and every command that flies to a point need the IMU and a fused pose this recent.
+  double imu_timeout_s = 0.02;         // [s] (0, 1] as the estimator's imu_gap_s
+  double vision_fresh_s = 0.2;         // [s] (0, vision_lost_s] as its vision_timeout_s
+  // A lower take-off would end barely above the landed detector's height band.
+  double takeoff_height_min_m = 0.5;   // [m] [0.1, 100]
+  // Take-off and go-to end in hold once the position is this close to the target.
+  double target_reached_m = 0.1;       // [m] (0, 10]
+  double land_speed_m_s = 0.5;         // [m/s] (0, 5] down
+  // Landed: below this height, slower than this and with less thrust than this share of the
+  // weight (the loop pushing against the ground), all for landed_time_s. Arming needs the same
+  // stillness and at most max_tilt_rad.
+  double landed_height_m = 0.2;        // [m] (0, 5]
+  double landed_speed_m_s = 0.2;       // [m/s] (0, 5]
+  double landed_thrust_ratio = 0.3;    // [-] (0, 1]
+  double landed_time_s = 1.0;          // [s] [0, 10]
+
+  // Failsafes (each acts once when its condition starts; docs/flight.md's table).
+  // No pose fused for this long: level attitude and a slow descent until landed.
+  double vision_lost_s = 1.0;            // [s] (0, 10]
+  double vision_lost_descent_m_s = 0.3;  // [m/s] (0, 5] down
+  // No ground status for this long: only flagged, the onboard odometry flies on.
+  double ground_lost_s = 2.0;            // [s] (0, 60]
+  // Tilt or body-rate magnitude beyond these for attitude_limit_s: the loops have lost the
+  // attitude. The time keeps one wild sample (a knock on landing) from cutting the rotors.
+  double max_tilt_rad = 1.0472;          // [rad] (0, π] 60°, PX4's FD_FAIL_R and _P
+  double max_rate_rad_s = 10.0;          // [rad/s] (0, 100] beyond the rate loop's 6 rad/s limit
+  double attitude_limit_s = 0.1;         // [s] [0, 1]
+  AttitudeLimitAction attitude_limit_action = AttitudeLimitAction::kHandOver;
+  // The box the drone stays in (world, z down: min.z() is the highest point allowed). A breach
+  // holds at the last point inside; arming outside it and targets outside it are refused.
+  bool geofence_enabled = true;
+  Eigen::Vector3d geofence_min_world_m{-50.0, -50.0, -30.0};  // [m] [-1e4, 1e4], < max
+  Eigen::Vector3d geofence_max_world_m{50.0, 50.0, 1.0};      // [m] [-1e4, 1e4]
+
+  Status validate() const;
+};
+
+enum class CommandKind { kArm, kDisarm, kTakeOff, kHold, kGoTo, kMission, kLand };
+
+struct FlightCommand {
+  CommandKind kind = CommandKind::kHold;
+  double height_m = 0.0;                                      // take-off: above the ground
+  Eigen::Vector3d target_world_m = Eigen::Vector3d::Zero();  // go-to
+};
+
+// Why a command was refused; the first check that failed.
+enum class CommandRefusal {
+  kNone,                 // accepted
+  kEstimatorUnhealthy,   // not initialised, or diverged
+  kImuNotAlive,          // no sample within imu_timeout_s
+  kVisionNotFused,       // no pose fused within vision_fresh_s
+  kNotAtRest,            // arming: moving or tilted
+  kOutsideGeofence,      // arming outside the box, or a target outside it
+  kInvalidTarget,        // not finite, or a take-off lower than takeoff_height_min_m
+  kDisarmed,             // flying commands need arming first
+  kAlreadyArmed,
+  kOnGround,             // hold, go-to, mission and land need a take-off first
+  kAirborne,             // take-off while flying, disarm before landed
+  kNoControl,            // the rotors are cut or the autopilot has control
+};
+
+struct CommandResult {
+  CommandKind kind = CommandKind::kHold;
+  CommandRefusal refusal = CommandRefusal::kNone;
+  bool accepted() const { return refusal == CommandRefusal::kNone; }
+};
+
+// What the position loop is to do.
+enum class SetpointKind {
+  kIdle,        // nothing: rotors off or at idle (cut_motors / hand_over say more)
+  kTakeOff,     // climb to point
+  kHold,        // hold point
+  kGoTo,        // fly to point
+  kMission,     // follow the mission's trajectory
+  kLand,        // hold point's x and y, descend at descent_speed_m_s
+  kDescend,     // level attitude at yaw_rad, descend at descent_speed_m_s; no position
+};
+
+struct ModeSetpoint {
+  SetpointKind kind = SetpointKind::kIdle;
+  Eigen::Vector3d point_world_m = Eigen::Vector3d::Zero();  // take-off, hold, go-to, land
+  double yaw_rad = 0.0;            // the heading to keep: the body's when the mode began
+  double descent_speed_m_s = 0.0;  // [m/s] land and descend, down
+};
+
+enum class EventReason {
+  kCommand,           // an accepted command changed the mode
+  kTakeOffReached,
+  kGoToReached,
+  kMissionFinished,
+  kLanded,            // landed in land or descend: disarmed
+  // Failsafes.
+  kVisionLost,
+  kEstimatorDiverged,
+  kGroundLost,        // no mode change
+  kAttitudeLimit,     // tilt or rate
+  kGeofence,
+  kGroundRegained,    // not a failsafe: the end of kGroundLost
+};
+
+// A mode change, or a failsafe (from == to when it changed no mode).
+struct FlightEvent {
+  int64_t utime = 0;  // [µs] of the update
+  EventReason reason = EventReason::kCommand;
+  FlightMode from = FlightMode::kDisarmed;
+  FlightMode to = FlightMode::kDisarmed;
+};
+
+// Counted since construction, for the drone's status.
+struct FlightCounters {
+  int64_t mode_changes = 0;
+  int64_t commands_accepted = 0;
+  int64_t commands_refused = 0;
+  int64_t landed_disarms = 0;
+  int64_t vision_lost = 0;
+  int64_t estimator_diverged = 0;
+  int64_t ground_lost = 0;
+  int64_t attitude_limit = 0;
+  int64_t geofence = 0;
+};
+
+// One update's inputs, all from the control task's tick.
+struct FlightInputs {
+  int64_t utime = 0;                // [µs] now
+  EstimatorHealth estimator;        // Estimator::health()
+  EstimatorState state;             // Estimator::state(): position, velocity, attitude, rates
+  int64_t last_imu_utime = -1;      // [µs] the last IMU sample's; -1 before any
+  int64_t last_vision_utime = -1;   // [µs] capture of the last fused pose; -1 before any
+  int64_t last_ground_utime = -1;   // [µs] the last ground status's arrival; -1 before any
+  // The mission's trajectory has ended; cleared by the caller when a mission starts.
+  bool mission_finished = false;
+  // Landed detection: above the ground under the body (a rangefinder, the depth image, or the
+  // start's height), and the collective thrust last commanded over the weight.
+  double height_above_ground_m = 0.0;  // [m]
+  double thrust_ratio = 0.0;           // [-]
+};
+
+// At most one event per failsafe (4), the ground link, the command and the mode's own end.
+constexpr int kMaxEventsPerUpdate = 8;
+
+struct FlightOutput {
+  FlightMode mode = FlightMode::kDisarmed;
+  ModeSetpoint setpoint;
+  bool cut_motors = false;  // stop the rotors now
+  bool hand_over = false;   // the autopilot flies; send it no setpoints
+  bool ground_alive = false;  // a ground status within ground_lost_s
+  bool landed = false;        // armed and the landed detector holds
+  std::optional<CommandResult> command;  // of the command given to this update
+  std::array<FlightEvent, kMaxEventsPerUpdate> events{};
+  int event_count = 0;
+};
+
+class FlightModes {
+ public:
+  // params must validate.
+  explicit FlightModes(const FlightModeParams& params);
+
+  // Allocation-free. In this order: the ground link; landed detection and the failsafes; the
+  // mode's own end (target reached, mission finished, landed); last the command, checked against
+  // the mode all these left.
+  FlightOutput update(const FlightInputs& inputs,
+                      const std::optional<FlightCommand>& command = std::nullopt);
+
+  FlightMode mode() const { return mode_; }
+  const FlightCounters& counters() const { return counters_; }
+
+ private:
+  // Logs the event (a failsafe that changes no mode passes to == mode_) and counts the change.
+  void setMode(FlightMode to, EventReason reason, const FlightInputs& in, FlightOutput& out);
+  void monitorGround(const FlightInputs& in, FlightOutput& out);
+  void detectLanded(const FlightInputs& in);
+  void runFailsafes(const FlightInputs& in, FlightOutput& out);
+  CommandResult handle(const FlightCommand& command, const FlightInputs& in, FlightOutput& out);
+  void progress(const FlightInputs& in, FlightOutput& out);
+  void resetMonitors();
+
+  // The first failed check for flying to a point, kNone when all pass.
+  CommandRefusal positionChecks(const FlightInputs& in) const;
+  CommandRefusal armingChecks(const FlightInputs& in) const;
+  bool insideGeofence(const Eigen::Vector3d& p_world_m) const;
+  double ageS(const FlightInputs& in, int64_t utime) const;
+
+  FlightModeParams params_;
+  FlightMode mode_ = FlightMode::kDisarmed;
+  ModeSetpoint setpoint_;
+  FlightCounters counters_;
+  // The ground link: lost only once it was heard (a drone may fly with no ground station).
+  bool ground_heard_ = false;
+  bool ground_lost_ = false;
+  // Since when the landed and attitude-limit conditions hold; -1 while they do not.
+  int64_t landed_since_utime_ = -1;
+  int64_t attitude_limit_since_utime_ = -1;
+  bool landed_ = false;
+  // Failsafe conditions as of the last update: each failsafe acts when its condition starts.
+  bool vision_lost_ = false;
+  bool diverged_ = false;
+  bool attitude_limit_ = false;
+  bool outside_geofence_ = false;
+  Eigen::Vector3d last_inside_world_m_ = Eigen::Vector3d::Zero();
+};
+
+const char* toString(FlightMode mode);
+const char* toString(CommandKind kind);
+const char* toString(CommandRefusal refusal);
+const char* toString(SetpointKind kind);
+const char* toString(EventReason reason);
+bool isFailsafe(EventReason reason);
+
+}  // namespace kinfly::flight

@@ -409,6 +409,27 @@ TEST(FlightModes, BodyRateBeyondTheLimitHandsOverToTheAutopilot) {
   EXPECT_EQ(flight.command(CommandKind::kDisarm).refusal, CommandRefusal::kAirborne);
 }
 
+TEST(FlightModes, ImuSilentInFlightActsAsTheAttitudeLimitDoes) {
+  FlightModeParams params;
+  params.attitude_limit_action = AttitudeLimitAction::kCutMotors;
+  Flight flight(params);
+  flight.takeOffAndHold();
+  flight.imu_fresh = false;
+  // A gap shorter than imu_lost_s passes: one late sample is no failure.
+  FlightOutput out = flight.run(params.imu_lost_s - 2 * kTickS);
+  EXPECT_EQ(out.mode, FlightMode::kHold);
+  out = flight.run(3 * kTickS);
+  EXPECT_EQ(out.mode, FlightMode::kMotorsCut);
+  EXPECT_TRUE(out.cut_motors);
+  EXPECT_EQ(flight.count(EventReason::kImuLost), 1);
+  EXPECT_TRUE(isFailsafe(EventReason::kImuLost));
+  EXPECT_EQ(flight.modes().counters().imu_lost, 1);
+  EXPECT_EQ(flight.modes().counters().attitude_limit, 0);
+  // It acts once, not on every silent tick.
+  flight.run(0.1);
+  EXPECT_EQ(flight.modes().counters().imu_lost, 1);
+}
+
 TEST(FlightModes, GeofenceBreachHoldsAtTheLastPointInside) {
   const FlightModeParams params;
   Flight flight(params);

@@ -79,7 +79,8 @@ Status FlightModeParams::validate() const {
       outOfRange("modes.ground_lost_s", ground_lost_s, 0, 60, Bound::kOpen),
       outOfRange("modes.max_tilt_rad", max_tilt_rad, 0, M_PI, Bound::kOpen),
       outOfRange("modes.max_rate_rad_s", max_rate_rad_s, 0, 100, Bound::kOpen),
-      outOfRange("modes.attitude_limit_s", attitude_limit_s, 0, 1));
+      outOfRange("modes.attitude_limit_s", attitude_limit_s, 0, 1),
+      outOfRange("modes.imu_lost_s", imu_lost_s, 0, 1, Bound::kOpen));
   for (int i = 0; i < 3 && status.ok(); ++i) {
     const std::string min_key = std::string("modes.geofence_min_world_m.") + kAxis[i];
     const std::string max_key = std::string("modes.geofence_max_world_m.") + kAxis[i];
@@ -149,6 +150,7 @@ void FlightModes::resetMonitors() {
   vision_lost_ = false;
   diverged_ = false;
   attitude_limit_ = false;
+  imu_lost_ = false;
   outside_geofence_ = false;
 }
 
@@ -182,7 +184,19 @@ void FlightModes::detectLanded(const FlightInputs& in) {
 }
 
 void FlightModes::runFailsafes(const FlightInputs& in, FlightOutput& out) {
-  // The attitude first: nothing else matters once the loops have lost it.
+  // The attitude and the IMU first: nothing else matters once the loops have lost them.
+  const FlightMode lost_control = params_.attitude_limit_action == AttitudeLimitAction::kCutMotors
+                                      ? FlightMode::kMotorsCut
+                                      : FlightMode::kHandedOver;
+  const bool imu_lost = !(ageS(in, in.last_imu_utime) <= params_.imu_lost_s);
+  const bool imu_lost_starts = imu_lost && !imu_lost_;
+  imu_lost_ = imu_lost;
+  if (imu_lost_starts) {
+    ++counters_.imu_lost;
+    setpoint_ = ModeSetpoint();
+    setMode(lost_control, EventReason::kImuLost, in, out);
+    return;
+  }
   const bool beyond = !(tiltRad(in.state.q_world_body) <= params_.max_tilt_rad) ||
                       !(in.state.omega_body_rad_s.norm() <= params_.max_rate_rad_s);
   if (!beyond) attitude_limit_since_utime_ = -1;
@@ -194,10 +208,7 @@ void FlightModes::runFailsafes(const FlightInputs& in, FlightOutput& out) {
   if (attitude_starts) {
     ++counters_.attitude_limit;
     setpoint_ = ModeSetpoint();
-    setMode(params_.attitude_limit_action == AttitudeLimitAction::kCutMotors
-                ? FlightMode::kMotorsCut
-                : FlightMode::kHandedOver,
-            EventReason::kAttitudeLimit, in, out);
+    setMode(lost_control, EventReason::kAttitudeLimit, in, out);
     return;
   }
 
@@ -449,6 +460,7 @@ const char* toString(EventReason reason) {
     case EventReason::kEstimatorDiverged: return "failsafe: estimator diverged";
     case EventReason::kGroundLost: return "failsafe: ground station lost";
     case EventReason::kAttitudeLimit: return "failsafe: tilt or rate beyond limits";
+    case EventReason::kImuLost: return "failsafe: IMU silent";
     case EventReason::kGeofence: return "failsafe: geofence";
     case EventReason::kGroundRegained: return "ground station back";
   }
@@ -458,7 +470,7 @@ const char* toString(EventReason reason) {
 bool isFailsafe(EventReason reason) {
   return reason == EventReason::kVisionLost || reason == EventReason::kEstimatorDiverged ||
          reason == EventReason::kGroundLost || reason == EventReason::kAttitudeLimit ||
-         reason == EventReason::kGeofence;
+         reason == EventReason::kImuLost || reason == EventReason::kGeofence;
 }
 
 }  // namespace kinfly::flight

@@ -26,11 +26,11 @@ enum class FlightMode {
   kMission,   // following the mission's trajectory
   kLand,      // descending over the point where the landing began
   kDescend,   // failsafe: vision lost, level attitude and a slow descent, no position
-  kMotorsCut,   // failsafe: attitude out of limits, rotors stopped (the simulator)
-  kHandedOver,  // failsafe: attitude out of limits, the autopilot flies
+  kMotorsCut,   // failsafe: attitude out of limits or IMU silent, rotors stopped (the simulator)
+  kHandedOver,  // failsafe: attitude out of limits or IMU silent, the autopilot flies
 };
 
-// What happens when the tilt or the body rate stays beyond its limit.
+// What happens when the tilt or the body rate stays beyond its limit, or the IMU falls silent.
 enum class AttitudeLimitAction {
   kHandOver,  // the autopilot takes over (the mavlink backend)
   kCutMotors,  // the rotors stop (the motors backend: the simulator)
@@ -65,6 +65,9 @@ struct FlightModeParams {
   double max_rate_rad_s = 10.0;          // [rad/s] (0, 100] beyond the rate loop's 6 rad/s limit
   double attitude_limit_s = 0.1;         // [s] [0, 1]
   AttitudeLimitAction attitude_limit_action = AttitudeLimitAction::kHandOver;
+  // No IMU sample for this long in flight: the rate loop flies blind, and the estimate drifts
+  // with no prediction. Acts as attitude_limit_action does. Ten missed ticks at 1 kHz.
+  double imu_lost_s = 0.01;              // [s] (0, 1]
   // The box the drone stays in (world, z down: min.z() is the highest point allowed). A breach
   // holds at the last point inside; arming outside it and targets outside it are refused.
   bool geofence_enabled = true;
@@ -133,6 +136,7 @@ enum class EventReason {
   kEstimatorDiverged,
   kGroundLost,        // no mode change
   kAttitudeLimit,     // tilt or rate
+  kImuLost,
   kGeofence,
   kGroundRegained,    // not a failsafe: the end of kGroundLost
 };
@@ -155,6 +159,7 @@ struct FlightCounters {
   int64_t estimator_diverged = 0;
   int64_t ground_lost = 0;
   int64_t attitude_limit = 0;
+  int64_t imu_lost = 0;
   int64_t geofence = 0;
 };
 
@@ -174,7 +179,7 @@ struct FlightInputs {
   double thrust_ratio = 0.0;           // [-]
 };
 
-// At most one event per failsafe (4), the ground link, the command and the mode's own end.
+// At most one event per failsafe (5), the ground link, the command and the mode's own end.
 constexpr int kMaxEventsPerUpdate = 8;
 
 struct FlightOutput {
@@ -234,6 +239,7 @@ class FlightModes {
   bool vision_lost_ = false;
   bool diverged_ = false;
   bool attitude_limit_ = false;
+  bool imu_lost_ = false;
   bool outside_geofence_ = false;
   Eigen::Vector3d last_inside_world_m_ = Eigen::Vector3d::Zero();
 };

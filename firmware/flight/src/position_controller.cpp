@@ -48,7 +48,7 @@ PositionOutput PositionController::update(const PositionSetpoint& setpoint,
                                           const EstimatorState& state, double dt_s) {
   const Eigen::Vector3d error_p_m = state.p_world_body_m - setpoint.p_world_m;
   const Eigen::Vector3d error_v_m_s = state.v_world_body_m_s - setpoint.v_world_m_s;
-  // Lee et al. (2010), eq. (11)-(12), divided by the mass: the acceleration the thrust must give
+  // Lee et al. (2010) divided by the mass: the acceleration the thrust must give
   // on top of gravity's, a = a_d - K_p e_p - K_v e_v - I; the thrust is then m (a - g).
   const Eigen::Vector3d accel_cmd_m_s2 = setpoint.a_world_m_s2 -
                                          params_.p_gain_1_s2.cwiseProduct(error_p_m) -

@@ -208,6 +208,7 @@ StatusOr<Trajectory> Trajectory::land(const Eigen::Vector3d& p_from_world_m, dou
                                       const TrajectoryParams& params, double yaw_rad) {
   if (Status valid = params.validate(); !valid.ok()) return valid;
   if (!finite(p_from_world_m)) return Status::error("trajectory: land's start is not finite");
+  if (!std::isfinite(yaw_rad)) return Status::error("trajectory: yaw_rad is not finite");
   if (!std::isfinite(ground_z_m) || !(ground_z_m > p_from_world_m.z())) {
     return Status::error("trajectory: land's ground_z_m must be below the start (z down: above " +
                          std::to_string(p_from_world_m.z()) + ", got " +

@@ -281,6 +281,22 @@ TEST(FlightPosition, SteadyWindLeavesNoSteadyError) {
   EXPECT_GT(proportional.tail_mean_m.norm(), 3.0 * kWindSteadyErrorM);
 }
 
+TEST(FlightPosition, LandsOnTheGround) {
+  const Vehicle vehicle{VehicleParams{}};
+  auto land = Trajectory::land(test::kHoverWorldM, 0.0, TrajectoryParams{}, 0.0);
+  ASSERT_TRUE(land.ok());
+  test::PositionFlight flight;
+  flight.trajectory = *land;
+  flight.duration_s = land->durationS() + 1.0;
+  flight.seed = kSeed;
+  const test::PositionFigures figures = test::flyPosition(vehicle, flight);
+  print("land from 1 m", figures);
+  // The descent is a setpoint ramp like the figure eight's, and the end a hold (the plant has
+  // no ground: "on the ground" is at the ground's height).
+  EXPECT_LE(figures.rms_m, kFigureEightRmsM);
+  EXPECT_LT(figures.tail_mean_m.norm(), kWindSteadyErrorM);
+}
+
 TEST(FlightPosition, ControlTickAndSamplingAllocateNothing) {
   const Vehicle vehicle{VehicleParams{}};
   auto flight = test::figureEightFlight(kSeed);

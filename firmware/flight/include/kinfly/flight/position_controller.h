@@ -70,7 +70,6 @@ class PositionController {
                         double dt_s);
   void reset();
 
-  const PositionControllerParams& params() const { return params_; }
   // [m/s^2] the integral's part of the commanded acceleration (subtracted from it).
   const Eigen::Vector3d& integralMS2() const { return integral_m_s2_; }
 

@@ -12,8 +12,8 @@
 #include <Eigen/Geometry>
 #include <cmath>
 #include <cstdint>
-#include <random>
 
+#include "gaussian.h"
 #include "kinfly/flight/vehicle.h"
 
 namespace kinfly::flight::test {
@@ -35,7 +35,7 @@ class FlightPlant {
       : vehicle_(vehicle),
         gyro_noise_density_(gyro_noise_density_rad_s_rt_hz),
         accel_noise_density_(accel_noise_density_m_s2_rt_hz),
-        rng_(seed) {}
+        gaussian_(seed) {}
 
   // At rest in the air at p_world_m, the rotors already at hover speed.
   void startHovering(const Eigen::Vector3d& p_world_m = Eigen::Vector3d::Zero()) {
@@ -76,7 +76,7 @@ class FlightPlant {
   Eigen::Vector3d gyroBodyRadS() {
     if (gyro_noise_density_ == 0.0) return state_.omega_body_rad_s;
     const double sigma = gyro_noise_density_ * std::sqrt(sample_rate_hz_);
-    return state_.omega_body_rad_s + sigma * gaussian();
+    return state_.omega_body_rad_s + sigma * gaussian_();
   }
   // The accelerometer's reading of the present state: the specific force (all but gravity) in
   // the body, white noise at the rate of the last step.
@@ -86,7 +86,8 @@ class FlightPlant {
     const Eigen::Vector3d specific_force_body_m_s2 =
         state_.q_world_body.conjugate() * (a_world_m_s2 - Eigen::Vector3d(0.0, 0.0, kGravityMS2));
     if (accel_noise_density_ == 0.0) return specific_force_body_m_s2;
-    return specific_force_body_m_s2 + accel_noise_density_ * std::sqrt(sample_rate_hz_) * gaussian();
+    const double sigma = accel_noise_density_ * std::sqrt(sample_rate_hz_);
+    return specific_force_body_m_s2 + sigma * gaussian_();
   }
 
  private:
@@ -98,13 +99,6 @@ class FlightPlant {
     Eigen::Vector3d omega = Eigen::Vector3d::Zero();
     Vector4d rotor = Vector4d::Zero();
   };
-
-  // Drawn x, y, z in that order (a constructor's arguments have no order of evaluation).
-  Eigen::Vector3d gaussian() {
-    Eigen::Vector3d v;
-    for (int i = 0; i < 3; ++i) v[i] = normal_(rng_);
-    return v;
-  }
 
   Derivative derivative(const PlantState& s, const Vector4d& rotor_speed_cmd_rad_s) const {
     const VehicleParams& params = vehicle_.params();
@@ -153,8 +147,7 @@ class FlightPlant {
   Eigen::Vector3d wind_world_m_s_ = Eigen::Vector3d::Zero();
   double drag_n_s_m_ = 0.0;
   double sample_rate_hz_ = 1000.0;
-  std::mt19937 rng_;
-  std::normal_distribution<double> normal_{0.0, 1.0};
+  Gaussian gaussian_;
 };
 
 }  // namespace kinfly::flight::test

@@ -7,8 +7,8 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <cstdint>
-#include <random>
 
+#include "gaussian.h"
 #include "kinfly/core/se3.h"
 #include "kinfly/flight/estimator.h"
 
@@ -22,22 +22,6 @@ inline Eigen::Quaterniond rotationFromVector(const Eigen::Vector3d& v) {
   if (angle == 0.0) return Eigen::Quaterniond::Identity();
   return Eigen::Quaterniond(Eigen::AngleAxisd(angle, v / angle));
 }
-
-// Standard normal vectors from a fixed seed, drawn x, y, z in that order (a constructor's
-// arguments have no order of evaluation).
-class Gaussian {
- public:
-  explicit Gaussian(uint32_t seed) : rng_(seed) {}
-  Eigen::Vector3d operator()() {
-    Eigen::Vector3d v;
-    for (int i = 0; i < 3; ++i) v[i] = normal_(rng_);
-    return v;
-  }
-
- private:
-  std::mt19937 rng_;
-  std::normal_distribution<double> normal_{0.0, 1.0};
-};
 
 // A pose and when it reaches the estimator.
 struct Delivery {

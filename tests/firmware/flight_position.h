@@ -28,14 +28,14 @@ const Eigen::Vector3d kHoverWorldM(0.0, 0.0, -1.0);
 // 0.3 N on the 0.5 kg Hummingbird, which must tilt by 3.5 degrees to hold its place.
 const Eigen::Vector3d kWindWorldMS(2.0, 0.0, 0.0);
 constexpr double kWindDragNSM = 0.15;
-// The figure eight: x = a sin(theta), y = (b / 2) sin(2 theta), 2 m by 1 m, flown once as a
-// minimum-snap trajectory through its points every 45 degrees, at 1 m/s peak speed.
+// The figure eight: x = (a / 2) sin(theta), y = (b / 2) sin(2 theta), a by b = 2 m by 1 m,
+// flown once as a minimum-snap trajectory through its points every 45 degrees, at 1 m/s peak
+// speed.
 constexpr double kEightLengthM = 2.0;
 constexpr double kEightWidthM = 1.0;
 constexpr double kEightSpeedMS = 1.0;
 constexpr int kEightPoints = 8;
-// The figures leave out the first moments, while the filter's start and the integrators settle,
-// and take the steady error as the mean over the last second.
+// The steady error is the mean error over a flight's last second.
 constexpr double kTailS = 1.0;
 
 struct PositionFlight {
@@ -79,6 +79,7 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
   std::deque<Delivery> in_flight;
 
   PositionController position(flight.position, vehicle);
+  // The default parameters always build (test_flight_loop), so the value is there.
   auto attitude = AttitudeController::create(AttitudeController::Params{}, vehicle);
   const Mixer mixer(vehicle);
   MixerSaturation saturation;
@@ -99,8 +100,9 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
   for (int k = 0; k < ticks; ++k) {
     const double t_s = k * kControlDtS;
     const EstimatorState state = estimator.state();
-    const PositionSetpoint setpoint = flight.trajectory.sample(t_s);
-    if (k % decimation == 0) command = position.update(setpoint, state, decimation * kControlDtS);
+    if (k % decimation == 0) {
+      command = position.update(flight.trajectory.sample(t_s), state, decimation * kControlDtS);
+    }
     const Eigen::Vector3d moment_body_nm = attitude->update(
         state.q_world_body, command.q_world_body_sp, state.omega_body_rad_s, kControlDtS,
         saturation);

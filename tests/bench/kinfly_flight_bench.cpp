@@ -2,12 +2,15 @@
 // flight_plant.h: RotorPy's Hummingbird, RK4 at 1 kHz, 5 ms motor lag, noisy gyros), at the
 // default gains, beside the targets of issue 15: a 1 rad/s roll-rate step through the rate PID,
 // and a 10 degree roll step through each attitude law; and the cost of one control tick
-// (attitude law, rate loop where the law has one, mixer) on this machine's core. Prints JSON;
-// exit 1 only when the controllers cannot be built.
+// (attitude law, rate loop where the law has one, mixer) on this machine's core; and the whole
+// stack with the estimator on noisy, late poses (tests/firmware/flight_position.h): position
+// RMS in hover and round a figure eight, and the steady error a 2 m/s wind leaves. Prints JSON;
+// exit 1 only when the controllers or the trajectory cannot be built.
 #include <cstdio>
 #include <ctime>
 
 #include "flight_loop.h"
+#include "flight_position.h"
 
 namespace {
 
@@ -23,6 +26,9 @@ constexpr double kRateRiseTargetS = 0.050;
 constexpr double kRateOvershootTarget = 0.10;
 constexpr double kAttitudeRiseTargetS = 0.10;
 constexpr double kAttitudeSettleTargetS = 0.25;
+constexpr double kHoverRmsTargetM = 0.02;
+constexpr double kFigureEightRmsTargetM = 0.03;
+constexpr double kWindSteadyErrorTargetM = 0.01;
 
 constexpr int kCostTicks = 200000;
 
@@ -58,6 +64,15 @@ void printAttitude(const char* name, const test::StepFigures& f, double cost_us,
       last ? "" : ",");
 }
 
+void printPosition(const char* name, const test::PositionFigures& f, double target_m,
+                   double figure_m, bool last) {
+  std::printf(
+      "    \"%s\": {\"rms_m\": %.4f, \"max_m\": %.4f, \"last_second_mean_error_m\": %.4f, "
+      "\"estimate_rms_m\": %.4f, \"meets_target\": %s}%s\n",
+      name, f.rms_m, f.max_m, f.tail_mean_m.norm(), f.estimate_rms_m,
+      figure_m <= target_m ? "true" : "false", last ? "" : ",");
+}
+
 }  // namespace
 
 int main() {
@@ -84,6 +99,14 @@ int main() {
         test::flyAttitudeStep(vehicle, *controller, test::kGyroNoiseDensity, kSeed));
     cost_us[static_cast<int>(law)] = tickCostUs(vehicle, *controller);
   }
+  auto eight = test::figureEightFlight(kSeed);
+  if (!eight.ok()) {
+    std::fprintf(stderr, "kinfly-flight-bench: %s\n", eight.status().message().c_str());
+    return 1;
+  }
+  const test::PositionFigures hover = test::flyPosition(vehicle, test::hoverFlight(kSeed));
+  const test::PositionFigures figure_eight = test::flyPosition(vehicle, *eight);
+  const test::PositionFigures wind = test::flyPosition(vehicle, test::windFlight(kSeed));
   std::printf("{\n  \"plant\": {\"vehicle\": \"rotorpy hummingbird\", \"rate_hz\": %.0f, "
               "\"motor_time_constant_s\": %.4f, \"gyro_noise_density_rad_s_rt_hz\": %g},\n",
               1.0 / test::kControlDtS, vehicle_params.motor_time_constant_s,
@@ -105,6 +128,21 @@ int main() {
     const int i = static_cast<int>(law);
     printAttitude(toString(law), attitude[i], cost_us[i], law == AttitudeLaw::kLqr);
   }
+  const kinfly::flight::PositionControllerParams position_params;
+  std::printf("  },\n  \"position\": {\n    \"rate_hz\": %.0f, \"imu_hz\": %.0f, "
+              "\"poses_hz\": %.1f, \"pose_delay_s\": %.3f, \"pose_std_m\": %.3f, "
+              "\"figure_eight_m\": [%.1f, %.1f], \"figure_eight_peak_speed_m_s\": %.1f, "
+              "\"wind_m_s\": %.1f, \"wind_drag_n_s_m\": %.2f,\n",
+              position_params.rate_hz, 1.0 / test::kControlDtS, 1e6 / test::kVisionPeriodUs,
+              test::kVisionDelayUs * 1e-6, kinfly::flight::EstimatorParams{}.vision_pos_std_m,
+              test::kEightLengthM, test::kEightWidthM, test::kEightSpeedMS,
+              test::kWindWorldMS.norm(), test::kWindDragNSM);
+  std::printf("    \"targets\": {\"hover_rms_m\": %.2f, \"figure_eight_rms_m\": %.2f, "
+              "\"wind_steady_error_m\": %.2f},\n",
+              kHoverRmsTargetM, kFigureEightRmsTargetM, kWindSteadyErrorTargetM);
+  printPosition("hover", hover, kHoverRmsTargetM, hover.rms_m, false);
+  printPosition("figure_eight", figure_eight, kFigureEightRmsTargetM, figure_eight.rms_m, false);
+  printPosition("wind", wind, kWindSteadyErrorTargetM, wind.tail_mean_m.norm(), true);
   std::printf("  }\n}\n");
   return 0;
 }

@@ -3,16 +3,17 @@
 // (z down, gravity +z), the rotors' thrust and drag quadratic in their speed, each rotor
 // following its command with a first-order lag, integrated by RK4 with the command held over the
 // step. The wrench comes from the rotor positions and spins by cross products, not from the
-// library's allocation matrix, so a wrong matrix shows. Gyro readings optionally carry white
-// noise of a given density from a seeded generator.
+// library's allocation matrix, so a wrong matrix shows. Gyro and accelerometer readings
+// optionally carry white noise of a given density from a seeded generator. A steady wind pushes
+// the body by linear drag on the air speed.
 #pragma once
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <cmath>
 #include <cstdint>
-#include <random>
 
+#include "gaussian.h"
 #include "kinfly/flight/vehicle.h"
 
 namespace kinfly::flight::test {
@@ -27,15 +28,26 @@ struct PlantState {
 
 class FlightPlant {
  public:
-  // gyro_noise_density_rad_s_rt_hz: 0 for exact gyros; a MEMS gyro (ICM-42688) has ~5e-5.
+  // Noise densities: 0 for exact sensors; a MEMS IMU (ICM-42688) has ~5e-5 rad/s/sqrt(Hz) and
+  // ~7e-4 m/s^2/sqrt(Hz).
   FlightPlant(const Vehicle& vehicle, double gyro_noise_density_rad_s_rt_hz = 0.0,
-              uint32_t seed = 1)
-      : vehicle_(vehicle), gyro_noise_density_(gyro_noise_density_rad_s_rt_hz), rng_(seed) {}
+              uint32_t seed = 1, double accel_noise_density_m_s2_rt_hz = 0.0)
+      : vehicle_(vehicle),
+        gyro_noise_density_(gyro_noise_density_rad_s_rt_hz),
+        accel_noise_density_(accel_noise_density_m_s2_rt_hz),
+        gaussian_(seed) {}
 
-  // At rest in the air, the rotors already at hover speed.
-  void startHovering() {
+  // At rest in the air at p_world_m, the rotors already at hover speed.
+  void startHovering(const Eigen::Vector3d& p_world_m = Eigen::Vector3d::Zero()) {
     state_ = PlantState{};
+    state_.p_world_m = p_world_m;
     state_.rotor_speed_rad_s.setConstant(vehicle_.hoverRotorSpeedRadS());
+  }
+  // A steady wind: the air pushes the body with drag_n_s_m times the air's velocity relative to
+  // it, a constant force while the body holds its place.
+  void setWind(const Eigen::Vector3d& wind_world_m_s, double drag_n_s_m) {
+    wind_world_m_s_ = wind_world_m_s;
+    drag_n_s_m_ = drag_n_s_m;
   }
   void setAttitude(const Eigen::Quaterniond& q_world_body) { state_.q_world_body = q_world_body; }
 
@@ -64,8 +76,18 @@ class FlightPlant {
   Eigen::Vector3d gyroBodyRadS() {
     if (gyro_noise_density_ == 0.0) return state_.omega_body_rad_s;
     const double sigma = gyro_noise_density_ * std::sqrt(sample_rate_hz_);
-    return state_.omega_body_rad_s + sigma * Eigen::Vector3d(normal_(rng_), normal_(rng_),
-                                                             normal_(rng_));
+    return state_.omega_body_rad_s + sigma * gaussian_();
+  }
+  // The accelerometer's reading of the present state: the specific force (all but gravity) in
+  // the body, white noise at the rate of the last step.
+  Eigen::Vector3d accelBodyMS2() {
+    // The rotor command moves only the rotors' derivative, not the body's acceleration.
+    const Eigen::Vector3d a_world_m_s2 = derivative(state_, state_.rotor_speed_rad_s).v;
+    const Eigen::Vector3d specific_force_body_m_s2 =
+        state_.q_world_body.conjugate() * (a_world_m_s2 - Eigen::Vector3d(0.0, 0.0, kGravityMS2));
+    if (accel_noise_density_ == 0.0) return specific_force_body_m_s2;
+    const double sigma = accel_noise_density_ * std::sqrt(sample_rate_hz_);
+    return specific_force_body_m_s2 + sigma * gaussian_();
   }
 
  private:
@@ -92,7 +114,8 @@ class FlightPlant {
     const Eigen::Vector3d inertia = vehicle_.inertiaDiagKgM2();
     Derivative d;
     d.p = s.v_world_m_s;
-    d.v = Eigen::Vector3d(0.0, 0.0, kGravityMS2) +
+    const Eigen::Vector3d drag_world_n = drag_n_s_m_ * (wind_world_m_s_ - s.v_world_m_s);
+    d.v = Eigen::Vector3d(0.0, 0.0, kGravityMS2) + drag_world_n / params.mass_kg +
           s.q_world_body.normalized() * Eigen::Vector3d(0.0, 0.0, -thrust_n / params.mass_kg);
     const Eigen::Quaterniond omega_quat(0.0, s.omega_body_rad_s.x(), s.omega_body_rad_s.y(),
                                         s.omega_body_rad_s.z());
@@ -120,9 +143,11 @@ class FlightPlant {
   const Vehicle& vehicle_;
   PlantState state_;
   double gyro_noise_density_;
+  double accel_noise_density_;
+  Eigen::Vector3d wind_world_m_s_ = Eigen::Vector3d::Zero();
+  double drag_n_s_m_ = 0.0;
   double sample_rate_hz_ = 1000.0;
-  std::mt19937 rng_;
-  std::normal_distribution<double> normal_{0.0, 1.0};
+  Gaussian gaussian_;
 };
 
 }  // namespace kinfly::flight::test

@@ -7,11 +7,11 @@
 
 #include <cmath>
 #include <cstdio>
-#include <random>
 #include <vector>
 
 #include "count_allocations.h"  // g_allocations: for the steady-state test
 #include "kinfly/flight/estimator.h"
+#include "vision_poses.h"
 
 namespace kinfly::flight {
 namespace {
@@ -20,11 +20,14 @@ using Eigen::Matrix3d;
 using Eigen::Quaterniond;
 using Eigen::Vector3d;
 using ErrorVector = Eigen::Matrix<double, kErrorStates, 1>;
+using test::Delivery;
+using test::Gaussian;
+using test::kVisionDelayUs;
+using test::kVisionPeriodUs;
+using test::rotationFromVector;
 
 constexpr double kPi = 3.14159265358979323846;
 constexpr int64_t kImuPeriodUs = 1000;       // 1 kHz, the rate loop's
-constexpr int64_t kVisionPeriodUs = 33333;   // 30 Hz odometry
-constexpr int64_t kVisionDelayUs = 30000;    // capture to arrival, as in flight
 constexpr int64_t kStartUs = 1000000;        // a start after 0 keeps every utime positive
 constexpr double kGravity = 9.81;            // [m/s²] the default of the parameters
 
@@ -36,32 +39,10 @@ constexpr double kTiltRmsRad = 0.3 * kPi / 180.0;
 // position's and velocity's 1σ settle within about a second of 30 Hz poses.
 constexpr double kSettleS = 2.0;
 
-Quaterniond rotationFromVector(const Vector3d& v) {
-  const double angle = v.norm();
-  if (angle == 0.0) return Quaterniond::Identity();
-  return Quaterniond(Eigen::AngleAxisd(angle, v / angle));
-}
-
 Vector3d rotationVector(const Quaterniond& q) {
   const Eigen::AngleAxisd aa(q.normalized());
   return aa.angle() * aa.axis();
 }
-
-// Standard normal vectors from a fixed seed, drawn x, y, z in that order (a constructor's
-// arguments have no order of evaluation).
-class Gaussian {
- public:
-  explicit Gaussian(uint32_t seed) : rng_(seed) {}
-  Vector3d operator()() {
-    Vector3d v;
-    for (int i = 0; i < 3; ++i) v[i] = normal_(rng_);
-    return v;
-  }
-
- private:
-  std::mt19937 rng_;
-  std::normal_distribution<double> normal_{0.0, 1.0};
-};
 
 struct Truth {
   Vector3d p_world_body_m, v_world_body_m_s, a_world_m_s2;
@@ -101,11 +82,6 @@ EstimatorParams testParams() {
   params.T_body_cam.translation() = Vector3d(0.10, 0.0, 0.05);
   return params;
 }
-
-struct Delivery {
-  int64_t arrival_utime;
-  VisionPose pose;
-};
 
 struct Scenario {
   EstimatorParams params = testParams();
@@ -185,12 +161,8 @@ Recording record(const Scenario& scenario) {
     Pose T_world_body = Pose::Identity();
     T_world_body.linear() = truth.q_world_body.toRotationMatrix();
     T_world_body.translation() = truth.p_world_body_m;
-    Pose T_odom_cam = T_odom_world * T_world_body * params.T_body_cam;
-    T_odom_cam.translation() += params.vision_pos_std_m * gaussian();
-    T_odom_cam.linear() = T_odom_cam.linear() *
-                          rotationFromVector(params.vision_att_std_rad * gaussian())
-                              .toRotationMatrix();
-    rec.poses.push_back({capture + kVisionDelayUs, {capture, T_odom_cam}});
+    rec.poses.push_back(
+        test::odometryPose(capture, T_world_body, T_odom_world, params, gaussian));
   }
   return rec;
 }

@@ -1,0 +1,189 @@
+// The whole flight stack closed around the test plant (flight_plant.h): the estimator on the
+// plant's noisy IMU at 1 kHz and the odometry's noisy 30 Hz poses delivered 30 ms late
+// (vision_poses.h), the position loop on its estimate at its own rate, the attitude and rate
+// loops and the mixer at 1 kHz. And the flights issue 15 measures it on, with their figures:
+// hover, a figure eight, a steady wind. One definition, for test_flight_position.cpp and
+// kinfly-flight-bench, so the test and the benchmark fly the same thing.
+#pragma once
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <deque>
+#include <vector>
+
+#include "flight_loop.h"
+#include "kinfly/flight/estimator.h"
+#include "kinfly/flight/position_controller.h"
+#include "kinfly/flight/trajectory.h"
+#include "vision_poses.h"
+
+namespace kinfly::flight::test {
+
+constexpr double kAccelNoiseDensity = 7e-4;  // [m/s^2/sqrt(Hz)] an ICM-42688-class accelerometer
+constexpr int64_t kFlightStartUs = 1000000;  // a start after 0 keeps every utime positive
+// The flights' place: 1 m above the world origin (z down).
+const Eigen::Vector3d kHoverWorldM(0.0, 0.0, -1.0);
+// Issue 15's steady wind, and a linear drag that turns it into a force: 0.15 N s/m at 2 m/s is
+// 0.3 N on the 0.5 kg Hummingbird, which must tilt by 3.5 degrees to hold its place.
+const Eigen::Vector3d kWindWorldMS(2.0, 0.0, 0.0);
+constexpr double kWindDragNSM = 0.15;
+// The figure eight: x = (a / 2) sin(theta), y = (b / 2) sin(2 theta), a by b = 2 m by 1 m,
+// flown once as a minimum-snap trajectory through its points every 45 degrees, at 1 m/s peak
+// speed.
+constexpr double kEightLengthM = 2.0;
+constexpr double kEightWidthM = 1.0;
+constexpr double kEightSpeedMS = 1.0;
+constexpr int kEightPoints = 8;
+// The steady error is the mean error over a flight's last second.
+constexpr double kTailS = 1.0;
+
+struct PositionFlight {
+  Trajectory trajectory = Trajectory::hold(kHoverWorldM, 0.0);
+  double duration_s = 5.0;   // beyond the trajectory's end: holding its last point
+  double measure_from_s = 0.5;
+  Eigen::Vector3d wind_world_m_s = Eigen::Vector3d::Zero();
+  PositionControllerParams position;
+  uint32_t seed = 1;
+};
+
+struct PositionFigures {
+  double rms_m = NAN;       // of |p_true - p_setpoint| from measure_from_s on
+  double max_m = NAN;       // largest such error
+  Eigen::Vector3d tail_mean_m = Eigen::Vector3d::Constant(NAN);  // mean error, last kTailS
+  double estimate_rms_m = NAN;  // of |p_estimated - p_true|, for context
+};
+
+inline Pose poseOf(const PlantState& state) {
+  Pose T_world_body = Pose::Identity();
+  T_world_body.linear() = state.q_world_body.toRotationMatrix();
+  T_world_body.translation() = state.p_world_m;
+  return T_world_body;
+}
+
+inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight& flight) {
+  FlightPlant plant(vehicle, kGyroNoiseDensity, flight.seed, kAccelNoiseDensity);
+  plant.startHovering(flight.trajectory.sample(0.0).p_world_m);
+  plant.setWind(flight.wind_world_m_s, kWindDragNSM);
+
+  // The estimator starts where the body is, as after a take-off; `odom` is the first camera.
+  const EstimatorParams estimator_params;
+  Estimator estimator(estimator_params);
+  EstimatorInit init;
+  init.utime = kFlightStartUs;
+  init.p_world_body_m = plant.state().p_world_m;
+  init.T_world_odom = poseOf(plant.state()) * estimator_params.T_body_cam;
+  estimator.initialise(init);
+  const Pose T_odom_world = init.T_world_odom.inverse();
+  Gaussian gaussian(flight.seed + 1000);  // the odometry's noise, apart from the IMU's
+  std::deque<Delivery> in_flight;
+
+  PositionController position(flight.position, vehicle);
+  // The default parameters always build (test_flight_loop), so the value is there.
+  auto attitude = AttitudeController::create(AttitudeController::Params{}, vehicle);
+  const Mixer mixer(vehicle);
+  MixerSaturation saturation;
+  // The position loop runs every decimation-th control tick.
+  const int decimation =
+      static_cast<int>(std::lround(1.0 / (flight.position.rate_hz * kControlDtS)));
+  PositionOutput command;
+
+  const int ticks = static_cast<int>(flight.duration_s / kControlDtS);
+  const int tail_ticks = static_cast<int>(kTailS / kControlDtS);
+  double sum_sq_m2 = 0.0, estimate_sum_sq_m2 = 0.0;
+  int measured = 0;
+  PositionFigures figures;
+  figures.max_m = 0.0;
+  figures.tail_mean_m.setZero();
+  int64_t utime = kFlightStartUs;
+  int64_t next_capture_utime = kFlightStartUs + kVisionPeriodUs;
+  for (int k = 0; k < ticks; ++k) {
+    const double t_s = k * kControlDtS;
+    const EstimatorState state = estimator.state();
+    if (k % decimation == 0) {
+      command = position.update(flight.trajectory.sample(t_s), state, decimation * kControlDtS);
+    }
+    const Eigen::Vector3d moment_body_nm = attitude->update(
+        state.q_world_body, command.q_world_body_sp, state.omega_body_rad_s, kControlDtS,
+        saturation);
+    const MixerOutput out = mixer.mix({command.thrust_n, moment_body_nm});
+    saturation = out.saturation;
+    plant.step(out.rotor_speed_rad_s, kControlDtS);
+
+    utime += static_cast<int64_t>(kControlDtS * 1e6);
+    ImuSample imu;
+    imu.utime = utime;
+    imu.gyro_rad_s = plant.gyroBodyRadS();
+    imu.accel_m_s2 = plant.accelBodyMS2();
+    estimator.addImu(imu);
+    if (utime >= next_capture_utime) {
+      in_flight.push_back(odometryPose(utime, poseOf(plant.state()), T_odom_world,
+                                       estimator_params, gaussian));
+      next_capture_utime += kVisionPeriodUs;
+    }
+    while (!in_flight.empty() && in_flight.front().arrival_utime <= utime) {
+      estimator.addVision(in_flight.front().pose);
+      in_flight.pop_front();
+    }
+
+    const double t_after_s = t_s + kControlDtS;
+    if (t_after_s < flight.measure_from_s) continue;
+    const Eigen::Vector3d error_m =
+        plant.state().p_world_m - flight.trajectory.sample(t_after_s).p_world_m;
+    sum_sq_m2 += error_m.squaredNorm();
+    estimate_sum_sq_m2 +=
+        (estimator.state().p_world_body_m - plant.state().p_world_m).squaredNorm();
+    ++measured;
+    figures.max_m = std::max(figures.max_m, error_m.norm());
+    if (k >= ticks - tail_ticks) figures.tail_mean_m += error_m / tail_ticks;
+  }
+  figures.rms_m = std::sqrt(sum_sq_m2 / measured);
+  figures.estimate_rms_m = std::sqrt(estimate_sum_sq_m2 / measured);
+  return figures;
+}
+
+// ---- Issue 15's flights ---------------------------------------------------------------------
+
+// Holding a point for 5 s.
+inline PositionFlight hoverFlight(uint32_t seed) {
+  PositionFlight flight;
+  flight.seed = seed;
+  return flight;
+}
+
+// The figure-eight's waypoints, from its centre round both loops and back.
+inline std::vector<Eigen::Vector3d> figureEightWaypoints() {
+  std::vector<Eigen::Vector3d> waypoints;
+  for (int i = 0; i <= kEightPoints; ++i) {
+    const double theta = 2.0 * M_PI * i / kEightPoints;
+    waypoints.push_back(kHoverWorldM + Eigen::Vector3d(0.5 * kEightLengthM * std::sin(theta),
+                                                       0.5 * kEightWidthM * std::sin(2.0 * theta),
+                                                       0.0));
+  }
+  return waypoints;
+}
+
+// Once round the figure eight from rest to rest, then a second's hold.
+inline StatusOr<PositionFlight> figureEightFlight(uint32_t seed) {
+  TrajectoryParams params;
+  params.max_speed_m_s = kEightSpeedMS;
+  auto trajectory = Trajectory::minimumSnap(figureEightWaypoints(), params, 0.0);
+  if (!trajectory.ok()) return trajectory.status();
+  PositionFlight flight;
+  flight.trajectory = *trajectory;
+  flight.duration_s = flight.trajectory.durationS() + 1.0;
+  flight.seed = seed;
+  return flight;
+}
+
+// Holding a point in the steady wind from the start: long enough for the integral to take the
+// whole force over (its slowest pole is ~1/s at the default gains).
+inline PositionFlight windFlight(uint32_t seed) {
+  PositionFlight flight;
+  flight.duration_s = 8.0;
+  flight.wind_world_m_s = kWindWorldMS;
+  flight.seed = seed;
+  return flight;
+}
+
+}  // namespace kinfly::flight::test

@@ -1,0 +1,317 @@
+// The position loop and the trajectories: the law's pieces against hand-worked values (feed-
+// forward, yaw, tilt and thrust limits, the integral's anti-windup), the minimum-snap solve
+// against its closed form and its constraints, the simple trajectories, and the whole stack
+// closed around the test plant with the estimator on noisy, late poses (flight_position.h):
+// issue 15's hover, figure-eight and wind figures. A control tick and sampling allocate nothing.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <vector>
+
+#include "count_allocations.h"
+#include "flight_position.h"
+
+namespace kinfly::flight {
+namespace {
+
+using Eigen::Quaterniond;
+using Eigen::Vector3d;
+
+constexpr uint32_t kSeed = 5;
+// Issue 15's figures.
+constexpr double kHoverRmsM = 0.02;
+constexpr double kFigureEightRmsM = 0.03;
+constexpr double kWindSteadyErrorM = 0.01;
+// Exact arithmetic but for rounding.
+constexpr double kTight = 1e-9;
+
+EstimatorState stateAt(const Vector3d& p_world_m) {
+  EstimatorState state;
+  state.p_world_body_m = p_world_m;
+  return state;
+}
+
+// ---- Position controller -----------------------------------------------------------------------
+
+TEST(PositionControllerParams, DefaultsAreValidAndARangeIsNamed) {
+  EXPECT_TRUE(PositionControllerParams().validate().ok());
+  PositionControllerParams params;
+  params.rate_hz = 50.0;
+  EXPECT_EQ(params.validate().message(), "position.rate_hz must be in [100, 1000] (got 50)");
+  params = PositionControllerParams();
+  params.p_gain_1_s2.y() = -1.0;
+  EXPECT_EQ(params.validate().message(), "position.p_gain_1_s2.y must be in [0, 100] (got -1)");
+}
+
+TEST(PositionController, OnTheSetpointHoldsTheWeightLevelAtTheYaw) {
+  const Vehicle vehicle{VehicleParams{}};
+  PositionController controller(PositionControllerParams{}, vehicle);
+  PositionSetpoint setpoint;
+  setpoint.yaw_rad = 0.7;
+  const PositionOutput out = controller.update(setpoint, stateAt(Vector3d::Zero()), 0.01);
+  EXPECT_NEAR(out.thrust_n, vehicle.weightN(), kTight);
+  EXPECT_LT(out.q_world_body_sp.angularDistance(
+                Quaterniond(Eigen::AngleAxisd(0.7, Vector3d::UnitZ()))),
+            kTight);
+  EXPECT_FALSE(out.tilt_limited || out.thrust_limited);
+}
+
+TEST(PositionController, FeedsTheAccelerationForwardThroughTheThrustDirection) {
+  // Forward at 2 m/s^2 and up at 1 m/s^2: the thrust must give (2, 0, -1 - g) m/s^2, so z_body
+  // points against it (nose down in FRD) and, level now, the collective is its part along -z.
+  const Vehicle vehicle{VehicleParams{}};
+  PositionController controller(PositionControllerParams{}, vehicle);
+  PositionSetpoint setpoint;
+  setpoint.a_world_m_s2 = Vector3d(2.0, 0.0, -1.0);
+  const PositionOutput out = controller.update(setpoint, stateAt(Vector3d::Zero()), 0.01);
+  const Vector3d thrust_m_s2(2.0, 0.0, -1.0 - kGravityMS2);
+  const Vector3d z_body_sp_world = out.q_world_body_sp * Vector3d::UnitZ();
+  EXPECT_LT((z_body_sp_world + thrust_m_s2.normalized()).norm(), kTight);
+  EXPECT_NEAR((out.q_world_body_sp * Vector3d::UnitX()).y(), 0.0, kTight);  // yaw 0 kept
+  EXPECT_NEAR(out.thrust_n, vehicle.params().mass_kg * (1.0 + kGravityMS2), kTight);
+}
+
+TEST(PositionController, CutsTheTiltAndKeepsTheHeight) {
+  const Vehicle vehicle{VehicleParams{}};
+  const PositionControllerParams params;
+  PositionController controller(params, vehicle);
+  // 10 m behind the setpoint: far more than the tilt limit allows.
+  const PositionOutput out =
+      controller.update(PositionSetpoint{}, stateAt(Vector3d(-10.0, 0.0, 0.0)), 0.01);
+  EXPECT_TRUE(out.tilt_limited);
+  const Vector3d z_body_sp_world = out.q_world_body_sp * Vector3d::UnitZ();
+  EXPECT_NEAR(std::acos(z_body_sp_world.z()), params.tilt_max_rad, kTight);
+  EXPECT_GT(-z_body_sp_world.x(), 0.0);  // thrust forward, towards the setpoint
+  // Level now, so the collective is the vertical part only: the weight, height held.
+  EXPECT_NEAR(out.thrust_n, vehicle.weightN(), kTight);
+}
+
+TEST(PositionController, ClampsTheThrustToItsRange) {
+  const Vehicle vehicle{VehicleParams{}};
+  const PositionControllerParams params;
+  PositionController controller(params, vehicle);
+  // 10 m above the setpoint (z down): the law asks to fall faster than gravity.
+  const PositionOutput down =
+      controller.update(PositionSetpoint{}, stateAt(Vector3d(0.0, 0.0, -10.0)), 0.01);
+  EXPECT_TRUE(down.thrust_limited);
+  EXPECT_NEAR(down.thrust_n, vehicle.params().mass_kg * params.thrust_min_m_s2, kTight);
+  EXPECT_LT(down.q_world_body_sp.angularDistance(Quaterniond::Identity()), kTight);
+  // 10 m below it: more than the maximum.
+  const PositionOutput up =
+      controller.update(PositionSetpoint{}, stateAt(Vector3d(0.0, 0.0, 10.0)), 0.01);
+  EXPECT_TRUE(up.thrust_limited);
+  EXPECT_NEAR(up.thrust_n, vehicle.params().mass_kg * params.thrust_max_m_s2, kTight);
+}
+
+TEST(PositionController, IntegralIsClampedAndHeldWhileLimited) {
+  const Vehicle vehicle{VehicleParams{}};
+  const PositionControllerParams params;
+  PositionController controller(params, vehicle);
+  // A small steady error: the integral grows by K_i e dt, up to its limit.
+  for (int k = 0; k < 2000; ++k) {
+    (void)controller.update(PositionSetpoint{}, stateAt(Vector3d(0.0, 0.1, 0.0)), 0.01);
+  }
+  EXPECT_NEAR(controller.integralMS2().y(), params.integral_limit_m_s2.y(), kTight);
+  EXPECT_EQ(controller.integralMS2().x(), 0.0);
+  // Tilt-limited, it does not grow, but it still unwinds.
+  controller.reset();
+  for (int k = 0; k < 100; ++k) {
+    (void)controller.update(PositionSetpoint{}, stateAt(Vector3d(-10.0, 0.0, 0.0)), 0.01);
+  }
+  EXPECT_EQ(controller.integralMS2().x(), 0.0);
+  (void)controller.update(PositionSetpoint{}, stateAt(Vector3d(0.0, 0.0, 0.0)), 0.01);
+  const PositionOutput limited =
+      controller.update(PositionSetpoint{}, stateAt(Vector3d(0.0, 10.0, 0.0)), 0.01);
+  ASSERT_TRUE(limited.tilt_limited);
+  EXPECT_EQ(controller.integralMS2().y(), 0.0);
+}
+
+// ---- Trajectories ------------------------------------------------------------------------------
+
+TEST(Trajectory, RefusesBadInputsAndNamesThem) {
+  const TrajectoryParams params;
+  const Vector3d a(0, 0, -1), b(1, 0, -1);
+  EXPECT_EQ(Trajectory::minimumSnap({a}, params, 0.0).status().message(),
+            "trajectory: needs at least 2 waypoints (got 1)");
+  EXPECT_EQ(Trajectory::minimumSnap({a, Vector3d(NAN, 0, 0), b}, params, 0.0).status().message(),
+            "trajectory: waypoint 1 is not finite");
+  EXPECT_EQ(Trajectory::minimumSnapWithTimes({a, b, a}, {1.0, 0.0}, 0.0).status().message(),
+            "trajectory: segment_times_s[1] must be in (0, 1e+06] (got 0)");
+  EXPECT_EQ(Trajectory::minimumSnapWithTimes({a, b, a}, {1.0}, 0.0).status().message(),
+            "trajectory: 1 segment times for 2 segments");
+  TrajectoryParams slow;
+  slow.max_speed_m_s = 0.0;
+  EXPECT_EQ(Trajectory::goTo(a, b, slow, 0.0).status().message(),
+            "trajectory.max_speed_m_s must be in (0, 20] (got 0)");
+  EXPECT_FALSE(Trajectory::land(a, -2.0, params, 0.0).ok());  // the ground above the start
+}
+
+TEST(Trajectory, OneSegmentIsTheClosedFormRestToRestMinimumSnap) {
+  // From rest to rest in T, the minimum-snap polynomial is p0 + d (35 s^4 - 84 s^5 + 70 s^6 -
+  // 20 s^7), s = t / T (the degree-7 smoothstep).
+  const Vector3d p0(1.0, -2.0, -1.0), d(0.5, 1.0, -0.3);
+  const double duration_s = 2.0;
+  auto trajectory = Trajectory::minimumSnapWithTimes({p0, p0 + d}, {duration_s}, 0.3);
+  ASSERT_TRUE(trajectory.ok()) << trajectory.status().message();
+  for (double t_s = 0.0; t_s <= duration_s; t_s += 0.05) {
+    const double s = t_s / duration_s;
+    const double shape = s * s * s * s * (35.0 - 84.0 * s + 70.0 * s * s - 20.0 * s * s * s);
+    const double shape_rate =
+        s * s * s * (140.0 - 420.0 * s + 420.0 * s * s - 140.0 * s * s * s) / duration_s;
+    const PositionSetpoint sp = trajectory->sample(t_s);
+    EXPECT_LT((sp.p_world_m - (p0 + shape * d)).norm(), 1e-9) << t_s;
+    EXPECT_LT((sp.v_world_m_s - shape_rate * d).norm(), 1e-9) << t_s;
+    EXPECT_EQ(sp.yaw_rad, 0.3);
+  }
+}
+
+TEST(Trajectory, ThroughWaypointsMeetsThemSmoothlyAndStopsAtTheEnds) {
+  const std::vector<Vector3d> waypoints = test::figureEightWaypoints();
+  const std::vector<double> times_s = {1.0, 0.7, 1.3, 0.9, 1.1, 0.8, 1.2, 1.0};
+  auto trajectory = Trajectory::minimumSnapWithTimes(waypoints, times_s, 0.0);
+  ASSERT_TRUE(trajectory.ok()) << trajectory.status().message();
+  ASSERT_EQ(trajectory->segmentCount(), 8);
+  for (int i = 1; i < trajectory->segmentCount(); ++i) {
+    const double knot_s = trajectory->segmentStartS(i);
+    const PositionSetpoint before = trajectory->sample(knot_s - 1e-9);
+    const PositionSetpoint at = trajectory->sample(knot_s);
+    EXPECT_LT((at.p_world_m - waypoints[i]).norm(), 1e-9) << i;
+    // Continuous in position, velocity, acceleration and jerk (to what 1 ns moves them).
+    EXPECT_LT((before.p_world_m - at.p_world_m).norm(), 1e-7) << i;
+    EXPECT_LT((before.v_world_m_s - at.v_world_m_s).norm(), 1e-7) << i;
+    EXPECT_LT((before.a_world_m_s2 - at.a_world_m_s2).norm(), 1e-6) << i;
+    EXPECT_LT((before.j_world_m_s3 - at.j_world_m_s3).norm(), 1e-5) << i;
+  }
+  for (const double t_s : {0.0, trajectory->durationS() - 1e-12}) {
+    const PositionSetpoint end = trajectory->sample(t_s);
+    EXPECT_LT(end.v_world_m_s.norm() + end.a_world_m_s2.norm() + end.j_world_m_s3.norm(), 1e-6);
+  }
+  EXPECT_LT((trajectory->sample(1e3).p_world_m - waypoints.back()).norm(), kTight);
+  EXPECT_LT((trajectory->sample(-1.0).p_world_m - waypoints.front()).norm(), kTight);
+}
+
+TEST(Trajectory, AllocatedTimesReachTheMaxSpeed) {
+  TrajectoryParams params;
+  params.max_speed_m_s = 1.5;
+  auto trajectory = Trajectory::minimumSnap(test::figureEightWaypoints(), params, 0.0);
+  ASSERT_TRUE(trajectory.ok());
+  double peak_m_s = 0.0;
+  for (double t_s = 0.0; t_s < trajectory->durationS(); t_s += 1e-3) {
+    peak_m_s = std::max(peak_m_s, trajectory->sample(t_s).v_world_m_s.norm());
+  }
+  // Scaled to the peak its 64 samples per segment saw; between them it is hardly higher.
+  EXPECT_NEAR(peak_m_s, params.max_speed_m_s, 0.01 * params.max_speed_m_s);
+}
+
+TEST(Trajectory, GoToAndHold) {
+  const TrajectoryParams params;
+  const Vector3d from(0, 0, -1), to(3, -4, -2);
+  auto go = Trajectory::goTo(from, to, params, 0.0);
+  ASSERT_TRUE(go.ok());
+  EXPECT_LT((go->sample(0.0).p_world_m - from).norm(), kTight);
+  EXPECT_LT((go->sample(go->durationS()).p_world_m - to).norm(), kTight);
+  // The rest-to-rest polynomial's peak speed is 35/16 of its mean.
+  EXPECT_NEAR(go->durationS(), 35.0 / 16.0 * (to - from).norm() / params.max_speed_m_s, 1e-3);
+  auto stay = Trajectory::goTo(to, to, params, 0.0);
+  ASSERT_TRUE(stay.ok());
+  EXPECT_EQ(stay->durationS(), 0.0);
+  const PositionSetpoint held = Trajectory::hold(to, 1.0).sample(5.0);
+  EXPECT_EQ(held.p_world_m, to);
+  EXPECT_EQ(held.v_world_m_s, Vector3d::Zero());
+  EXPECT_EQ(held.yaw_rad, 1.0);
+}
+
+TEST(Trajectory, LandDescendsAtTheSpeedAndStopsOnTheGround) {
+  const TrajectoryParams params;
+  const Vector3d from(0.5, 0.2, -3.0);
+  auto land = Trajectory::land(from, 0.0, params, 0.0);
+  ASSERT_TRUE(land.ok());
+  const double ramp_s = params.land_speed_m_s / params.land_accel_m_s2;
+  EXPECT_NEAR(land->durationS(), 3.0 / params.land_speed_m_s + ramp_s, kTight);
+  const PositionSetpoint cruise = land->sample(0.5 * land->durationS());
+  EXPECT_NEAR(cruise.v_world_m_s.z(), params.land_speed_m_s, kTight);
+  EXPECT_NEAR(cruise.v_world_m_s.head<2>().norm(), 0.0, kTight);
+  const PositionSetpoint end = land->sample(land->durationS() - 1e-12);
+  EXPECT_NEAR(end.p_world_m.z(), 0.0, 1e-9);
+  EXPECT_NEAR(end.v_world_m_s.z(), 0.0, 1e-9);
+  EXPECT_EQ(end.p_world_m.head<2>(), from.head<2>());
+  // A drop too short for the speed: a triangle, still stopping on the ground.
+  auto hop = Trajectory::land(from, from.z() + 0.05, params, 0.0);
+  ASSERT_TRUE(hop.ok());
+  EXPECT_NEAR(hop->sample(hop->durationS() - 1e-12).p_world_m.z(), from.z() + 0.05, 1e-9);
+}
+
+// ---- Closed loop -------------------------------------------------------------------------------
+
+void print(const char* name, const test::PositionFigures& f) {
+  std::printf("[position] %s: RMS %.2f mm, max %.2f mm, last-second mean |e| %.2f mm "
+              "(estimate RMS %.2f mm)\n",
+              name, f.rms_m * 1e3, f.max_m * 1e3, f.tail_mean_m.norm() * 1e3,
+              f.estimate_rms_m * 1e3);
+}
+
+TEST(FlightPosition, HoversWithinTheIssueFigure) {
+  const Vehicle vehicle{VehicleParams{}};
+  const test::PositionFigures figures = test::flyPosition(vehicle, test::hoverFlight(kSeed));
+  print("hover", figures);
+  EXPECT_LE(figures.rms_m, kHoverRmsM);
+}
+
+TEST(FlightPosition, FliesTheFigureEightWithinTheIssueFigure) {
+  const Vehicle vehicle{VehicleParams{}};
+  auto flight = test::figureEightFlight(kSeed);
+  ASSERT_TRUE(flight.ok()) << flight.status().message();
+  const test::PositionFigures figures = test::flyPosition(vehicle, *flight);
+  print("figure eight", figures);
+  EXPECT_LE(figures.rms_m, kFigureEightRmsM);
+}
+
+TEST(FlightPosition, SteadyWindLeavesNoSteadyError) {
+  const Vehicle vehicle{VehicleParams{}};
+  test::PositionFlight flight = test::windFlight(kSeed);
+  const test::PositionFigures figures = test::flyPosition(vehicle, flight);
+  print("2 m/s wind", figures);
+  EXPECT_LT(figures.tail_mean_m.norm(), kWindSteadyErrorM);
+  // Without the integral the same wind leaves F / (m K_p) = 3.75 cm: the integral is what
+  // removes it.
+  flight.position.i_gain_1_s3.setZero();
+  const test::PositionFigures proportional = test::flyPosition(vehicle, flight);
+  print("2 m/s wind, no integral", proportional);
+  EXPECT_GT(proportional.tail_mean_m.norm(), 3.0 * kWindSteadyErrorM);
+}
+
+TEST(FlightPosition, LandsOnTheGround) {
+  const Vehicle vehicle{VehicleParams{}};
+  auto land = Trajectory::land(test::kHoverWorldM, 0.0, TrajectoryParams{}, 0.0);
+  ASSERT_TRUE(land.ok());
+  test::PositionFlight flight;
+  flight.trajectory = *land;
+  flight.duration_s = land->durationS() + 1.0;
+  flight.seed = kSeed;
+  const test::PositionFigures figures = test::flyPosition(vehicle, flight);
+  print("land from 1 m", figures);
+  // The descent is a setpoint ramp like the figure eight's, and the end a hold (the plant has
+  // no ground: "on the ground" is at the ground's height).
+  EXPECT_LE(figures.rms_m, kFigureEightRmsM);
+  EXPECT_LT(figures.tail_mean_m.norm(), kWindSteadyErrorM);
+}
+
+TEST(FlightPosition, ControlTickAndSamplingAllocateNothing) {
+  const Vehicle vehicle{VehicleParams{}};
+  auto flight = test::figureEightFlight(kSeed);
+  ASSERT_TRUE(flight.ok());
+  PositionController controller(PositionControllerParams{}, vehicle);
+  const EstimatorState state = stateAt(test::kHoverWorldM);
+  double sink = 0.0;
+  const int64_t before = g_allocations;
+  for (int k = 0; k < 1000; ++k) {
+    const PositionSetpoint setpoint = flight->trajectory.sample(0.01 * k);
+    sink += controller.update(setpoint, state, 0.01).thrust_n;
+  }
+  EXPECT_EQ(g_allocations - before, 0);
+  EXPECT_GT(sink, 0.0);
+}
+
+}  // namespace
+}  // namespace kinfly::flight

@@ -6,7 +6,7 @@
 #include <utility>
 #include <vector>
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 #include "kinfly/link/channels.h"
 
 namespace kinfly::fw {

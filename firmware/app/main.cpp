@@ -19,7 +19,7 @@
 
 #include "capture.h"
 #include "config.h"
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 #include "kinfly/link/chunking.h"
 #include "kinfly/link/signing.h"
 #include "link_task.h"

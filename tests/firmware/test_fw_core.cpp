@@ -16,7 +16,7 @@
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/latest_value.h"
 #include "kinfly/fw/log_throttle.h"
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 #include "kinfly/fw/send_budget.h"
 #include "kinfly/fw/sensor_watch.h"
 #include "kinfly/core/image.h"

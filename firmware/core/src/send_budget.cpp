@@ -2,7 +2,7 @@
 
 #include <algorithm>
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 
 namespace kinfly::fw {
 

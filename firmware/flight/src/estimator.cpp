@@ -4,7 +4,7 @@
 #include <algorithm>
 #include <cmath>
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 
 namespace kinfly::flight {
 
@@ -82,11 +82,9 @@ Pose EstimatorParams::defaultBodyCam() {
 }
 
 Status EstimatorParams::validate() const {
-  using fw::Bound;
-  using fw::outOfRange;
   const Matrix3d R = T_body_cam.linear();
   const double orthonormality = (R * R.transpose() - Matrix3d::Identity()).norm();
-  return fw::firstError(
+  return firstError(
       outOfRange("estimator.gyro_noise_rad_s_rthz", gyro_noise_rad_s_rthz, 0, 1, Bound::kOpen),
       outOfRange("estimator.accel_noise_m_s2_rthz", accel_noise_m_s2_rthz, 0, 10, Bound::kOpen),
       outOfRange("estimator.gyro_bias_walk_rad_s2_rthz", gyro_bias_walk_rad_s2_rthz, 0, 1,

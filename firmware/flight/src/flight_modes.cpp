@@ -6,7 +6,7 @@
 #include <limits>
 #include <string>
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 
 namespace kinfly::flight {
 
@@ -62,9 +62,7 @@ CommandRefusal notFlying(FlightMode mode) {
 }  // namespace
 
 Status FlightModeParams::validate() const {
-  using fw::Bound;
-  using fw::outOfRange;
-  Status status = fw::firstError(
+  Status status = firstError(
       outOfRange("modes.imu_timeout_s", imu_timeout_s, 0, 1, Bound::kOpen),
       outOfRange("modes.vision_lost_s", vision_lost_s, 0, 10, Bound::kOpen),
       outOfRange("modes.vision_fresh_s", vision_fresh_s, 0, vision_lost_s, Bound::kOpen),
@@ -84,7 +82,7 @@ Status FlightModeParams::validate() const {
   for (int i = 0; i < 3 && status.ok(); ++i) {
     const std::string min_key = std::string("modes.geofence_min_world_m.") + kAxis[i];
     const std::string max_key = std::string("modes.geofence_max_world_m.") + kAxis[i];
-    status = fw::firstError(
+    status = firstError(
         outOfRange(min_key, geofence_min_world_m[i], -kGeofenceLimitM, kGeofenceLimitM),
         outOfRange(max_key, geofence_max_world_m[i], -kGeofenceLimitM, kGeofenceLimitM));
     // An empty box would refuse every arming.

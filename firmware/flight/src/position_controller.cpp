@@ -4,14 +4,12 @@
 #include <cmath>
 #include <string>
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 
 namespace kinfly::flight {
 
 namespace {
 
-using fw::firstError;
-using fw::outOfRange;
 
 constexpr const char* kAxis[3] = {"x", "y", "z"};
 
@@ -30,12 +28,12 @@ Status PositionControllerParams::validate() const {
       axesInRange("position.v_gain_1_s", v_gain_1_s, 0.0, 50.0),
       axesInRange("position.i_gain_1_s3", i_gain_1_s3, 0.0, 200.0),
       axesInRange("position.integral_limit_m_s2", integral_limit_m_s2, 0.0, 10.0),
-      outOfRange("position.tilt_max_rad", tilt_max_rad, 0.0, 1.4, fw::Bound::kOpen),
+      outOfRange("position.tilt_max_rad", tilt_max_rad, 0.0, 1.4, Bound::kOpen),
       // Below g, so that the vehicle can always be told to descend; above g at the top, so that
       // it can always climb.
       outOfRange("position.thrust_min_m_s2", thrust_min_m_s2, 0.5, kGravityMS2 - 1e-9),
       outOfRange("position.thrust_max_m_s2", thrust_max_m_s2, kGravityMS2, 100.0,
-                 fw::Bound::kOpen));
+                 Bound::kOpen));
 }
 
 PositionController::PositionController(const PositionControllerParams& params,

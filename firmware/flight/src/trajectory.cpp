@@ -6,14 +6,12 @@
 #include <string>
 #include <utility>
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 
 namespace kinfly::flight {
 
 namespace {
 
-using fw::firstError;
-using fw::outOfRange;
 
 constexpr int kN = Trajectory::kCoefficients;
 constexpr int kSnap = 4;  // the derivative whose square is minimised
@@ -62,9 +60,9 @@ Status checkWaypoints(const std::vector<Eigen::Vector3d>& waypoints_world_m) {
 
 Status TrajectoryParams::validate() const {
   return firstError(
-      outOfRange("trajectory.max_speed_m_s", max_speed_m_s, 0.0, 20.0, fw::Bound::kOpen),
-      outOfRange("trajectory.land_speed_m_s", land_speed_m_s, 0.0, 5.0, fw::Bound::kOpen),
-      outOfRange("trajectory.land_accel_m_s2", land_accel_m_s2, 0.0, 10.0, fw::Bound::kOpen));
+      outOfRange("trajectory.max_speed_m_s", max_speed_m_s, 0.0, 20.0, Bound::kOpen),
+      outOfRange("trajectory.land_speed_m_s", land_speed_m_s, 0.0, 5.0, Bound::kOpen),
+      outOfRange("trajectory.land_accel_m_s2", land_accel_m_s2, 0.0, 10.0, Bound::kOpen));
 }
 
 Trajectory::Trajectory(std::vector<Segment> segments, const Eigen::Vector3d& first_world_m,
@@ -92,7 +90,7 @@ StatusOr<Trajectory> Trajectory::minimumSnapWithTimes(
   }
   for (int i = 0; i < segments; ++i) {
     if (Status valid = outOfRange("trajectory: segment_times_s[" + std::to_string(i) + "]",
-                                  segment_times_s[i], 0.0, 1e6, fw::Bound::kOpen);
+                                  segment_times_s[i], 0.0, 1e6, Bound::kOpen);
         !valid.ok()) {
       return valid;
     }

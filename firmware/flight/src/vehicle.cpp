@@ -3,13 +3,10 @@
 #include <Eigen/LU>
 #include <cmath>
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 
 namespace kinfly::flight {
 
-using fw::Bound;
-using fw::firstError;
-using fw::outOfRange;
 
 Status VehicleParams::validate() const {
   Status status = firstError(

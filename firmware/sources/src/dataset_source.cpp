@@ -3,7 +3,7 @@
 
 #include "kinfly/sources/dataset_source.h"
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 #include "kinfly/io/png_io.h"
 #include "kinfly/io/tum_dataset.h"
 

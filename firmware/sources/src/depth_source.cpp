@@ -1,6 +1,6 @@
 #include "kinfly/sources/depth_source.h"
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 
 namespace kinfly::fw {
 

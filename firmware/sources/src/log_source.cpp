@@ -10,7 +10,7 @@
 
 #include "kinfly/sources/log_source.h"
 #include "kinfly/codec/depth_codec.h"
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/decode.h"

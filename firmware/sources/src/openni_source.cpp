@@ -20,7 +20,7 @@
 #include <thread>
 
 #include "kinfly/fw/backoff.h"
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 #include "kinfly/sources/openni_source.h"
 #include "kinfly/link/signing.h"
 

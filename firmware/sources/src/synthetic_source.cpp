@@ -5,7 +5,7 @@
 
 #include "kinfly/sources/synthetic_source.h"
 
-#include "kinfly/fw/range_check.h"
+#include "kinfly/core/range_check.h"
 #include "kinfly/synthetic/synthetic_scene.h"
 
 namespace kinfly::fw {

@@ -1,4 +1,5 @@
-// The one wording of an out-of-range value, for the Params::validate() of the firmware's stages:
+// The one wording of an out-of-range value, for the Params::validate() of the firmware's stages
+// and the flight stack:
 // "source.speed must be in (0, 100] (got 0)", naming the configuration key, so a refused
 // configuration says which key to change and what it may be.
 #pragma once
@@ -8,7 +9,7 @@
 
 #include "kinfly/core/status.h"
 
-namespace kinfly::fw {
+namespace kinfly {
 
 enum class Bound { kClosed, kOpen };
 
@@ -32,4 +33,4 @@ Status firstError(Checks&&... checks) {
   return first;
 }
 
-}  // namespace kinfly::fw
+}  // namespace kinfly

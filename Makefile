@@ -34,7 +34,8 @@
 #                   age at the ground, odometry rate (out/bench/fw_link.json); incremental
 #                   meshing against a full re-mesh (out/bench/mesh.json); the flight stack's
 #                   body-rate and attitude step responses, geometric and LQR, on the test plant
-#                   (out/bench/flight.json); kinfly-fuse vs Open3D dense SLAM (own
+#                   (out/bench/flight.json), and its cost per 1 kHz tick, CPU time and callgrind
+#                   instructions with the Cortex-A72 share (out/bench/flight_cost.json); kinfly-fuse vs Open3D dense SLAM (own
 #                   .venv-bench); prints, never fails on timings
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
@@ -210,6 +211,7 @@ bench: deps-bench
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	$(MESH_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/mesh.json
 	$(BUILD_DIR)/bin/kinfly-flight-bench | tee $(REPO_ROOT)/out/bench/flight.json
+	$(PY) $(REPO_ROOT)/tests/bench/bench_flight_cost.py --build $(BUILD_DIR) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_fw_link.py --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

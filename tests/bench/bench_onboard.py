@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import os
 import signal
 import statistics
@@ -45,6 +44,7 @@ sys.path.insert(0, str(REPO_ROOT / "tests" / "tools"))
 sys.path.insert(0, str(REPO_ROOT / "tests" / "eval"))
 sys.path.insert(0, str(REPO_ROOT / "scripts"))  # netns.py, shared with make demo
 import kinfly_eval  # noqa: E402
+from a72 import A72_HZ, A72_IPC_RANGE, callgrind_instructions  # noqa: E402
 from firmware_run import firmware, summary  # noqa: E402
 from netns import network_namespace  # noqa: E402
 
@@ -52,10 +52,6 @@ BUILD = REPO_ROOT / "build"
 ONBOARD_ARGS = ["--downsample", "2", "--volume", "dense", "--threads", "1"]
 # Issue 4, "Targets".
 TARGETS = {"frame_ms_median": 8.0, "frame_ms_p99": 15.0, "ate_m": 0.04, "peak_rss_mb": 64.0}
-# A Cortex-A72 (Raspberry Pi 4) retires about one instruction per cycle on this kind of code:
-# 3-wide decode, but gathers from the volume and the model maps miss its 1 MB L2 often.
-A72_HZ = 1.5e9
-A72_IPC_RANGE = (0.8, 1.2)
 
 
 def odometry_timing(tum: Path, out: Path, repeats: int) -> dict[str, Any]:
@@ -137,14 +133,10 @@ def firmware_flight(tum: Path, out: Path) -> dict[str, Any]:
 
 
 def instructions_per_frame(tum: Path, out: Path, frames: int) -> dict[str, Any]:
-    base = out / "callgrind.out"
-    subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={base}",
-                    "--toggle-collect=kinfly::FusionPipeline::processFrame*",
-                    BUILD / "bin" / "kinfly-fuse", "--tum", tum, "--out", out / "callgrind_run",
-                    "--max-frames", str(frames), *ONBOARD_ARGS],
-                   check=True, capture_output=True)
-    text = base.read_text(errors="replace")
-    total = int(re.search(r"^summary:\s+(\d+)", text, re.MULTILINE).group(1))
+    total = callgrind_instructions(
+        [BUILD / "bin" / "kinfly-fuse", "--tum", tum, "--out", out / "callgrind_run",
+         "--max-frames", str(frames), *ONBOARD_ARGS],
+        "kinfly::FusionPipeline::processFrame*", out / "callgrind.out")
     per_frame = total / frames
     fps = [A72_HZ * ipc / per_frame for ipc in A72_IPC_RANGE]
     return {"frames": frames, "instructions_per_frame": round(per_frame),

@@ -4,10 +4,21 @@
 // and a 10 degree roll step through each attitude law; and the cost of one control tick
 // (attitude law, rate loop where the law has one, mixer) on this machine's core; and the whole
 // stack with the estimator on noisy, late poses (tests/firmware/flight_position.h): position
-// RMS in hover and round a figure eight, and the steady error a 2 m/s wind leaves. Prints JSON;
-// exit 1 only when the controllers or the trajectory cannot be built.
+// RMS in hover and round a figure eight, and the steady error a 2 m/s wind leaves; and the cost
+// of the whole stack per 1 kHz tick (FlightStack: estimator, modes, position, attitude, rate,
+// mixer) in thread CPU time. Prints JSON; exit 1 only when the controllers or the trajectory
+// cannot be built.
+//
+//   kinfly-flight-bench [--cost-only] [--ticks N] [--repeats R]
+//
+// --cost-only prints only the "cost" block: with --repeats 1 it is what
+// tests/bench/bench_flight_cost.py runs under callgrind to count the instructions per tick.
+#include <algorithm>
 #include <cstdio>
+#include <cstdlib>
+#include <cstring>
 #include <ctime>
+#include <vector>
 
 #include "flight_loop.h"
 #include "flight_position.h"
@@ -15,6 +26,7 @@
 namespace {
 
 using kinfly::flight::AttitudeController;
+using kinfly::StatusOr;
 using kinfly::flight::AttitudeLaw;
 using kinfly::flight::Vehicle;
 using kinfly::flight::VehicleParams;
@@ -31,6 +43,67 @@ constexpr double kFigureEightRmsTargetM = 0.03;
 constexpr double kWindSteadyErrorTargetM = 0.01;
 
 constexpr int kCostTicks = 200000;
+constexpr int kStackCostRepeats = 15;  // the median of these: this machine is shared and noisy
+
+// [s] this thread's CPU time: the work without what the scheduler gave other processes.
+double threadCpuS() {
+  timespec now{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &now);
+  return static_cast<double>(now.tv_sec) + 1e-9 * static_cast<double>(now.tv_nsec);
+}
+
+struct StackCost {
+  int ticks = 0;
+  int repeats = 0;
+  double us_per_tick_median = NAN;  // [µs] CPU
+  double us_per_tick_min = NAN;
+  double us_per_tick_max = NAN;
+  const char* mode_at_end = "";
+};
+
+// The whole stack per tick over the figure eight (ticks of it, all when 0): the flight is flown
+// once on the plant with its sensors recorded, then the stack alone replays them (replayStack:
+// the same calls on the same inputs), so the plant's simulation is outside the timing without a
+// clock read in every tick. Each repeat starts a fresh stack; its construction is not timed.
+StatusOr<StackCost> stackCost(const Vehicle& vehicle, int ticks, int repeats) {
+  auto flight = test::figureEightFlight(kSeed);
+  if (!flight.ok()) return flight.status();
+  if (ticks > 0) flight->duration_s = ticks * test::kControlDtS;
+  test::SensorLog log;
+  test::flyPosition(vehicle, *flight, &log);
+  std::vector<double> us_per_tick;
+  StackCost cost;
+  double sink = 0.0;
+  for (int r = 0; r < repeats; ++r) {
+    test::FlightStack stack(vehicle, *flight, log.init);
+    const double start_s = threadCpuS();
+    sink += test::replayStack(stack, log);
+    us_per_tick.push_back(1e6 * (threadCpuS() - start_s) / log.ticks());
+    cost.mode_at_end = toString(stack.modes().mode());
+  }
+  if (!(sink > 0.0)) std::fprintf(stderr, "kinfly-flight-bench: no rotor turned\n");
+  std::sort(us_per_tick.begin(), us_per_tick.end());
+  cost.ticks = log.ticks();
+  cost.repeats = repeats;
+  cost.us_per_tick_median = us_per_tick[us_per_tick.size() / 2];
+  cost.us_per_tick_min = us_per_tick.front();
+  cost.us_per_tick_max = us_per_tick.back();
+  return cost;
+}
+
+// The "cost" block; the Cortex-A72 share comes from the instruction count
+// (tests/bench/bench_flight_cost.py), as the odometry's does.
+void printCost(const StackCost& cost, bool last) {
+  std::printf(
+      "  \"cost\": {\"stack\": \"estimator predict every tick and 30 Hz poses fused, flight "
+      "modes, position at 100 Hz, attitude, rate, mixer\", \"flight\": \"figure_eight\", "
+      "\"ticks\": %d, \"repeats\": %d, \"tick_cpu_us_median\": %.3f, \"tick_cpu_us_min\": "
+      "%.3f, \"tick_cpu_us_max\": %.3f, \"ticks_per_s\": %.0f, "
+      "\"share_of_this_core_at_1khz\": %.5f, \"modes_at_end\": \"%s\"}%s\n",
+      cost.ticks, cost.repeats, cost.us_per_tick_median, cost.us_per_tick_min,
+      cost.us_per_tick_max, 1e6 / cost.us_per_tick_median,
+      cost.us_per_tick_median * 1e-6 / test::kControlDtS, cost.mode_at_end, last ? "" : ",");
+}
 
 // [us] mean CPU time of one tick, over attitudes that change every tick so nothing is hoisted.
 double tickCostUs(const Vehicle& vehicle, AttitudeController controller) {
@@ -75,7 +148,26 @@ void printPosition(const char* name, const test::PositionFigures& f, double targ
 
 }  // namespace
 
-int main() {
+int main(int argc, char** argv) {
+  bool cost_only = false;
+  int cost_ticks = 0;  // all the figure eight's
+  int cost_repeats = kStackCostRepeats;
+  for (int i = 1; i < argc; ++i) {
+    if (std::strcmp(argv[i], "--cost-only") == 0) {
+      cost_only = true;
+    } else if (std::strcmp(argv[i], "--ticks") == 0 && i + 1 < argc) {
+      cost_ticks = std::atoi(argv[++i]);
+    } else if (std::strcmp(argv[i], "--repeats") == 0 && i + 1 < argc) {
+      cost_repeats = std::atoi(argv[++i]);
+    } else {
+      std::fprintf(stderr, "usage: kinfly-flight-bench [--cost-only] [--ticks N] [--repeats R]\n");
+      return 2;
+    }
+  }
+  if (cost_ticks < 0 || cost_repeats < 1) {
+    std::fprintf(stderr, "kinfly-flight-bench: --ticks >= 0, --repeats >= 1\n");
+    return 2;
+  }
   const VehicleParams vehicle_params;
   AttitudeController::Params params;
   for (const kinfly::Status& status : {vehicle_params.validate(), params.validate()}) {
@@ -84,6 +176,17 @@ int main() {
     return 1;
   }
   const Vehicle vehicle(vehicle_params);
+  auto cost = stackCost(vehicle, cost_ticks, cost_repeats);
+  if (!cost.ok()) {
+    std::fprintf(stderr, "kinfly-flight-bench: %s\n", cost.status().message().c_str());
+    return 1;
+  }
+  if (cost_only) {
+    std::printf("{\n");
+    printCost(*cost, true);
+    std::printf("}\n");
+    return 0;
+  }
   const test::StepFigures rate = test::stepFigures(
       test::flyRateStep(vehicle, params.rate, test::kGyroNoiseDensity, kSeed));
   test::StepFigures attitude[2];
@@ -143,6 +246,8 @@ int main() {
   printPosition("hover", hover, kHoverRmsTargetM, hover.rms_m, false);
   printPosition("figure_eight", figure_eight, kFigureEightRmsTargetM, figure_eight.rms_m, false);
   printPosition("wind", wind, kWindSteadyErrorTargetM, wind.tail_mean_m.norm(), true);
-  std::printf("  }\n}\n");
+  std::printf("  },\n");
+  printCost(*cost, true);
+  std::printf("}\n");
   return 0;
 }

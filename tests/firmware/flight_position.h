@@ -1,19 +1,23 @@
 // The whole flight stack closed around the test plant (flight_plant.h): the estimator on the
 // plant's noisy IMU at 1 kHz and the odometry's noisy 30 Hz poses delivered 30 ms late
 // (vision_poses.h), the position loop on its estimate at its own rate, the attitude and rate
-// loops and the mixer at 1 kHz. And the flights issue 15 measures it on, with their figures:
-// hover, a figure eight, a steady wind. One definition, for test_flight_position.cpp and
-// kinfly-flight-bench, so the test and the benchmark fly the same thing.
+// loops, the mixer and the flight modes at 1 kHz (FlightStack, one tick as the control task runs
+// it). And the flights issue 15 measures it on, with their figures: hover, a figure eight, a
+// steady wind; and a flight's sensors recorded, to fly the stack alone again for its cost. One
+// definition, for test_flight_position.cpp and kinfly-flight-bench, so the test and the
+// benchmark fly the same thing.
 #pragma once
 
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <deque>
+#include <optional>
 #include <vector>
 
 #include "flight_loop.h"
 #include "kinfly/flight/estimator.h"
+#include "kinfly/flight/flight_modes.h"
 #include "kinfly/flight/position_controller.h"
 #include "kinfly/flight/trajectory.h"
 #include "vision_poses.h"
@@ -61,35 +65,153 @@ inline Pose poseOf(const PlantState& state) {
   return T_world_body;
 }
 
-inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight& flight) {
+// The flight stack as the control task runs it, one 1 kHz tick at a time: sense() the tick's IMU
+// sample (the estimator's prediction) and the odometry poses that arrived (fused, late), then
+// control(): the flight modes, the position loop every decimation-th tick, the attitude and rate
+// loops and the mixer. The modes run every tick on the estimator's health and state and are
+// commanded up to a mission as the ground would (arm, take off, mission), so that they take
+// their flying path; the setpoint is the flight's trajectory, sampled as mission mode follows
+// it, so that the flights' figures do not hang on the modes' own targets.
+class FlightStack {
+ public:
+  // flight must outlive the stack.
+  FlightStack(const Vehicle& vehicle, const PositionFlight& flight, const EstimatorInit& init)
+      : flight_(flight),
+        weight_n_(vehicle.weightN()),
+        estimator_(EstimatorParams{}),
+        position_(flight.position, vehicle),
+        // The default parameters always build (test_flight_loop), so the value is there.
+        attitude_(*AttitudeController::create(AttitudeController::Params{}, vehicle)),
+        mixer_(vehicle),
+        modes_(FlightModeParams{}),
+        decimation_(static_cast<int>(std::lround(1.0 / (flight.position.rate_hz * kControlDtS)))) {
+    estimator_.initialise(init);
+  }
+
+  // The IMU sample that closed the last tick and the poses that arrived by then.
+  void sense(const ImuSample& imu, const VisionPose* poses, size_t pose_count) {
+    estimator_.addImu(imu);
+    last_imu_utime_ = imu.utime;
+    for (size_t i = 0; i < pose_count; ++i) {
+      if (estimator_.addVision(poses[i]) == VisionOutcome::kFused) {
+        last_vision_utime_ = poses[i].utime;
+      }
+    }
+  }
+
+  // Tick k's rotor command, from the estimate as sense() left it.
+  MixerOutput control(int k) {
+    const double t_s = k * kControlDtS;
+    const EstimatorState state = estimator_.state();
+    FlightInputs inputs;
+    inputs.utime = kFlightStartUs + static_cast<int64_t>(k) * kControlUs;
+    inputs.estimator = estimator_.health();
+    inputs.state = state;
+    inputs.last_imu_utime = last_imu_utime_;
+    inputs.last_vision_utime = last_vision_utime_;
+    inputs.height_above_ground_m = -state.p_world_body_m.z();  // the ground at z = 0
+    inputs.thrust_ratio = command_.thrust_n / weight_n_;
+    modes_.update(inputs, nextCommand());
+    if (k % decimation_ == 0) {
+      command_ = position_.update(flight_.trajectory.sample(t_s), state, decimation_ * kControlDtS);
+    }
+    const Eigen::Vector3d moment_body_nm = attitude_.update(
+        state.q_world_body, command_.q_world_body_sp, state.omega_body_rad_s, kControlDtS,
+        saturation_);
+    const MixerOutput out = mixer_.mix({command_.thrust_n, moment_body_nm});
+    saturation_ = out.saturation;
+    return out;
+  }
+
+  const Estimator& estimator() const { return estimator_; }
+  const FlightModes& modes() const { return modes_; }
+
+  static constexpr int64_t kControlUs = 1000;  // kControlDtS in µs
+  static constexpr double kTakeOffHeightM = 1.0;
+
+ private:
+  // The ground's commands up to a mission, one a tick, each repeated until accepted.
+  std::optional<FlightCommand> nextCommand() const {
+    FlightCommand command;
+    switch (modes_.mode()) {
+      case FlightMode::kDisarmed: command.kind = CommandKind::kArm; return command;
+      case FlightMode::kArmed:
+        command.kind = CommandKind::kTakeOff;
+        command.height_m = kTakeOffHeightM;
+        return command;
+      case FlightMode::kTakeOff: command.kind = CommandKind::kMission; return command;
+      default: return std::nullopt;
+    }
+  }
+
+  const PositionFlight& flight_;
+  double weight_n_;
+  Estimator estimator_;
+  PositionController position_;
+  AttitudeController attitude_;
+  Mixer mixer_;
+  FlightModes modes_;
+  int decimation_;
+  MixerSaturation saturation_;
+  PositionOutput command_;
+  int64_t last_imu_utime_ = -1;
+  int64_t last_vision_utime_ = -1;
+};
+
+// What a flight's stack sensed, tick by tick, to fly the stack again without the plant
+// (replayStack): with the same inputs it makes the same calls.
+struct SensorLog {
+  EstimatorInit init;
+  std::vector<ImuSample> imu;      // tick k's closing sample
+  std::vector<VisionPose> poses;   // those that arrived in tick k: [poses_end[k-1], poses_end[k])
+  std::vector<size_t> poses_end;
+  int ticks() const { return static_cast<int>(imu.size()); }
+};
+
+// The stack's ticks [from, to) on the recorded sensors, alone (to < 0: to the end): what
+// kinfly-flight-bench times and callgrind counts (--toggle-collect on this function's name). Not
+// inlined, so that it has a name; returns the rotor speeds' sum so that nothing is optimised away.
+[[gnu::noinline]] inline double replayStack(FlightStack& stack, const SensorLog& log, int from = 0,
+                                            int to = -1) {
+  if (to < 0) to = log.ticks();
+  double sink = 0.0;
+  size_t first_pose = from > 0 ? log.poses_end[static_cast<size_t>(from - 1)] : 0;
+  for (int k = from; k < to; ++k) {
+    sink += stack.control(k).rotor_speed_rad_s.sum();
+    const size_t end = log.poses_end[static_cast<size_t>(k)];
+    stack.sense(log.imu[static_cast<size_t>(k)], log.poses.data() + first_pose, end - first_pose);
+    first_pose = end;
+  }
+  return sink;
+}
+
+// Flies the flight; with a log, records what the stack sensed.
+inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight& flight,
+                                   SensorLog* log = nullptr) {
   FlightPlant plant(vehicle, kGyroNoiseDensity, flight.seed, kAccelNoiseDensity);
   plant.startHovering(flight.trajectory.sample(0.0).p_world_m);
   plant.setWind(flight.wind_world_m_s, kWindDragNSM);
 
   // The estimator starts where the body is, as after a take-off; `odom` is the first camera.
   const EstimatorParams estimator_params;
-  Estimator estimator(estimator_params);
   EstimatorInit init;
   init.utime = kFlightStartUs;
   init.p_world_body_m = plant.state().p_world_m;
   init.T_world_odom = poseOf(plant.state()) * estimator_params.T_body_cam;
-  estimator.initialise(init);
+  FlightStack stack(vehicle, flight, init);
   const Pose T_odom_world = init.T_world_odom.inverse();
   Gaussian gaussian(flight.seed + 1000);  // the odometry's noise, apart from the IMU's
   std::deque<Delivery> in_flight;
-
-  PositionController position(flight.position, vehicle);
-  // The default parameters always build (test_flight_loop), so the value is there.
-  auto attitude = AttitudeController::create(AttitudeController::Params{}, vehicle);
-  const Mixer mixer(vehicle);
-  MixerSaturation saturation;
-  // The position loop runs every decimation-th control tick.
-  const int decimation =
-      static_cast<int>(std::lround(1.0 / (flight.position.rate_hz * kControlDtS)));
-  PositionOutput command;
+  std::vector<VisionPose> arrived;
 
   const int ticks = static_cast<int>(flight.duration_s / kControlDtS);
   const int tail_ticks = static_cast<int>(kTailS / kControlDtS);
+  if (log != nullptr) {
+    *log = SensorLog{};
+    log->init = init;
+    log->imu.reserve(static_cast<size_t>(ticks));
+    log->poses_end.reserve(static_cast<size_t>(ticks));
+  }
   double sum_sq_m2 = 0.0, estimate_sum_sq_m2 = 0.0;
   int measured = 0;
   PositionFigures figures;
@@ -99,31 +221,29 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
   int64_t next_capture_utime = kFlightStartUs + kVisionPeriodUs;
   for (int k = 0; k < ticks; ++k) {
     const double t_s = k * kControlDtS;
-    const EstimatorState state = estimator.state();
-    if (k % decimation == 0) {
-      command = position.update(flight.trajectory.sample(t_s), state, decimation * kControlDtS);
-    }
-    const Eigen::Vector3d moment_body_nm = attitude->update(
-        state.q_world_body, command.q_world_body_sp, state.omega_body_rad_s, kControlDtS,
-        saturation);
-    const MixerOutput out = mixer.mix({command.thrust_n, moment_body_nm});
-    saturation = out.saturation;
+    const MixerOutput out = stack.control(k);
     plant.step(out.rotor_speed_rad_s, kControlDtS);
 
-    utime += static_cast<int64_t>(kControlDtS * 1e6);
+    utime += FlightStack::kControlUs;
     ImuSample imu;
     imu.utime = utime;
     imu.gyro_rad_s = plant.gyroBodyRadS();
     imu.accel_m_s2 = plant.accelBodyMS2();
-    estimator.addImu(imu);
     if (utime >= next_capture_utime) {
       in_flight.push_back(odometryPose(utime, poseOf(plant.state()), T_odom_world,
                                        estimator_params, gaussian));
       next_capture_utime += kVisionPeriodUs;
     }
+    arrived.clear();
     while (!in_flight.empty() && in_flight.front().arrival_utime <= utime) {
-      estimator.addVision(in_flight.front().pose);
+      arrived.push_back(in_flight.front().pose);
       in_flight.pop_front();
+    }
+    stack.sense(imu, arrived.data(), arrived.size());
+    if (log != nullptr) {
+      log->imu.push_back(imu);
+      log->poses.insert(log->poses.end(), arrived.begin(), arrived.end());
+      log->poses_end.push_back(log->poses.size());
     }
 
     const double t_after_s = t_s + kControlDtS;
@@ -132,7 +252,7 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
         plant.state().p_world_m - flight.trajectory.sample(t_after_s).p_world_m;
     sum_sq_m2 += error_m.squaredNorm();
     estimate_sum_sq_m2 +=
-        (estimator.state().p_world_body_m - plant.state().p_world_m).squaredNorm();
+        (stack.estimator().state().p_world_body_m - plant.state().p_world_m).squaredNorm();
     ++measured;
     figures.max_m = std::max(figures.max_m, error_m.norm());
     if (k >= ticks - tail_ticks) figures.tail_mean_m += error_m / tail_ticks;

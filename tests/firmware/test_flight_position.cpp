@@ -2,7 +2,7 @@
 // forward, yaw, tilt and thrust limits, the integral's anti-windup), the minimum-snap solve
 // against its closed form and its constraints, the simple trajectories, and the whole stack
 // closed around the test plant with the estimator on noisy, late poses (flight_position.h):
-// issue 15's hover, figure-eight and wind figures. A control tick and sampling allocate nothing.
+// issue 15's hover, figure-eight and wind figures. The whole stack's tick allocates nothing.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -297,20 +297,27 @@ TEST(FlightPosition, LandsOnTheGround) {
   EXPECT_LT(figures.tail_mean_m.norm(), kWindSteadyErrorM);
 }
 
-TEST(FlightPosition, ControlTickAndSamplingAllocateNothing) {
+// The whole stack's tick as the control task runs it (FlightStack: estimator predict and late
+// poses fused, flight modes, the position loop with the trajectory sampled, attitude, rate,
+// mixer) allocates nothing once flying: the figure eight's sensors replayed into a fresh stack,
+// counted after its first second (the take-off commands, the first poses fused).
+TEST(FlightPosition, StackTickAllocatesNothingInSteadyState) {
   const Vehicle vehicle{VehicleParams{}};
   auto flight = test::figureEightFlight(kSeed);
   ASSERT_TRUE(flight.ok());
-  PositionController controller(PositionControllerParams{}, vehicle);
-  const EstimatorState state = stateAt(test::kHoverWorldM);
-  double sink = 0.0;
+  test::SensorLog log;
+  test::flyPosition(vehicle, *flight, &log);
+  const int warm_up_ticks = static_cast<int>(1.0 / test::kControlDtS);
+  ASSERT_GT(log.ticks(), 2 * warm_up_ticks);
+  test::FlightStack stack(vehicle, *flight, log.init);
+  double sink = test::replayStack(stack, log, 0, warm_up_ticks);
   const int64_t before = g_allocations;
-  for (int k = 0; k < 1000; ++k) {
-    const PositionSetpoint setpoint = flight->trajectory.sample(0.01 * k);
-    sink += controller.update(setpoint, state, 0.01).thrust_n;
-  }
-  EXPECT_EQ(g_allocations - before, 0);
+  sink += test::replayStack(stack, log, warm_up_ticks);
+  const int64_t allocations = g_allocations - before;
+  EXPECT_EQ(allocations, 0);
   EXPECT_GT(sink, 0.0);
+  EXPECT_EQ(stack.modes().mode(), FlightMode::kMission);
+  EXPECT_GT(stack.estimator().health().vision_fused_count, 0);
 }
 
 }  // namespace

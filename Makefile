@@ -34,8 +34,9 @@
 #                   age at the ground, odometry rate (out/bench/fw_link.json); incremental
 #                   meshing against a full re-mesh (out/bench/mesh.json); the flight stack's
 #                   body-rate and attitude step responses, geometric and LQR, on the test plant
-#                   (out/bench/flight.json), and its cost per 1 kHz tick, CPU time and callgrind
-#                   instructions with the Cortex-A72 share (out/bench/flight_cost.json); kinfly-fuse vs Open3D dense SLAM (own
+#                   (out/bench/flight.json) with hover, figure-eight and wind flights, and its
+#                   cost per 1 kHz tick, CPU time and callgrind instructions with the Cortex-A72
+#                   share (out/bench/flight_cost.json); kinfly-fuse vs Open3D dense SLAM (own
 #                   .venv-bench); prints, never fails on timings
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)

@@ -36,8 +36,10 @@
 #                   body-rate and attitude step responses, geometric and LQR, on the test plant
 #                   (out/bench/flight.json) with hover, figure-eight and wind flights, and its
 #                   cost per 1 kHz tick, CPU time and callgrind instructions with the Cortex-A72
-#                   share (out/bench/flight_cost.json); kinfly-fuse vs Open3D dense SLAM (own
-#                   .venv-bench); prints, never fails on timings
+#                   share (out/bench/flight_cost.json); the figure eight beside RotorPy's SE3
+#                   controller flying the same reference (out/bench/flight_oracle.json);
+#                   kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never fails on
+#                   timings
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
 #   make test-aarch64  deps demo, unit, image; the above + the image; unit tests and a replay
@@ -202,10 +204,10 @@ eval: deps-demo
 	$(PY) $(REPO_ROOT)/tests/eval/kinfly_eval.py all --fuse $(FUSE) --data $(KINFLY_DATA) \
 	  --out $(REPO_ROOT)/out/eval
 
-# Open3D lives only in .venv-bench, never in the product environment (.venv). The codec bench
-# runs on one thread and fails only if a frame does not come back bit for bit. The link benches
-# need root (or sudo) for their network namespaces, nft for the lossy links and tc for the caps;
-# bench_fw_link fails only if kinfly-fw or kinfly-ground does.
+# Open3D and RotorPy live only in .venv-bench, never in the product environment (.venv). The
+# codec bench runs on one thread and fails only if a frame does not come back bit for bit. The
+# link benches need root (or sudo) for their network namespaces, nft for the lossy links and tc
+# for the caps; bench_fw_link fails only if kinfly-fw or kinfly-ground does.
 bench: deps-bench
 	$(call build_programs,$(BENCH_PROGRAMS))
 	mkdir -p $(REPO_ROOT)/out/bench
@@ -213,6 +215,8 @@ bench: deps-bench
 	$(MESH_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/mesh.json
 	$(BUILD_DIR)/bin/kinfly-flight-bench | tee $(REPO_ROOT)/out/bench/flight.json
 	$(PY) $(REPO_ROOT)/tests/bench/bench_flight_cost.py --build $(BUILD_DIR) --out $(REPO_ROOT)/out/bench
+	$(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_flight_oracle.py \
+	  --flight-bench $(BUILD_DIR)/bin/kinfly-flight-bench --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_fw_link.py --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

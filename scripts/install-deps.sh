@@ -87,7 +87,7 @@ image_packages=(
 
 # bench (make bench): callgrind for the drone's instructions per frame
 # (tests/bench/bench_onboard.py), nft for the lossy links of tests/bench/bench_link.py
-# (scripts/netns.py); the group also makes .venv-bench (Open3D).
+# (scripts/netns.py); the group also makes .venv-bench (Open3D, RotorPy).
 bench_packages=(
   valgrind nftables
 )

@@ -10,9 +10,12 @@
 // cannot be built.
 //
 //   kinfly-flight-bench [--cost-only] [--ticks N] [--repeats R]
+//   kinfly-flight-bench --dump-figure-eight
 //
 // --cost-only prints only the "cost" block: with --repeats 1 it is what
 // tests/bench/bench_flight_cost.py runs under callgrind to count the instructions per tick.
+// --dump-figure-eight prints only the figure eight's setpoints as the flight samples them, for
+// the RotorPy oracle (tests/bench/bench_flight_oracle.py) to fly literally the same reference.
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
@@ -146,21 +149,69 @@ void printPosition(const char* name, const test::PositionFigures& f, double targ
       figure_m <= target_m ? "true" : "false", last ? "" : ",");
 }
 
+void printVectors(const char* name, const std::vector<Eigen::Vector3d>& vectors, bool last) {
+  std::printf("    \"%s\": [", name);
+  for (size_t i = 0; i < vectors.size(); ++i) {
+    std::printf("%s[%.9g, %.9g, %.9g]", i == 0 ? "" : ", ", vectors[i].x(), vectors[i].y(),
+                vectors[i].z());
+  }
+  std::printf("]%s\n", last ? "" : ",");
+}
+
+// The setpoint at every control tick's time k * kControlDtS, k = 0 .. ticks (the last is where
+// the last tick's error is measured), in kinfly's world (z down), and the flight's timing.
+void dumpFigureEight(const test::PositionFlight& flight) {
+  const int ticks = static_cast<int>(flight.duration_s / test::kControlDtS);
+  std::vector<double> t_s, yaw_rad;
+  std::vector<Eigen::Vector3d> p, v, a, j;
+  for (int k = 0; k <= ticks; ++k) {
+    const double t = k * test::kControlDtS;
+    const kinfly::flight::PositionSetpoint sp = flight.trajectory.sample(t);
+    t_s.push_back(t);
+    p.push_back(sp.p_world_m);
+    v.push_back(sp.v_world_m_s);
+    a.push_back(sp.a_world_m_s2);
+    j.push_back(sp.j_world_m_s3);
+    yaw_rad.push_back(sp.yaw_rad);
+  }
+  std::printf("{\n  \"frame\": \"kinfly world: gravity-aligned, z down, x forward, y right\",\n"
+              "  \"control_dt_s\": %.6f, \"duration_s\": %.6f, \"trajectory_duration_s\": %.6f, "
+              "\"measure_from_s\": %.3f,\n  \"samples\": {\n    \"t_s\": [",
+              test::kControlDtS, ticks * test::kControlDtS, flight.trajectory.durationS(),
+              flight.measure_from_s);
+  for (size_t i = 0; i < t_s.size(); ++i) std::printf("%s%.6f", i == 0 ? "" : ", ", t_s[i]);
+  std::printf("],\n    \"yaw_rad\": [");
+  for (size_t i = 0; i < yaw_rad.size(); ++i) {
+    std::printf("%s%.9g", i == 0 ? "" : ", ", yaw_rad[i]);
+  }
+  std::printf("],\n");
+  printVectors("p_world_m", p, false);
+  printVectors("v_world_m_s", v, false);
+  printVectors("a_world_m_s2", a, false);
+  printVectors("j_world_m_s3", j, true);
+  std::printf("  }\n}\n");
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   bool cost_only = false;
+  bool dump_figure_eight = false;
   int cost_ticks = 0;  // all the figure eight's
   int cost_repeats = kStackCostRepeats;
   for (int i = 1; i < argc; ++i) {
     if (std::strcmp(argv[i], "--cost-only") == 0) {
       cost_only = true;
+    } else if (std::strcmp(argv[i], "--dump-figure-eight") == 0) {
+      dump_figure_eight = true;
     } else if (std::strcmp(argv[i], "--ticks") == 0 && i + 1 < argc) {
       cost_ticks = std::atoi(argv[++i]);
     } else if (std::strcmp(argv[i], "--repeats") == 0 && i + 1 < argc) {
       cost_repeats = std::atoi(argv[++i]);
     } else {
-      std::fprintf(stderr, "usage: kinfly-flight-bench [--cost-only] [--ticks N] [--repeats R]\n");
+      std::fprintf(stderr,
+                   "usage: kinfly-flight-bench [--cost-only] [--ticks N] [--repeats R] | "
+                   "--dump-figure-eight\n");
       return 2;
     }
   }
@@ -174,6 +225,15 @@ int main(int argc, char** argv) {
     if (status.ok()) continue;
     std::fprintf(stderr, "kinfly-flight-bench: %s\n", status.message().c_str());
     return 1;
+  }
+  if (dump_figure_eight) {
+    auto eight = test::figureEightFlight(kSeed);
+    if (!eight.ok()) {
+      std::fprintf(stderr, "kinfly-flight-bench: %s\n", eight.status().message().c_str());
+      return 1;
+    }
+    dumpFigureEight(*eight);
+    return 0;
   }
   const Vehicle vehicle(vehicle_params);
   auto cost = stackCost(vehicle, cost_ticks, cost_repeats);

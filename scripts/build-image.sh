@@ -135,17 +135,31 @@ EOF
     "$repo_root/firmware/image/kinfly.conf.example" "$dir/"
 }
 
-# Every mount point at or below $1, deepest first, lazily unmounted (a killed build's leftovers).
+# The mount points at or below $1, deepest first (findmnt's list output does not escape them).
+mounts_below() {
+  findmnt -l -n -o TARGET | DIR="$1" awk '$0 == ENVIRON["DIR"] || index($0, ENVIRON["DIR"] "/") == 1' |
+    LC_ALL=C sort -r
+}
+
+# Unmounts what a killed build left mounted in the tree at $1. A tree mounted by rbind from the
+# host shares its propagation, and unmounting in it would unmount the host's own mounts too, so
+# every mount is made private first. Anything still mounted stops the build before a removal
+# reaches it.
 unmount_below() {
-  local dir mounts
+  local dir mount_point
+  local -a mounts
   dir="$(realpath -m "$1")"
-  mounts="$(awk -v d="$dir" '$2 == d || index($2, d "/") == 1 { print $2 }' /proc/self/mounts |
-    sort -r)"
-  [[ -z "$mounts" ]] && return 0
+  mapfile -t mounts < <(mounts_below "$dir")
+  ((${#mounts[@]})) || return 0
   log "unmounting what a previous build left mounted under $dir"
-  while read -r mount_point; do
+  # All private before any unmount: an unmount propagates through its parent's peers.
+  for mount_point in "${mounts[@]}"; do
+    mount --make-private "$mount_point" || die "cannot make $mount_point private"
+  done
+  for mount_point in "${mounts[@]}"; do
     umount -l "$mount_point" || die "cannot unmount $mount_point (left by a previous build)"
-  done <<<"$mounts"
+  done
+  [[ -z "$(mounts_below "$dir")" ]] || die "still mounted under $dir: $(mounts_below "$dir" | head -1)"
 }
 
 main() {

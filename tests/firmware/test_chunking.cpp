@@ -152,8 +152,18 @@ TEST(ChunkWire, DecodesWithinBoundsAndRejectsImpossibleHeaders) {
   c.sequence = -1;
   expectBad(c, "negative sequence");
   c = good;
+  c.sequence = std::numeric_limits<int64_t>::max();
+  expectBad(c, "sequence a window past it would overflow");
+  c = good;
+  c.sequence = kMaxChunkSequence;
+  keyframe_chunk_t decoded;
+  const auto highest = encode(c);
+  EXPECT_TRUE(decodeMessage(highest.data(), highest.size(), DecodeBounds(), &decoded).ok());
+  c = good;
   c.sent_utime = std::numeric_limits<int64_t>::min();
-  expectBad(c, "sent before the epoch");
+  expectBad(c, "sent long before the epoch");
+  c.sent_utime = -1;
+  expectBad(c, "sent just before the epoch");
 
   chunk_request_t request{};
   request.vehicle_id = kVehicle;

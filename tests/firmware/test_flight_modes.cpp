@@ -90,6 +90,9 @@ TEST(FlightModeParams, DefaultsAreValidAndARangeIsNamed) {
   params.vision_fresh_s = 2.0;  // beyond vision_lost_s: arming could start a failsafe at once
   EXPECT_EQ(params.validate().message(), "modes.vision_fresh_s must be in (0, 1] (got 2)");
   params = FlightModeParams();
+  params.imu_timeout_s = 2.0 * params.imu_lost_s;  // arming on a gap the failsafe acts on
+  EXPECT_EQ(params.validate().message(), "modes.imu_timeout_s must be in (0, 0.02] (got 0.04)");
+  params = FlightModeParams();
   params.geofence_min_world_m.z() = params.geofence_max_world_m.z();
   EXPECT_EQ(params.validate().message(),
             "modes.geofence_min_world_m.z must be below modes.geofence_max_world_m.z");
@@ -107,7 +110,7 @@ TEST(FlightModes, ArmingChecksRefuseWithTheFirstReason) {
   flight.in().estimator.diverged = false;
 
   flight.imu_fresh = false;
-  flight.run(0.05);  // beyond imu_timeout_s (0.02 s)
+  flight.run(0.05);  // beyond imu_timeout_s (0.005 s)
   EXPECT_EQ(flight.command(CommandKind::kArm).refusal, CommandRefusal::kImuNotAlive);
   flight.imu_fresh = true;
 
@@ -301,21 +304,21 @@ TEST(FlightModes, VisionLostDescendsOnAttitudeAloneUntilLanded) {
   EXPECT_EQ(flight.modes().counters().vision_lost, 1);  // acted once
 }
 
-TEST(FlightModes, EstimatorDivergedLands) {
+TEST(FlightModes, EstimatorDivergedDescendsWithoutItsPosition) {
   const FlightModeParams params;
   Flight flight(params);
   flight.takeOffAndHold();
   flight.in().estimator.diverged = true;
   FlightOutput out = flight.tick();
-  EXPECT_EQ(out.mode, FlightMode::kLand);
-  EXPECT_EQ(out.setpoint.kind, SetpointKind::kLand);
-  EXPECT_DOUBLE_EQ(out.setpoint.descent_speed_m_s, params.land_speed_m_s);
+  EXPECT_EQ(out.mode, FlightMode::kDescend);
+  EXPECT_EQ(out.setpoint.kind, SetpointKind::kDescend);
+  EXPECT_DOUBLE_EQ(out.setpoint.descent_speed_m_s, params.vision_lost_descent_m_s);
   EXPECT_EQ(flight.events.back().reason, EventReason::kEstimatorDiverged);
   EXPECT_EQ(flight.events.back().from, FlightMode::kHold);
   EXPECT_EQ(flight.command(CommandKind::kHold).refusal, CommandRefusal::kEstimatorUnhealthy);
   flight.run(1.0);  // the estimator's flag is sticky: the failsafe acted once
   EXPECT_EQ(flight.modes().counters().estimator_diverged, 1);
-  EXPECT_EQ(flight.modes().mode(), FlightMode::kLand);
+  EXPECT_EQ(flight.modes().mode(), FlightMode::kDescend);
 }
 
 TEST(FlightModes, DivergedAndVisionLostTogetherEndInTheDescent) {
@@ -332,9 +335,9 @@ TEST(FlightModes, DivergedAndVisionLostTogetherEndInTheDescent) {
   const FlightEvent& diverged = flight.events[flight.events.size() - 2];
   const FlightEvent& lost = flight.events.back();
   EXPECT_EQ(diverged.reason, EventReason::kEstimatorDiverged);
-  EXPECT_EQ(diverged.to, FlightMode::kLand);
-  EXPECT_EQ(lost.reason, EventReason::kVisionLost);
-  EXPECT_EQ(lost.from, FlightMode::kLand);
+  EXPECT_EQ(diverged.to, FlightMode::kDescend);
+  EXPECT_EQ(lost.reason, EventReason::kVisionLost);  // logged and counted, no further change
+  EXPECT_EQ(lost.from, FlightMode::kDescend);
   EXPECT_EQ(lost.to, FlightMode::kDescend);
   EXPECT_EQ(diverged.utime, lost.utime);
 }

@@ -63,7 +63,9 @@ CommandRefusal notFlying(FlightMode mode) {
 
 Status FlightModeParams::validate() const {
   Status status = firstError(
-      outOfRange("modes.imu_timeout_s", imu_timeout_s, 0, 1, Bound::kOpen),
+      outOfRange("modes.imu_lost_s", imu_lost_s, 0, 1, Bound::kOpen),
+      // Arming must not pass on an IMU gap the failsafe would act on a tick later.
+      outOfRange("modes.imu_timeout_s", imu_timeout_s, 0, imu_lost_s, Bound::kOpen),
       outOfRange("modes.vision_lost_s", vision_lost_s, 0, 10, Bound::kOpen),
       outOfRange("modes.vision_fresh_s", vision_fresh_s, 0, vision_lost_s, Bound::kOpen),
       outOfRange("modes.takeoff_height_min_m", takeoff_height_min_m, 0.1, 100),
@@ -77,8 +79,7 @@ Status FlightModeParams::validate() const {
       outOfRange("modes.ground_lost_s", ground_lost_s, 0, 60, Bound::kOpen),
       outOfRange("modes.max_tilt_rad", max_tilt_rad, 0, M_PI, Bound::kOpen),
       outOfRange("modes.max_rate_rad_s", max_rate_rad_s, 0, 100, Bound::kOpen),
-      outOfRange("modes.attitude_limit_s", attitude_limit_s, 0, 1),
-      outOfRange("modes.imu_lost_s", imu_lost_s, 0, 1, Bound::kOpen));
+      outOfRange("modes.attitude_limit_s", attitude_limit_s, 0, 1));
   for (int i = 0; i < 3 && status.ok(); ++i) {
     const std::string min_key = std::string("modes.geofence_min_world_m.") + kAxis[i];
     const std::string max_key = std::string("modes.geofence_max_world_m.") + kAxis[i];
@@ -96,7 +97,8 @@ Status FlightModeParams::validate() const {
 FlightModes::FlightModes(const FlightModeParams& params) : params_(params) {}
 
 double FlightModes::ageS(const FlightInputs& in, int64_t utime) const {
-  if (utime < 0) return std::numeric_limits<double>::infinity();
+  // Never heard, or stamped ahead of now (another clock): either way, not fresh.
+  if (utime < 0 || utime > in.utime) return std::numeric_limits<double>::infinity();
   return static_cast<double>(in.utime - utime) * kUsToS;
 }
 
@@ -210,14 +212,19 @@ void FlightModes::runFailsafes(const FlightInputs& in, FlightOutput& out) {
     return;
   }
 
-  // Each below acts on the mode the one before left, so that a diverged estimator and lost
-  // vision in one update end in the descent, the more cautious of the two.
+  // Each below acts on the mode the one before left: a diverged estimator and lost vision in one
+  // update both end in the descent, and the geofence does not pull a descent back to a hold.
   const Vector3d& p_world_m = in.state.p_world_body_m;
+  // A diverged position is no place to land on: level attitude and the slow descent, as with
+  // vision lost (PX4 descends too when its local position is invalid).
   if (in.estimator.diverged && !diverged_) {
     ++counters_.estimator_diverged;
-    const bool lands = fliesToPoints(mode_);
-    if (lands) setpoint_ = setpointAt(SetpointKind::kLand, p_world_m, in, params_.land_speed_m_s);
-    setMode(lands ? FlightMode::kLand : mode_, EventReason::kEstimatorDiverged, in, out);
+    const bool descends = fliesToPoints(mode_) || mode_ == FlightMode::kLand;
+    if (descends) {
+      setpoint_ = setpointAt(SetpointKind::kDescend, p_world_m, in,
+                             params_.vision_lost_descent_m_s);
+    }
+    setMode(descends ? FlightMode::kDescend : mode_, EventReason::kEstimatorDiverged, in, out);
   }
   diverged_ = in.estimator.diverged;
 

@@ -85,7 +85,8 @@ int64_t messageDigest(const uint8_t* data, size_t size) {
 
 std::string chunkProblem(const keyframe_chunk_t& c, int64_t max_message_bytes) {
   if (c.keyframe_id < 0) return "keyframe_id is negative";
-  if (c.sequence < 0) return "sequence is negative";
+  if (c.sequence < 0 || c.sequence > kMaxChunkSequence)
+    return "sequence " + std::to_string(c.sequence) + " outside [0, 2^53]";
   // Sent times are differenced for the loss window: a time before the epoch is forged.
   if (c.sent_utime < 0) return "sent_utime is negative";
   if (c.block_size < 1 || c.block_size > keyframe_chunk_t::MAX_BLOCK_BYTES)
@@ -286,7 +287,7 @@ StatusOr<ChunkSpan> ChunkEncoder::encode(const uint8_t* message, size_t size,
   std::memcpy(padded_.data(), message, size);
   std::fill(padded_.begin() + static_cast<long>(size), padded_.end(), uint8_t{0});
 
-  keyframe_chunk_t header;
+  keyframe_chunk_t header{};  // sent_utime and sequence are set per chunk, as it goes out
   header.utime = ids.utime;
   header.vehicle_id = ids.vehicle_id;
   header.keyframe_id = ids.keyframe_id;

@@ -25,7 +25,8 @@ enum class FlightMode {
   kGoTo,      // flying to a point
   kMission,   // following the mission's trajectory
   kLand,      // descending over the point where the landing began
-  kDescend,   // failsafe: vision lost, level attitude and a slow descent, no position
+  kDescend,   // failsafe: vision lost or estimator diverged, level attitude and a slow descent,
+              // no position
   kMotorsCut,   // failsafe: attitude out of limits or IMU silent, rotors stopped (the simulator)
   kHandedOver,  // failsafe: attitude out of limits or IMU silent, the autopilot flies
 };
@@ -38,7 +39,7 @@ enum class AttitudeLimitAction {
 
 struct FlightModeParams {
   // Arming and every command that flies to a point need the IMU and a fused pose this recent.
-  double imu_timeout_s = 0.02;         // [s] (0, 1] as the estimator's imu_gap_s
+  double imu_timeout_s = 0.005;        // [s] (0, imu_lost_s]: five samples at 1 kHz
   double vision_fresh_s = 0.2;         // [s] (0, vision_lost_s] as its vision_timeout_s
   // A lower take-off would end barely above the landed detector's height band.
   double takeoff_height_min_m = 0.5;   // [m] [0.1, 100]
@@ -66,8 +67,9 @@ struct FlightModeParams {
   double attitude_limit_s = 0.1;         // [s] [0, 1]
   AttitudeLimitAction attitude_limit_action = AttitudeLimitAction::kHandOver;
   // No IMU sample for this long in flight: the rate loop flies blind, and the estimate drifts
-  // with no prediction. Acts as attitude_limit_action does. Ten missed ticks at 1 kHz.
-  double imu_lost_s = 0.01;              // [s] (0, 1]
+  // with no prediction. Acts as attitude_limit_action does. Twenty missed samples at 1 kHz: more
+  // than a scheduling hiccup of a kernel that is not real-time.
+  double imu_lost_s = 0.02;              // [s] (0, 1]
   // The box the drone stays in (world, z down: min.z() is the highest point allowed). A breach
   // holds at the last point inside; arming outside it and targets outside it are refused.
   bool geofence_enabled = true;

@@ -36,6 +36,10 @@ int originalsInGroup(int blocks, int groups, int group);
 // keyframe_chunk_t.message_digest of a message (BLAKE2b-128, first 8 bytes big-endian).
 int64_t messageDigest(const uint8_t* data, size_t size);
 
+// Sequence numbers above this are forged: a drone sending 10^5 chunks a second reaches it after
+// 2800 years, and the assembler's windows count up to a number one past the highest seen.
+constexpr int64_t kMaxChunkSequence = int64_t{1} << 53;
+
 // The fields of a chunk that contradict each other or the bounds (empty when none): what
 // decodeMessage<keyframe_chunk_t> calls a bad field. max_message_bytes: of the whole keyframe.
 std::string chunkProblem(const keyframe_chunk_t& chunk, int64_t max_message_bytes);

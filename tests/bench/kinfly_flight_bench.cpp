@@ -41,9 +41,6 @@ constexpr double kRateRiseTargetS = 0.050;
 constexpr double kRateOvershootTarget = 0.10;
 constexpr double kAttitudeRiseTargetS = 0.10;
 constexpr double kAttitudeSettleTargetS = 0.25;
-constexpr double kHoverRmsTargetM = 0.02;
-constexpr double kFigureEightRmsTargetM = 0.03;
-constexpr double kWindSteadyErrorTargetM = 0.01;
 
 constexpr int kCostTicks = 200000;
 constexpr int kStackCostRepeats = 15;  // the median of these: this machine is shared and noisy
@@ -161,7 +158,7 @@ void printVectors(const char* name, const std::vector<Eigen::Vector3d>& vectors,
 // The setpoint at every control tick's time k * kControlDtS, k = 0 .. ticks (the last is where
 // the last tick's error is measured), in kinfly's world (z down), and the flight's timing.
 void dumpFigureEight(const test::PositionFlight& flight) {
-  const int ticks = static_cast<int>(flight.duration_s / test::kControlDtS);
+  const int ticks = test::controlTicks(flight.duration_s);
   std::vector<double> t_s, yaw_rad;
   std::vector<Eigen::Vector3d> p, v, a, j;
   for (int k = 0; k <= ticks; ++k) {
@@ -302,10 +299,11 @@ int main(int argc, char** argv) {
               test::kWindWorldMS.norm(), test::kWindDragNSM);
   std::printf("    \"targets\": {\"hover_rms_m\": %.2f, \"figure_eight_rms_m\": %.2f, "
               "\"wind_steady_error_m\": %.2f},\n",
-              kHoverRmsTargetM, kFigureEightRmsTargetM, kWindSteadyErrorTargetM);
-  printPosition("hover", hover, kHoverRmsTargetM, hover.rms_m, false);
-  printPosition("figure_eight", figure_eight, kFigureEightRmsTargetM, figure_eight.rms_m, false);
-  printPosition("wind", wind, kWindSteadyErrorTargetM, wind.tail_mean_m.norm(), true);
+              test::kHoverRmsTargetM, test::kFigureEightRmsTargetM, test::kWindSteadyErrorTargetM);
+  printPosition("hover", hover, test::kHoverRmsTargetM, hover.rms_m, false);
+  printPosition("figure_eight", figure_eight, test::kFigureEightRmsTargetM, figure_eight.rms_m,
+                false);
+  printPosition("wind", wind, test::kWindSteadyErrorTargetM, wind.tail_mean_m.norm(), true);
   std::printf("  },\n");
   printCost(*cost, true);
   std::printf("}\n");

@@ -41,6 +41,15 @@ constexpr double kEightSpeedMS = 1.0;
 constexpr int kEightPoints = 8;
 // The steady error is the mean error over a flight's last second.
 constexpr double kTailS = 1.0;
+// Issue 15's figures, for the tests and the benchmark alike.
+constexpr double kHoverRmsTargetM = 0.02;
+constexpr double kFigureEightRmsTargetM = 0.03;
+constexpr double kWindSteadyErrorTargetM = 0.01;
+
+// The control ticks in a duration, rounded: a truncated 2.001 / 0.001 would lose one.
+inline int controlTicks(double duration_s) {
+  return static_cast<int>(std::lround(duration_s / kControlDtS));
+}
 
 struct PositionFlight {
   Trajectory trajectory = Trajectory::hold(kHoverWorldM, 0.0);
@@ -56,6 +65,10 @@ struct PositionFigures {
   double max_m = NAN;       // largest such error
   Eigen::Vector3d tail_mean_m = Eigen::Vector3d::Constant(NAN);  // mean error, last kTailS
   double estimate_rms_m = NAN;  // of |p_estimated - p_true|, for context
+  // The flight modes over the flight: a figure flown through a failsafe would not count.
+  FlightCounters modes;
+  FlightMode final_mode = FlightMode::kDisarmed;
+  bool lost_control = false;  // a tick asked to cut the motors or to hand over
 };
 
 inline Pose poseOf(const PlantState& state) {
@@ -111,7 +124,8 @@ class FlightStack {
     inputs.last_vision_utime = last_vision_utime_;
     inputs.height_above_ground_m = -state.p_world_body_m.z();  // the ground at z = 0
     inputs.thrust_ratio = command_.thrust_n / weight_n_;
-    modes_.update(inputs, nextCommand());
+    const FlightOutput modes = modes_.update(inputs, nextCommand());
+    lost_control_ = lost_control_ || modes.cut_motors || modes.hand_over;
     if (k % decimation_ == 0) {
       command_ = position_.update(flight_.trajectory.sample(t_s), state, decimation_ * kControlDtS);
     }
@@ -125,6 +139,7 @@ class FlightStack {
 
   const Estimator& estimator() const { return estimator_; }
   const FlightModes& modes() const { return modes_; }
+  bool lostControl() const { return lost_control_; }
 
   static constexpr int64_t kControlUs = 1000;  // kControlDtS in µs
   static constexpr double kTakeOffHeightM = 1.0;
@@ -156,6 +171,7 @@ class FlightStack {
   PositionOutput command_;
   int64_t last_imu_utime_ = -1;
   int64_t last_vision_utime_ = -1;
+  bool lost_control_ = false;
 };
 
 // What a flight's stack sensed, tick by tick, to fly the stack again without the plant
@@ -204,8 +220,8 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
   std::deque<Delivery> in_flight;
   std::vector<VisionPose> arrived;
 
-  const int ticks = static_cast<int>(flight.duration_s / kControlDtS);
-  const int tail_ticks = static_cast<int>(kTailS / kControlDtS);
+  const int ticks = controlTicks(flight.duration_s);
+  const int tail_ticks = controlTicks(kTailS);
   if (log != nullptr) {
     *log = SensorLog{};
     log->init = init;
@@ -259,6 +275,9 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
   }
   figures.rms_m = std::sqrt(sum_sq_m2 / measured);
   figures.estimate_rms_m = std::sqrt(estimate_sum_sq_m2 / measured);
+  figures.modes = stack.modes().counters();
+  figures.final_mode = stack.modes().mode();
+  figures.lost_control = stack.lostControl();
   return figures;
 }
 

@@ -19,10 +19,6 @@ using Eigen::Quaterniond;
 using Eigen::Vector3d;
 
 constexpr uint32_t kSeed = 5;
-// Issue 15's figures.
-constexpr double kHoverRmsM = 0.02;
-constexpr double kFigureEightRmsM = 0.03;
-constexpr double kWindSteadyErrorM = 0.01;
 // Exact arithmetic but for rounding.
 constexpr double kTight = 1e-9;
 
@@ -102,6 +98,35 @@ TEST(PositionController, ClampsTheThrustToItsRange) {
       controller.update(PositionSetpoint{}, stateAt(Vector3d(0.0, 0.0, 10.0)), 0.01);
   EXPECT_TRUE(up.thrust_limited);
   EXPECT_NEAR(up.thrust_n, vehicle.params().mass_kg * params.thrust_max_m_s2, kTight);
+}
+
+TEST(PositionController, HeightComesFirstWhenTheThrustRunsOut) {
+  const Vehicle vehicle{VehicleParams{}};
+  const PositionControllerParams params;
+  PositionController controller(params, vehicle);
+  const double mass_kg = vehicle.params().mass_kg;
+  // 10 m below and 10 m behind: the climb alone asks for more than the maximum, so nothing is
+  // left to go sideways with and the body stays level.
+  const PositionOutput all_up =
+      controller.update(PositionSetpoint{}, stateAt(Vector3d(-10.0, 0.0, 10.0)), 0.01);
+  EXPECT_TRUE(all_up.thrust_limited);
+  EXPECT_NEAR(all_up.thrust_n, mass_kg * params.thrust_max_m_s2, kTight);
+  EXPECT_LT(all_up.q_world_body_sp.angularDistance(Quaterniond::Identity()), kTight);
+  // 0.5 m below and 10 m behind: the climb takes what it needs and the rest goes sideways,
+  // within the maximum thrust.
+  PositionController partial(params, vehicle);
+  const PositionOutput some_up =
+      partial.update(PositionSetpoint{}, stateAt(Vector3d(-10.0, 0.0, 0.5)), 0.01);
+  const double up_m_s2 = kGravityMS2 + params.p_gain_1_s2.z() * 0.5;
+  ASSERT_LT(up_m_s2, params.thrust_max_m_s2);
+  const Vector3d thrust_dir_world = -(some_up.q_world_body_sp * Vector3d::UnitZ());
+  const double tilt_rad = std::acos(thrust_dir_world.z() * -1.0);
+  const double tilt_expected_rad = std::min(
+      params.tilt_max_rad,
+      std::atan(std::sqrt(params.thrust_max_m_s2 * params.thrust_max_m_s2 - up_m_s2 * up_m_s2) /
+                up_m_s2));
+  EXPECT_NEAR(tilt_rad, tilt_expected_rad, kTight);
+  EXPECT_GT(thrust_dir_world.x(), 0.0);  // towards the setpoint
 }
 
 TEST(PositionController, IntegralIsClampedAndHeldWhileLimited) {
@@ -251,11 +276,23 @@ void print(const char* name, const test::PositionFigures& f) {
               f.estimate_rms_m * 1e3);
 }
 
+// A figure counts only when flown in mission mode throughout, with no failsafe on the way.
+void expectNoFailsafe(const test::PositionFigures& f) {
+  EXPECT_FALSE(f.lost_control);
+  EXPECT_EQ(f.final_mode, FlightMode::kMission);
+  EXPECT_EQ(f.modes.vision_lost, 0);
+  EXPECT_EQ(f.modes.estimator_diverged, 0);
+  EXPECT_EQ(f.modes.attitude_limit, 0);
+  EXPECT_EQ(f.modes.imu_lost, 0);
+  EXPECT_EQ(f.modes.geofence, 0);
+}
+
 TEST(FlightPosition, HoversWithinTheIssueFigure) {
   const Vehicle vehicle{VehicleParams{}};
   const test::PositionFigures figures = test::flyPosition(vehicle, test::hoverFlight(kSeed));
   print("hover", figures);
-  EXPECT_LE(figures.rms_m, kHoverRmsM);
+  expectNoFailsafe(figures);
+  EXPECT_LE(figures.rms_m, test::kHoverRmsTargetM);
 }
 
 TEST(FlightPosition, FliesTheFigureEightWithinTheIssueFigure) {
@@ -264,7 +301,8 @@ TEST(FlightPosition, FliesTheFigureEightWithinTheIssueFigure) {
   ASSERT_TRUE(flight.ok()) << flight.status().message();
   const test::PositionFigures figures = test::flyPosition(vehicle, *flight);
   print("figure eight", figures);
-  EXPECT_LE(figures.rms_m, kFigureEightRmsM);
+  expectNoFailsafe(figures);
+  EXPECT_LE(figures.rms_m, test::kFigureEightRmsTargetM);
 }
 
 TEST(FlightPosition, SteadyWindLeavesNoSteadyError) {
@@ -272,13 +310,15 @@ TEST(FlightPosition, SteadyWindLeavesNoSteadyError) {
   test::PositionFlight flight = test::windFlight(kSeed);
   const test::PositionFigures figures = test::flyPosition(vehicle, flight);
   print("2 m/s wind", figures);
-  EXPECT_LT(figures.tail_mean_m.norm(), kWindSteadyErrorM);
+  expectNoFailsafe(figures);
+  EXPECT_LT(figures.tail_mean_m.norm(), test::kWindSteadyErrorTargetM);
   // Without the integral the same wind leaves F / (m K_p) = 3.75 cm: the integral is what
   // removes it.
   flight.position.i_gain_1_s3.setZero();
   const test::PositionFigures proportional = test::flyPosition(vehicle, flight);
   print("2 m/s wind, no integral", proportional);
-  EXPECT_GT(proportional.tail_mean_m.norm(), 3.0 * kWindSteadyErrorM);
+  expectNoFailsafe(proportional);
+  EXPECT_GT(proportional.tail_mean_m.norm(), 3.0 * test::kWindSteadyErrorTargetM);
 }
 
 TEST(FlightPosition, LandsOnTheGround) {
@@ -291,10 +331,11 @@ TEST(FlightPosition, LandsOnTheGround) {
   flight.seed = kSeed;
   const test::PositionFigures figures = test::flyPosition(vehicle, flight);
   print("land from 1 m", figures);
+  expectNoFailsafe(figures);
   // The descent is a setpoint ramp like the figure eight's, and the end a hold (the plant has
   // no ground: "on the ground" is at the ground's height).
-  EXPECT_LE(figures.rms_m, kFigureEightRmsM);
-  EXPECT_LT(figures.tail_mean_m.norm(), kWindSteadyErrorM);
+  EXPECT_LE(figures.rms_m, test::kFigureEightRmsTargetM);
+  EXPECT_LT(figures.tail_mean_m.norm(), test::kWindSteadyErrorTargetM);
 }
 
 // The whole stack's tick as the control task runs it (FlightStack: estimator predict and late

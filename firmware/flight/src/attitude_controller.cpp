@@ -11,7 +11,6 @@ namespace kinfly::flight {
 
 namespace {
 
-
 constexpr const char* kAxis[3] = {"roll", "pitch", "yaw"};
 
 Status axesInRange(const std::string& key, const Eigen::Vector3d& value, double lo, double hi,

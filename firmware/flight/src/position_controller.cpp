@@ -10,7 +10,6 @@ namespace kinfly::flight {
 
 namespace {
 
-
 constexpr const char* kAxis[3] = {"x", "y", "z"};
 
 Status axesInRange(const std::string& key, const Eigen::Vector3d& value, double lo, double hi) {
@@ -55,15 +54,21 @@ PositionOutput PositionController::update(const PositionSetpoint& setpoint,
   Eigen::Vector3d thrust_accel_m_s2 = accel_cmd_m_s2 - Eigen::Vector3d(0.0, 0.0, kGravityMS2);
 
   PositionOutput out;
-  // The vertical part first: thrust must point up (-z) by at least the minimum, whatever the
-  // loop asks, or the tilt below would have no meaning.
+  // The vertical part first, as PX4 does: thrust must point up (-z) by at least the minimum,
+  // whatever the loop asks, or the tilt below would have no meaning, and height has the thrust
+  // it needs up to the maximum before any goes sideways.
   const double up_m_s2 = -thrust_accel_m_s2.z();
-  if (up_m_s2 < params_.thrust_min_m_s2) {
-    thrust_accel_m_s2.z() = -params_.thrust_min_m_s2;
+  if (up_m_s2 < params_.thrust_min_m_s2 || up_m_s2 > params_.thrust_max_m_s2) {
+    thrust_accel_m_s2.z() = -std::clamp(up_m_s2, params_.thrust_min_m_s2, params_.thrust_max_m_s2);
     out.thrust_limited = true;
   }
-  // Then the horizontal part, cut to the tilt limit with the vertical part kept.
-  const double horizontal_max_m_s2 = -thrust_accel_m_s2.z() * std::tan(params_.tilt_max_rad);
+  // Then the horizontal part, cut to the tilt limit and to what the maximum thrust leaves, with
+  // the vertical part kept.
+  const double vertical_m_s2 = -thrust_accel_m_s2.z();
+  const double horizontal_max_m_s2 = std::min(
+      vertical_m_s2 * std::tan(params_.tilt_max_rad),
+      std::sqrt(std::max(0.0, params_.thrust_max_m_s2 * params_.thrust_max_m_s2 -
+                                  vertical_m_s2 * vertical_m_s2)));
   const double horizontal_m_s2 = thrust_accel_m_s2.head<2>().norm();
   if (horizontal_m_s2 > horizontal_max_m_s2) {
     thrust_accel_m_s2.head<2>() *= horizontal_max_m_s2 / horizontal_m_s2;

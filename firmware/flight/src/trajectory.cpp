@@ -12,7 +12,6 @@ namespace kinfly::flight {
 
 namespace {
 
-
 constexpr int kN = Trajectory::kCoefficients;
 constexpr int kSnap = 4;  // the derivative whose square is minimised
 // Velocity, acceleration and jerk are zero at both ends: rest to rest.

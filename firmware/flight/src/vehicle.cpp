@@ -7,7 +7,6 @@
 
 namespace kinfly::flight {
 
-
 Status VehicleParams::validate() const {
   Status status = firstError(
       outOfRange("vehicle.mass_kg", mass_kg, 0.0, 50.0, Bound::kOpen),

@@ -455,6 +455,10 @@ TEST(FlightModes, GeofenceBreachHoldsAtTheLastPointInside) {
   // Outside for a while: one breach, one count.
   flight.run(0.5);
   EXPECT_EQ(flight.modes().counters().geofence, 1);
+  // Still outside: a mission would lead further out, a hold stays at the last point inside.
+  EXPECT_EQ(flight.command(CommandKind::kMission).refusal, CommandRefusal::kOutsideGeofence);
+  ASSERT_TRUE(flight.command(CommandKind::kHold).accepted());
+  EXPECT_NEAR(flight.tick().setpoint.point_world_m.x(), last_inside_x_m, kExactM);
   // Back inside and out again: a second breach.
   flight.state().p_world_body_m.x() = x_max_m - 1.0;
   flight.tick();

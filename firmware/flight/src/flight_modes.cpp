@@ -341,6 +341,12 @@ CommandResult FlightModes::handle(const FlightCommand& command, const FlightInpu
           refusal = CommandRefusal::kOutsideGeofence;
         }
       }
+      // Outside the fence a mission could only lead further out; go-to a point inside, hold (at
+      // the last point inside) and land are the ways back.
+      if (refusal == CommandRefusal::kNone && command.kind == CommandKind::kMission &&
+          !insideGeofence(p_world_m)) {
+        refusal = CommandRefusal::kOutsideGeofence;
+      }
       if (refusal != CommandRefusal::kNone) break;
       // A mission already under way goes on: restarting it is the trajectory's business.
       if (command.kind == CommandKind::kMission && mode_ == FlightMode::kMission) break;
@@ -350,7 +356,9 @@ CommandResult FlightModes::handle(const FlightCommand& command, const FlightInpu
       const FlightMode to = go_to ? FlightMode::kGoTo
                             : command.kind == CommandKind::kHold ? FlightMode::kHold
                                                                  : FlightMode::kMission;
-      setpoint_ = setpointAt(kind, go_to ? command.target_world_m : p_world_m, in);
+      const Vector3d& hold_world_m =
+          insideGeofence(p_world_m) ? p_world_m : last_inside_world_m_;
+      setpoint_ = setpointAt(kind, go_to ? command.target_world_m : hold_world_m, in);
       // A new hold point or go-to target in the same mode is no mode change.
       if (to != mode_) setMode(to, EventReason::kCommand, in, out);
       break;

@@ -176,7 +176,8 @@ struct FlightInputs {
   // The mission's trajectory has ended; cleared by the caller when a mission starts.
   bool mission_finished = false;
   // Landed detection: above the ground under the body (a rangefinder, the depth image, or the
-  // start's height), and the collective thrust last commanded over the weight.
+  // start's height), and the collective thrust last commanded over the weight: 0 while kinfly
+  // commands none (handed over, motors cut), or a drone the autopilot landed could never disarm.
   double height_above_ground_m = 0.0;  // [m]
   double thrust_ratio = 0.0;           // [-]
 };

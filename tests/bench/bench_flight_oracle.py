@@ -66,8 +66,11 @@ def rotorpy_reference(dump: dict[str, Any]) -> list[dict[str, Any]]:
             for k in range(len(position))]
 
 
-def fly_rotorpy(dump: dict[str, Any], rate_hz: int, aero: bool) -> dict[str, Any]:
-    """RotorPy's SE3Control on the true state of RotorPy's Hummingbird, round the reference."""
+def fly_rotorpy(dump: dict[str, Any], rate_hz: int, aero: bool,
+                gains: tuple[list[float], list[float]] | None = None) -> dict[str, Any]:
+    """RotorPy's SE3Control on the true state of RotorPy's Hummingbird, round the reference; at
+    its own position gains, or at gains = (K_p, K_v) per axis (kinfly's, which are the same in
+    both frames: the axes only change sign)."""
     control_dt_s = float(dump["control_dt_s"])
     decimation = round(1.0 / (rate_hz * control_dt_s))
     if decimation < 1 or abs(decimation * rate_hz * control_dt_s - 1.0) > 1e-9:
@@ -86,6 +89,9 @@ def fly_rotorpy(dump: dict[str, Any], rate_hz: int, aero: bool) -> dict[str, Any
     vehicle = Multirotor(quad_params, initial_state=state, control_abstraction="cmd_motor_speeds",
                          aero=aero)
     controller = SE3Control(quad_params)
+    if gains is not None:
+        controller.kp_pos = np.asarray(gains[0], dtype=float)
+        controller.kd_pos = np.asarray(gains[1], dtype=float)
 
     measure_from_s = float(dump["measure_from_s"])
     errors_m = []
@@ -140,6 +146,10 @@ def main() -> int:
     kinfly = run_json([bench])["position"]
     dump = run_json([bench, "--dump-figure-eight"])
     oracle = fly_rotorpy(dump, args.rate_hz, args.aero)
+    # The same law at kinfly's gains (no integral: SE3Control has none) tells a difference of
+    # gains from one of the law or the plant.
+    at_kinfly_gains = fly_rotorpy(dump, args.rate_hz, args.aero,
+                                  (kinfly["p_gain_1_s2"], kinfly["v_gain_1_s"]))
     kinfly_eight = kinfly["figure_eight"]
     report = {
         "figure_eight": {
@@ -161,6 +171,8 @@ def main() -> int:
         },
         "rotorpy": {"version": importlib.metadata.version("rotorpy"),
                     "vehicle": "hummingbird", "controller": "SE3Control", **oracle},
+        "rotorpy_at_kinfly_gains": {"controller": "SE3Control, kinfly's K_p and K_v",
+                                    **at_kinfly_gains},
         "rms_ratio_kinfly_over_rotorpy": round(kinfly_eight["rms_m"] / oracle["rms_m"], 3),
         "frame": "reference to RotorPy as (x, -y, -z), yaw -yaw (kinfly z down, RotorPy z up)",
     }
@@ -170,7 +182,8 @@ def main() -> int:
     (args.out / "flight_oracle.json").write_text(text + "\n")
     print(f"figure eight position RMS: kinfly {1e3 * kinfly_eight['rms_m']:.1f} mm (on its "
           f"estimate) | RotorPy SE3Control {1e3 * oracle['rms_m']:.1f} mm (true state, "
-          f"{args.rate_hz} Hz, aero {'on' if args.aero else 'off'}) | kinfly/RotorPy "
+          f"{args.rate_hz} Hz, aero {'on' if args.aero else 'off'}), "
+          f"{1e3 * at_kinfly_gains['rms_m']:.1f} mm at kinfly's gains | kinfly/RotorPy "
           f"{report['rms_ratio_kinfly_over_rotorpy']:.2f}", file=sys.stderr)
     return 0
 

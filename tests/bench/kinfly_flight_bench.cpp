@@ -297,6 +297,12 @@ int main(int argc, char** argv) {
               test::kVisionDelayUs * 1e-6, kinfly::flight::EstimatorParams{}.vision_pos_std_m,
               test::kEightLengthM, test::kEightWidthM, test::kEightSpeedMS,
               test::kWindWorldMS.norm(), test::kWindDragNSM);
+  const Eigen::Vector3d& kp = position_params.p_gain_1_s2;
+  const Eigen::Vector3d& kv = position_params.v_gain_1_s;
+  const Eigen::Vector3d& ki = position_params.i_gain_1_s3;
+  std::printf("    \"p_gain_1_s2\": [%g, %g, %g], \"v_gain_1_s\": [%g, %g, %g], "
+              "\"i_gain_1_s3\": [%g, %g, %g],\n",
+              kp.x(), kp.y(), kp.z(), kv.x(), kv.y(), kv.z(), ki.x(), ki.y(), ki.z());
   std::printf("    \"targets\": {\"hover_rms_m\": %.2f, \"figure_eight_rms_m\": %.2f, "
               "\"wind_steady_error_m\": %.2f},\n",
               test::kHoverRmsTargetM, test::kFigureEightRmsTargetM, test::kWindSteadyErrorTargetM);

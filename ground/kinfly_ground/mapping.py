@@ -220,5 +220,10 @@ class Mapper:
                                            "corrected": segment.corrected}, segment_truth)
             if "corrected" in segment.evaluation:
                 T_map_truth = np.linalg.inv(segment.evaluation["corrected"]["T_truth_estimate"])
+                # Stamped no earlier than the last truth drawn during the flight (frames after
+                # the last keyframe have truth too), or a viewer at the end would show that.
+                drawn = (segment.ground_truth[segment.truth_drawn - 1][0]
+                         if segment.truth_drawn else 0)
                 state.view.ground_truth_aligned(
-                    last_utime, np.array([(T_map_truth @ T)[:3, 3] for _, T in segment_truth]))
+                    max(last_utime, drawn),
+                    np.array([(T_map_truth @ T)[:3, 3] for _, T in segment_truth]))

@@ -4,21 +4,13 @@
 #include <cmath>
 #include <string>
 
-#include "kinfly/flight/riccati.h"
+#include "axes_in_range.h"
 #include "kinfly/core/range_check.h"
+#include "kinfly/flight/riccati.h"
 
 namespace kinfly::flight {
 
 namespace {
-
-constexpr const char* kAxis[3] = {"roll", "pitch", "yaw"};
-
-Status axesInRange(const std::string& key, const Eigen::Vector3d& value, double lo, double hi,
-                   Bound lower = Bound::kClosed) {
-  return firstError(outOfRange(key + "." + kAxis[0], value(0), lo, hi, lower),
-                    outOfRange(key + "." + kAxis[1], value(1), lo, hi, lower),
-                    outOfRange(key + "." + kAxis[2], value(2), lo, hi, lower));
-}
 
 // Below this the two body z axes point opposite ways and the tilt rotation has no unique axis.
 constexpr double kAntiparallelCos = -1.0 + 1e-5;
@@ -26,23 +18,24 @@ constexpr double kAntiparallelCos = -1.0 + 1e-5;
 }  // namespace
 
 Status GeometricAttitudeParams::validate() const {
-  return firstError(axesInRange("attitude.geometric.p_gain_1_s", p_gain_1_s, 0.0, 100.0),
-                    axesInRange("attitude.geometric.rate_limit_rad_s", rate_limit_rad_s, 0.0,
-                                30.0, Bound::kOpen));
+  return firstError(
+      axesInRange("attitude.geometric.p_gain_1_s", p_gain_1_s, kBodyAxes, 0.0, 100.0),
+      axesInRange("attitude.geometric.rate_limit_rad_s", rate_limit_rad_s, kBodyAxes, 0.0, 30.0,
+                  Bound::kOpen));
 }
 
 Status LqrAttitudeParams::validate() const {
   return firstError(
       outOfRange("attitude.lqr.control_rate_hz", control_rate_hz, 50.0, 1e4),
-      axesInRange("attitude.lqr.attitude_weight_1_rad2", attitude_weight_1_rad2, 0.0, 1e10,
-                  Bound::kOpen),
-      axesInRange("attitude.lqr.rate_weight_s2_rad2", rate_weight_s2_rad2, 0.0, 1e10),
-      // Unweighted, the integral would be a mode at 1 the gain never moves: no stabilising P.
-      axesInRange("attitude.lqr.integral_weight_1_rad2_s2", integral_weight_1_rad2_s2, 0.0,
+      axesInRange("attitude.lqr.attitude_weight_1_rad2", attitude_weight_1_rad2, kBodyAxes, 0.0,
                   1e10, Bound::kOpen),
+      axesInRange("attitude.lqr.rate_weight_s2_rad2", rate_weight_s2_rad2, kBodyAxes, 0.0, 1e10),
+      // Unweighted, the integral would be a mode at 1 the gain never moves: no stabilising P.
+      axesInRange("attitude.lqr.integral_weight_1_rad2_s2", integral_weight_1_rad2_s2, kBodyAxes,
+                  0.0, 1e10, Bound::kOpen),
       outOfRange("attitude.lqr.accel_weight_s4_rad2", accel_weight_s4_rad2, 0.0, 1e6,
                  Bound::kOpen),
-      axesInRange("attitude.lqr.integral_limit_rad_s", integral_limit_rad_s, 0.0, 10.0),
+      axesInRange("attitude.lqr.integral_limit_rad_s", integral_limit_rad_s, kBodyAxes, 0.0, 10.0),
       outOfRange("attitude.lqr.integral_band_rad", integral_band_rad, 0.0, M_PI));
 }
 

@@ -6,6 +6,7 @@
 #include <limits>
 #include <string>
 
+#include "axes_in_range.h"
 #include "kinfly/core/range_check.h"
 
 namespace kinfly::flight {
@@ -16,7 +17,6 @@ using Eigen::Vector3d;
 
 constexpr double kUsToS = 1e-6;
 constexpr double kGeofenceLimitM = 1e4;
-constexpr const char* kAxis[3] = {"x", "y", "z"};
 
 // Heading about world z (down), the ZYX yaw.
 double yawRad(const Eigen::Quaterniond& q_world_body) {
@@ -81,8 +81,9 @@ Status FlightModeParams::validate() const {
       outOfRange("modes.max_rate_rad_s", max_rate_rad_s, 0, 100, Bound::kOpen),
       outOfRange("modes.attitude_limit_s", attitude_limit_s, 0, 1));
   for (int i = 0; i < 3 && status.ok(); ++i) {
-    const std::string min_key = std::string("modes.geofence_min_world_m.") + kAxis[i];
-    const std::string max_key = std::string("modes.geofence_max_world_m.") + kAxis[i];
+    const char* axis = kWorldAxes[static_cast<size_t>(i)];
+    const std::string min_key = std::string("modes.geofence_min_world_m.") + axis;
+    const std::string max_key = std::string("modes.geofence_max_world_m.") + axis;
     status = firstError(
         outOfRange(min_key, geofence_min_world_m[i], -kGeofenceLimitM, kGeofenceLimitM),
         outOfRange(max_key, geofence_max_world_m[i], -kGeofenceLimitM, kGeofenceLimitM));

@@ -4,29 +4,18 @@
 #include <cmath>
 #include <string>
 
+#include "axes_in_range.h"
 #include "kinfly/core/range_check.h"
 
 namespace kinfly::flight {
 
-namespace {
-
-constexpr const char* kAxis[3] = {"x", "y", "z"};
-
-Status axesInRange(const std::string& key, const Eigen::Vector3d& value, double lo, double hi) {
-  return firstError(outOfRange(key + "." + kAxis[0], value(0), lo, hi),
-                    outOfRange(key + "." + kAxis[1], value(1), lo, hi),
-                    outOfRange(key + "." + kAxis[2], value(2), lo, hi));
-}
-
-}  // namespace
-
 Status PositionControllerParams::validate() const {
   return firstError(
       outOfRange("position.rate_hz", rate_hz, 100.0, 1000.0),
-      axesInRange("position.p_gain_1_s2", p_gain_1_s2, 0.0, 100.0),
-      axesInRange("position.v_gain_1_s", v_gain_1_s, 0.0, 50.0),
-      axesInRange("position.i_gain_1_s3", i_gain_1_s3, 0.0, 200.0),
-      axesInRange("position.integral_limit_m_s2", integral_limit_m_s2, 0.0, 10.0),
+      axesInRange("position.p_gain_1_s2", p_gain_1_s2, kWorldAxes, 0.0, 100.0),
+      axesInRange("position.v_gain_1_s", v_gain_1_s, kWorldAxes, 0.0, 50.0),
+      axesInRange("position.i_gain_1_s3", i_gain_1_s3, kWorldAxes, 0.0, 200.0),
+      axesInRange("position.integral_limit_m_s2", integral_limit_m_s2, kWorldAxes, 0.0, 10.0),
       outOfRange("position.tilt_max_rad", tilt_max_rad, 0.0, 1.4, Bound::kOpen),
       // Below g, so that the vehicle can always be told to descend; above g at the top, so that
       // it can always climb.

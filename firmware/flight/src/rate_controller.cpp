@@ -5,29 +5,17 @@
 #include <cmath>
 #include <string>
 
+#include "axes_in_range.h"
 #include "kinfly/core/range_check.h"
 
 namespace kinfly::flight {
 
-namespace {
-
-constexpr const char* kAxis[3] = {"roll", "pitch", "yaw"};
-
-// Each axis of a per-axis gain within [lo, hi], named "rate.p_gain_1_s.roll".
-Status axesInRange(const std::string& key, const Eigen::Vector3d& value, double lo, double hi) {
-  return firstError(outOfRange(key + "." + kAxis[0], value(0), lo, hi),
-                        outOfRange(key + "." + kAxis[1], value(1), lo, hi),
-                        outOfRange(key + "." + kAxis[2], value(2), lo, hi));
-}
-
-}  // namespace
-
 Status RateController::Params::validate() const {
   return firstError(
-      axesInRange("rate.p_gain_1_s", p_gain_1_s, 0.0, 1000.0),
-      axesInRange("rate.i_gain_1_s2", i_gain_1_s2, 0.0, 1e4),
-      axesInRange("rate.d_gain", d_gain, 0.0, 1.0),
-      axesInRange("rate.integrator_limit_rad_s2", integrator_limit_rad_s2, 0.0, 1e3),
+      axesInRange("rate.p_gain_1_s", p_gain_1_s, kBodyAxes, 0.0, 1000.0),
+      axesInRange("rate.i_gain_1_s2", i_gain_1_s2, kBodyAxes, 0.0, 1e4),
+      axesInRange("rate.d_gain", d_gain, kBodyAxes, 0.0, 1.0),
+      axesInRange("rate.integrator_limit_rad_s2", integrator_limit_rad_s2, kBodyAxes, 0.0, 1e3),
       outOfRange("rate.d_cutoff_hz", d_cutoff_hz, 0.0, 500.0, Bound::kOpen));
 }
 

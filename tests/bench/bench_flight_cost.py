@@ -3,7 +3,7 @@
 
     python3 tests/bench/bench_flight_cost.py [--build build] [--out out/bench] [--ticks N]
 
-The stack is tests/firmware/flight_position.h's FlightStack (estimator predict every tick and the
+The stack is the library's FlightStack (flight_stack.h: estimator predict every tick and the
 30 Hz poses fused, flight modes, position loop at 100 Hz, attitude, rate, mixer), replayed alone
 on the sensors of one figure-eight flight (replayStack):
   - CPU time per tick on this machine: `kinfly-flight-bench --cost-only`, the median of its

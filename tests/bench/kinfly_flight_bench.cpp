@@ -75,15 +75,16 @@ StatusOr<StackCost> stackCost(const Vehicle& vehicle, int ticks, int repeats) {
   StackCost cost;
   double sink = 0.0;
   for (int r = 0; r < repeats; ++r) {
-    test::FlightStack stack(vehicle, *flight, log.init);
+    auto stack = test::makeStack(vehicle, *flight, log.init);
+    if (!stack.ok()) return stack.status();
     const double start_s = threadCpuS();
-    sink += test::replayStack(stack, log);
-    us_per_tick.push_back(1e6 * (threadCpuS() - start_s) / log.ticks());
-    cost.mode_at_end = toString(stack.modes().mode());
+    sink += test::replayStack(**stack, log);
+    us_per_tick.push_back(1e6 * (threadCpuS() - start_s) / log.count());
+    cost.mode_at_end = toString((*stack)->modes().mode());
   }
   if (!(sink > 0.0)) std::fprintf(stderr, "kinfly-flight-bench: no rotor turned\n");
   std::sort(us_per_tick.begin(), us_per_tick.end());
-  cost.ticks = log.ticks();
+  cost.ticks = log.count();
   cost.repeats = repeats;
   cost.us_per_tick_median = us_per_tick[us_per_tick.size() / 2];
   cost.us_per_tick_min = us_per_tick.front();

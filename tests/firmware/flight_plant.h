@@ -68,7 +68,24 @@ class FlightPlant {
     sum.rotor = k1.rotor + 2.0 * k2.rotor + 2.0 * k3.rotor + k4.rotor;
     state_ = advanced(state_, sum, dt_s / 6.0);
     sample_rate_hz_ = 1.0 / dt_s;
+    const Eigen::Vector3d v_free_world_m_s = state_.v_world_m_s;
+    touchGround();
+    // What the floor did to the velocity over the step, as the accelerometer feels it: the
+    // landing's jolt, and the floor's push against gravity while resting on it.
+    contact_accel_world_m_s2_ = (state_.v_world_m_s - v_free_world_m_s) / dt_s;
   }
+
+  // A floor at world height ground_z_m (z down): the body stops on it, level at its heading, and
+  // rests there until the thrust lifts it again. Landing is inelastic and sticky, as on skids.
+  void setGround(double ground_z_m) { ground_z_m_ = ground_z_m; }
+  // At rest on the floor at p_world_m, the rotors stopped.
+  void startOnGround(const Eigen::Vector3d& p_world_m) {
+    state_ = PlantState{};
+    state_.p_world_m = p_world_m;
+    setGround(p_world_m.z());
+    on_ground_ = true;
+  }
+  bool onGround() const { return on_ground_; }
 
   const PlantState& state() const { return state_; }
 
@@ -82,7 +99,8 @@ class FlightPlant {
   // the body, white noise at the rate of the last step.
   Eigen::Vector3d accelBodyMS2() {
     // The rotor command moves only the rotors' derivative, not the body's acceleration.
-    const Eigen::Vector3d a_world_m_s2 = derivative(state_, state_.rotor_speed_rad_s).v;
+    const Eigen::Vector3d a_world_m_s2 =
+        derivative(state_, state_.rotor_speed_rad_s).v + contact_accel_world_m_s2_;
     const Eigen::Vector3d specific_force_body_m_s2 =
         state_.q_world_body.conjugate() * (a_world_m_s2 - Eigen::Vector3d(0.0, 0.0, kGravityMS2));
     if (accel_noise_density_ == 0.0) return specific_force_body_m_s2;
@@ -91,6 +109,21 @@ class FlightPlant {
   }
 
  private:
+  void touchGround() {
+    on_ground_ = false;
+    if (std::isnan(ground_z_m_) || state_.p_world_m.z() < ground_z_m_) return;
+    if (derivative(state_, state_.rotor_speed_rad_s).v.z() < 0.0 && state_.v_world_m_s.z() < 0.0) {
+      return;  // lifting off
+    }
+    const Eigen::Vector3d x_body_world = state_.q_world_body * Eigen::Vector3d::UnitX();
+    state_.p_world_m.z() = ground_z_m_;
+    state_.v_world_m_s.setZero();
+    state_.omega_body_rad_s.setZero();
+    state_.q_world_body =
+        Eigen::AngleAxisd(std::atan2(x_body_world.y(), x_body_world.x()), Eigen::Vector3d::UnitZ());
+    on_ground_ = true;
+  }
+
   // Time derivative of the state; q holds dq/dt as a 4-vector (x, y, z, w).
   struct Derivative {
     Eigen::Vector3d p = Eigen::Vector3d::Zero();
@@ -147,6 +180,9 @@ class FlightPlant {
   Eigen::Vector3d wind_world_m_s_ = Eigen::Vector3d::Zero();
   double drag_n_s_m_ = 0.0;
   double sample_rate_hz_ = 1000.0;
+  double ground_z_m_ = NAN;  // no floor
+  Eigen::Vector3d contact_accel_world_m_s2_ = Eigen::Vector3d::Zero();
+  bool on_ground_ = false;
   Gaussian gaussian_;
 };
 

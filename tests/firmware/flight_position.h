@@ -1,8 +1,8 @@
 // The whole flight stack closed around the test plant (flight_plant.h): the estimator on the
 // plant's noisy IMU at 1 kHz and the odometry's noisy 30 Hz poses delivered 30 ms late
 // (vision_poses.h), the position loop on its estimate at its own rate, the attitude and rate
-// loops, the mixer and the flight modes at 1 kHz (FlightStack, one tick as the control task runs
-// it). And the flights issue 15 measures it on, with their figures: hover, a figure eight, a
+// loops, the mixer and the flight modes at 1 kHz (the library's FlightStack, as the control task
+// runs it), commanded through its modes as the ground would. And the flights issue 15 measures it on, with their figures: hover, a figure eight, a
 // steady wind; and a flight's sensors recorded, to fly the stack alone again for its cost. One
 // definition, for test_flight_position.cpp and kinfly-flight-bench, so the test and the
 // benchmark fly the same thing.
@@ -12,12 +12,14 @@
 #include <algorithm>
 #include <cmath>
 #include <deque>
+#include <memory>
 #include <optional>
 #include <vector>
 
 #include "flight_loop.h"
 #include "kinfly/flight/estimator.h"
 #include "kinfly/flight/flight_modes.h"
+#include "kinfly/flight/flight_stack.h"
 #include "kinfly/flight/position_controller.h"
 #include "kinfly/flight/trajectory.h"
 #include "vision_poses.h"
@@ -26,6 +28,7 @@ namespace kinfly::flight::test {
 
 constexpr double kAccelNoiseDensity = 7e-4;  // [m/s^2/sqrt(Hz)] an ICM-42688-class accelerometer
 constexpr int64_t kFlightStartUs = 1000000;  // a start after 0 keeps every utime positive
+constexpr int64_t kControlUs = 1000;         // kControlDtS in µs
 // The flights' place: 1 m above the world origin (z down).
 const Eigen::Vector3d kHoverWorldM(0.0, 0.0, -1.0);
 // Issue 15's steady wind, and a linear drag that turns it into a force: 0.15 N s/m at 2 m/s is
@@ -71,6 +74,10 @@ struct PositionFigures {
   bool lost_control = false;  // a tick asked to cut the motors or to hand over
 };
 
+inline void lostControlIf(const TickOutput& out, PositionFigures* figures) {
+  figures->lost_control = figures->lost_control || out.modes.cut_motors || out.modes.hand_over;
+}
+
 inline Pose poseOf(const PlantState& state) {
   Pose T_world_body = Pose::Identity();
   T_world_body.linear() = state.q_world_body.toRotationMatrix();
@@ -78,191 +85,177 @@ inline Pose poseOf(const PlantState& state) {
   return T_world_body;
 }
 
-// The flight stack as the control task runs it, one 1 kHz tick at a time: sense() the tick's IMU
-// sample (the estimator's prediction) and the odometry poses that arrived (fused, late), then
-// control(): the flight modes, the position loop every decimation-th tick, the attitude and rate
-// loops and the mixer. The modes run every tick on the estimator's health and state and are
-// commanded up to a mission as the ground would (arm, take off, mission), so that they take
-// their flying path; the setpoint is the flight's trajectory, sampled as mission mode follows
-// it, so that the flights' figures do not hang on the modes' own targets.
-class FlightStack {
- public:
-  // flight must outlive the stack.
-  FlightStack(const Vehicle& vehicle, const PositionFlight& flight, const EstimatorInit& init)
-      : flight_(flight),
-        weight_n_(vehicle.weightN()),
-        estimator_(EstimatorParams{}),
-        position_(flight.position, vehicle),
-        // The default parameters always build (test_flight_loop), so the value is there.
-        attitude_(*AttitudeController::create(AttitudeController::Params{}, vehicle)),
-        mixer_(vehicle),
-        modes_(FlightModeParams{}),
-        decimation_(static_cast<int>(std::lround(1.0 / (flight.position.rate_hz * kControlDtS)))) {
-    estimator_.initialise(init);
+// The ground's commands up to a mission, as a ground station sends them: one a tick, each
+// repeated until accepted (arming waits for the first fused pose).
+constexpr double kTakeOffHeightM = 1.0;
+inline std::optional<FlightCommand> towardsMission(FlightMode mode) {
+  FlightCommand command;
+  switch (mode) {
+    case FlightMode::kDisarmed: command.kind = CommandKind::kArm; return command;
+    case FlightMode::kArmed:
+      command.kind = CommandKind::kTakeOff;
+      command.height_m = kTakeOffHeightM;
+      return command;
+    case FlightMode::kTakeOff:
+    case FlightMode::kHold: command.kind = CommandKind::kMission; return command;
+    default: return std::nullopt;
   }
+}
 
-  // The IMU sample that closed the last tick and the poses that arrived by then.
-  void sense(const ImuSample& imu, const VisionPose* poses, size_t pose_count) {
-    estimator_.addImu(imu);
-    last_imu_utime_ = imu.utime;
-    for (size_t i = 0; i < pose_count; ++i) {
-      if (estimator_.addVision(poses[i]) == VisionOutcome::kFused) {
-        last_vision_utime_ = poses[i].utime;
-      }
-    }
-  }
+// The library's flight stack (flight_stack.h) for a flight: 1 kHz, the flight's position gains,
+// its trajectory loaded as the mission, the estimator started at `init`.
+inline StatusOr<std::unique_ptr<FlightStack>> makeStack(const Vehicle& vehicle,
+                                                        const PositionFlight& flight,
+                                                        const EstimatorInit& init) {
+  FlightStackParams params;
+  params.rate_hz = 1.0 / kControlDtS;
+  params.vehicle = vehicle.params();
+  params.position = flight.position;
+  auto stack = FlightStack::create(params);
+  if (!stack.ok()) return stack;
+  (*stack)->initialise(init);
+  if (Status loaded = (*stack)->loadMission(flight.trajectory); !loaded.ok()) return loaded;
+  return stack;
+}
 
-  // Tick k's rotor command, from the estimate as sense() left it.
-  MixerOutput control(int k) {
-    const double t_s = k * kControlDtS;
-    const EstimatorState state = estimator_.state();
-    FlightInputs inputs;
-    inputs.utime = kFlightStartUs + static_cast<int64_t>(k) * kControlUs;
-    inputs.estimator = estimator_.health();
-    inputs.state = state;
-    inputs.last_imu_utime = last_imu_utime_;
-    inputs.last_vision_utime = last_vision_utime_;
-    inputs.height_above_ground_m = -state.p_world_body_m.z();  // the ground at z = 0
-    inputs.thrust_ratio = command_.thrust_n / weight_n_;
-    const FlightOutput modes = modes_.update(inputs, nextCommand());
-    lost_control_ = lost_control_ || modes.cut_motors || modes.hand_over;
-    if (k % decimation_ == 0) {
-      command_ = position_.update(flight_.trajectory.sample(t_s), state, decimation_ * kControlDtS);
-    }
-    const Eigen::Vector3d moment_body_nm = attitude_.update(
-        state.q_world_body, command_.q_world_body_sp, state.omega_body_rad_s, kControlDtS,
-        saturation_);
-    const MixerOutput out = mixer_.mix({command_.thrust_n, moment_body_nm});
-    saturation_ = out.saturation;
-    return out;
-  }
-
-  const Estimator& estimator() const { return estimator_; }
-  const FlightModes& modes() const { return modes_; }
-  bool lostControl() const { return lost_control_; }
-
-  static constexpr int64_t kControlUs = 1000;  // kControlDtS in µs
-  static constexpr double kTakeOffHeightM = 1.0;
-
- private:
-  // The ground's commands up to a mission, one a tick, each repeated until accepted.
-  std::optional<FlightCommand> nextCommand() const {
-    FlightCommand command;
-    switch (modes_.mode()) {
-      case FlightMode::kDisarmed: command.kind = CommandKind::kArm; return command;
-      case FlightMode::kArmed:
-        command.kind = CommandKind::kTakeOff;
-        command.height_m = kTakeOffHeightM;
-        return command;
-      case FlightMode::kTakeOff: command.kind = CommandKind::kMission; return command;
-      default: return std::nullopt;
-    }
-  }
-
-  const PositionFlight& flight_;
-  double weight_n_;
-  Estimator estimator_;
-  PositionController position_;
-  AttitudeController attitude_;
-  Mixer mixer_;
-  FlightModes modes_;
-  int decimation_;
-  MixerSaturation saturation_;
-  PositionOutput command_;
-  int64_t last_imu_utime_ = -1;
-  int64_t last_vision_utime_ = -1;
-  bool lost_control_ = false;
-};
-
-// What a flight's stack sensed, tick by tick, to fly the stack again without the plant
+// What a flight's stack was given, tick by tick, to fly the stack again without the plant
 // (replayStack): with the same inputs it makes the same calls.
 struct SensorLog {
   EstimatorInit init;
-  std::vector<ImuSample> imu;      // tick k's closing sample
+  std::vector<TickInputs> ticks;   // tick k's inputs
+  std::vector<ImuSample> imu;      // the sample that closed tick k
   std::vector<VisionPose> poses;   // those that arrived in tick k: [poses_end[k-1], poses_end[k])
   std::vector<size_t> poses_end;
-  int ticks() const { return static_cast<int>(imu.size()); }
+  int count() const { return static_cast<int>(ticks.size()); }
 };
 
-// The stack's ticks [from, to) on the recorded sensors, alone (to < 0: to the end): what
+// The stack's ticks [from, to) on the recorded inputs, alone (to < 0: to the end): what
 // kinfly-flight-bench times and callgrind counts (--toggle-collect on this function's name). Not
 // inlined, so that it has a name; returns the rotor speeds' sum so that nothing is optimised away.
 [[gnu::noinline]] inline double replayStack(FlightStack& stack, const SensorLog& log, int from = 0,
                                             int to = -1) {
-  if (to < 0) to = log.ticks();
+  if (to < 0) to = log.count();
   double sink = 0.0;
   size_t first_pose = from > 0 ? log.poses_end[static_cast<size_t>(from - 1)] : 0;
   for (int k = from; k < to; ++k) {
-    sink += stack.control(k).rotor_speed_rad_s.sum();
-    const size_t end = log.poses_end[static_cast<size_t>(k)];
-    stack.sense(log.imu[static_cast<size_t>(k)], log.poses.data() + first_pose, end - first_pose);
-    first_pose = end;
+    const auto i = static_cast<size_t>(k);
+    sink += stack.tick(log.ticks[i]).mixer.rotor_speed_rad_s.sum();
+    stack.addImu(log.imu[i]);
+    for (size_t p = first_pose; p < log.poses_end[i]; ++p) stack.addVision(log.poses[p]);
+    first_pose = log.poses_end[i];
   }
   return sink;
 }
 
-// Flies the flight; with a log, records what the stack sensed.
+// The plant's sensors as the stack gets them after each tick: its IMU sample, and the odometry's
+// poses of the plant's camera at 30 Hz, noisy and delivered 30 ms late (vision_poses.h).
+class SensorFeed {
+ public:
+  SensorFeed(const EstimatorInit& init, uint32_t seed)
+      : T_odom_world_(init.T_world_odom.inverse()),
+        gaussian_(seed + 1000),  // the odometry's noise, apart from the IMU's
+        next_capture_utime_(init.utime + kVisionPeriodUs) {}
+
+  // The tick that ended at utime: its sample and the poses that arrived by then go to the stack
+  // and, with a log, into it.
+  void feed(FlightPlant& plant, int64_t utime, FlightStack& stack, SensorLog* log) {
+    ImuSample imu;
+    imu.utime = utime;
+    imu.gyro_rad_s = plant.gyroBodyRadS();
+    imu.accel_m_s2 = plant.accelBodyMS2();
+    if (utime >= next_capture_utime_) {
+      in_flight_.push_back(odometryPose(utime, poseOf(plant.state()), T_odom_world_,
+                                        EstimatorParams{}, gaussian_));
+      next_capture_utime_ += kVisionPeriodUs;
+    }
+    arrived_.clear();
+    while (!in_flight_.empty() && in_flight_.front().arrival_utime <= utime) {
+      arrived_.push_back(in_flight_.front().pose);
+      in_flight_.pop_front();
+    }
+    stack.addImu(imu);
+    for (const VisionPose& pose : arrived_) stack.addVision(pose);
+    if (log != nullptr) {
+      log->imu.push_back(imu);
+      log->poses.insert(log->poses.end(), arrived_.begin(), arrived_.end());
+      log->poses_end.push_back(log->poses.size());
+    }
+  }
+
+ private:
+  Pose T_odom_world_;
+  Gaussian gaussian_;
+  int64_t next_capture_utime_;
+  std::deque<Delivery> in_flight_;
+  std::vector<VisionPose> arrived_;
+};
+
+// The estimator's start for a body at rest at the plant's state; `odom` is the first camera.
+inline EstimatorInit initAt(const PlantState& state) {
+  EstimatorInit init;
+  init.utime = kFlightStartUs;
+  init.p_world_body_m = state.p_world_m;
+  init.T_world_odom = poseOf(state) * EstimatorParams{}.T_body_cam;
+  return init;
+}
+
+// The longest the ground's commands may take to bring the stack to its mission: arming waits
+// for the first pose (~63 ms), the line to the mission's start is short.
+constexpr double kMaxPreRollS = 1.0;
+
+// Flies the flight; with a log, records what the stack was given. The plant is held still where
+// the flight starts (not stepped, its sensors read at rest there) while the ground's commands
+// bring the stack to its mission, then released: the figures are of the mission's trajectory,
+// flown from its start, by the stack through its modes as in flight.
 inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight& flight,
                                    SensorLog* log = nullptr) {
   FlightPlant plant(vehicle, kGyroNoiseDensity, flight.seed, kAccelNoiseDensity);
   plant.startHovering(flight.trajectory.sample(0.0).p_world_m);
   plant.setWind(flight.wind_world_m_s, kWindDragNSM);
 
-  // The estimator starts where the body is, as after a take-off; `odom` is the first camera.
-  const EstimatorParams estimator_params;
-  EstimatorInit init;
-  init.utime = kFlightStartUs;
-  init.p_world_body_m = plant.state().p_world_m;
-  init.T_world_odom = poseOf(plant.state()) * estimator_params.T_body_cam;
-  FlightStack stack(vehicle, flight, init);
-  const Pose T_odom_world = init.T_world_odom.inverse();
-  Gaussian gaussian(flight.seed + 1000);  // the odometry's noise, apart from the IMU's
-  std::deque<Delivery> in_flight;
-  std::vector<VisionPose> arrived;
+  // The estimator starts where the body is, as after a take-off.
+  const EstimatorInit init = initAt(plant.state());
+  PositionFigures figures;
+  auto made = makeStack(vehicle, flight, init);
+  if (!made.ok()) return figures;  // NaN figures: every test on them fails
+  FlightStack& stack = **made;
+  SensorFeed sensors(init, flight.seed);
 
   const int ticks = controlTicks(flight.duration_s);
   const int tail_ticks = controlTicks(kTailS);
+  const int max_ticks = ticks + controlTicks(kMaxPreRollS);
   if (log != nullptr) {
     *log = SensorLog{};
     log->init = init;
-    log->imu.reserve(static_cast<size_t>(ticks));
-    log->poses_end.reserve(static_cast<size_t>(ticks));
+    log->ticks.reserve(static_cast<size_t>(max_ticks));
+    log->imu.reserve(static_cast<size_t>(max_ticks));
+    log->poses_end.reserve(static_cast<size_t>(max_ticks));
   }
   double sum_sq_m2 = 0.0, estimate_sum_sq_m2 = 0.0;
   int measured = 0;
-  PositionFigures figures;
   figures.max_m = 0.0;
   figures.tail_mean_m.setZero();
   int64_t utime = kFlightStartUs;
-  int64_t next_capture_utime = kFlightStartUs + kVisionPeriodUs;
-  for (int k = 0; k < ticks; ++k) {
-    const double t_s = k * kControlDtS;
-    const MixerOutput out = stack.control(k);
-    plant.step(out.rotor_speed_rad_s, kControlDtS);
+  int flown = -1;  // ticks since the plant's release; -1 while held
+  for (int k = 0; k < max_ticks && flown < ticks; ++k) {
+    TickInputs in;
+    in.utime = utime;
+    if (flown < 0) in.command = towardsMission(stack.modes().mode());
+    const TickOutput out = stack.tick(in);
+    if (log != nullptr) log->ticks.push_back(in);
+    lostControlIf(out, &figures);
+    if (flown < 0 && out.modes.mode == FlightMode::kMission &&
+        utime >= stack.missionStartUtime()) {
+      flown = 0;
+    }
+    if (flown >= 0) plant.step(out.mixer.rotor_speed_rad_s, kControlDtS);
 
-    utime += FlightStack::kControlUs;
-    ImuSample imu;
-    imu.utime = utime;
-    imu.gyro_rad_s = plant.gyroBodyRadS();
-    imu.accel_m_s2 = plant.accelBodyMS2();
-    if (utime >= next_capture_utime) {
-      in_flight.push_back(odometryPose(utime, poseOf(plant.state()), T_odom_world,
-                                       estimator_params, gaussian));
-      next_capture_utime += kVisionPeriodUs;
-    }
-    arrived.clear();
-    while (!in_flight.empty() && in_flight.front().arrival_utime <= utime) {
-      arrived.push_back(in_flight.front().pose);
-      in_flight.pop_front();
-    }
-    stack.sense(imu, arrived.data(), arrived.size());
-    if (log != nullptr) {
-      log->imu.push_back(imu);
-      log->poses.insert(log->poses.end(), arrived.begin(), arrived.end());
-      log->poses_end.push_back(log->poses.size());
-    }
+    utime += kControlUs;
+    sensors.feed(plant, utime, stack, log);
+    if (flown < 0) continue;
+    ++flown;
 
-    const double t_after_s = t_s + kControlDtS;
+    const double t_after_s = static_cast<double>(utime - stack.missionStartUtime()) * 1e-6;
     if (t_after_s < flight.measure_from_s) continue;
     const Eigen::Vector3d error_m =
         plant.state().p_world_m - flight.trajectory.sample(t_after_s).p_world_m;
@@ -271,13 +264,13 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
         (stack.estimator().state().p_world_body_m - plant.state().p_world_m).squaredNorm();
     ++measured;
     figures.max_m = std::max(figures.max_m, error_m.norm());
-    if (k >= ticks - tail_ticks) figures.tail_mean_m += error_m / tail_ticks;
+    if (flown > ticks - tail_ticks) figures.tail_mean_m += error_m / tail_ticks;
   }
+  if (flown < ticks) return PositionFigures{};  // never reached its mission: NaN figures
   figures.rms_m = std::sqrt(sum_sq_m2 / measured);
   figures.estimate_rms_m = std::sqrt(estimate_sum_sq_m2 / measured);
   figures.modes = stack.modes().counters();
   figures.final_mode = stack.modes().mode();
-  figures.lost_control = stack.lostControl();
   return figures;
 }
 

@@ -231,12 +231,15 @@ TEST(FlightModes, GoToEndsInHoldAtTheTargetAndAMissionInHoldWhereItFinished) {
   EXPECT_NEAR((out.setpoint.point_world_m - target).norm(), 0.0, kExactM);
   EXPECT_EQ(flight.events.back().reason, EventReason::kGoToReached);
 
+  EXPECT_EQ(flight.command(CommandKind::kMission).refusal, CommandRefusal::kNoMission);
+  flight.in().mission_loaded = true;
   ASSERT_TRUE(flight.command(CommandKind::kMission).accepted());
   EXPECT_EQ(flight.tick().setpoint.kind, SetpointKind::kMission);
   const Vector3d mission_end(2.0, 2.0, -3.0);
   flight.state().p_world_body_m = mission_end;
   EXPECT_EQ(flight.tick().mode, FlightMode::kMission);
   flight.in().mission_finished = true;
+  flight.in().mission_end_world_m = mission_end;
   out = flight.tick();
   EXPECT_EQ(out.mode, FlightMode::kHold);
   EXPECT_NEAR((out.setpoint.point_world_m - mission_end).norm(), 0.0, kExactM);
@@ -494,6 +497,7 @@ TEST(FlightModes, UpdateAllocatesNothing) {
   const int64_t before = g_allocations.load();
   flight.takeOffAndHold();
   flight.command(FlightCommand{CommandKind::kGoTo, 0.0, Vector3d(3.0, 0.0, -3.0)});
+  flight.in().mission_loaded = true;
   flight.command(CommandKind::kMission);
   flight.vision_fresh = false;
   flight.ground_fresh = false;

@@ -2,9 +2,11 @@
 // forward, yaw, tilt and thrust limits, the integral's anti-windup), the minimum-snap solve
 // against its closed form and its constraints, the simple trajectories, and the whole stack
 // closed around the test plant with the estimator on noisy, late poses (flight_position.h):
-// issue 15's hover, figure-eight and wind figures. The whole stack's tick allocates nothing.
+// issue 15's hover, figure-eight and wind figures, and the stack from the floor and back. The
+// whole stack's tick allocates nothing.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <vector>
@@ -167,9 +169,11 @@ TEST(Trajectory, RefusesBadInputsAndNamesThem) {
             "trajectory: 1 segment times for 2 segments");
   TrajectoryParams slow;
   slow.max_speed_m_s = 0.0;
-  EXPECT_EQ(Trajectory::goTo(a, b, slow, 0.0).status().message(),
+  EXPECT_EQ(Trajectory::minimumSnap({a, b}, slow, 0.0).status().message(),
             "trajectory.max_speed_m_s must be in (0, 20] (got 0)");
-  EXPECT_FALSE(Trajectory::land(a, -2.0, params, 0.0).ok());  // the ground above the start
+  TrajectoryParams gentle;
+  gentle.max_accel_m_s2 = 25.0;
+  EXPECT_EQ(gentle.validate().message(), "trajectory.max_accel_m_s2 must be in (0, 20] (got 25)");
 }
 
 TEST(Trajectory, OneSegmentIsTheClosedFormRestToRestMinimumSnap) {
@@ -229,42 +233,79 @@ TEST(Trajectory, AllocatedTimesReachTheMaxSpeed) {
   EXPECT_NEAR(peak_m_s, params.max_speed_m_s, 0.01 * params.max_speed_m_s);
 }
 
-TEST(Trajectory, GoToAndHold) {
-  const TrajectoryParams params;
+TEST(Trajectory, AllocatedTimesKeepTheMaxAcceleration) {
+  TrajectoryParams params;
+  params.max_speed_m_s = 5.0;  // fast enough that the acceleration is the tighter limit
+  params.max_accel_m_s2 = 2.0;
+  auto trajectory = Trajectory::minimumSnap(test::figureEightWaypoints(), params, 0.0);
+  ASSERT_TRUE(trajectory.ok());
+  double peak_m_s = 0.0, peak_m_s2 = 0.0;
+  for (double t_s = 0.0; t_s < trajectory->durationS(); t_s += 1e-3) {
+    const PositionSetpoint sp = trajectory->sample(t_s);
+    peak_m_s = std::max(peak_m_s, sp.v_world_m_s.norm());
+    peak_m_s2 = std::max(peak_m_s2, sp.a_world_m_s2.norm());
+  }
+  EXPECT_NEAR(peak_m_s2, params.max_accel_m_s2, 0.01 * params.max_accel_m_s2);
+  EXPECT_LT(peak_m_s, params.max_speed_m_s);
+}
+
+TEST(Trajectory, StraightLineFromRestToRestWithinBothLimits) {
+  TrajectoryParams params;
   const Vector3d from(0, 0, -1), to(3, -4, -2);
-  auto go = Trajectory::goTo(from, to, params, 0.0);
-  ASSERT_TRUE(go.ok());
-  EXPECT_LT((go->sample(0.0).p_world_m - from).norm(), kTight);
-  EXPECT_LT((go->sample(go->durationS()).p_world_m - to).norm(), kTight);
-  // The rest-to-rest polynomial's peak speed is 35/16 of its mean.
-  EXPECT_NEAR(go->durationS(), 35.0 / 16.0 * (to - from).norm() / params.max_speed_m_s, 1e-3);
-  auto stay = Trajectory::goTo(to, to, params, 0.0);
-  ASSERT_TRUE(stay.ok());
-  EXPECT_EQ(stay->durationS(), 0.0);
+  const StraightLine line(from, to, params, 0.4);
+  EXPECT_LT((line.sample(0.0).p_world_m - from).norm(), kTight);
+  EXPECT_LT((line.sample(line.durationS()).p_world_m - to).norm(), kTight);
+  EXPECT_EQ(line.sample(-1.0).p_world_m, from);
+  EXPECT_EQ(line.sample(NAN).p_world_m, to);
+  // At 1 m/s and 5 m/s^2 over 5.1 m the speed binds: the peak speed is 35/16 of the mean.
+  EXPECT_NEAR(line.durationS(), 35.0 / 16.0 * (to - from).norm() / params.max_speed_m_s, 1e-9);
+  double peak_m_s = 0.0, peak_m_s2 = 0.0;
+  for (double t_s = 0.0; t_s <= line.durationS(); t_s += 1e-4) {
+    const PositionSetpoint sp = line.sample(t_s);
+    peak_m_s = std::max(peak_m_s, sp.v_world_m_s.norm());
+    peak_m_s2 = std::max(peak_m_s2, sp.a_world_m_s2.norm());
+    // Along the line, never off it.
+    EXPECT_LT((sp.p_world_m - from).cross(to - from).norm(), 1e-9);
+  }
+  EXPECT_NEAR(peak_m_s, params.max_speed_m_s, 1e-6);
+  EXPECT_LE(peak_m_s2, params.max_accel_m_s2);
+  // The same polynomial as the two-point minimum snap solved in general (the KKT system).
+  auto solved = Trajectory::minimumSnapWithTimes({from, to}, {line.durationS()}, 0.4);
+  ASSERT_TRUE(solved.ok());
+  for (const double t_s : {0.1, 0.37, 0.5 * line.durationS(), line.durationS() - 0.2}) {
+    const PositionSetpoint a = line.sample(t_s), b = solved->sample(t_s);
+    EXPECT_LT((a.p_world_m - b.p_world_m).norm(), 1e-9) << t_s;
+    EXPECT_LT((a.v_world_m_s - b.v_world_m_s).norm(), 1e-8) << t_s;
+    EXPECT_LT((a.a_world_m_s2 - b.a_world_m_s2).norm(), 1e-7) << t_s;
+    EXPECT_LT((a.j_world_m_s3 - b.j_world_m_s3).norm(), 1e-6) << t_s;
+    EXPECT_EQ(a.yaw_rad, 0.4);
+  }
+  // A short hop: the acceleration binds.
+  const StraightLine hop(from, from + Vector3d(0.05, 0, 0), params, 0.0);
+  EXPECT_NEAR(hop.durationS(), std::sqrt(7.513188404399289 * 0.05 / params.max_accel_m_s2), 1e-9);
+  // No distance, no time.
+  EXPECT_EQ(StraightLine(to, to, params, 0.0).durationS(), 0.0);
   const PositionSetpoint held = Trajectory::hold(to, 1.0).sample(5.0);
   EXPECT_EQ(held.p_world_m, to);
   EXPECT_EQ(held.v_world_m_s, Vector3d::Zero());
   EXPECT_EQ(held.yaw_rad, 1.0);
 }
 
-TEST(Trajectory, LandDescendsAtTheSpeedAndStopsOnTheGround) {
+TEST(Trajectory, DescentReachesItsSpeedAndGoesOn) {
   const TrajectoryParams params;
   const Vector3d from(0.5, 0.2, -3.0);
-  auto land = Trajectory::land(from, 0.0, params, 0.0);
-  ASSERT_TRUE(land.ok());
-  const double ramp_s = params.land_speed_m_s / params.land_accel_m_s2;
-  EXPECT_NEAR(land->durationS(), 3.0 / params.land_speed_m_s + ramp_s, kTight);
-  const PositionSetpoint cruise = land->sample(0.5 * land->durationS());
-  EXPECT_NEAR(cruise.v_world_m_s.z(), params.land_speed_m_s, kTight);
-  EXPECT_NEAR(cruise.v_world_m_s.head<2>().norm(), 0.0, kTight);
-  const PositionSetpoint end = land->sample(land->durationS() - 1e-12);
-  EXPECT_NEAR(end.p_world_m.z(), 0.0, 1e-9);
-  EXPECT_NEAR(end.v_world_m_s.z(), 0.0, 1e-9);
-  EXPECT_EQ(end.p_world_m.head<2>(), from.head<2>());
-  // A drop too short for the speed: a triangle, still stopping on the ground.
-  auto hop = Trajectory::land(from, from.z() + 0.05, params, 0.0);
-  ASSERT_TRUE(hop.ok());
-  EXPECT_NEAR(hop->sample(hop->durationS() - 1e-12).p_world_m.z(), from.z() + 0.05, 1e-9);
+  const double speed_m_s = 0.5;
+  const Descent descent(from, speed_m_s, params, 0.0);
+  const double ramp_s = speed_m_s / params.max_accel_m_s2;
+  EXPECT_EQ(descent.sample(0.0).p_world_m, from);
+  EXPECT_NEAR(descent.sample(0.5 * ramp_s).a_world_m_s2.z(), params.max_accel_m_s2, kTight);
+  for (const double t_s : {ramp_s, 10.0, 100.0}) {  // it does not stop: the ground ends it
+    const PositionSetpoint sp = descent.sample(t_s);
+    EXPECT_NEAR(sp.v_world_m_s.z(), speed_m_s, kTight);
+    EXPECT_NEAR(sp.p_world_m.z(), from.z() + speed_m_s * (t_s - 0.5 * ramp_s), 1e-9);
+    EXPECT_EQ(sp.p_world_m.head<2>(), from.head<2>());
+    EXPECT_EQ(sp.v_world_m_s.head<2>(), Eigen::Vector2d::Zero());
+  }
 }
 
 // ---- Closed loop -------------------------------------------------------------------------------
@@ -279,7 +320,9 @@ void print(const char* name, const test::PositionFigures& f) {
 // A figure counts only when flown in mission mode throughout, with no failsafe on the way.
 void expectNoFailsafe(const test::PositionFigures& f) {
   EXPECT_FALSE(f.lost_control);
-  EXPECT_EQ(f.final_mode, FlightMode::kMission);
+  // Flying the mission at the end, or holding its last point after it.
+  EXPECT_TRUE(f.final_mode == FlightMode::kMission || f.final_mode == FlightMode::kHold)
+      << toString(f.final_mode);
   EXPECT_EQ(f.modes.vision_lost, 0);
   EXPECT_EQ(f.modes.estimator_diverged, 0);
   EXPECT_EQ(f.modes.attitude_limit, 0);
@@ -321,25 +364,112 @@ TEST(FlightPosition, SteadyWindLeavesNoSteadyError) {
   EXPECT_GT(proportional.tail_mean_m.norm(), 3.0 * test::kWindSteadyErrorTargetM);
 }
 
-TEST(FlightPosition, LandsOnTheGround) {
+TEST(FlightStackParams, DefaultsBuildAndARangeIsNamed) {
+  FlightStackParams params;
+  EXPECT_TRUE(FlightStack::create(params).ok());
+  params.rate_hz = 50.0;
+  EXPECT_EQ(FlightStack::create(params).status().message(),
+            "flight.rate_hz must be in [100, 4000] (got 50)");
+  params.rate_hz = 200.0;
+  params.position.rate_hz = 250.0;
+  EXPECT_EQ(FlightStack::create(params).status().message(),
+            "position.rate_hz (250.000000) must not exceed flight.rate_hz (200.000000)");
+  params = FlightStackParams();
+  params.trajectory.max_accel_m_s2 = 0.0;
+  EXPECT_EQ(FlightStack::create(params).status().message(),
+            "trajectory.max_accel_m_s2 must be in (0, 20] (got 0)");
+}
+
+TEST(FlightStack, AMissionIsNotReplacedWhileFlown) {
   const Vehicle vehicle{VehicleParams{}};
-  auto land = Trajectory::land(test::kHoverWorldM, 0.0, TrajectoryParams{}, 0.0);
-  ASSERT_TRUE(land.ok());
-  test::PositionFlight flight;
-  flight.trajectory = *land;
-  flight.duration_s = land->durationS() + 1.0;
-  flight.seed = kSeed;
-  const test::PositionFigures figures = test::flyPosition(vehicle, flight);
-  print("land from 1 m", figures);
-  expectNoFailsafe(figures);
-  // The descent is a setpoint ramp like the figure eight's, and the end a hold (the plant has
-  // no ground: "on the ground" is at the ground's height).
-  EXPECT_LE(figures.rms_m, test::kFigureEightRmsTargetM);
-  EXPECT_LT(figures.tail_mean_m.norm(), test::kWindSteadyErrorTargetM);
+  test::PositionFlight flight = test::hoverFlight(kSeed);
+  auto figure_eight = test::figureEightFlight(kSeed);
+  ASSERT_TRUE(figure_eight.ok());
+  flight.trajectory = figure_eight->trajectory;
+  flight.duration_s = 2.0;  // well inside the mission
+  test::SensorLog log;
+  const test::PositionFigures figures = test::flyPosition(vehicle, flight, &log);
+  ASSERT_EQ(figures.final_mode, FlightMode::kMission);
+  auto made = test::makeStack(vehicle, flight, log.init);
+  ASSERT_TRUE(made.ok());
+  test::replayStack(**made, log);
+  ASSERT_EQ((*made)->modes().mode(), FlightMode::kMission);
+  EXPECT_EQ((*made)->loadMission(Trajectory::hold(test::kHoverWorldM, 0.0)).message(),
+            "flight: a mission is being flown; hold or land before loading another");
+}
+
+// From the floor and back, by the modes alone, as the ground commands it: arm, take off to 1 m,
+// hold, land; the descent goes on until the landed detector sees the thrust fall against the
+// floor, and disarms.
+TEST(FlightStack, TakesOffFromTheFloorLandsAndDisarms) {
+  const Vehicle vehicle{VehicleParams{}};
+  test::FlightPlant plant(vehicle, test::kGyroNoiseDensity, kSeed, test::kAccelNoiseDensity);
+  plant.startOnGround(Vector3d(0.3, -0.2, 0.0));
+  const EstimatorInit init = test::initAt(plant.state());
+  FlightStackParams params;
+  params.vehicle = vehicle.params();
+  auto made = FlightStack::create(params);
+  ASSERT_TRUE(made.ok()) << made.status().message();
+  FlightStack& stack = **made;
+  stack.initialise(init);
+  test::SensorFeed sensors(init, kSeed);
+
+  constexpr double kHoldS = 2.0;
+  constexpr double kMaxFlightS = 15.0;  // take-off ~2 s, hold, 1 m at 0.5 m/s, landed 1 s
+  int64_t utime = test::kFlightStartUs, hold_since_utime = -1, land_utime = -1;
+  double highest_m = 0.0;
+  bool left_ground = false;
+  while (utime < test::kFlightStartUs + static_cast<int64_t>(kMaxFlightS * 1e6)) {
+    TickInputs in;
+    in.utime = utime;
+    const FlightMode mode = stack.modes().mode();
+    if (mode == FlightMode::kDisarmed && land_utime < 0) {
+      in.command = FlightCommand{CommandKind::kArm};
+    } else if (mode == FlightMode::kArmed) {
+      in.command = FlightCommand{CommandKind::kTakeOff, test::kTakeOffHeightM};
+    } else if (mode == FlightMode::kHold) {
+      if (hold_since_utime < 0) hold_since_utime = utime;
+      if (utime - hold_since_utime >= static_cast<int64_t>(kHoldS * 1e6)) {
+        in.command = FlightCommand{CommandKind::kLand};
+      }
+    }
+    const TickOutput out = stack.tick(in);
+    if (out.modes.command && out.modes.command->accepted() &&
+        out.modes.command->kind == CommandKind::kLand) {
+      land_utime = utime;
+    }
+    if (land_utime >= 0 && out.modes.mode == FlightMode::kDisarmed) break;
+    ASSERT_TRUE(out.send_rotor_speeds);
+    plant.step(out.mixer.rotor_speed_rad_s, test::kControlDtS);
+    left_ground = left_ground || !plant.onGround();
+    highest_m = std::max(highest_m, -plant.state().p_world_m.z());
+    utime += test::kControlUs;
+    sensors.feed(plant, utime, stack, nullptr);
+  }
+  const FlightCounters& counters = stack.modes().counters();
+  std::printf("[flight] floor to 1 m and back: highest %.3f m, landed %.2f s after the land "
+              "command, %.3f m from the take-off point\n",
+              highest_m, 1e-6 * static_cast<double>(utime - land_utime),
+              (plant.state().p_world_m - Vector3d(0.3, -0.2, 0.0)).norm());
+  EXPECT_TRUE(left_ground);
+  ASSERT_GE(land_utime, 0) << "never held long enough to land";
+  EXPECT_EQ(stack.modes().mode(), FlightMode::kDisarmed);
+  EXPECT_EQ(counters.landed_disarms, 1);
+  EXPECT_EQ(counters.vision_lost + counters.estimator_diverged + counters.attitude_limit +
+                counters.imu_lost + counters.geofence,
+            0);
+  EXPECT_TRUE(plant.onGround());
+  EXPECT_NEAR(highest_m, test::kTakeOffHeightM, 0.1);
+  // Down at the land speed, then the landed detector's time; a second's slack.
+  const double landing_s = 1e-6 * static_cast<double>(utime - land_utime);
+  EXPECT_LT(landing_s, test::kTakeOffHeightM / params.modes.land_speed_m_s +
+                           params.modes.landed_time_s + 1.0);
+  // It came down where it went up: hold and land keep x and y.
+  EXPECT_LT((plant.state().p_world_m.head<2>() - Eigen::Vector2d(0.3, -0.2)).norm(), 0.1);
 }
 
 // The whole stack's tick as the control task runs it (FlightStack: estimator predict and late
-// poses fused, flight modes, the position loop with the trajectory sampled, attitude, rate,
+// poses fused, flight modes, the position loop on the mission's trajectory, attitude, rate,
 // mixer) allocates nothing once flying: the figure eight's sensors replayed into a fresh stack,
 // counted after its first second (the take-off commands, the first poses fused).
 TEST(FlightPosition, StackTickAllocatesNothingInSteadyState) {
@@ -349,15 +479,18 @@ TEST(FlightPosition, StackTickAllocatesNothingInSteadyState) {
   test::SensorLog log;
   test::flyPosition(vehicle, *flight, &log);
   const int warm_up_ticks = static_cast<int>(1.0 / test::kControlDtS);
-  ASSERT_GT(log.ticks(), 2 * warm_up_ticks);
-  test::FlightStack stack(vehicle, *flight, log.init);
+  ASSERT_GT(log.count(), 2 * warm_up_ticks);
+  auto made = test::makeStack(vehicle, *flight, log.init);
+  ASSERT_TRUE(made.ok()) << made.status().message();
+  FlightStack& stack = **made;
   double sink = test::replayStack(stack, log, 0, warm_up_ticks);
   const int64_t before = g_allocations;
   sink += test::replayStack(stack, log, warm_up_ticks);
   const int64_t allocations = g_allocations - before;
   EXPECT_EQ(allocations, 0);
   EXPECT_GT(sink, 0.0);
-  EXPECT_EQ(stack.modes().mode(), FlightMode::kMission);
+  // Through the mission's end to the hold at its last point.
+  EXPECT_EQ(stack.modes().mode(), FlightMode::kHold);
   EXPECT_GT(stack.estimator().health().vision_fused_count, 0);
 }
 

@@ -267,7 +267,7 @@ void FlightModes::progress(const FlightInputs& in, FlightOutput& out) {
       break;
     case FlightMode::kMission:
       if (in.mission_finished) {
-        setpoint_ = setpointAt(SetpointKind::kHold, p_world_m, in);
+        setpoint_ = setpointAt(SetpointKind::kHold, in.mission_end_world_m, in);
         setMode(FlightMode::kHold, EventReason::kMissionFinished, in, out);
       }
       break;
@@ -347,6 +347,10 @@ CommandResult FlightModes::handle(const FlightCommand& command, const FlightInpu
       if (refusal == CommandRefusal::kNone && command.kind == CommandKind::kMission &&
           !insideGeofence(p_world_m)) {
         refusal = CommandRefusal::kOutsideGeofence;
+      }
+      if (refusal == CommandRefusal::kNone && command.kind == CommandKind::kMission &&
+          !in.mission_loaded) {
+        refusal = CommandRefusal::kNoMission;
       }
       if (refusal != CommandRefusal::kNone) break;
       // A mission already under way goes on: restarting it is the trajectory's business.
@@ -446,6 +450,7 @@ const char* toString(CommandRefusal refusal) {
     case CommandRefusal::kOnGround: return "on the ground: take off first";
     case CommandRefusal::kAirborne: return "flying: land first";
     case CommandRefusal::kNoControl: return "motors cut or the autopilot has control";
+    case CommandRefusal::kNoMission: return "no mission loaded";
   }
   return "?";
 }

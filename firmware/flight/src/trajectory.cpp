@@ -2,6 +2,7 @@
 
 #include <Eigen/LU>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <string>
 #include <utility>
@@ -16,8 +17,9 @@ constexpr int kN = Trajectory::kCoefficients;
 constexpr int kSnap = 4;  // the derivative whose square is minimised
 // Velocity, acceleration and jerk are zero at both ends: rest to rest.
 constexpr int kEndDerivatives = 3;
-// Speed is sampled this often per segment to find the peak the time allocation scales to; the
-// peak of a degree-7 segment moves by well under 1 % between such samples.
+// Speed and acceleration are sampled this often per segment to find the peaks the time
+// allocation scales to; the peak of a degree-7 segment moves by well under 1 % between such
+// samples.
 constexpr int kSpeedSamplesPerSegment = 64;
 // [m] A segment between two (nearly) equal waypoints still gets time, as if it were this long.
 constexpr double kMinAllocatedLengthM = 0.05;
@@ -60,8 +62,7 @@ Status checkWaypoints(const std::vector<Eigen::Vector3d>& waypoints_world_m) {
 Status TrajectoryParams::validate() const {
   return firstError(
       outOfRange("trajectory.max_speed_m_s", max_speed_m_s, 0.0, 20.0, Bound::kOpen),
-      outOfRange("trajectory.land_speed_m_s", land_speed_m_s, 0.0, 5.0, Bound::kOpen),
-      outOfRange("trajectory.land_accel_m_s2", land_accel_m_s2, 0.0, 10.0, Bound::kOpen));
+      outOfRange("trajectory.max_accel_m_s2", max_accel_m_s2, 0.0, 20.0, Bound::kOpen));
 }
 
 Trajectory::Trajectory(std::vector<Segment> segments, const Eigen::Vector3d& first_world_m,
@@ -172,72 +173,29 @@ StatusOr<Trajectory> Trajectory::minimumSnap(const std::vector<Eigen::Vector3d>&
   auto trajectory = minimumSnapWithTimes(waypoints_world_m, times_s, yaw_rad);
   if (!trajectory.ok()) return trajectory;
   // Scaling every time by alpha gives p(t / alpha), the same shape (the cost scales as a whole
-  // and the constraints are unchanged in normalised time) at 1 / alpha the speed.
-  double peak_m_s = 0.0;
+  // and the constraints are unchanged in normalised time) at 1 / alpha the speed and 1 / alpha^2
+  // the acceleration.
+  double peak_m_s = 0.0, peak_m_s2 = 0.0;
   for (int i = 0; i < trajectory->segmentCount(); ++i) {
     const Segment& segment = trajectory->segments_[i];
     for (int j = 0; j <= kSpeedSamplesPerSegment; ++j) {
       const double t_s = segment.start_s + segment.duration_s * j / kSpeedSamplesPerSegment;
-      peak_m_s = std::max(peak_m_s, trajectory->sample(t_s).v_world_m_s.norm());
+      const PositionSetpoint sp = trajectory->sample(t_s);
+      peak_m_s = std::max(peak_m_s, sp.v_world_m_s.norm());
+      peak_m_s2 = std::max(peak_m_s2, sp.a_world_m_s2.norm());
     }
   }
   if (peak_m_s == 0.0) return Trajectory::hold(waypoints_world_m.front(), yaw_rad);
+  const double alpha = std::max(peak_m_s / params.max_speed_m_s,
+                                std::sqrt(peak_m_s2 / params.max_accel_m_s2));
   std::vector<Segment> scaled = trajectory->segments_;
-  for (Segment& segment : scaled) segment.duration_s *= peak_m_s / params.max_speed_m_s;
+  for (Segment& segment : scaled) segment.duration_s *= alpha;
   return Trajectory(std::move(scaled), waypoints_world_m.front(), waypoints_world_m.back(),
                     yaw_rad);
 }
 
 Trajectory Trajectory::hold(const Eigen::Vector3d& p_world_m, double yaw_rad) {
   return Trajectory({}, p_world_m, p_world_m, yaw_rad);
-}
-
-StatusOr<Trajectory> Trajectory::goTo(const Eigen::Vector3d& p_from_world_m,
-                                      const Eigen::Vector3d& p_to_world_m,
-                                      const TrajectoryParams& params, double yaw_rad) {
-  if (Status valid = params.validate(); !valid.ok()) return valid;
-  // Zero length: no time to allocate, nothing to fly.
-  if (finite(p_from_world_m) && p_from_world_m == p_to_world_m) return hold(p_to_world_m, yaw_rad);
-  return minimumSnap({p_from_world_m, p_to_world_m}, params, yaw_rad);
-}
-
-StatusOr<Trajectory> Trajectory::land(const Eigen::Vector3d& p_from_world_m, double ground_z_m,
-                                      const TrajectoryParams& params, double yaw_rad) {
-  if (Status valid = params.validate(); !valid.ok()) return valid;
-  if (!finite(p_from_world_m)) return Status::error("trajectory: land's start is not finite");
-  if (!std::isfinite(yaw_rad)) return Status::error("trajectory: yaw_rad is not finite");
-  if (!std::isfinite(ground_z_m) || !(ground_z_m > p_from_world_m.z())) {
-    return Status::error("trajectory: land's ground_z_m must be below the start (z down: above " +
-                         std::to_string(p_from_world_m.z()) + ", got " +
-                         std::to_string(ground_z_m) + ")");
-  }
-  const double drop_m = ground_z_m - p_from_world_m.z();
-  const double a = params.land_accel_m_s2;
-  // Too short a drop to reach the speed: speed up to halfway and slow down again.
-  const double speed_m_s = std::min(params.land_speed_m_s, std::sqrt(a * drop_m));
-  const double ramp_s = speed_m_s / a;
-  const double ramp_m = 0.5 * a * ramp_s * ramp_s;
-  const double cruise_s = (drop_m - 2.0 * ramp_m) / speed_m_s;
-
-  // z(s) over each piece in its normalised time s: speeding up, cruising, slowing down.
-  auto piece = [&](double duration_s, double z0_m, double v0_m_s, double accel_m_s2) {
-    Segment segment;
-    segment.duration_s = duration_s;
-    segment.coeffs.row(0) = p_from_world_m.transpose();
-    segment.coeffs(0, 2) = z0_m;
-    segment.coeffs(1, 2) = v0_m_s * duration_s;
-    segment.coeffs(2, 2) = 0.5 * accel_m_s2 * duration_s * duration_s;
-    return segment;
-  };
-  std::vector<Segment> segments;
-  segments.push_back(piece(ramp_s, p_from_world_m.z(), 0.0, a));
-  if (cruise_s > 0.0) {
-    segments.push_back(piece(cruise_s, p_from_world_m.z() + ramp_m, speed_m_s, 0.0));
-  }
-  segments.push_back(piece(ramp_s, ground_z_m - ramp_m, speed_m_s, -a));
-  Eigen::Vector3d ground_world_m = p_from_world_m;
-  ground_world_m.z() = ground_z_m;
-  return Trajectory(std::move(segments), p_from_world_m, ground_world_m, yaw_rad);
 }
 
 PositionSetpoint Trajectory::sample(double t_s) const {
@@ -261,6 +219,71 @@ PositionSetpoint Trajectory::sample(double t_s) const {
                                    &sp.j_world_m_s3};
   for (int k = 0; k < 4; ++k) {
     *out[k] = (derivativeRow(k, s, segment.duration_s, 1.0) * segment.coeffs).transpose();
+  }
+  return sp;
+}
+
+namespace {
+// σ(s) = 35 s^4 - 84 s^5 + 70 s^6 - 20 s^7 and its first three derivatives, all but σ zero at
+// s = 0 and σ - 1 with them at s = 1: rest at both ends. Its peak slope, at s = 1/2, is 35/16;
+// its peak curvature, at s = (5 - √5) / 10, 7.5132 (where the third derivative is zero).
+constexpr double kRestToRestPeakSpeed = 35.0 / 16.0;
+constexpr double kRestToRestPeakAccel = 7.513188404399289;
+
+std::array<double, 4> restToRest(double s) {
+  const double s2 = s * s, s3 = s2 * s, s4 = s3 * s;
+  return {s4 * (35.0 - 84.0 * s + 70.0 * s2 - 20.0 * s3),
+          s3 * (140.0 - 420.0 * s + 420.0 * s2 - 140.0 * s3),
+          s2 * (420.0 - 1680.0 * s + 2100.0 * s2 - 840.0 * s3),
+          s * (840.0 - 5040.0 * s + 8400.0 * s2 - 4200.0 * s3)};
+}
+}  // namespace
+
+StraightLine::StraightLine(const Eigen::Vector3d& from_world_m, const Eigen::Vector3d& to_world_m,
+                           const TrajectoryParams& params, double yaw_rad)
+    : from_world_m_(from_world_m), delta_m_(to_world_m - from_world_m), yaw_rad_(yaw_rad) {
+  const double length_m = delta_m_.norm();
+  duration_s_ = std::max(kRestToRestPeakSpeed * length_m / params.max_speed_m_s,
+                         std::sqrt(kRestToRestPeakAccel * length_m / params.max_accel_m_s2));
+}
+
+PositionSetpoint StraightLine::sample(double t_s) const {
+  PositionSetpoint sp;
+  sp.yaw_rad = yaw_rad_;
+  if (!(t_s < duration_s_)) {  // after the end (a zero length too, and NaN): at rest there
+    sp.p_world_m = from_world_m_ + delta_m_;
+    return sp;
+  }
+  const double s = std::max(t_s, 0.0) / duration_s_;
+  const std::array<double, 4> sigma = restToRest(s);
+  const double T = duration_s_;
+  sp.p_world_m = from_world_m_ + delta_m_ * sigma[0];
+  sp.v_world_m_s = delta_m_ * (sigma[1] / T);
+  sp.a_world_m_s2 = delta_m_ * (sigma[2] / (T * T));
+  sp.j_world_m_s3 = delta_m_ * (sigma[3] / (T * T * T));
+  return sp;
+}
+
+Descent::Descent(const Eigen::Vector3d& from_world_m, double speed_m_s,
+                 const TrajectoryParams& params, double yaw_rad)
+    : from_world_m_(from_world_m),
+      speed_m_s_(speed_m_s),
+      accel_m_s2_(params.max_accel_m_s2),
+      yaw_rad_(yaw_rad) {}
+
+PositionSetpoint Descent::sample(double t_s) const {
+  PositionSetpoint sp;
+  sp.yaw_rad = yaw_rad_;
+  sp.p_world_m = from_world_m_;
+  const double t = std::isfinite(t_s) ? std::max(t_s, 0.0) : 0.0;
+  const double ramp_s = speed_m_s_ / accel_m_s2_;
+  if (t < ramp_s) {
+    sp.p_world_m.z() += 0.5 * accel_m_s2_ * t * t;
+    sp.v_world_m_s.z() = accel_m_s2_ * t;
+    sp.a_world_m_s2.z() = accel_m_s2_;
+  } else {
+    sp.p_world_m.z() += 0.5 * speed_m_s_ * ramp_s + speed_m_s_ * (t - ramp_s);
+    sp.v_world_m_s.z() = speed_m_s_;
   }
   return sp;
 }

@@ -101,6 +101,7 @@ enum class CommandRefusal {
   kOnGround,             // hold, go-to, mission and land need a take-off first
   kAirborne,             // take-off while flying, disarm before landed
   kNoControl,            // the rotors are cut or the autopilot has control
+  kNoMission,            // a mission command with no mission loaded
 };
 
 struct CommandResult {
@@ -173,8 +174,11 @@ struct FlightInputs {
   int64_t last_imu_utime = -1;      // [µs] the last IMU sample's; -1 before any
   int64_t last_vision_utime = -1;   // [µs] capture of the last fused pose; -1 before any
   int64_t last_ground_utime = -1;   // [µs] the last ground status's arrival; -1 before any
-  // The mission's trajectory has ended; cleared by the caller when a mission starts.
+  // A mission is loaded; its trajectory has ended (cleared by the caller when one starts), and
+  // where: a finished mission holds its last point.
+  bool mission_loaded = false;
   bool mission_finished = false;
+  Eigen::Vector3d mission_end_world_m = Eigen::Vector3d::Zero();
   // Landed detection: above the ground under the body (a rangefinder, the depth image, or the
   // start's height), and the collective thrust last commanded over the weight: 0 while kinfly
   // commands none (handed over, motors cut), or a drone the autopilot landed could never disarm.

@@ -1,7 +1,7 @@
 // Setpoints for the position loop over time: minimum-snap polynomial trajectories through
-// waypoints (Mellinger and Kumar, ICRA 2011), and the simple ones a flight mode needs: hold a
-// point, go to a point (a rest-to-rest minimum-snap), land (descend at a set speed to the
-// ground) (docs/flight.md, "Trajectories").
+// waypoints (Mellinger and Kumar, ICRA 2011) for missions, and the simple ones the flight modes
+// start inside the control tick: a straight line from rest to rest (take-off, go-to) and a
+// descent that does not stop (land) (docs/flight.md, "Trajectories").
 //
 // A trajectory is built once, outside the control tick (it allocates and, for minimum snap,
 // solves a linear system); sample() is const and allocates nothing. Every trajectory is a chain
@@ -21,10 +21,12 @@ namespace kinfly::flight {
 struct TrajectoryParams {
   // [m/s] (0, 20] allocated segment times give this peak speed (times proportional to the
   // segment lengths, then all scaled together: a uniform time scale leaves the minimum-snap
-  // shape unchanged, so one solve suffices).
+  // shape unchanged, so one solve suffices) ...
   double max_speed_m_s = 1.0;
-  double land_speed_m_s = 0.5;   // [m/s] (0, 5] descent speed when landing
-  double land_accel_m_s2 = 1.0;  // [m/s^2] (0, 10] to reach it and to stop at the ground
+  // [m/s^2] (0, 20] ... or, where that is the tighter limit, this peak acceleration (scaling
+  // the times by a scales it by 1 / a^2). PX4's MPC_ACC_HOR_MAX default; a descent reaches its
+  // speed at this rate.
+  double max_accel_m_s2 = 5.0;
   Status validate() const;
 };
 
@@ -47,16 +49,6 @@ class Trajectory {
   static StatusOr<Trajectory> minimumSnap(const std::vector<Eigen::Vector3d>& waypoints_world_m,
                                           const TrajectoryParams& params, double yaw_rad);
   static Trajectory hold(const Eigen::Vector3d& p_world_m, double yaw_rad);
-  // Rest to rest from p_from to p_to, its time allocated for params.max_speed_m_s; a hold when
-  // the two are the same point.
-  static StatusOr<Trajectory> goTo(const Eigen::Vector3d& p_from_world_m,
-                                   const Eigen::Vector3d& p_to_world_m,
-                                   const TrajectoryParams& params, double yaw_rad);
-  // Straight down (world z grows) from p_from to the height ground_z_m: speeds up at
-  // land_accel_m_s2 to land_speed_m_s, descends, and slows down at the same rate to stop on the
-  // ground (a triangle profile when the drop is too short to reach the speed).
-  static StatusOr<Trajectory> land(const Eigen::Vector3d& p_from_world_m, double ground_z_m,
-                                   const TrajectoryParams& params, double yaw_rad);
 
   // Allocation-free. t_s from the trajectory's start.
   PositionSetpoint sample(double t_s) const;
@@ -81,6 +73,49 @@ class Trajectory {
   Eigen::Vector3d first_world_m_;
   Eigen::Vector3d last_world_m_;
   double duration_s_ = 0.0;
+  double yaw_rad_ = 0.0;
+};
+
+// From rest at one point to rest at another along the straight line between them, in closed
+// form: the two-point minimum-snap polynomial p(s) = p0 + (p1 - p0) σ(s) with
+// σ(s) = 35 s^4 - 84 s^5 + 70 s^6 - 20 s^7, s = t / T, T the shortest time that keeps the peak
+// speed (35/16 |p1 - p0| / T) and acceleration (7.513 |p1 - p0| / T^2) within the params.
+// Made and sampled without allocating or solving: the flight modes start one inside the control
+// tick (take-off, go-to, the way to a mission's start).
+class StraightLine {
+ public:
+  StraightLine() = default;  // at rest at the origin
+  // from and to finite, params valid: the caller checks them once (FlightStack's params, the
+  // modes' targets).
+  StraightLine(const Eigen::Vector3d& from_world_m, const Eigen::Vector3d& to_world_m,
+               const TrajectoryParams& params, double yaw_rad);
+  PositionSetpoint sample(double t_s) const;
+  double durationS() const { return duration_s_; }
+
+ private:
+  Eigen::Vector3d from_world_m_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d delta_m_ = Eigen::Vector3d::Zero();
+  double duration_s_ = 0.0;
+  double yaw_rad_ = 0.0;
+};
+
+// Straight down from a point (world z grows), speeding up at params.max_accel_m_s2 to the
+// descent speed and then on at that speed without end: the landed detector, not the
+// trajectory, ends a landing. The drone meets the ground at the set speed and the loop pushes
+// on into it until the thrust falls under the landed ratio, as PX4's land mode does; a descent
+// that stopped at the ground height it believed in would hover above a floor that is lower.
+// Allocation-free like StraightLine.
+class Descent {
+ public:
+  Descent() = default;
+  Descent(const Eigen::Vector3d& from_world_m, double speed_m_s, const TrajectoryParams& params,
+          double yaw_rad);
+  PositionSetpoint sample(double t_s) const;
+
+ private:
+  Eigen::Vector3d from_world_m_ = Eigen::Vector3d::Zero();
+  double speed_m_s_ = 0.0;
+  double accel_m_s2_ = 1.0;
   double yaw_rad_ = 0.0;
 };
 

@@ -1,0 +1,206 @@
+#include "kinfly/flight/flight_stack.h"
+
+#include <utility>
+
+#include "kinfly/core/range_check.h"
+
+namespace kinfly::flight {
+namespace {
+
+constexpr double kUsPerS = 1e6;
+
+bool flies(FlightMode mode) {
+  switch (mode) {
+    case FlightMode::kTakeOff:
+    case FlightMode::kHold:
+    case FlightMode::kGoTo:
+    case FlightMode::kMission:
+    case FlightMode::kLand:
+    case FlightMode::kDescend: return true;
+    default: return false;
+  }
+}
+
+bool sameSetpoint(const ModeSetpoint& a, const ModeSetpoint& b) {
+  return a.kind == b.kind && a.point_world_m == b.point_world_m && a.yaw_rad == b.yaw_rad &&
+         a.descent_speed_m_s == b.descent_speed_m_s;
+}
+
+}  // namespace
+
+Status FlightStackParams::validate() const {
+  if (Status valid = firstError(outOfRange("flight.rate_hz", rate_hz, 100.0, 4000.0),
+                                vehicle.validate(), estimator.validate(), modes.validate(),
+                                position.validate(), attitude.validate(), trajectory.validate());
+      !valid.ok()) {
+    return valid;
+  }
+  if (position.rate_hz > rate_hz) {
+    return Status::error("position.rate_hz (" + std::to_string(position.rate_hz) +
+                         ") must not exceed flight.rate_hz (" + std::to_string(rate_hz) + ")");
+  }
+  return {};
+}
+
+StatusOr<std::unique_ptr<FlightStack>> FlightStack::create(const FlightStackParams& params) {
+  if (Status valid = params.validate(); !valid.ok()) return valid;
+  const Vehicle vehicle(params.vehicle);
+  auto attitude = AttitudeController::create(params.attitude, vehicle);
+  if (!attitude.ok()) return attitude.status();
+  return std::unique_ptr<FlightStack>(new FlightStack(params, *std::move(attitude)));
+}
+
+FlightStack::FlightStack(const FlightStackParams& params, AttitudeController attitude)
+    : params_(params),
+      vehicle_(params.vehicle),
+      estimator_(params.estimator),
+      modes_(params.modes),
+      position_(params.position, vehicle_),
+      attitude_(std::move(attitude)),
+      mixer_(vehicle_),
+      decimation_(static_cast<int>(std::lround(params.rate_hz / params.position.rate_hz))) {}
+
+bool FlightStack::addImu(const ImuSample& sample) {
+  if (!estimator_.addImu(sample)) return false;
+  last_imu_utime_ = sample.utime;
+  return true;
+}
+
+VisionOutcome FlightStack::addVision(const VisionPose& pose) {
+  const VisionOutcome outcome = estimator_.addVision(pose);
+  if (outcome == VisionOutcome::kFused) last_vision_utime_ = pose.utime;
+  return outcome;
+}
+
+bool FlightStack::applyReset(const OdomReset& reset) { return estimator_.applyReset(reset); }
+
+Status FlightStack::loadMission(const Trajectory& mission) {
+  if (modes_.mode() == FlightMode::kMission) {
+    return Status::error("flight: a mission is being flown; hold or land before loading another");
+  }
+  mission_ = mission;
+  mission_end_world_m_ = mission.sample(mission.durationS()).p_world_m;
+  return {};
+}
+
+TickOutput FlightStack::tick(const TickInputs& in) {
+  const EstimatorState state = estimator_.state();
+  FlightInputs inputs;
+  inputs.utime = in.utime;
+  inputs.estimator = estimator_.health();
+  inputs.state = state;
+  inputs.last_imu_utime = last_imu_utime_;
+  inputs.last_vision_utime = last_vision_utime_;
+  inputs.last_ground_utime = in.last_ground_utime;
+  inputs.height_above_ground_m =
+      std::isnan(in.height_above_ground_m) ? -state.p_world_body_m.z() : in.height_above_ground_m;
+  inputs.thrust_ratio = flying_ ? command_.thrust_n / vehicle_.weightN() : 0.0;
+  inputs.mission_loaded = mission_.has_value();
+  inputs.mission_finished = mission_finished_;
+  inputs.mission_end_world_m = mission_end_world_m_;
+
+  TickOutput out;
+  out.modes = modes_.update(inputs, in.command);
+  const FlightMode mode = out.modes.mode;
+  const double dt_s = 1.0 / params_.rate_hz;
+  if (flies(mode)) {
+    if (!flying_) {  // a take-off: nothing of the last flight's integral carries over
+      position_.reset();
+      attitude_.reset();
+    }
+    setpoint_ = guide(out.modes, state, in.utime);
+    if (!flying_ || ticks_ % decimation_ == 0) {
+      command_ = position_.update(setpoint_, state, decimation_ * dt_s);
+    }
+    flying_ = true;
+  } else {
+    flying_ = false;
+    mode_setpoint_ = ModeSetpoint();
+    setpoint_ = PositionSetpoint();
+    setpoint_.p_world_m = state.p_world_body_m;
+    command_ = PositionOutput();
+    command_.q_world_body_sp = state.q_world_body;
+  }
+  ++ticks_;
+
+  switch (mode) {
+    case FlightMode::kHandedOver: out.send_rotor_speeds = false; break;
+    case FlightMode::kDisarmed:
+    case FlightMode::kMotorsCut: out.send_rotor_speeds = true; break;  // zero speeds
+    case FlightMode::kArmed: out.send_rotor_speeds = true; out.mixer = mixer_.mix({}); break;
+    default: {
+      // Pressed against the floor (landing with the thrust at its minimum): the floor holds the
+      // attitude, so the attitude and rate loops' integrals would only wind up and tip the
+      // drone over. The rotors go level at the minimum thrust until the landed detector
+      // disarms, as PX4 does on ground contact.
+      const bool ground_contact = (mode == FlightMode::kLand || mode == FlightMode::kDescend) &&
+                                  command_.thrust_limited && command_.thrust_n < vehicle_.weightN();
+      if (ground_contact) attitude_.reset();
+      const Eigen::Vector3d moment_body_nm =
+          ground_contact ? Eigen::Vector3d::Zero()
+                         : attitude_.update(state.q_world_body, command_.q_world_body_sp,
+                                            state.omega_body_rad_s, dt_s, saturation_);
+      out.mixer = mixer_.mix({command_.thrust_n, moment_body_nm});
+      saturation_ = out.mixer.saturation;
+      out.send_rotor_speeds = true;
+    }
+  }
+  out.setpoint = setpoint_;
+  out.position = command_;
+  return out;
+}
+
+PositionSetpoint FlightStack::guide(const FlightOutput& out, const EstimatorState& state,
+                                    int64_t utime) {
+  const ModeSetpoint& sp = out.setpoint;
+  // A profile starts from where the last one left the setpoint, so the setpoint never jumps; on
+  // a take-off from where the body is.
+  const Eigen::Vector3d from_world_m = flying_ ? setpoint_.p_world_m : state.p_world_body_m;
+  if (!flying_ || !sameSetpoint(sp, mode_setpoint_)) {
+    mode_setpoint_ = sp;
+    profile_start_utime_ = utime;
+    switch (sp.kind) {
+      case SetpointKind::kTakeOff:
+      case SetpointKind::kHold:
+      case SetpointKind::kGoTo:
+        line_ = StraightLine(from_world_m, sp.point_world_m, params_.trajectory, sp.yaw_rad);
+        break;
+      case SetpointKind::kMission:
+        // Flown only when loaded (the modes refuse a mission without one).
+        line_ = StraightLine(from_world_m, mission_->sample(0.0).p_world_m, params_.trajectory,
+                             sp.yaw_rad);
+        mission_start_utime_ = utime + std::llround(line_.durationS() * kUsPerS);
+        mission_finished_ = false;
+        break;
+      case SetpointKind::kLand:
+      case SetpointKind::kDescend:
+        descent_ = Descent(Eigen::Vector3d(sp.point_world_m.x(), sp.point_world_m.y(),
+                                           from_world_m.z()),
+                           sp.descent_speed_m_s, params_.trajectory, sp.yaw_rad);
+        break;
+      case SetpointKind::kIdle: break;
+    }
+  }
+  const double t_s = static_cast<double>(utime - profile_start_utime_) / kUsPerS;
+  switch (sp.kind) {
+    case SetpointKind::kMission: {
+      if (utime < mission_start_utime_) return line_.sample(t_s);
+      const double mission_t_s = static_cast<double>(utime - mission_start_utime_) / kUsPerS;
+      mission_finished_ = mission_t_s >= mission_->durationS();
+      return mission_->sample(mission_t_s);
+    }
+    case SetpointKind::kLand: return descent_.sample(t_s);
+    case SetpointKind::kDescend: {
+      // No position to hold: level (no horizontal correction beyond the integral's steady
+      // force), down at the descent's speed.
+      PositionSetpoint down = descent_.sample(t_s);
+      down.p_world_m = state.p_world_body_m;
+      down.v_world_m_s.x() = state.v_world_body_m_s.x();
+      down.v_world_m_s.y() = state.v_world_body_m_s.y();
+      return down;
+    }
+    default: return line_.sample(t_s);
+  }
+}
+
+}  // namespace kinfly::flight

@@ -9,6 +9,7 @@ set(KINFLY_LCM_TYPES
   ground_truth_t
   imu_t
   keyframe_chunk_t
+  motor_command_t
   odometry_t
   pose3d_t
   pose_correction_t

@@ -8,6 +8,7 @@
 
 #include "kinfly/core/range_check.h"
 #include "kinfly/link/channels.h"
+#include "publisher.h"
 
 namespace kinfly::fw {
 namespace {
@@ -232,6 +233,44 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--corrections.history_keyframes", c->corrections.history_keyframes,
                   "keyframes whose onboard pose is kept for corrections")
       ->capture_default_str();
+  FlightConfig& f = c->flight;
+  flight::FlightStackParams& st = f.stack;
+  app->add_option("--flight.backend", f.backend,
+                  "none (mapping only) | motors (motor_command_t over LCM: the simulator)")
+      ->capture_default_str();
+  app->add_option("--flight.imu", f.imu, "lcm (imu_t on KINFLY_<vid>_IMU: the simulator)")
+      ->capture_default_str();
+  app->add_option("--flight.lcm_url", f.lcm_url,
+                  "the control task's LCM (IMU in, rotor commands out); empty: link.lcm_url's");
+  app->add_option("--flight.rt_priority", f.rt_priority,
+                  "SCHED_FIFO priority of the control thread [1, 99]; 0: the default policy")
+      ->capture_default_str();
+  app->add_option("--flight.cpu", f.cpu, "pin the control thread to this core; -1: none")
+      ->capture_default_str();
+  app->add_option("--flight.rate_hz", st.rate_hz,
+                  "the IMU's sample rate [Hz]: one control tick per sample")
+      ->capture_default_str();
+  app->add_option("--flight.position_rate_hz", st.position.rate_hz,
+                  "position loop rate [Hz], at most flight.rate_hz")
+      ->capture_default_str();
+  app->add_option("--flight.attitude_law", f.attitude_law, "geometric | lqr")
+      ->capture_default_str();
+  app->add_option("--flight.mass_kg", st.vehicle.mass_kg, "vehicle mass [kg]")
+      ->capture_default_str();
+  app->add_option("--flight.arm_length_m", st.vehicle.arm_length_m,
+                  "centre of mass to each rotor axis [m]")
+      ->capture_default_str();
+  app->add_option("--flight.max_speed_m_s", st.trajectory.max_speed_m_s,
+                  "peak speed of go-to, take-off and missions [m/s]")
+      ->capture_default_str();
+  app->add_option("--flight.max_accel_m_s2", st.trajectory.max_accel_m_s2,
+                  "peak acceleration of the same [m/s^2]")
+      ->capture_default_str();
+  app->add_option("--flight.land_speed_m_s", st.modes.land_speed_m_s, "landing descent [m/s]")
+      ->capture_default_str();
+  app->add_option("--flight.vision_lost_s", st.modes.vision_lost_s,
+                  "no pose fused this long: level and descend to land [s]")
+      ->capture_default_str();
   app->add_option("--output.trajectory", c->output.trajectory, "TUM trajectory written at exit");
   app->add_option("--output.ground_truth", c->output.ground_truth,
                   "TUM file of the source's true poses, written at exit (synthetic)");
@@ -303,6 +342,37 @@ std::string LinkConfig::effectiveLcmUrl() const {
   return env != nullptr && *env != '\0' ? env : "memq://";
 }
 
+Status FlightConfig::validate() const {
+  if (!oneOf(backend, {"none", "motors"}))
+    return Status::error("flight.backend must be none or motors (got \"" + backend + "\")");
+  if (!oneOf(imu, {"lcm"}))
+    return Status::error("flight.imu must be lcm (got \"" + imu + "\")");
+  if (!oneOf(attitude_law, {"geometric", "lqr"}))
+    return Status::error("flight.attitude_law must be geometric or lqr (got \"" +
+                         attitude_law + "\")");
+  if (Status url = lcm_url.empty() ? Status() : Publisher::checkUrl(lcm_url); !url.ok())
+    return Status::error("flight.lcm_url: " + url.message());
+  return firstError(outOfRange("flight.rt_priority", rt_priority, 0, 99),
+                    outOfRange("flight.cpu", cpu, -1, 1023),
+                    namingKeys(stackParams().validate(),
+                               {{"position.rate_hz", "flight.position_rate_hz"},
+                                {"vehicle.mass_kg", "flight.mass_kg"},
+                                {"vehicle.arm_length_m", "flight.arm_length_m"},
+                                {"trajectory.max_speed_m_s", "flight.max_speed_m_s"},
+                                {"trajectory.max_accel_m_s2", "flight.max_accel_m_s2"},
+                                {"modes.land_speed_m_s", "flight.land_speed_m_s"},
+                                {"modes.vision_lost_s", "flight.vision_lost_s"}}));
+}
+
+flight::FlightStackParams FlightConfig::stackParams() const {
+  flight::FlightStackParams params = stack;
+  params.attitude.law =
+      attitude_law == "lqr" ? flight::AttitudeLaw::kLqr : flight::AttitudeLaw::kGeometric;
+  // The simulator's motors can be stopped; a real autopilot (the mavlink backend) takes over.
+  params.modes.attitude_limit_action = flight::AttitudeLimitAction::kCutMotors;
+  return params;
+}
+
 Status OutputConfig::validate() const {
   if (!oneOf(log_level, {"trace", "debug", "info", "warn", "error"}))
     return Status::error("output.log_level must be trace, debug, info, warn or error (got \"" +
@@ -313,7 +383,7 @@ Status OutputConfig::validate() const {
 Status FirmwareConfig::validate() const {
   return firstError(vehicle.validate(), source.validate(), odometry.validate(),
                       link.validate(), keyframe.validate(), corrections.validate(),
-                      output.validate());
+                      flight.validate(), output.validate());
 }
 
 }  // namespace kinfly::fw

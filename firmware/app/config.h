@@ -12,6 +12,7 @@
 #include <string>
 
 #include "kinfly/core/status.h"
+#include "kinfly/flight/flight_stack.h"
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/fw/keyframe_selector.h"
 #include "kinfly/fw/send_budget.h"
@@ -98,6 +99,27 @@ struct LinkConfig {                              // [link]
   std::string effectiveLcmUrl() const;
 };
 
+struct FlightConfig {                            // [flight] docs/flight.md, "The control task"
+  // backend: none (mapping only: no control task) | motors (rotor speeds as motor_command_t over
+  // LCM: the simulator, or ESCs behind a bridge)
+  std::string backend = "none";
+  std::string imu = "lcm";       // imu: lcm (imu_t on KINFLY_<vid>_IMU: the simulator)
+  // lcm_url: the control task's own LCM (IMU in, rotor commands out); empty: link.lcm_url's.
+  // A simulator on this machine: udpm://239.255.76.67:7669?ttl=0, so 1 kHz never reaches Wi-Fi.
+  std::string lcm_url;
+  int rt_priority = 0;           // rt_priority [0, 99]: SCHED_FIFO priority; 0: the default policy
+  int cpu = -1;                  // cpu [-1, 1023]: pin the control thread to this core; -1: none
+  std::string attitude_law = "geometric";  // attitude_law: geometric | lqr
+  // rate_hz (the IMU's sample rate: one tick per sample), position_rate_hz, the vehicle's mass_kg
+  // and arm_length_m, max_speed_m_s, max_accel_m_s2, land_speed_m_s, vision_lost_s: the flight
+  // stack's parameters; the rest keep the library's defaults.
+  flight::FlightStackParams stack;
+  Status validate() const;
+  // The stack's parameters with the attitude law and the failsafe action for the backend.
+  flight::FlightStackParams stackParams() const;
+  bool enabled() const { return backend != "none"; }
+};
+
 struct OutputConfig {                            // [output]
   std::string trajectory;        // trajectory: TUM file of the published poses, written at exit
   std::string ground_truth;      // ground_truth: TUM file of the source's true poses
@@ -112,6 +134,7 @@ struct FirmwareConfig {
   KeyframeSelector::Params keyframe;             // [keyframe]
   LinkConfig link;
   CorrectionAnchor::Params corrections;          // [corrections]
+  FlightConfig flight;
   OutputConfig output;
 
   // An error names the first wrong value, its key in the config, and the allowed range.

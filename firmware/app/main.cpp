@@ -3,8 +3,11 @@
 //   odometry  capture queue -> engine at QVGA in a dense volume that follows the drone ->
 //             odometry pose, keyframe selection -> keyframe queue
 //   link      keyframe queue -> compression -> LCM; signed corrections in; status at 10 Hz
+//   control   (flight.backend other than none) IMU samples -> the flight stack, one tick each,
+//             with the odometry's newest pose -> rotor commands
 // Both queues are bounded and drop their oldest item when full (counted): a slow ground station
-// costs keyframes, never odometry. docs/firmware.md has the whole picture.
+// costs keyframes, never odometry; the control task takes the odometry's newest pose and never
+// waits for it. docs/firmware.md has the whole picture.
 #include <CLI/CLI.hpp>
 #include <pthread.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
@@ -19,6 +22,7 @@
 
 #include "capture.h"
 #include "config.h"
+#include "control_task.h"
 #include "kinfly/core/range_check.h"
 #include "kinfly/link/chunking.h"
 #include "kinfly/link/signing.h"
@@ -176,6 +180,15 @@ int run(int argc, char** argv) {
     spdlog::critical("odometry: {}", valid.message());
     return 2;
   }
+  std::unique_ptr<flight::FlightStack> stack;
+  if (config.flight.enabled()) {
+    auto made = flight::FlightStack::create(config.flight.stackParams());
+    if (!made.ok()) {
+      spdlog::critical("invalid configuration: {}", made.status().message());
+      return 2;
+    }
+    stack = *std::move(made);
+  }
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   spdlog::info("kinfly-fw {} vehicle {}: {}, {}x{} -> {}x{} odometry", kVersion,
@@ -195,8 +208,11 @@ int run(int argc, char** argv) {
                                            [&] { return withDepthImage<KeyframeJob>(camera); });
   // Each task owns its LCM instance (publisher.h says why); neither needs the network to start.
   StopToken stop;
+  LatestValue<OdometryPose> poses;
   OdometryTask odometry(config, camera, volume_params, pipeline_params, &anchor, &counters,
-                        &capture_queue, &keyframe_queue, &stop);
+                        &capture_queue, &keyframe_queue, stack ? &poses : nullptr, &stop);
+  std::optional<ControlTask> control;
+  if (stack) control.emplace(config, std::move(stack), &poses, &stop);
   LinkTask link(config, key, &anchor, &counters, &keyframe_queue, &capture_queue, camera,
                 source->depthScaleM(), &stop);
 
@@ -215,6 +231,13 @@ int run(int argc, char** argv) {
     odometry.run();
     odometry_finished = true;
   });
+  std::thread control_thread;
+  if (control) {
+    control_thread = std::thread([&] {
+      nameThisThread("kfw-control");
+      control->run();
+    });
+  }
   awaitTask(&odometry_thread, odometry_finished, &stop);
   stop.requestStop();
   const bool interrupted = stop.interrupted();
@@ -222,6 +245,7 @@ int run(int argc, char** argv) {
   capture_thread.join();
   link.stop(/*await_corrections=*/!interrupted);
   awaitTask(&link_thread, link_finished, &stop);
+  if (control_thread.joinable()) control_thread.join();
 
   const bool written =
       writeIfAsked(config.output.trajectory, odometry.trajectory(), "output.trajectory") &&
@@ -238,6 +262,21 @@ int run(int argc, char** argv) {
       n(counters.keyframes_sent), n(counters.keyframes_failed + keyframe_queue.dropped()),
       n(link.accepted() - counters.corrections_unknown), n(rejects.total()),
       n(counters.corrections_unknown));
+  if (control) {
+    const ControlSummary& c = control->summary();
+    const flight::FlightCounters& f = c.modes;
+    std::printf(
+        "kinfly-fw: control: %lld IMU samples (%lld rejected), %lld ticks (%lld without a new "
+        "sample); %lld poses fused, %lld rejected; estimator %s; mode %s, %lld mode changes, "
+        "%lld commands accepted, %lld refused; failsafes: %lld vision lost, %lld estimator "
+        "diverged, %lld attitude limit, %lld IMU lost, %lld geofence; %lld rotor commands "
+        "sent, %lld not\n",
+        n(c.imu_samples), n(c.imu_rejected), n(c.ticks), n(c.silent_ticks), n(c.poses_fused),
+        n(c.poses_rejected), c.estimator_started ? "started" : "not started",
+        flight::toString(c.mode), n(f.mode_changes), n(f.commands_accepted),
+        n(f.commands_refused), n(f.vision_lost), n(f.estimator_diverged), n(f.attitude_limit),
+        n(f.imu_lost), n(f.geofence), n(c.commands_sent), n(c.commands_unsent));
+  }
   if (!interrupted && counters.frames_captured == 0) {
     spdlog::error("source: {} ended without delivering a frame", source->describe());
     return 1;

@@ -30,13 +30,14 @@ OdometryTask::OdometryTask(const FirmwareConfig& config, const PinholeCamera& ca
                            const FusionPipeline::Params& pipeline, SharedAnchor* anchor,
                            Counters* counters,
                            BoundedQueue<DepthCapture>* frames,
-                           BoundedQueue<KeyframeJob>* keyframes, const StopToken* stop)
+                           BoundedQueue<KeyframeJob>* keyframes,
+                           LatestValue<OdometryPose>* poses, const StopToken* stop)
     : config_(config), volume_(volume), pipeline_(camera, pipeline, &volume_),
       selector_(config.keyframe),
       publisher_("odometry", config.link.effectiveLcmUrl(), config.vehicle.id, {},
                  unicastPeers(config.link, /*listen_port=*/0, {})),
       anchor_(anchor), counters_(counters),
-      frames_(frames), keyframes_(keyframes), stop_(stop), job_(withDepthImage<KeyframeJob>(camera)) {
+      frames_(frames), keyframes_(keyframes), poses_(poses), stop_(stop), job_(withDepthImage<KeyframeJob>(camera)) {
   publisher_.chargeTo(&counters->priority_bytes);
   odometry_.vehicle_id = config.vehicle.id;
   truth_.vehicle_id = config.vehicle.id;
@@ -65,6 +66,10 @@ void OdometryTask::process(const DepthCapture& capture) {
     if (lost_log_.allow(secondsSince(began_)))
       spdlog::warn("odometry: frame {} lost: {} ({} more lost since the last report)",
                    capture.frame_id, r.lost_reason, lost_log_.suppressed());
+  }
+  if (poses_ != nullptr && r.status != TrackingStatus::kLost) {
+    poses_->back() = OdometryPose{r.utime, r.T_world_cam};
+    poses_->publish();
   }
   const bool keyframe = selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction);
   Pose T_world_cam;

@@ -12,6 +12,7 @@
 #include "kinfly/pipeline/fusion_pipeline.h"
 #include "kinfly/fw/bounded_queue.h"
 #include "kinfly/fw/keyframe_selector.h"
+#include "kinfly/fw/latest_value.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/ground_truth_t.hpp"
 #include "kinfly/odometry_t.hpp"
@@ -36,7 +37,7 @@ class OdometryTask {
                const DenseVolume::Params& volume, const FusionPipeline::Params& pipeline,
                SharedAnchor* anchor, Counters* counters,
                BoundedQueue<DepthCapture>* frames, BoundedQueue<KeyframeJob>* keyframes,
-               const StopToken* stop);
+               LatestValue<OdometryPose>* poses, const StopToken* stop);
 
   // Until a stop is requested, or the frame queue is closed and empty.
   void run();
@@ -60,6 +61,7 @@ class OdometryTask {
   Counters* counters_;
   BoundedQueue<DepthCapture>* frames_;
   BoundedQueue<KeyframeJob>* keyframes_;
+  LatestValue<OdometryPose>* poses_;  // to the control task; nullptr without one
   const StopToken* stop_;
   odometry_t odometry_{};
   ground_truth_t truth_{};

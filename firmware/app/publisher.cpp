@@ -94,15 +94,27 @@ void Publisher::maintain() {
 
 bool Publisher::handle(int timeout_ms) {
   if (!up()) return false;
+  // A handler's answer may fail and put LCM down: it is released only after the dispatch.
+  dispatching_ = true;
+  // Everything LCM has queued, not one message a call: at 1 kHz (the control task's IMU) a loop
+  // that took one message a wake-up fell behind on a busy machine, and LCM dropped the rest.
+  const auto drain = [this](int first_timeout_ms) {
+    if (lcm_->handleTimeout(first_timeout_ms) <= 0) return;
+    while (!going_down_ && lcm_->handleTimeout(0) > 0) {
+    }
+  };
   if (!peer_) {
-    lcm_->handleTimeout(timeout_ms);
+    drain(timeout_ms);
+    dispatching_ = false;
+    if (going_down_) down();
     return true;
   }
   pollfd ready[2] = {{lcm_->getFileno(), POLLIN, 0}, {peer_->fd(), POLLIN, 0}};
-  if (poll(ready, 2, timeout_ms) <= 0) return true;
-  // A handler's answer may fail and put LCM down: it is released only after the dispatch.
-  dispatching_ = true;
-  if (ready[0].revents != 0) lcm_->handleTimeout(0);
+  if (poll(ready, 2, timeout_ms) <= 0) {
+    dispatching_ = false;
+    return true;
+  }
+  if (ready[0].revents != 0) drain(0);
   if (ready[1].revents != 0 && on_peer_message_) {
     peer_->receive([this](const char* channel, const uint8_t* data, size_t size) {
       lcm_recv_buf_t message{};

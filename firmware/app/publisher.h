@@ -66,7 +66,8 @@ class Publisher {
   void maintain();
   // Whether LCM runs (and the peers' socket is open) and no send has failed since it started.
   bool up() const { return lcm_ != nullptr && !going_down_ && (!peer_ || peer_->isOpen()); }
-  // Handles what LCM and the peers deliver within timeout_ms; false while down.
+  // Handles what LCM and the peers deliver within timeout_ms, and all LCM has queued by then;
+  // false while down.
   bool handle(int timeout_ms);
   // nullptr without peers.
   const link::PeerLink* peer() const { return peer_.get(); }

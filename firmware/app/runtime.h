@@ -56,6 +56,14 @@ struct Counters {
   std::atomic<int64_t> priority_bytes{0};
 };
 
+// The odometry's pose of a tracked frame for the control task, as the estimator takes it: the
+// capture time and the engine's own pose (the odometry frame; the ground's corrections reach the
+// estimator as resets, not through re-anchored poses).
+struct OdometryPose {
+  int64_t utime = -1;  // [µs] capture; -1 before the first
+  Pose T_odom_cam = Pose::Identity();
+};
+
 struct KeyframeJob {
   Image<uint16_t> depth;  // raw, full resolution: the ground fuses at full resolution
   int64_t utime = 0, frame_id = 0, keyframe_id = 0;

@@ -202,7 +202,8 @@ class Receiver {
       }
       case link::Channel::kCorrection:
       case link::Channel::kGroundStatus:
-      case link::Channel::kChunkRequest: return nb::none();
+      case link::Channel::kChunkRequest:
+      case link::Channel::kMotorCommand: return nb::none();
     }
     return nb::none();
   }
@@ -509,7 +510,8 @@ void bindLink(nb::module_& m) {
       .value("GROUND_STATUS", link::Channel::kGroundStatus)
       .value("GROUND_TRUTH", link::Channel::kGroundTruth)
       .value("KEYFRAME_CHUNK", link::Channel::kKeyframeChunk)
-      .value("CHUNK_REQUEST", link::Channel::kChunkRequest);
+      .value("CHUNK_REQUEST", link::Channel::kChunkRequest)
+      .value("MOTOR_COMMAND", link::Channel::kMotorCommand);
   m.attr("MAX_VEHICLE_ID") = link::kMaxVehicleId;
   m.def("channel_name",
         [](link::Channel channel, int vehicle_id) {

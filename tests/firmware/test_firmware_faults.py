@@ -209,7 +209,9 @@ def test_starts_without_a_network_and_links_once_it_is_there(netns: list[str]) -
     try:
         assert drone.wait_for("link: no route to the multicast group", 1, EVENT_TIMEOUT_S), \
             drone.output()
-        assert drone.wait_for("keyframe 0 not sent: the network is down", 1, EVENT_TIMEOUT_S), \
+        # Not necessarily keyframe 0: on a busy machine the link may take two queued keyframes
+        # at once and skip the older for the newer (counted as skipped).
+        assert drone.wait_for("not sent: the network is down", 1, EVENT_TIMEOUT_S), \
             drone.output()
         assert drone.process.poll() is None, drone.output()
         route(netns, "add")

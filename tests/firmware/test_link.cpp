@@ -87,7 +87,8 @@ Key testKey(uint8_t seed) {
 TEST(Channels, NamesCarryTheVehicleAndParseBack) {
   for (Channel c : {Channel::kDepth, Channel::kKeyframe, Channel::kOdometry, Channel::kImu,
                     Channel::kStatus, Channel::kCorrection, Channel::kGroundStatus,
-                    Channel::kGroundTruth, Channel::kKeyframeChunk, Channel::kChunkRequest}) {
+                    Channel::kGroundTruth, Channel::kKeyframeChunk, Channel::kChunkRequest,
+                    Channel::kMotorCommand}) {
     for (int vehicle : {0, 7, kMaxVehicleId}) {
       const std::string name = channelName(c, vehicle);
       EXPECT_NE(name.find(std::to_string(vehicle)), std::string::npos) << name;

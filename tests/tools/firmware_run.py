@@ -67,3 +67,22 @@ def summary(stdout: str) -> Summary:
 
 def read_tum(path: Path) -> np.ndarray:
     return np.loadtxt(path, comments="#").reshape(-1, 8)
+
+
+_CONTROL = re.compile(
+    r"kinfly-fw: control: (?P<imu_samples>\d+) IMU samples \((?P<imu_rejected>\d+) rejected\), "
+    r"(?P<ticks>\d+) ticks \((?P<silent_ticks>\d+) without a new sample\); (?P<poses_fused>\d+) "
+    r"poses fused, (?P<poses_rejected>\d+) rejected; estimator (?P<estimator>started|not "
+    r"started); mode (?P<mode>[a-z -]+), (?P<mode_changes>\d+) mode changes, "
+    r"(?P<commands_accepted>\d+) commands accepted, (?P<commands_refused>\d+) refused; "
+    r"failsafes: (?P<vision_lost>\d+) vision lost, (?P<estimator_diverged>\d+) estimator "
+    r"diverged, (?P<attitude_limit>\d+) attitude limit, (?P<imu_lost>\d+) IMU lost, "
+    r"(?P<geofence>\d+) geofence; (?P<sent>\d+) rotor commands sent, (?P<unsent>\d+) not")
+
+
+def control_summary(stdout: str) -> dict[str, int | str]:
+    """The counts of kinfly-fw's control line (flight.backend other than none), the estimator's
+    and the mode's words as strings; fails the test if there is none."""
+    match = _CONTROL.search(stdout)
+    assert match is not None, f"no control summary line in {stdout!r}"
+    return {k: v if k in ("estimator", "mode") else int(v) for k, v in match.groupdict().items()}

@@ -20,6 +20,7 @@ constexpr std::array<std::pair<Channel, const char*>, kChannelCount> kKinds{{
     {Channel::kGroundTruth, "GROUND_TRUTH"},
     {Channel::kKeyframeChunk, "KEYFRAME_CHUNK"},
     {Channel::kChunkRequest, "CHUNK_REQUEST"},
+    {Channel::kMotorCommand, "MOTOR_COMMAND"},
 }};
 
 }  // namespace

@@ -16,16 +16,17 @@ enum class Channel {
   kDepth,         // depth_keyframe_t, every captured frame (flight logs only)
   kKeyframe,      // depth_keyframe_t, keyframes with the onboard pose (drone -> ground)
   kOdometry,      // odometry_t (drone -> ground)
-  kImu,           // imu_t (drone -> ground)
+  kImu,           // imu_t (drone -> ground; simulator -> drone, the control task's IMU)
   kStatus,        // drone_status_t (drone -> ground)
   kCorrection,    // signed_t around pose_correction_t (ground -> drone)
   kGroundStatus,  // ground_status_t (ground -> drone)
   kGroundTruth,   // ground_truth_t, in converted datasets and from the simulator
   kKeyframeChunk, // keyframe_chunk_t, keyframes cut into FEC-coded datagrams (drone -> ground)
   kChunkRequest,  // chunk_request_t, resends the ground asks for (ground -> drone)
+  kMotorCommand,  // motor_command_t, the control task's rotor speeds (drone -> simulator/ESCs)
 };
 // Channels are numbered from 0 in the order above (arrays of per-channel names index by it).
-constexpr size_t kChannelCount = static_cast<size_t>(Channel::kChunkRequest) + 1;
+constexpr size_t kChannelCount = static_cast<size_t>(Channel::kMotorCommand) + 1;
 
 constexpr int kMaxVehicleId = 65535;  // ids are 0..kMaxVehicleId
 

@@ -1,0 +1,191 @@
+#include "control_task.h"
+
+#include <pthread.h>
+#include <sched.h>
+#include <spdlog/spdlog.h>
+
+#include <cstdlib>
+#include <cstring>
+#include <string>
+#include <thread>
+#include <utility>
+
+#include "kinfly/link/multicast.h"
+
+namespace kinfly::fw {
+namespace {
+
+constexpr int kHandleTimeoutMs = 1;
+// [bytes] The kernel receive buffer the control task's LCM asks for (within net.core.rmem_max):
+// at about 1 KB of kernel memory a datagram, a second of 1 kHz IMU with the looped-back rotor
+// commands beside it. LCM's own receive thread, not ours, empties the socket, and on a busy
+// machine it waits its turn; the system default (~200 KB) overflowed beside two busy loops.
+constexpr int kControlRecvBufBytes = 2 << 20;
+// Messages LCM queues for the IMU subscription before it drops the newest: a second of samples.
+// LCM's default, 30, dropped whatever came while the control thread waited 30 ms for a core.
+constexpr int kImuQueueMessages = 1000;
+
+// flight.lcm_url, else the link's; a udpm URL that does not say recv_buf_size asks for
+// kControlRecvBufBytes.
+std::string controlUrl(const FirmwareConfig& config) {
+  std::string url =
+      config.flight.lcm_url.empty() ? config.link.effectiveLcmUrl() : config.flight.lcm_url;
+  if (url.empty()) {
+    const char* env = std::getenv("LCM_DEFAULT_URL");
+    url = env != nullptr && *env != '\0' ? env : link::kLcmDefaultUrl;
+  }
+  if (url.rfind("udpm://", 0) != 0 || url.find("recv_buf_size=") != std::string::npos) return url;
+  return url + (url.find('?') == std::string::npos ? "?" : "&") +
+         "recv_buf_size=" + std::to_string(kControlRecvBufBytes);
+}
+
+int8_t rotorState(flight::FlightMode mode) {
+  switch (mode) {
+    case flight::FlightMode::kDisarmed:
+    case flight::FlightMode::kMotorsCut:
+    case flight::FlightMode::kHandedOver: return motor_command_t::STOPPED;
+    case flight::FlightMode::kArmed: return motor_command_t::IDLE;
+    default: return motor_command_t::FLYING;
+  }
+}
+
+}  // namespace
+
+ControlTask::ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
+                         LatestValue<OdometryPose>* poses, const StopToken* stop)
+    : config_(config),
+      stack_(std::move(stack)),
+      poses_(poses),
+      stop_(stop) {
+  command_.vehicle_id = config.vehicle.id;
+}
+
+void ControlTask::applyScheduling() const {
+  const FlightConfig& f = config_.flight;
+  if (f.rt_priority > 0) {
+    sched_param param{};
+    param.sched_priority = f.rt_priority;
+    if (const int err = pthread_setschedparam(pthread_self(), SCHED_FIFO, &param); err != 0) {
+      spdlog::warn("control: SCHED_FIFO priority {} not allowed ({}): the control task runs at "
+                   "the default policy (the kinfly-fw unit grants it with LimitRTPRIO, "
+                   "docs/flight.md)",
+                   f.rt_priority, std::strerror(err));
+    } else {
+      spdlog::info("control: SCHED_FIFO priority {}", f.rt_priority);
+    }
+  }
+  if (f.cpu >= 0) {
+    cpu_set_t set;
+    CPU_ZERO(&set);
+    CPU_SET(f.cpu, &set);
+    if (const int err = pthread_setaffinity_np(pthread_self(), sizeof(set), &set); err != 0) {
+      spdlog::warn("control: cannot pin the control task to core {} ({}): it runs on any",
+                   f.cpu, std::strerror(err));
+    } else {
+      spdlog::info("control: pinned to core {}", f.cpu);
+    }
+  }
+}
+
+void ControlTask::run() {
+  applyScheduling();
+  publisher_.emplace("control", controlUrl(config_), config_.vehicle.id, [this](lcm::LCM& lcm) {
+    lcm_subscription_t* imu =
+        lcm_subscribe(lcm.getUnderlyingLCM(),
+                      link::channelName(link::Channel::kImu, config_.vehicle.id).c_str(),
+                      &ControlTask::onImu, this);
+    lcm_subscription_set_queue_capacity(imu, kImuQueueMessages);
+  });
+  spdlog::info("control: {} backend, IMU from {} at {:.0f} Hz, position loop at {:.0f} Hz",
+               config_.flight.backend, config_.flight.imu, stack_->params().rate_hz,
+               stack_->params().position.rate_hz);
+  const double silent_after_s = 2.0 / stack_->params().rate_hz;
+  while (!stop_->stopRequested()) {
+    if (!publisher_->handle(kHandleTimeoutMs)) {
+      publisher_->maintain();
+      std::this_thread::sleep_for(std::chrono::milliseconds(kHandleTimeoutMs));
+    }
+    // The IMU gone quiet: the stack still ticks, on the IMU's clock carried on by the steady
+    // clock, so that its IMU-lost failsafe acts (a stack ticked only by samples never would).
+    if (last_imu_utime_ >= 0) {
+      const double silent_s = secondsSince(last_imu_arrival_);
+      if (silent_s > silent_after_s) {
+        ++summary_.silent_ticks;
+        tick(last_imu_utime_ + static_cast<int64_t>(silent_s * 1e6));
+      }
+    }
+  }
+  summary_.estimator_started = stack_->estimator().initialised();
+  summary_.mode = stack_->modes().mode();
+  summary_.modes = stack_->modes().counters();
+}
+
+void ControlTask::onImu(const lcm_recv_buf_t* message, const char*, void* self) {
+  static_cast<ControlTask*>(self)->handleImu(message);
+}
+
+void ControlTask::handleImu(const lcm_recv_buf_t* message) {
+  const int size = static_cast<int>(message->data_size);
+  if (imu_.decode(message->data, 0, size) != size || imu_.vehicle_id != config_.vehicle.id) {
+    ++summary_.imu_rejected;
+    return;
+  }
+  flight::ImuSample sample;
+  sample.utime = imu_.utime;
+  for (int i = 0; i < 3; ++i) {
+    sample.gyro_rad_s(i) = imu_.angular_velocity_rad_s[i];
+    sample.accel_m_s2(i) = imu_.linear_acceleration_m_s2[i];
+  }
+  if (!sample.gyro_rad_s.allFinite() || !sample.accel_m_s2.allFinite() ||
+      !stack_->addImu(sample)) {
+    ++summary_.imu_rejected;
+    return;
+  }
+  ++summary_.imu_samples;
+  last_imu_utime_ = sample.utime;
+  last_imu_arrival_ = Clock::now();
+  tick(sample.utime);
+}
+
+void ControlTask::tick(int64_t utime) {
+  if (poses_->fetch()) {
+    const OdometryPose& pose = poses_->front();
+    const flight::VisionOutcome outcome = stack_->addVision({pose.utime, pose.T_odom_cam});
+    if (outcome == flight::VisionOutcome::kFused) {
+      ++summary_.poses_fused;
+    } else {
+      ++summary_.poses_rejected;
+    }
+  }
+  flight::TickInputs in;
+  in.utime = utime;
+  const flight::TickOutput out = stack_->tick(in);
+  ++summary_.ticks;
+  for (int i = 0; i < out.modes.event_count; ++i) {
+    const flight::FlightEvent& event = out.modes.events[i];
+    if (flight::isFailsafe(event.reason)) {
+      spdlog::warn("control: {}: {} -> {}", flight::toString(event.reason),
+                   flight::toString(event.from), flight::toString(event.to));
+    } else {
+      spdlog::info("control: {}: {} -> {}", flight::toString(event.reason),
+                   flight::toString(event.from), flight::toString(event.to));
+    }
+  }
+  if (!out.send_rotor_speeds) return;
+  command_.utime = utime;
+  command_.state = rotorState(out.modes.mode);
+  for (int i = 0; i < 4; ++i) {
+    command_.rotor_speed_rad_s[i] = command_.state == motor_command_t::STOPPED
+                                        ? 0.0f
+                                        : static_cast<float>(out.mixer.rotor_speed_rad_s(i));
+  }
+  command_.flight_mode = static_cast<int8_t>(out.modes.mode);
+  command_.tick = summary_.ticks;
+  if (publisher_->publish(link::Channel::kMotorCommand, command_)) {
+    ++summary_.commands_sent;
+  } else {
+    ++summary_.commands_unsent;
+  }
+}
+
+}  // namespace kinfly::fw

@@ -1,0 +1,72 @@
+// The control task: kinfly::flight::FlightStack driven by an IMU source, one tick per IMU sample
+// (as PX4's rate controller runs on each gyro sample), the odometry's newest pose handed over
+// through a LatestValue (never a lock the vision thread could hold), the rotor commands to the
+// actuator backend. Its own thread and its own LCM instance: neither the odometry nor the
+// keyframe link can hold it up. docs/flight.md, "The control task".
+#pragma once
+
+#include <lcm/lcm.h>
+
+#include <cstdint>
+#include <memory>
+#include <optional>
+
+#include "config.h"
+#include "kinfly/flight/flight_stack.h"
+#include "kinfly/fw/latest_value.h"
+#include "kinfly/imu_t.hpp"
+#include "kinfly/motor_command_t.hpp"
+#include "publisher.h"
+#include "runtime.h"
+
+namespace kinfly::fw {
+
+// What the control task did, for the summary at exit (read after run() returned).
+struct ControlSummary {
+  int64_t imu_samples = 0;     // received and taken by the estimator
+  int64_t imu_rejected = 0;    // another vehicle's, undecodable, or not after the last in time
+  int64_t ticks = 0;           // all ticks ...
+  int64_t silent_ticks = 0;    // ... of which without a new IMU sample (the IMU gone quiet)
+  int64_t commands_sent = 0;   // motor_command_t published
+  int64_t commands_unsent = 0;  // not: the control task's LCM was down
+  int64_t poses_fused = 0;
+  int64_t poses_rejected = 0;  // gated, too old, out of order, or before the estimator started
+  bool estimator_started = false;
+  flight::FlightMode mode = flight::FlightMode::kDisarmed;
+  flight::FlightCounters modes;
+};
+
+class ControlTask {
+ public:
+  // stack: made from config.flight.stackParams(). poses: written by the odometry thread.
+  ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
+              LatestValue<OdometryPose>* poses, const StopToken* stop);
+
+  // Until a stop is requested. Sets the thread's real-time priority and core first, where the
+  // configuration asks and the system allows (a warning where it does not).
+  void run();
+  const ControlSummary& summary() const { return summary_; }
+
+ private:
+  static void onImu(const lcm_recv_buf_t* message, const char* channel, void* self);
+  void handleImu(const lcm_recv_buf_t* message);
+  // One tick at `utime` (the IMU's clock): the newest pose, the stack, the backend.
+  void tick(int64_t utime);
+  void applyScheduling() const;
+
+  const FirmwareConfig& config_;
+  std::unique_ptr<flight::FlightStack> stack_;
+  LatestValue<OdometryPose>* poses_;
+  const StopToken* stop_;
+  // Made by run() after the thread's priority is set: LCM's receive thread, which empties the
+  // IMU's socket, is started from it and inherits the priority.
+  std::optional<Publisher> publisher_;
+  imu_t imu_{};
+  motor_command_t command_{};
+  ControlSummary summary_;
+  // The last sample's time, and when (steady clock) it came: the clock the silent ticks run on.
+  int64_t last_imu_utime_ = -1;
+  Clock::time_point last_imu_arrival_;
+};
+
+}  // namespace kinfly::fw

@@ -15,7 +15,7 @@ import pytest
 
 from conftest import REPO_ROOT, built
 from demo import Watched
-from firmware_run import control_summary, firmware
+from firmware_run import allocations_by_thread, control_summary, firmware
 
 VEHICLE = 9
 IMU_PEER = REPO_ROOT / "tests" / "tools" / "imu_peer.py"
@@ -79,14 +79,6 @@ def test_each_imu_sample_is_one_tick_and_one_rotor_command(netns: list[str]) -> 
     assert control["imu_lost"] == 0  # a failsafe of flight, not of a drone on the ground
 
 
-def allocations(report: Path) -> dict[str, int]:
-    counts: dict[str, int] = {}
-    for line in report.read_text().splitlines():
-        name, count = line.rsplit(" ", 1)
-        counts[name] = counts.get(name, 0) + int(count)
-    return counts
-
-
 def test_the_control_task_allocates_at_start_only(netns: list[str], tmp_path: Path) -> None:
     """Every malloc counted by thread (tests/tools/alloc_counter.c): 1 s and 3 s of IMU at
     1 kHz give kfw-control the same count."""
@@ -97,7 +89,7 @@ def test_the_control_task_allocates_at_start_only(netns: list[str], tmp_path: Pa
         sent, control, _ = fly_imu(netns, seconds, env=[f"LD_PRELOAD={counter}",
                                                         f"KINFLY_ALLOC_REPORT={report}"])
         assert control["imu_samples"] >= MIN_LOOPBACK_DELIVERY * sent["sent"]
-        counts.append(allocations(report))
+        counts.append(allocations_by_thread(report))
     short, long = counts
     assert "kfw-control" in short, short
     assert long["kfw-control"] == short["kfw-control"], (short, long)

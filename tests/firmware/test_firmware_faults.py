@@ -17,7 +17,7 @@ from netns import MULTICAST_ROUTE
 
 from conftest import REPO_ROOT, built
 from demo import Watched
-from firmware_run import firmware, summary
+from firmware_run import allocations_by_thread, firmware, summary
 from kinfly import depth_keyframe_t
 
 SAMPLE_FRAMES = 60
@@ -225,7 +225,7 @@ def test_starts_without_a_network_and_links_once_it_is_there(netns: list[str]) -
     assert heard and heard[-1]["keyframes_dropped"] > 0, watch.stderr
 
 
-def allocations_by_thread(netns: list[str], counter: Path, report: Path,
+def allocations_in_flight(netns: list[str], counter: Path, report: Path,
                           frames: int) -> dict[str, int]:
     report.unlink(missing_ok=True)
     run = subprocess.run(
@@ -235,11 +235,7 @@ def allocations_by_thread(netns: list[str], counter: Path, report: Path,
         capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert summary(run.stdout).processed == frames
-    counts: dict[str, int] = {}
-    for line in report.read_text().splitlines():
-        name, count = line.rsplit(" ", 1)
-        counts[name] = counts.get(name, 0) + int(count)
-    return counts
+    return allocations_by_thread(report)
 
 
 def test_no_heap_allocation_per_frame_in_steady_state(netns: list[str], tmp_path: Path) -> None:
@@ -247,8 +243,8 @@ def test_no_heap_allocation_per_frame_in_steady_state(netns: list[str], tmp_path
     own threads allocate at start-up only, so the counts do not grow with the flight. (LCM's
     receive thread, which reassembles the drone's own looped-back keyframes, is LCM's.)"""
     counter = built("tests/libkinfly_alloc_counter.so")
-    short = allocations_by_thread(netns, counter, tmp_path / "short.txt", 90)
-    long = allocations_by_thread(netns, counter, tmp_path / "long.txt", 240)
+    short = allocations_in_flight(netns, counter, tmp_path / "short.txt", 90)
+    long = allocations_in_flight(netns, counter, tmp_path / "long.txt", 240)
     for thread in ("kfw-capture", "kfw-odometry", "kfw-link"):
         assert thread in short, short
         assert long[thread] == short[thread], (thread, short, long)

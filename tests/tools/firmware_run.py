@@ -65,6 +65,16 @@ def summary(stdout: str) -> Summary:
     return counts
 
 
+def allocations_by_thread(report: Path) -> dict[str, int]:
+    """What the allocation counter (tests/tools/alloc_counter.c, KINFLY_ALLOC_REPORT) wrote:
+    malloc-family calls per thread name, threads of one name added up."""
+    counts: dict[str, int] = {}
+    for line in report.read_text().splitlines():
+        name, count = line.rsplit(" ", 1)
+        counts[name] = counts.get(name, 0) + int(count)
+    return counts
+
+
 def read_tum(path: Path) -> np.ndarray:
     return np.loadtxt(path, comments="#").reshape(-1, 8)
 

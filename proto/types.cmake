@@ -5,6 +5,7 @@ set(KINFLY_LCM_TYPES
   chunk_request_t
   depth_keyframe_t
   drone_status_t
+  flight_command_t
   ground_status_t
   ground_truth_t
   imu_t

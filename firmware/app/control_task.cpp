@@ -52,10 +52,12 @@ int8_t rotorState(flight::FlightMode mode) {
 }  // namespace
 
 ControlTask::ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
-                         LatestValue<OdometryPose>* poses, const StopToken* stop)
+                         LatestValue<OdometryPose>* poses, LatestValue<CommandMail>* commands,
+                         const StopToken* stop)
     : config_(config),
       stack_(std::move(stack)),
       poses_(poses),
+      commands_(commands),
       stop_(stop) {
   command_.vehicle_id = config.vehicle.id;
 }
@@ -159,8 +161,31 @@ void ControlTask::tick(int64_t utime) {
   }
   flight::TickInputs in;
   in.utime = utime;
+  int64_t command_id = -1;
+  if (commands_->fetch()) {
+    const CommandMail& mail = commands_->front();
+    command_id = mail.command_id;
+    // The mission is copied in here, between the IMU's sample and the tick: the one allocation
+    // of the control thread after its start, once per mission command.
+    if (mail.mission) {
+      if (const Status loaded = stack_->loadMission(*mail.mission); !loaded.ok()) {
+        spdlog::warn("control: command {}: {}", command_id, loaded.message());
+      }
+    }
+    in.command = mail.command;
+  }
   const flight::TickOutput out = stack_->tick(in);
   ++summary_.ticks;
+  if (out.modes.command) {
+    const flight::CommandResult& result = *out.modes.command;
+    if (result.accepted()) {
+      spdlog::info("control: command {} ({}) accepted", command_id,
+                   flight::toString(result.kind));
+    } else {
+      spdlog::warn("control: command {} ({}) refused: {}", command_id,
+                   flight::toString(result.kind), flight::toString(result.refusal));
+    }
+  }
   for (int i = 0; i < out.modes.event_count; ++i) {
     const flight::FlightEvent& event = out.modes.events[i];
     if (flight::isFailsafe(event.reason)) {

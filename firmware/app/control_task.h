@@ -39,8 +39,10 @@ struct ControlSummary {
 class ControlTask {
  public:
   // stack: made from config.flight.stackParams(). poses: written by the odometry thread.
+  // commands: written by the link thread (authenticated commands from the ground).
   ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
-              LatestValue<OdometryPose>* poses, const StopToken* stop);
+              LatestValue<OdometryPose>* poses, LatestValue<CommandMail>* commands,
+              const StopToken* stop);
 
   // Until a stop is requested. Sets the thread's real-time priority and core first, where the
   // configuration asks and the system allows (a warning where it does not).
@@ -57,6 +59,7 @@ class ControlTask {
   const FirmwareConfig& config_;
   std::unique_ptr<flight::FlightStack> stack_;
   LatestValue<OdometryPose>* poses_;
+  LatestValue<CommandMail>* commands_;
   const StopToken* stop_;
   // Made by run() after the thread's priority is set: LCM's receive thread, which empties the
   // IMU's socket, is started from it and inherits the priority.

@@ -13,7 +13,8 @@ namespace kinfly::fw {
 LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
                    SharedAnchor* anchor, Counters* counters, BoundedQueue<KeyframeJob>* keyframes,
                    const BoundedQueue<DepthCapture>* capture_queue, const PinholeCamera& camera,
-                   double depth_scale_m, const StopToken* stop)
+                   double depth_scale_m, LatestValue<CommandMail>* commands,
+                   const StopToken* stop)
     : config_(config), anchor_(anchor), counters_(counters), keyframes_(keyframes),
       capture_queue_(capture_queue), stop_token_(stop), camera_(camera), depth_scale_m_(depth_scale_m),
       codec_(DepthCodec::Params()), job_(withDepthImage<KeyframeJob>(camera)),
@@ -42,8 +43,11 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
                 [this](const lcm_recv_buf_t* message, const char* channel) {
                   handle(message, channel);
                 })) {
+  commands_ = commands;
   if (key) {
     corrections_.emplace(*key, config.vehicle.id, config.link.signing, link::DecodeBounds());
+    command_receiver_.emplace(*key, config.vehicle.id, config.link.signing,
+                              link::DecodeBounds());
   }
   codec_.reserve(camera.width, camera.height, &message_.payload);
   // The largest keyframe this camera can make, at any redundancy: no allocation while flying.
@@ -143,6 +147,7 @@ void LinkTask::awaitCorrections() {
 link::RejectCounters LinkTask::rejects() const {
   link::RejectCounters all = rejects_;
   if (corrections_) all += corrections_->rejects();
+  if (command_receiver_) all += command_receiver_->rejects();
   return all;
 }
 
@@ -166,23 +171,14 @@ void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
     onChunkRequest(rbuf);
     return;
   }
+  if (parsed->channel == link::Channel::kCommand) {
+    onCommand(rbuf);
+    return;
+  }
   if (parsed->channel != link::Channel::kCorrection) return;  // another drone's traffic
   last_ground_heard_ = Clock::now();
-  if (!corrections_) {
-    ++rejects_.unsigned_messages;
-    if (reject_log_.allow(now_s))
-      spdlog::warn("link: correction ignored: no key loaded (vehicle.key_file)");
-    return;
-  }
-  const int64_t rejected_before = corrections_->rejects().total();
-  const auto correction =
-      corrections_->receive(rbuf->data, rbuf->data_size, link::wallClockUtime());
-  if (!correction) {  // the receiver counts every refusal by its reason (and copies apart)
-    if (corrections_->rejects().total() > rejected_before && reject_log_.allow(now_s))
-      spdlog::warn("link: correction rejected ({} rejected in all, by reason in the status)",
-                   rejected_before + 1);
-    return;
-  }
+  const auto correction = receiveSigned(corrections_, rbuf, "correction", now_s);
+  if (!correction) return;
   std::lock_guard<std::mutex> lock(anchor_->mutex);
   const Pose corrected = link::readPose(correction->T_world_cam);
   const auto outcome =
@@ -194,6 +190,78 @@ void LinkTask::handle(const lcm_recv_buf_t* rbuf, const char* channel) {
                      ? "unknown keyframe"
                      : "older than one already applied");
   }
+}
+
+namespace {
+
+// flight_command_t's kinds in the flight stack's terms (the decoder refused any other).
+flight::CommandKind commandKind(int8_t kind) {
+  switch (kind) {
+    case flight_command_t::ARM: return flight::CommandKind::kArm;
+    case flight_command_t::DISARM: return flight::CommandKind::kDisarm;
+    case flight_command_t::TAKE_OFF: return flight::CommandKind::kTakeOff;
+    case flight_command_t::GO_TO: return flight::CommandKind::kGoTo;
+    case flight_command_t::MISSION: return flight::CommandKind::kMission;
+    case flight_command_t::LAND: return flight::CommandKind::kLand;
+    default: return flight::CommandKind::kHold;
+  }
+}
+
+}  // namespace
+
+template <class Inner>
+std::optional<Inner> LinkTask::receiveSigned(std::optional<link::SignedReceiver<Inner>>& receiver,
+                                             const lcm_recv_buf_t* rbuf, const char* what,
+                                             double now_s) {
+  if (!receiver) {
+    ++rejects_.unsigned_messages;
+    if (reject_log_.allow(now_s))
+      spdlog::warn("link: {} ignored: no key loaded (vehicle.key_file)", what);
+    return std::nullopt;
+  }
+  const int64_t rejected_before = receiver->rejects().total();
+  auto received = receiver->receive(rbuf->data, rbuf->data_size, link::wallClockUtime());
+  // The receiver counts every refusal by its reason (and copies apart).
+  if (!received && receiver->rejects().total() > rejected_before && reject_log_.allow(now_s))
+    spdlog::warn("link: {} rejected ({} rejected in all, by reason in the status)", what,
+                 rejected_before + 1);
+  return received;
+}
+
+void LinkTask::onCommand(const lcm_recv_buf_t* rbuf) {
+  const auto received = receiveSigned(command_receiver_, rbuf, "command", secondsSince(began_));
+  if (!received) return;
+  const flight_command_t& m = *received;
+  if (commands_ == nullptr) {
+    ++commands_dropped_;
+    spdlog::warn("link: command {} ignored: no control task (flight.backend = none)",
+                 m.command_id);
+    return;
+  }
+  CommandMail& mail = commands_->back();
+  mail.command_id = m.command_id;
+  mail.command = flight::FlightCommand{commandKind(m.kind), m.height_m,
+                                       Eigen::Vector3d(m.target_world_m[0], m.target_world_m[1],
+                                                       m.target_world_m[2])};
+  mail.mission.reset();
+  if (m.kind == flight_command_t::MISSION) {
+    std::vector<Eigen::Vector3d> waypoints;
+    for (const auto& w : m.waypoints_world_m) waypoints.emplace_back(w[0], w[1], w[2]);
+    flight::TrajectoryParams params = config_.flight.stack.trajectory;
+    if (m.max_speed_m_s > 0.0) params.max_speed_m_s = m.max_speed_m_s;
+    auto mission = flight::Trajectory::minimumSnap(waypoints, params, 0.0);
+    if (!mission.ok()) {
+      ++commands_dropped_;
+      spdlog::warn("link: mission of command {} not flown: {}", m.command_id,
+                   mission.status().message());
+      return;
+    }
+    mail.mission = *std::move(mission);
+  }
+  commands_->publish();
+  ++commands_passed_;
+  spdlog::info("link: command {} ({}) passed to the control task", m.command_id,
+               flight::toString(mail.command.kind));
 }
 
 void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {

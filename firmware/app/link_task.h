@@ -10,6 +10,7 @@
 #include "config.h"
 #include "kinfly/codec/depth_codec.h"
 #include "kinfly/fw/bounded_queue.h"
+#include "kinfly/fw/latest_value.h"
 #include "kinfly/fw/log_throttle.h"
 #include "kinfly/fw/send_budget.h"
 #include "kinfly/fw/sensor_watch.h"
@@ -30,7 +31,7 @@ class LinkTask {
   LinkTask(const FirmwareConfig& config, std::optional<link::Key> key, SharedAnchor* anchor,
            Counters* counters, BoundedQueue<KeyframeJob>* keyframes,
            const BoundedQueue<DepthCapture>* capture_queue, const PinholeCamera& camera,
-           double depth_scale_m, const StopToken* stop);
+           double depth_scale_m, LatestValue<CommandMail>* commands, const StopToken* stop);
 
   // Until stop(); then sends what is still queued, waits for the ground's last corrections when
   // asked to, and sends a last status (drone_status_t.RUN_FINAL).
@@ -43,8 +44,13 @@ class LinkTask {
     stop_ = true;
   }
 
+  // Of corrections and commands together, as the status reports them.
   link::RejectCounters rejects() const;
   int64_t accepted() const { return corrections_ ? corrections_->accepted() : 0; }
+  // Commands authenticated and passed to the control task; those that could not be (no control
+  // task, a mission that makes no trajectory).
+  int64_t commandsPassed() const { return commands_passed_; }
+  int64_t commandsDropped() const { return commands_dropped_; }
   int64_t sensorStalls() const { return watch_.stalls(); }
 
  private:
@@ -53,6 +59,12 @@ class LinkTask {
   static void onMessage(const lcm_recv_buf_t* rbuf, const char* channel, void* self);
   void handle(const lcm_recv_buf_t* rbuf, const char* channel);
   void onGroundStatus(const lcm_recv_buf_t* rbuf);
+  void onCommand(const lcm_recv_buf_t* rbuf);
+  // A signed message through its receiver (none without a key: counted unsigned), each
+  // rejection logged (throttled); the inner message when it is authentic.
+  template <class Inner>
+  std::optional<Inner> receiveSigned(std::optional<link::SignedReceiver<Inner>>& receiver,
+                                     const lcm_recv_buf_t* rbuf, const char* what, double now_s);
   // One turn of the loop: messages in (or a wait for a keyframe while the network is down),
   // queued keyframes out, the status when due.
   void serve(Clock::time_point* next_status);
@@ -108,6 +120,9 @@ class LinkTask {
   int64_t chunks_sent_ = 0, chunks_resent_ = 0, keyframes_skipped_ = 0;
   drone_status_t status_{};  // its vehicle_id set once; link::fillDroneStatus the rest
   std::optional<link::CorrectionReceiver> corrections_;
+  std::optional<link::CommandReceiver> command_receiver_;
+  LatestValue<CommandMail>* commands_ = nullptr;  // to the control task; nullptr without one
+  int64_t commands_passed_ = 0, commands_dropped_ = 0;
   link::RejectCounters rejects_;
   SensorWatch watch_;
   std::atomic<bool> stop_{false}, await_corrections_{false};

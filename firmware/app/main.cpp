@@ -209,12 +209,13 @@ int run(int argc, char** argv) {
   // Each task owns its LCM instance (publisher.h says why); neither needs the network to start.
   StopToken stop;
   LatestValue<OdometryPose> poses;
+  LatestValue<CommandMail> commands;
   OdometryTask odometry(config, camera, volume_params, pipeline_params, &anchor, &counters,
                         &capture_queue, &keyframe_queue, stack ? &poses : nullptr, &stop);
   std::optional<ControlTask> control;
-  if (stack) control.emplace(config, std::move(stack), &poses, &stop);
+  if (stack) control.emplace(config, std::move(stack), &poses, &commands, &stop);
   LinkTask link(config, key, &anchor, &counters, &keyframe_queue, &capture_queue, camera,
-                source->depthScaleM(), &stop);
+                source->depthScaleM(), control ? &commands : nullptr, &stop);
 
   std::thread capture_thread([&] {
     nameThisThread("kfw-capture");
@@ -270,12 +271,13 @@ int run(int argc, char** argv) {
         "sample); %lld poses fused, %lld rejected; estimator %s; mode %s, %lld mode changes, "
         "%lld commands accepted, %lld refused; failsafes: %lld vision lost, %lld estimator "
         "diverged, %lld attitude limit, %lld IMU lost, %lld geofence; %lld rotor commands "
-        "sent, %lld not\n",
+        "sent, %lld not; %lld signed commands passed by the link, %lld dropped\n",
         n(c.imu_samples), n(c.imu_rejected), n(c.ticks), n(c.silent_ticks), n(c.poses_fused),
         n(c.poses_rejected), c.estimator_started ? "started" : "not started",
         flight::toString(c.mode), n(f.mode_changes), n(f.commands_accepted),
         n(f.commands_refused), n(f.vision_lost), n(f.estimator_diverged), n(f.attitude_limit),
-        n(f.imu_lost), n(f.geofence), n(c.commands_sent), n(c.commands_unsent));
+        n(f.imu_lost), n(f.geofence), n(c.commands_sent), n(c.commands_unsent),
+        n(link.commandsPassed()), n(link.commandsDropped()));
   }
   if (!interrupted && counters.frames_captured == 0) {
     spdlog::error("source: {} ended without delivering a frame", source->describe());

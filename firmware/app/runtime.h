@@ -14,6 +14,8 @@
 #include "kinfly/frame/tracking_status.h"
 #include "kinfly/core/image.h"
 #include "kinfly/core/se3.h"
+#include "kinfly/flight/flight_modes.h"
+#include "kinfly/flight/trajectory.h"
 
 namespace kinfly::fw {
 
@@ -62,6 +64,14 @@ struct Counters {
 struct OdometryPose {
   int64_t utime = -1;  // [µs] capture; -1 before the first
   Pose T_odom_cam = Pose::Identity();
+};
+
+// A command from the ground for the control task, authenticated by the link, which also builds a
+// mission's trajectory (a minimum-snap solve allocates; the control tick must not).
+struct CommandMail {
+  int64_t command_id = -1;
+  flight::FlightCommand command;
+  std::optional<flight::Trajectory> mission;
 };
 
 struct KeyframeJob {

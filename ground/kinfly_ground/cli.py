@@ -26,6 +26,8 @@ from kinfly import ground_status_t
 from . import __version__
 from ._native import (DEFAULT_PEER_PORT, MAX_VEHICLE_ID, Channel, KeyFileError, PeerLink, Signer,
                       channel_name, ground_subscriptions, load_key_file, parse_channel)
+from .command import KINDS, CommandError, read_waypoints, send
+from .command import build as build_command
 from .export import export, format_ms, print_summary
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
 from .outputs import OutputError, check_writable, memory, read_tum
@@ -140,6 +142,29 @@ def parser() -> argparse.ArgumentParser:
                      help="MAVLink 2 signing secret (32 bytes): sign what is sent, refuse "
                           "unsigned telemetry")
     run.add_argument("--mavlink-baud", type=int, default=57600, help="serial baud rate")
+
+    command = sub.add_parser(
+        "command", help="send a signed command to a drone's flight stack",
+        description="Send one signed command (flight_command_t in signed_t, the vehicle's key) "
+                    "to a drone's flight stack on KINFLY_<vid>_COMMAND, several copies of it "
+                    "(the drone takes the first). Positions are in the flight stack's world: "
+                    "gravity-aligned, z down, so heights are negative z (docs/flight.md). The "
+                    "drone's log says whether the flight modes accepted it.")
+    command.add_argument("action", choices=sorted(KINDS), help="what the drone is to do")
+    command.add_argument("values", nargs="*", metavar="VALUE",
+                         help="takeoff: HEIGHT_M; goto: X Y Z; mission: WAYPOINT_FILE (a line "
+                              "`x y z` per waypoint, # comments)")
+    command.add_argument("--vehicle", type=int, required=True, help="the drone's vehicle id")
+    command.add_argument("--key", type=Path, required=True, metavar="FILE",
+                         help="the vehicle's 32-byte signing key (kinfly-keygen)")
+    command.add_argument("--max-speed", type=float, default=0.0, metavar="M/S",
+                         help="mission: its peak speed (default: the drone's "
+                              "flight.max_speed_m_s)")
+    command.add_argument("--copies", type=int, default=3,
+                         help="copies sent, 20 ms apart (default 3)")
+    command.add_argument("--lcm-url", default=os.environ.get("LCM_DEFAULT_URL"),
+                         help=f"LCM provider URL (default $LCM_DEFAULT_URL, else "
+                              f"{DEFAULT_LCM_URL})")
 
     replay = sub.add_parser("replay", help="fuse a recorded flight log offline",
                             description="Fuse every keyframe of an LCM flight log (recorded "
@@ -480,11 +505,43 @@ def replay(args: argparse.Namespace) -> int:
     return _finish(station, viewer, args, "replay", started, truth, {"log": str(args.log)})
 
 
+def send_command(args: argparse.Namespace) -> int:
+    _check_vehicle(args)
+    values = args.values
+    wanted = {"takeoff": 1, "goto": 3, "mission": 1}.get(args.action, 0)
+    if len(values) != wanted:
+        raise UsageError(f"{args.action} takes {wanted} value(s) (got {len(values)}): "
+                         "kinfly-ground command --help")
+    if not 1 <= args.copies <= 100:
+        raise UsageError(f"--copies {args.copies} outside [1, 100]")
+    try:
+        numbers = [float(v) for v in values] if args.action in ("takeoff", "goto") else []
+    except ValueError:
+        raise UsageError(f"{args.action}: not a number in {' '.join(values)}")
+    waypoints = read_waypoints(Path(values[0])) if args.action == "mission" else []
+    command_id = time.time_ns() // 1000
+    message = build_command(args.vehicle, args.action, command_id,
+                            height_m=numbers[0] if args.action == "takeoff" else 0.0,
+                            target=numbers if args.action == "goto" else (0.0, 0.0, 0.0),
+                            waypoints=waypoints, max_speed_m_s=args.max_speed)
+    signer = Signer(load_key_file(args.key), args.vehicle)
+    import lcm  # as in run: only the commands that use the network load it
+
+    lc = lcm.LCM(args.lcm_url or DEFAULT_LCM_URL)
+    send(lc, signer, message, args.copies)
+    log(f"command {command_id} ({args.action}) sent to vehicle {args.vehicle}, "
+        f"{args.copies} copies")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
+        if args.command == "command":
+            return send_command(args)
         return run(args) if args.command == "run" else replay(args)
-    except (UsageError, KeyFileError, OutputError, ViewerError, MavlinkError) as error:
+    except (UsageError, KeyFileError, OutputError, ViewerError, MavlinkError,
+            CommandError) as error:
         log(f"error: {error}")
         return 2
     finally:

@@ -203,7 +203,8 @@ class Receiver {
       case link::Channel::kCorrection:
       case link::Channel::kGroundStatus:
       case link::Channel::kChunkRequest:
-      case link::Channel::kMotorCommand: return nb::none();
+      case link::Channel::kMotorCommand:
+      case link::Channel::kCommand: return nb::none();
     }
     return nb::none();
   }
@@ -365,6 +366,13 @@ class Signer {
       : vehicle_id_(vehicle_id),
         signer_(keyOf(key), vehicle_id, first_sequence.value_or(link::wallClockUtime())) {}
 
+  // The signed_t envelope, encoded, around any encoded inner message (a flight_command_t).
+  nb::bytes sign(const nb::bytes& inner, std::optional<int64_t> utime_now) {
+    signer_.sign(reinterpret_cast<const uint8_t*>(inner.c_str()), inner.size(),
+                 utime_now.value_or(link::wallClockUtime()), &envelope_);
+    return bytesOf(encoded(envelope_));
+  }
+
   // The signed_t envelope, encoded, around the correction of one keyframe.
   nb::bytes signCorrection(int64_t keyframe_id, int64_t utime, const PoseIn& T_world_cam,
                            int32_t reset_counter, std::optional<int64_t> utime_now) {
@@ -511,7 +519,8 @@ void bindLink(nb::module_& m) {
       .value("GROUND_TRUTH", link::Channel::kGroundTruth)
       .value("KEYFRAME_CHUNK", link::Channel::kKeyframeChunk)
       .value("CHUNK_REQUEST", link::Channel::kChunkRequest)
-      .value("MOTOR_COMMAND", link::Channel::kMotorCommand);
+      .value("MOTOR_COMMAND", link::Channel::kMotorCommand)
+      .value("COMMAND", link::Channel::kCommand);
   m.attr("MAX_VEHICLE_ID") = link::kMaxVehicleId;
   m.def("channel_name",
         [](link::Channel channel, int vehicle_id) {
@@ -681,6 +690,8 @@ void bindLink(nb::module_& m) {
       .def(nb::init<const nb::bytes&, int32_t, std::optional<int64_t>>(), nb::arg("key"),
            nb::arg("vehicle_id"), nb::arg("first_sequence") = nb::none(),
            "first_sequence: by default the wall clock in microseconds")
+      .def("sign", &Signer::sign, nb::arg("inner"), nb::arg("utime_now") = nb::none(),
+           "the encoded signed_t around INNER, an encoded LCM message (flight_command_t)")
       .def("sign_correction", &Signer::signCorrection, nb::arg("keyframe_id"), nb::arg("utime"),
            nb::arg("T_world_cam"), nb::arg("reset_counter"), nb::arg("utime_now") = nb::none(),
            "The encoded signed_t around a pose_correction_t of one keyframe");

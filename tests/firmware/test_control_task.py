@@ -33,6 +33,20 @@ MIN_LOOPBACK_DELIVERY = 0.9
 # drone's configuration on a busy computer. Without it, beside two busy loops, LCM's receive
 # thread waited so long for a core that up to a tenth of the samples overflowed the socket.
 RT_PRIORITY = 10
+# The commands test keeps the IMU running while it sends its three commands and waits for each
+# answer in the drone's log (then stops it): longer than that takes on a loaded machine.
+COMMAND_IMU_SECONDS = 120.0
+GROUND = Path(sys.executable).parent / "kinfly-ground"
+# A take-off command without its signed_t envelope, as a forger on the Wi-Fi would send it.
+UNSIGNED_COMMAND = """
+import sys, lcm
+from kinfly import flight_command_t
+from kinfly_ground._native import Channel, channel_name
+m = flight_command_t()
+m.vehicle_id, m.kind, m.height_m = int(sys.argv[1]), flight_command_t.TAKE_OFF, 1.0
+m.target_world_m = [0.0, 0.0, 0.0]
+lcm.LCM().publish(channel_name(Channel.COMMAND, m.vehicle_id), m.encode())
+"""
 
 
 def fly_imu(netns: list[str], seconds: float, env: list[str] | None = None,
@@ -95,6 +109,55 @@ def test_the_control_task_allocates_at_start_only(netns: list[str], tmp_path: Pa
     assert long["kfw-control"] == short["kfw-control"], (short, long)
     print(f"kfw-control allocations: {short['kfw-control']} after 1 s, {long['kfw-control']} "
           f"after {IMU_SECONDS:g} s of IMU")
+
+
+def test_signed_commands_reach_the_flight_modes_and_unsigned_ones_do_not(
+        netns: list[str], tmp_path: Path) -> None:
+    """`kinfly-ground command` signs with the vehicle's key; the drone's link verifies and hands
+    the command to the control task, whose flight modes answer it: a disarm of a disarmed drone
+    is accepted (nothing to do), a take-off is refused (disarmed: arm first). The same command
+    unsigned is rejected by the link and never reaches the modes."""
+    key = tmp_path / "v.key"
+    subprocess.run([built("bin/kinfly-keygen"), "--out", key], check=True, capture_output=True)
+    drone = Watched([*netns, *firmware("--vehicle.id", VEHICLE, "--source.kind", "synthetic",
+                                      "--flight.backend", "motors", "--flight.rt_priority",
+                                      RT_PRIORITY, key_file=str(key), lcm_url=None)])
+    imu = None
+    try:
+        assert drone.wait_for("control: LCM started", 1, STARTUP_TIMEOUT_S), drone.output()
+        # The control task takes commands on its ticks: the IMU runs throughout.
+        imu = subprocess.Popen([*netns, sys.executable, str(IMU_PEER), "--vehicle",
+                                str(VEHICLE), "--seconds", str(COMMAND_IMU_SECONDS)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+        def command(*args: object) -> None:
+            subprocess.run([*netns, str(GROUND), "command", *map(str, args), "--vehicle",
+                            str(VEHICLE), "--key", str(key)], check=True, capture_output=True,
+                           timeout=60)
+
+        command("disarm")
+        assert drone.wait_for("(disarm) accepted", 1, STARTUP_TIMEOUT_S), drone.output()
+        command("takeoff", 1.0)
+        assert drone.wait_for("(take-off) refused: disarmed", 1, STARTUP_TIMEOUT_S), \
+            drone.output()
+        unsigned = subprocess.run(
+            [*netns, sys.executable, "-c", UNSIGNED_COMMAND, str(VEHICLE)], capture_output=True,
+            text=True, timeout=60)
+        assert unsigned.returncode == 0, unsigned.stderr
+        assert drone.wait_for("link: command rejected", 1, STARTUP_TIMEOUT_S), drone.output()
+        imu.terminate()
+        imu.wait(30)
+        drone.process.terminate()
+        rc = drone.finish(30)
+    finally:
+        drone.process.kill()
+        if imu is not None:
+            imu.kill()
+    assert rc == 0, drone.output()
+    control = control_summary(drone.output())
+    assert control["passed"] == 2 and control["dropped"] == 0
+    assert control["commands_accepted"] == 1 and control["commands_refused"] == 1
+    assert control["mode"] == "disarmed"
 
 
 @pytest.mark.parametrize("args,message", [

@@ -88,7 +88,7 @@ TEST(Channels, NamesCarryTheVehicleAndParseBack) {
   for (Channel c : {Channel::kDepth, Channel::kKeyframe, Channel::kOdometry, Channel::kImu,
                     Channel::kStatus, Channel::kCorrection, Channel::kGroundStatus,
                     Channel::kGroundTruth, Channel::kKeyframeChunk, Channel::kChunkRequest,
-                    Channel::kMotorCommand}) {
+                    Channel::kMotorCommand, Channel::kCommand}) {
     for (int vehicle : {0, 7, kMaxVehicleId}) {
       const std::string name = channelName(c, vehicle);
       EXPECT_NE(name.find(std::to_string(vehicle)), std::string::npos) << name;
@@ -577,6 +577,86 @@ TEST(CorrectionReceiver, AcceptsTheGoodAndCountsEachBadKind) {
   r.writeTo(&status);
   EXPECT_EQ(status.rejected_bad_mac, 1);
   EXPECT_EQ(status.rejected_unsigned, 1);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Flight commands: decoded within bounds, and received through the same signed path.
+
+flight_command_t sampleMission(int waypoints) {
+  flight_command_t m;
+  m.utime = kNow;
+  m.vehicle_id = kVehicle;
+  m.command_id = 42;
+  m.kind = flight_command_t::MISSION;
+  m.max_speed_m_s = 0.5;
+  m.waypoint_count = waypoints;
+  for (int i = 0; i < waypoints; ++i) m.waypoints_world_m.push_back({1.0 * i, 0.5, -1.0});
+  return m;
+}
+
+TEST(Decode, FlightCommandsAreBoundedByTheirWaypoints) {
+  // The count just before the waypoints, three doubles each, as the bounded decoder assumes.
+  const flight_command_t sent = sampleMission(3);
+  const auto bytes = encode(sent);
+  const size_t fixed = static_cast<size_t>(flight_command_t().getEncodedSize());
+  ASSERT_EQ(bytes.size(), fixed + 3 * 24);
+  EXPECT_EQ(bytes[fixed - 1], 3);
+  flight_command_t got;
+  ASSERT_TRUE(decodeMessage(bytes.data(), bytes.size(), DecodeBounds(), &got).ok());
+  EXPECT_EQ(got.waypoints_world_m, sent.waypoints_world_m);
+  EXPECT_EQ(got.command_id, 42);
+
+  auto forged = bytes;  // a count of 2^31 - 1 waypoints in a 200-byte datagram
+  forged[fixed - 4] = 0x7f;
+  forged[fixed - 3] = forged[fixed - 2] = forged[fixed - 1] = 0xff;
+  EXPECT_EQ(decodeMessage(forged.data(), forged.size(), DecodeBounds(), &got).status,
+            DecodeStatus::kOutOfBounds);
+  const auto expectBad = [&](const flight_command_t& m, const char* detail) {
+    const auto b = encode(m);
+    const DecodeResult r = decodeMessage(b.data(), b.size(), DecodeBounds(), &got);
+    EXPECT_EQ(r.status, DecodeStatus::kBadField) << detail;
+    EXPECT_EQ(r.detail, detail);
+  };
+  flight_command_t bad = sampleMission(3);
+  bad.kind = 9;
+  expectBad(bad, "unknown kind 9");
+  expectBad(sampleMission(1), "a mission needs at least 2 waypoints (got 1)");
+  bad = sampleMission(3);
+  bad.waypoints_world_m[1][2] = NAN;
+  expectBad(bad, "a waypoint is not finite");
+  bad = sampleMission(3);
+  bad.height_m = INFINITY;
+  expectBad(bad, "a field is not finite");
+  bad = sampleMission(flight_command_t::MAX_WAYPOINTS + 1);
+  const auto too_long = encode(bad);
+  EXPECT_EQ(decodeMessage(too_long.data(), too_long.size(), DecodeBounds(), &got).status,
+            DecodeStatus::kOutOfBounds);
+}
+
+TEST(CommandReceiver, TakesASignedCommandOnceAndRejectsTheRest) {
+  const Key key = testKey(1);
+  CommandReceiver receiver(key, kVehicle, VerifierParams(), DecodeBounds());
+  Signer signer(key, kVehicle, 1);
+  const auto send = [&](const std::vector<uint8_t>& bytes) {
+    return receiver.receive(bytes.data(), bytes.size(), kNow);
+  };
+  const auto inner = encode(sampleMission(4));
+  signed_t envelope;
+  signer.sign(inner.data(), inner.size(), kNow, &envelope);
+  const auto taken = send(encode(envelope));
+  ASSERT_TRUE(taken);
+  EXPECT_EQ(taken->waypoint_count, 4);
+  EXPECT_FALSE(send(encode(envelope)));             // a copy
+  EXPECT_FALSE(send(inner));                        // unsigned
+  // A correction signed with the right key is not a command.
+  const auto correction = encode(sampleCorrection(1));
+  signed_t wrong_type;
+  signer.sign(correction.data(), correction.size(), kNow, &wrong_type);
+  EXPECT_FALSE(send(encode(wrong_type)));
+  EXPECT_EQ(receiver.accepted(), 1);
+  EXPECT_EQ(receiver.duplicates(), 1);
+  EXPECT_EQ(receiver.rejects().unsigned_messages, 1);
+  EXPECT_EQ(receiver.rejects().malformed, 1);
 }
 
 }  // namespace

@@ -87,7 +87,8 @@ _CONTROL = re.compile(
     r"(?P<commands_accepted>\d+) commands accepted, (?P<commands_refused>\d+) refused; "
     r"failsafes: (?P<vision_lost>\d+) vision lost, (?P<estimator_diverged>\d+) estimator "
     r"diverged, (?P<attitude_limit>\d+) attitude limit, (?P<imu_lost>\d+) IMU lost, "
-    r"(?P<geofence>\d+) geofence; (?P<sent>\d+) rotor commands sent, (?P<unsent>\d+) not")
+    r"(?P<geofence>\d+) geofence; (?P<sent>\d+) rotor commands sent, (?P<unsent>\d+) not; "
+    r"(?P<passed>\d+) signed commands passed by the link, (?P<dropped>\d+) dropped")
 
 
 def control_summary(stdout: str) -> dict[str, int | str]:

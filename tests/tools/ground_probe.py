@@ -8,7 +8,8 @@ roles:
         restarted ground station has).
     ground_probe.py watch [--seconds S] [--until-sensor STATE:CONNECTS]
         records the drone's drone_status_t for S seconds (without --seconds: until SIGTERM, or until
-        a status reports that sensor_state and sensor_connects) and prints one JSON list, each
+        a status reports that sensor_state and sensor_connects, and with --until-frame until the
+        odometry of that capture or a later one was heard too) and prints one JSON list, each
         status with every field and t_s, the seconds since the watch began; exit 1 if none was
         heard. It says "watching" on stderr once it listens.
 """
@@ -23,7 +24,7 @@ import time
 
 import lcm
 
-from kinfly import drone_status_t, ground_status_t
+from kinfly import drone_status_t, ground_status_t, odometry_t
 from kinfly_ground._native import Channel, Signer, channel_name, load_key_file
 from uplink_probe import signed
 
@@ -45,18 +46,32 @@ def beacon(lc: lcm.LCM, vehicle: int, seconds: float, key: str | None, keyframe:
 
 
 def watch(lc: lcm.LCM, vehicle: int, seconds: float | None,
-          until_sensor: tuple[int, int] | None) -> list[dict[str, float]]:
+          until_sensor: tuple[int, int] | None, until_frame: int | None = None,
+          ) -> list[dict[str, float]]:
     start = time.monotonic()
     timeline: list[dict[str, float]] = []
     stopping: list[bool] = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append(True))
+    sensor_seen = until_sensor is None
+    frame_seen = until_frame is None
 
     def on_status(_channel: str, data: bytes) -> None:
+        nonlocal sensor_seen
         s = drone_status_t.decode(data)
         timeline.append({"t_s": round(time.monotonic() - start, 3),
                          **{field: getattr(s, field) for field in drone_status_t.__slots__}})
-        if (s.sensor_state, s.sensor_connects) == until_sensor:
+        sensor_seen = sensor_seen or (s.sensor_state, s.sensor_connects) == until_sensor
+        if until_sensor is not None and sensor_seen and frame_seen:
             stopping.append(True)
+
+    def on_odometry(_channel: str, data: bytes) -> None:
+        nonlocal frame_seen
+        frame_seen = frame_seen or odometry_t.decode(data).frame_id >= until_frame
+        if sensor_seen and frame_seen:
+            stopping.append(True)
+
+    if until_frame is not None:
+        lc.subscribe(channel_name(Channel.ODOMETRY, vehicle), on_odometry)
 
     lc.subscribe(channel_name(Channel.STATUS, vehicle), on_status)
     print("watching", file=sys.stderr, flush=True)
@@ -82,6 +97,9 @@ def main() -> int:
                         type=lambda v: tuple(int(x) for x in v.split(":")),
                         help="watch: stop once a status reports this sensor_state and "
                              "sensor_connects")
+    parser.add_argument("--until-frame", type=int, metavar="FRAME_ID",
+                        help="watch, with --until-sensor: and once the odometry of this capture "
+                             "(odometry_t.frame_id) or a later one was heard")
     parser.add_argument("--key", help="beacon: send one signed correction with this key first")
     parser.add_argument("--correct", type=int, default=0, help="beacon: the keyframe corrected")
     args = parser.parse_args()
@@ -91,7 +109,7 @@ def main() -> int:
             parser.error("beacon needs --seconds")
         beacon(lc, args.vehicle, args.seconds, args.key, args.correct)
         return 0
-    timeline = watch(lc, args.vehicle, args.seconds, args.until_sensor)
+    timeline = watch(lc, args.vehicle, args.seconds, args.until_sensor, args.until_frame)
     print(json.dumps(timeline))
     return 0 if timeline else 1
 

@@ -187,7 +187,10 @@ PositionSetpoint FlightStack::guide(const FlightOutput& out, const EstimatorStat
       if (utime < mission_start_utime_) return line_.sample(t_s);
       const double mission_t_s = static_cast<double>(utime - mission_start_utime_) / kUsPerS;
       mission_finished_ = mission_t_s >= mission_->durationS();
-      return mission_->sample(mission_t_s);
+      // At the heading the mission began with, whatever the trajectory was made with.
+      PositionSetpoint along = mission_->sample(mission_t_s);
+      along.yaw_rad = sp.yaw_rad;
+      return along;
     }
     case SetpointKind::kLand: return descent_.sample(t_s);
     case SetpointKind::kDescend: {

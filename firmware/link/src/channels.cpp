@@ -21,6 +21,7 @@ constexpr std::array<std::pair<Channel, const char*>, kChannelCount> kKinds{{
     {Channel::kKeyframeChunk, "KEYFRAME_CHUNK"},
     {Channel::kChunkRequest, "CHUNK_REQUEST"},
     {Channel::kMotorCommand, "MOTOR_COMMAND"},
+    {Channel::kCommand, "COMMAND"},
 }};
 
 }  // namespace
@@ -53,7 +54,7 @@ std::optional<ParsedChannel> parseChannel(std::string_view name) {
 
 bool sentByGround(Channel channel) {
   return channel == Channel::kCorrection || channel == Channel::kGroundStatus ||
-         channel == Channel::kChunkRequest;
+         channel == Channel::kChunkRequest || channel == Channel::kCommand;
 }
 
 std::string vehicleChannelsRegex(int vehicle_id) {

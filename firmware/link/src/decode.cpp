@@ -19,20 +19,25 @@ int64_t readBigEndian(const uint8_t* p, int bytes) {
   return static_cast<int64_t>(v);
 }
 
-// Types whose last two fields are a count and a byte array of that many, `int32_t payload_size;
+// Types whose last two fields are a count and an array of that many, `int32_t payload_size;
 // byte payload[payload_size];` or an int16 count (a unit test checks the layout against the
-// generated encoder): the count's width, 0 for the types without such an array.
+// generated encoder): the count's width, 0 for the types without such an array ...
 template <class T>
 constexpr int kTrailingCountBytes =
-    std::is_same_v<T, depth_keyframe_t> || std::is_same_v<T, signed_t>              ? 4
+    std::is_same_v<T, depth_keyframe_t> || std::is_same_v<T, signed_t> ||
+            std::is_same_v<T, flight_command_t>                                  ? 4
     : std::is_same_v<T, keyframe_chunk_t> || std::is_same_v<T, chunk_request_t> ? 2
                                                                                   : 0;
+// ... and the bytes of each of its elements: a mission's waypoints are three doubles.
+template <class T>
+constexpr int kTrailingElementBytes = std::is_same_v<T, flight_command_t> ? 3 * 8 : 1;
 
 template <class T>
 int payloadBound(const DecodeBounds& bounds) {
   if constexpr (std::is_same_v<T, depth_keyframe_t>) return bounds.max_keyframe_payload_bytes;
   if constexpr (std::is_same_v<T, keyframe_chunk_t>) return keyframe_chunk_t::MAX_BLOCK_BYTES;
   if constexpr (std::is_same_v<T, chunk_request_t>) return chunk_request_t::MAX_INDICES;
+  if constexpr (std::is_same_v<T, flight_command_t>) return flight_command_t::MAX_WAYPOINTS;
   return bounds.max_signed_payload_bytes;
 }
 
@@ -117,6 +122,20 @@ std::string fieldProblem(const pose_correction_t& m, const DecodeBounds&) {
   if (m.keyframe_id < 0) return "keyframe_id is negative";
   if (m.reset_counter < 0) return "reset_counter is negative";
   return poseProblem(m.T_world_cam);
+}
+
+std::string fieldProblem(const flight_command_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (m.kind < flight_command_t::ARM || m.kind > flight_command_t::LAND)
+    return "unknown kind " + std::to_string(m.kind);
+  if (!std::isfinite(m.height_m) || !finite(m.target_world_m, 3) ||
+      !std::isfinite(m.max_speed_m_s))
+    return "a field is not finite";
+  if (m.kind == flight_command_t::MISSION && m.waypoint_count < 2)
+    return "a mission needs at least 2 waypoints (got " + std::to_string(m.waypoint_count) + ")";
+  for (const auto& waypoint : m.waypoints_world_m)
+    if (waypoint.size() != 3 || !finite(waypoint.data(), 3)) return "a waypoint is not finite";
+  return {};
 }
 
 template <class StatusMessage>
@@ -209,7 +228,7 @@ DecodeResult decodeMessage(const void* data, size_t size, const DecodeBounds& bo
       return fail(DecodeStatus::kOutOfBounds,
                   "array size " + std::to_string(declared) + " outside [0, " +
                       std::to_string(payloadBound<T>(bounds)) + "]");
-    expected += static_cast<size_t>(declared);
+    expected += static_cast<size_t>(declared) * kTrailingElementBytes<T>;
   }
   if (size < expected)
     return fail(DecodeStatus::kTruncated,
@@ -238,6 +257,7 @@ KINFLY_INSTANTIATE_DECODE(pose_correction_t)
 KINFLY_INSTANTIATE_DECODE(signed_t)
 KINFLY_INSTANTIATE_DECODE(keyframe_chunk_t)
 KINFLY_INSTANTIATE_DECODE(chunk_request_t)
+KINFLY_INSTANTIATE_DECODE(flight_command_t)
 #undef KINFLY_INSTANTIATE_DECODE
 
 }  // namespace kinfly::link

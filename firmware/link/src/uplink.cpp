@@ -2,13 +2,15 @@
 
 namespace kinfly::link {
 
-CorrectionReceiver::CorrectionReceiver(const Key& key, int32_t vehicle_id,
-                                       const VerifierParams& verifier, const DecodeBounds& bounds)
+template <class Inner>
+SignedReceiver<Inner>::SignedReceiver(const Key& key, int32_t vehicle_id,
+                                      const VerifierParams& verifier, const DecodeBounds& bounds)
     : vehicle_id_(vehicle_id), verifier_(key, vehicle_id, verifier), bounds_(bounds) {}
 
-std::optional<pose_correction_t> CorrectionReceiver::receive(const void* data, size_t size,
-                                                             int64_t now_utime) {
-  if (hasFingerprint<pose_correction_t>(data, size)) {
+template <class Inner>
+std::optional<Inner> SignedReceiver<Inner>::receive(const void* data, size_t size,
+                                                    int64_t now_utime) {
+  if (hasFingerprint<Inner>(data, size)) {
     ++rejects_.unsigned_messages;
     return std::nullopt;
   }
@@ -22,20 +24,23 @@ std::optional<pose_correction_t> CorrectionReceiver::receive(const void* data, s
     rejects_.count(verdict);
     return std::nullopt;
   }
-  pose_correction_t correction;
-  if (const DecodeResult inner = decodeMessage(envelope_.payload.data(), envelope_.payload.size(),
-                                               bounds_, &correction);
-      !inner.ok()) {
-    rejects_.count(inner.status);
+  Inner inner;
+  if (const DecodeResult decoded = decodeMessage(envelope_.payload.data(),
+                                                 envelope_.payload.size(), bounds_, &inner);
+      !decoded.ok()) {
+    rejects_.count(decoded.status);
     return std::nullopt;
   }
   // The envelope's vehicle id is authenticated; the inner one must agree with it.
-  if (correction.vehicle_id != vehicle_id_) {
+  if (inner.vehicle_id != vehicle_id_) {
     ++rejects_.wrong_vehicle;
     return std::nullopt;
   }
   ++accepted_;
-  return correction;
+  return inner;
 }
+
+template class SignedReceiver<pose_correction_t>;
+template class SignedReceiver<flight_command_t>;
 
 }  // namespace kinfly::link

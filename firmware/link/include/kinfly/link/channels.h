@@ -24,9 +24,10 @@ enum class Channel {
   kKeyframeChunk, // keyframe_chunk_t, keyframes cut into FEC-coded datagrams (drone -> ground)
   kChunkRequest,  // chunk_request_t, resends the ground asks for (ground -> drone)
   kMotorCommand,  // motor_command_t, the control task's rotor speeds (drone -> simulator/ESCs)
+  kCommand,       // signed_t around flight_command_t (ground -> drone)
 };
 // Channels are numbered from 0 in the order above (arrays of per-channel names index by it).
-constexpr size_t kChannelCount = static_cast<size_t>(Channel::kMotorCommand) + 1;
+constexpr size_t kChannelCount = static_cast<size_t>(Channel::kCommand) + 1;
 
 constexpr int kMaxVehicleId = 65535;  // ids are 0..kMaxVehicleId
 

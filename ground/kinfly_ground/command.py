@@ -1,0 +1,78 @@
+"""`kinfly-ground command`: a signed command to a drone's flight stack (docs/flight.md,
+"Commands"): a flight_command_t inside a signed_t on KINFLY_<vid>_COMMAND, with the vehicle's
+key, the same HMAC, window and replay rules as the ground's corrections. Multicast on Wi-Fi is
+never retransmitted, so the same envelope goes out several times; the drone takes the first copy
+and counts the rest as copies."""
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from kinfly import flight_command_t
+
+from ._native import Channel, Signer, channel_name
+
+KINDS = {"arm": flight_command_t.ARM, "disarm": flight_command_t.DISARM,
+         "takeoff": flight_command_t.TAKE_OFF, "hold": flight_command_t.HOLD,
+         "goto": flight_command_t.GO_TO, "mission": flight_command_t.MISSION,
+         "land": flight_command_t.LAND}
+COPY_PERIOD_S = 0.02  # the copies of one command: apart, so one burst of loss does not take all
+
+
+class CommandError(Exception):
+    """A command that cannot be sent as given; the message names what is wrong."""
+
+
+def read_waypoints(path: Path) -> list[tuple[float, float, float]]:
+    """A mission file: one waypoint a line, `x y z` in metres in the flight stack's world
+    (z down: heights are negative), `#` starts a comment."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as error:
+        raise CommandError(f"mission file {path}: {error.strerror}") from error
+    waypoints = []
+    for number, line in enumerate(lines, start=1):
+        words = line.split("#", 1)[0].split()
+        if not words:
+            continue
+        try:
+            x, y, z = (float(w) for w in words)
+        except ValueError:
+            raise CommandError(f"{path}:{number}: want three numbers x y z, got {line.strip()!r}")
+        waypoints.append((x, y, z))
+    if not 2 <= len(waypoints) <= flight_command_t.MAX_WAYPOINTS:
+        raise CommandError(f"{path}: a mission needs 2 to {flight_command_t.MAX_WAYPOINTS} "
+                           f"waypoints (got {len(waypoints)})")
+    return waypoints
+
+
+def build(vehicle: int, kind: str, command_id: int, *, height_m: float = 0.0,
+          target: Sequence[float] = (0.0, 0.0, 0.0),
+          waypoints: Sequence[tuple[float, float, float]] = (),
+          max_speed_m_s: float = 0.0) -> flight_command_t:
+    if kind not in KINDS:
+        raise CommandError(f"unknown command {kind!r} (one of {', '.join(KINDS)})")
+    m = flight_command_t()
+    m.utime = time.time_ns() // 1000
+    m.vehicle_id = vehicle
+    m.command_id = command_id
+    m.kind = KINDS[kind]
+    m.height_m = float(height_m)
+    m.target_world_m = [float(v) for v in target]
+    m.max_speed_m_s = float(max_speed_m_s)
+    m.waypoint_count = len(waypoints)
+    m.waypoints_world_m = [[float(v) for v in w] for w in waypoints]
+    return m
+
+
+def send(lc, signer: Signer, command: flight_command_t, copies: int) -> bytes:
+    """Publishes COPIES of the signed command (one envelope: the drone takes the first);
+    returns the envelope."""
+    envelope = signer.sign(command.encode())
+    channel = channel_name(Channel.COMMAND, command.vehicle_id)
+    for copy in range(copies):
+        if copy:
+            time.sleep(COPY_PERIOD_S)
+        lc.publish(channel, envelope)
+    return envelope

@@ -4,12 +4,12 @@
 #include <sched.h>
 #include <spdlog/spdlog.h>
 
-#include <cstdlib>
 #include <cstring>
 #include <string>
 #include <thread>
 #include <utility>
 
+#include "kinfly/link/decode.h"
 #include "kinfly/link/multicast.h"
 
 namespace kinfly::fw {
@@ -28,24 +28,18 @@ constexpr int kImuQueueMessages = 1000;
 // flight.lcm_url, else the link's; a udpm URL that does not say recv_buf_size asks for
 // kControlRecvBufBytes.
 std::string controlUrl(const FirmwareConfig& config) {
-  std::string url =
-      config.flight.lcm_url.empty() ? config.link.effectiveLcmUrl() : config.flight.lcm_url;
-  if (url.empty()) {
-    const char* env = std::getenv("LCM_DEFAULT_URL");
-    url = env != nullptr && *env != '\0' ? env : link::kLcmDefaultUrl;
-  }
+  const std::string url = link::resolvedLcmUrl(
+      config.flight.lcm_url.empty() ? config.link.effectiveLcmUrl() : config.flight.lcm_url);
   if (url.rfind("udpm://", 0) != 0 || url.find("recv_buf_size=") != std::string::npos) return url;
   return url + (url.find('?') == std::string::npos ? "?" : "&") +
          "recv_buf_size=" + std::to_string(kControlRecvBufBytes);
 }
 
-int8_t rotorState(flight::FlightMode mode) {
-  switch (mode) {
-    case flight::FlightMode::kDisarmed:
-    case flight::FlightMode::kMotorsCut:
-    case flight::FlightMode::kHandedOver: return motor_command_t::STOPPED;
-    case flight::FlightMode::kArmed: return motor_command_t::IDLE;
-    default: return motor_command_t::FLYING;
+int8_t rotorState(flight::RotorCommand rotors) {
+  switch (rotors) {
+    case flight::RotorCommand::kIdle: return motor_command_t::IDLE;
+    case flight::RotorCommand::kFlying: return motor_command_t::FLYING;
+    default: return motor_command_t::STOPPED;
   }
 }
 
@@ -127,8 +121,8 @@ void ControlTask::onImu(const lcm_recv_buf_t* message, const char*, void* self) 
 }
 
 void ControlTask::handleImu(const lcm_recv_buf_t* message) {
-  const int size = static_cast<int>(message->data_size);
-  if (imu_.decode(message->data, 0, size) != size || imu_.vehicle_id != config_.vehicle.id) {
+  if (!link::decodeMessage(message->data, message->data_size, link::DecodeBounds(), &imu_).ok() ||
+      imu_.vehicle_id != config_.vehicle.id) {
     ++summary_.imu_rejected;
     return;
   }
@@ -138,8 +132,7 @@ void ControlTask::handleImu(const lcm_recv_buf_t* message) {
     sample.gyro_rad_s(i) = imu_.angular_velocity_rad_s[i];
     sample.accel_m_s2(i) = imu_.linear_acceleration_m_s2[i];
   }
-  if (!sample.gyro_rad_s.allFinite() || !sample.accel_m_s2.allFinite() ||
-      !stack_->addImu(sample)) {
+  if (!stack_->addImu(sample)) {
     ++summary_.imu_rejected;
     return;
   }
@@ -196,14 +189,11 @@ void ControlTask::tick(int64_t utime) {
                    flight::toString(event.from), flight::toString(event.to));
     }
   }
-  if (!out.send_rotor_speeds) return;
+  if (out.rotors == flight::RotorCommand::kNone) return;
   command_.utime = utime;
-  command_.state = rotorState(out.modes.mode);
-  for (int i = 0; i < 4; ++i) {
-    command_.rotor_speed_rad_s[i] = command_.state == motor_command_t::STOPPED
-                                        ? 0.0f
-                                        : static_cast<float>(out.mixer.rotor_speed_rad_s(i));
-  }
+  command_.state = rotorState(out.rotors);
+  for (int i = 0; i < 4; ++i)
+    command_.rotor_speed_rad_s[i] = static_cast<float>(out.mixer.rotor_speed_rad_s(i));
   command_.flight_mode = static_cast<int8_t>(out.modes.mode);
   command_.tick = summary_.ticks;
   if (publisher_->publish(link::Channel::kMotorCommand, command_)) {

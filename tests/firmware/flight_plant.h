@@ -111,10 +111,8 @@ class FlightPlant {
  private:
   void touchGround() {
     on_ground_ = false;
+    // Lifting off, the step leaves the body above the floor.
     if (std::isnan(ground_z_m_) || state_.p_world_m.z() < ground_z_m_) return;
-    if (derivative(state_, state_.rotor_speed_rad_s).v.z() < 0.0 && state_.v_world_m_s.z() < 0.0) {
-      return;  // lifting off
-    }
     const Eigen::Vector3d x_body_world = state_.q_world_body * Eigen::Vector3d::UnitX();
     state_.p_world_m.z() = ground_z_m_;
     state_.v_world_m_s.setZero();

@@ -48,7 +48,7 @@ bool kinflyFlies(FlightMode mode) {
          mode != FlightMode::kHandedOver;
 }
 
-// Why hold, go-to, mission and land cannot act in this mode; kNone in the air.
+// Why hold, go-to, mission and land cannot act in this mode; kNone in the air (inFlight).
 CommandRefusal notFlying(FlightMode mode) {
   switch (mode) {
     case FlightMode::kDisarmed: return CommandRefusal::kDisarmed;
@@ -406,6 +406,8 @@ FlightOutput FlightModes::update(const FlightInputs& in,
   out.landed = landed_;
   return out;
 }
+
+bool inFlight(FlightMode mode) { return notFlying(mode) == CommandRefusal::kNone; }
 
 const char* toString(FlightMode mode) {
   switch (mode) {

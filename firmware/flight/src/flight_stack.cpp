@@ -9,18 +9,6 @@ namespace {
 
 constexpr double kUsPerS = 1e6;
 
-bool flies(FlightMode mode) {
-  switch (mode) {
-    case FlightMode::kTakeOff:
-    case FlightMode::kHold:
-    case FlightMode::kGoTo:
-    case FlightMode::kMission:
-    case FlightMode::kLand:
-    case FlightMode::kDescend: return true;
-    default: return false;
-  }
-}
-
 bool sameSetpoint(const ModeSetpoint& a, const ModeSetpoint& b) {
   return a.kind == b.kind && a.point_world_m == b.point_world_m && a.yaw_rad == b.yaw_rad &&
          a.descent_speed_m_s == b.descent_speed_m_s;
@@ -103,7 +91,7 @@ TickOutput FlightStack::tick(const TickInputs& in) {
   out.modes = modes_.update(inputs, in.command);
   const FlightMode mode = out.modes.mode;
   const double dt_s = 1.0 / params_.rate_hz;
-  if (flies(mode)) {
+  if (inFlight(mode)) {
     if (!flying_) {  // a take-off: nothing of the last flight's integral carries over
       position_.reset();
       attitude_.reset();
@@ -124,10 +112,13 @@ TickOutput FlightStack::tick(const TickInputs& in) {
   ++ticks_;
 
   switch (mode) {
-    case FlightMode::kHandedOver: out.send_rotor_speeds = false; break;
+    case FlightMode::kHandedOver: out.rotors = RotorCommand::kNone; break;
     case FlightMode::kDisarmed:
-    case FlightMode::kMotorsCut: out.send_rotor_speeds = true; break;  // zero speeds
-    case FlightMode::kArmed: out.send_rotor_speeds = true; out.mixer = mixer_.mix({}); break;
+    case FlightMode::kMotorsCut: out.rotors = RotorCommand::kStopped; break;
+    case FlightMode::kArmed:
+      out.rotors = RotorCommand::kIdle;
+      out.mixer = mixer_.mix({});
+      break;
     default: {
       // Pressed against the floor (landing with the thrust at its minimum): the floor holds the
       // attitude, so the attitude and rate loops' integrals would only wind up and tip the
@@ -142,7 +133,7 @@ TickOutput FlightStack::tick(const TickInputs& in) {
                                             state.omega_body_rad_s, dt_s, saturation_);
       out.mixer = mixer_.mix({command_.thrust_n, moment_body_nm});
       saturation_ = out.mixer.saturation;
-      out.send_rotor_speeds = true;
+      out.rotors = RotorCommand::kFlying;
     }
   }
   out.setpoint = setpoint_;

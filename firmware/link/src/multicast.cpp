@@ -11,12 +11,14 @@
 
 namespace kinfly::link {
 
+std::string resolvedLcmUrl(const std::string& lcm_url) {
+  if (!lcm_url.empty()) return lcm_url;
+  const char* env = std::getenv("LCM_DEFAULT_URL");
+  return env != nullptr && *env != '\0' ? env : kLcmDefaultUrl;
+}
+
 std::optional<MulticastTarget> multicastTarget(const std::string& lcm_url) {
-  std::string url = lcm_url;
-  if (url.empty()) {
-    const char* env = std::getenv("LCM_DEFAULT_URL");
-    url = env != nullptr && *env != '\0' ? env : kLcmDefaultUrl;
-  }
+  const std::string url = resolvedLcmUrl(lcm_url);
   const std::string scheme = "udpm://";
   if (url.compare(0, scheme.size(), scheme) != 0) return std::nullopt;
   // udpm://GROUP:PORT?options, where LCM fills in whichever of GROUP and PORT is missing.

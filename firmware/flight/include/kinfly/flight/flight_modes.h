@@ -251,6 +251,10 @@ class FlightModes {
   Eigen::Vector3d last_inside_world_m_ = Eigen::Vector3d::Zero();
 };
 
+// In the air under kinfly's control (take-off, hold, go-to, mission, land, descend): the modes
+// whose setpoints the position loop flies.
+bool inFlight(FlightMode mode);
+
 const char* toString(FlightMode mode);
 const char* toString(CommandKind kind);
 const char* toString(CommandRefusal refusal);

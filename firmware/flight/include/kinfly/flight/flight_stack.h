@@ -47,14 +47,20 @@ struct TickInputs {
   double height_above_ground_m = NAN;
 };
 
+// What the actuators get.
+enum class RotorCommand {
+  kNone,     // nothing at all: handed over to the autopilot
+  kStopped,  // zero speeds: disarmed or cut
+  kIdle,     // the mixer's speeds at no thrust: armed on the floor
+  kFlying,   // the mixer's speeds
+};
+
 struct TickOutput {
   FlightOutput modes;
   PositionSetpoint setpoint;  // what the position loop follows (as of its last update)
   PositionOutput position;    // as of the position loop's last update
-  MixerOutput mixer;
-  // What the actuators get: the mixer's rotor speeds while kinfly flies (armed: at idle on the
-  // ground); zero speeds when disarmed or cut; none at all while handed over to the autopilot.
-  bool send_rotor_speeds = false;
+  MixerOutput mixer;  // zero speeds unless idle or flying
+  RotorCommand rotors = RotorCommand::kNone;
 };
 
 class FlightStack {

@@ -20,6 +20,9 @@ struct MulticastTarget {
 // LCM's URL when none is given and LCM_DEFAULT_URL is not set.
 inline constexpr const char* kLcmDefaultUrl = "udpm://239.255.76.67:7667?ttl=0";
 
+// The URL LCM uses for `lcm_url`: itself, or for "" LCM_DEFAULT_URL if set, else kLcmDefaultUrl.
+std::string resolvedLcmUrl(const std::string& lcm_url);
+
 // The multicast group and port LCM would use for `lcm_url` ("" means LCM_DEFAULT_URL, else
 // LCM's default); nullopt for providers that need no network (memq://, file://).
 std::optional<MulticastTarget> multicastTarget(const std::string& lcm_url);

@@ -144,8 +144,17 @@ void ControlTask::handleImu(const lcm_recv_buf_t* message) {
 
 void ControlTask::tick(int64_t utime) {
   if (poses_->fetch()) {
-    const OdometryPose& pose = poses_->front();
-    const flight::VisionOutcome outcome = stack_->addVision({pose.utime, pose.T_odom_cam});
+    const flight::AnchoredVision::Inputs vision = anchored_.take(poses_->front());
+    if (vision.reset) {
+      if (stack_->applyReset(*vision.reset)) {
+        ++summary_.resets;
+        spdlog::info("control: the ground's anchor jumped (reset {}): estimator reset",
+                     vision.reset->reset_counter);
+      } else {
+        ++summary_.resets_rejected;
+      }
+    }
+    const flight::VisionOutcome outcome = stack_->addVision(vision.vision);
     if (outcome == flight::VisionOutcome::kFused) {
       ++summary_.poses_fused;
     } else {

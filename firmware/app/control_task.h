@@ -31,6 +31,8 @@ struct ControlSummary {
   int64_t commands_unsent = 0;  // not: the control task's LCM was down
   int64_t poses_fused = 0;
   int64_t poses_rejected = 0;  // gated, too old, out of order, or before the estimator started
+  int64_t resets = 0;           // the ground's anchor jumped: the estimator reset
+  int64_t resets_rejected = 0;  // ... before the estimator started (the next pose anchors it)
   bool estimator_started = false;
   flight::FlightMode mode = flight::FlightMode::kDisarmed;
   flight::FlightCounters modes;
@@ -64,6 +66,7 @@ class ControlTask {
   // Made by run() after the thread's priority is set: LCM's receive thread, which empties the
   // IMU's socket, is started from it and inherits the priority.
   std::optional<Publisher> publisher_;
+  flight::AnchoredVision anchored_;
   imu_t imu_{};
   motor_command_t command_{};
   ControlSummary summary_;

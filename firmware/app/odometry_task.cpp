@@ -67,18 +67,19 @@ void OdometryTask::process(const DepthCapture& capture) {
       spdlog::warn("odometry: frame {} lost: {} ({} more lost since the last report)",
                    capture.frame_id, r.lost_reason, lost_log_.suppressed());
   }
-  if (poses_ != nullptr && r.status != TrackingStatus::kLost) {
-    poses_->back() = OdometryPose{r.utime, r.T_world_cam};
-    poses_->publish();
-  }
   const bool keyframe = selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction);
-  Pose T_world_cam;
+  Pose T_world_odom;
   int32_t reset_counter = 0;
   {
     std::lock_guard<std::mutex> lock(anchor_->mutex);
     if (keyframe) anchor_->anchor.rememberKeyframe(next_keyframe_id_, r.T_world_cam);
-    T_world_cam = anchor_->anchor.toWorld(r.T_world_cam);
+    T_world_odom = anchor_->anchor.T_world_odom();
     reset_counter = anchor_->anchor.resetCounter();
+  }
+  const Pose T_world_cam = T_world_odom * r.T_world_cam;
+  if (poses_ != nullptr && r.status != TrackingStatus::kLost) {
+    poses_->back() = OdometryPose{r.utime, r.T_world_cam, T_world_odom, reset_counter};
+    poses_->publish();
   }
   link::fillOdometry(r, capture.frame_id, T_world_cam, reset_counter, &odometry_);
   // Not sent while the network is down: the publisher says so once, the pose still counts.

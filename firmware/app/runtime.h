@@ -14,6 +14,7 @@
 #include "kinfly/frame/tracking_status.h"
 #include "kinfly/core/image.h"
 #include "kinfly/core/se3.h"
+#include "kinfly/flight/anchored_vision.h"
 #include "kinfly/flight/flight_modes.h"
 #include "kinfly/flight/trajectory.h"
 
@@ -58,13 +59,10 @@ struct Counters {
   std::atomic<int64_t> priority_bytes{0};
 };
 
-// The odometry's pose of a tracked frame for the control task, as the estimator takes it: the
-// capture time and the engine's own pose (the odometry frame; the ground's corrections reach the
-// estimator as resets, not through re-anchored poses).
-struct OdometryPose {
-  int64_t utime = -1;  // [µs] capture; -1 before the first
-  Pose T_odom_cam = Pose::Identity();
-};
+// The odometry's pose of a tracked frame for the control task: the capture time, the engine's own
+// pose and the ground's anchor with its reset counter as they were when the pose was made
+// (flight::AnchoredVision turns a jump of the anchor into the estimator's reset).
+using OdometryPose = flight::AnchoredPose;
 
 // A command from the ground for the control task, authenticated by the link, which also builds a
 // mission's trajectory (a minimum-snap solve allocates; the control tick must not).

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "count_allocations.h"  // g_allocations: for the steady-state test
+#include "kinfly/flight/anchored_vision.h"
 #include "kinfly/flight/estimator.h"
 #include "vision_poses.h"
 
@@ -549,6 +550,76 @@ TEST(Estimator, ResetLeavesTheTiltOfAJumpToTheAlignment) {
                          .toRotationMatrix();
   D_world.translation() = Vector3d(-0.3, 0.2, 0.0);
   checkReset(D_world);
+}
+
+// The ground's anchor as the control task hands it over (AnchoredVision): a small refinement at
+// 2 s with the same reset counter is fused as a measurement, a 1.2 m, 25° jump at 5 s with the
+// counter bumped is one reset before the first pose in the new anchor, and the filter then
+// follows the map, not the odometry.
+TEST(AnchoredVision, TheAnchorsJumpIsAResetAndItsRefinementsAreFused) {
+  Scenario scenario;
+  const Recording rec = record(scenario);
+  Estimator estimator(scenario.params);
+  estimator.initialise(rec.init);
+  const Pose& T_world_odom = rec.T_world_odom;  // the estimator's alignment until the reset
+
+  // Both given in world (what the filter sees), handed over as anchors of the odometry.
+  Pose refinement_world = Pose::Identity();
+  refinement_world.translation() = Vector3d(0.004, -0.003, 0.002);
+  Pose jump_world = Pose::Identity();
+  jump_world.linear() = Eigen::AngleAxisd(25.0 * kPi / 180.0, Vector3d::UnitZ()).toRotationMatrix();
+  jump_world.translation() = Vector3d(1.0, -0.6, 0.3);
+  const Pose refinement = T_world_odom.inverse() * refinement_world * T_world_odom;
+  const Pose jump = T_world_odom.inverse() * jump_world * T_world_odom;
+  constexpr double kRefineS = 2.0, kJumpS = 5.0;
+  const auto anchorAt = [&](int64_t utime) {
+    AnchoredPose pose;
+    pose.utime = utime;
+    if (secondsOf(utime) >= kRefineS) pose.T_map_odom = refinement;
+    if (secondsOf(utime) >= kJumpS) {
+      pose.T_map_odom = jump * refinement;
+      pose.reset_counter = 1;
+    }
+    return pose;
+  };
+
+  AnchoredVision vision;
+  int resets = 0;
+  int64_t reset_utime = -1;
+  Rms pos_m;
+  size_t next_pose = 0;
+  for (size_t k = 0; k < rec.imu.size(); ++k) {
+    estimator.addImu(rec.imu[k]);
+    while (next_pose < rec.poses.size() &&
+           rec.poses[next_pose].arrival_utime <= rec.imu[k].utime) {
+      const VisionPose& raw = rec.poses[next_pose++].pose;
+      AnchoredPose pose = anchorAt(raw.utime);
+      pose.T_odom_cam = raw.T_odom_cam;
+      const AnchoredVision::Inputs in = vision.take(pose);
+      if (in.reset) {
+        ++resets;
+        reset_utime = in.reset->utime;
+        EXPECT_EQ(in.reset->reset_counter, 1);
+        // The anchor's change since the last pose: the jump alone, the refinement was before.
+        EXPECT_TRUE(in.reset->T_odomNew_odomOld.isApprox(jump, 1e-12));
+        ASSERT_TRUE(estimator.applyReset(*in.reset));
+      }
+      estimator.addVision(in.vision);
+    }
+    // After a second to settle the reset's 5 cm: the body where the map says it is.
+    if (secondsOf(rec.imu[k].utime) < kJumpS + 1.0) continue;
+    const Vector3d expected_m = jump_world * refinement_world * rec.truth[k + 1].p_world_body_m;
+    pos_m.add((estimator.state().p_world_body_m - expected_m).norm());
+  }
+  std::printf("[estimator] anchored poses through a refinement and a jump: position RMS %.2f mm "
+              "in the map\n", pos_m.value() * 1e3);
+  EXPECT_EQ(resets, 1);
+  EXPECT_GE(secondsOf(reset_utime), kJumpS);
+  EXPECT_EQ(estimator.health().resets, 1);
+  EXPECT_EQ(estimator.health().reset_counter, 1);
+  EXPECT_LE(pos_m.value(), kPosRmsM);
+  // Neither the refinement nor the jump looked like an outlier.
+  EXPECT_EQ(estimator.health().vision_rejected_gate, 0);
 }
 
 // ---- Start from rest ---------------------------------------------------------------------------

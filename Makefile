@@ -260,4 +260,4 @@ clean:
 	rm -rf $(BUILD_DIR) $(ASAN_DIR) $(FUZZ_DIR) $(AARCH64_DIR) $(REPO_ROOT)/out
 
 distclean: clean
-	rm -rf $(REPO_ROOT)/.venv $(REPO_ROOT)/.venv-bench
+	rm -rf $(REPO_ROOT)/.venv $(REPO_ROOT)/.venv-bench $(REPO_ROOT)/.venv-build

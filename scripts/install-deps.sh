@@ -33,6 +33,8 @@ cxx_packages=(
   # its hot-plug;
   # tests/tools/oni/ (the OpenNI2 test driver) finds the same OpenNI2
   libspdlog-dev libopenni2-dev libusb-1.0-0-dev
+  # the C++ build's Python (.venv-build): pymavlink's mavgen makes the firmware's MAVLink headers
+  python3 python3-venv
 )
 
 # demo (make demo, make eval): the Python environment .venv with the ground package (python3-dev
@@ -75,6 +77,8 @@ fuzz_packages=(
 aarch64_packages=(
   cmake ninja-build pkg-config liblcm-bin
   g++-aarch64-linux-gnu qemu-user mmdebstrap debian-archive-keyring
+  # .venv-build on the build machine, as for the native build (mavgen)
+  python3 python3-venv
 )
 
 # image (make image: scripts/build-image.sh): qemu-user-static with binfmt-support and arch-test
@@ -115,7 +119,9 @@ groups it uses:
 
   demo     make demo, make eval: the C++ build of the programs, Python with its headers, `ip`;
            .venv from requirements.txt with the ground package (ground/)
-  unit     make test-asan: the C++ build and GoogleTest, no Python
+  unit     make test-asan: the C++ build and GoogleTest
+           (every group that compiles, aarch64 too, makes .venv-build from
+           requirements-build.txt: pymavlink's mavgen for the firmware's MAVLink headers)
   test     make test: demo + unit + what the integration tests use (nft for the
            Wi-Fi-like link)
   fuzz     make fuzz: unit + clang with libFuzzer
@@ -191,7 +197,8 @@ ensure_venv() {
   local venv="$1" requirements="$2"
   local stamp="$venv/.requirements.sha256"
   local want
-  want="$(cat "$requirements" "$repo_root/requirements.txt" | sha256sum | cut -d' ' -f1)"
+  want="$(cat "$requirements" "$repo_root/requirements.txt" "$repo_root/requirements-build.txt" |
+          sha256sum | cut -d' ' -f1)"
   if [[ -x "$venv/bin/python" && -f "$stamp" && "$(cat "$stamp")" == "$want" ]]; then
     log "$(basename "$venv"): up to date"
     return
@@ -249,6 +256,9 @@ main() {
   done
   install_apt_packages "${packages[@]}"
 
+  if [[ -n "${seen[cxx]:-}" || -n "${seen[aarch64]:-}" ]]; then
+    ensure_venv "$repo_root/.venv-build" "$repo_root/requirements-build.txt"
+  fi
   if [[ -n "${seen[demo]:-}" ]]; then
     ensure_venv "$repo_root/.venv" "$repo_root/requirements.txt"
     ensure_ground_package "$repo_root/.venv"

@@ -62,6 +62,11 @@ Status namingKeys(Status status,
   return status;
 }
 
+// [s] the IMU-alive check and the IMU-lost failsafe with the mavlink backend (the library's are
+// for a 1 kHz IMU in the same computer).
+constexpr double kMavlinkImuTimeoutS = 0.05;
+constexpr double kMavlinkImuLostS = 0.25;
+
 bool oneOf(const std::string& value, std::initializer_list<const char*> allowed) {
   for (const char* a : allowed)
     if (value == a) return true;
@@ -122,6 +127,9 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--source.rate_hz", s.synthetic.rate_hz, "synthetic: frame rate [Hz]")
       ->capture_default_str();
   app->add_option("--source.seed", s.synthetic.seed, "synthetic: noise seed")
+      ->capture_default_str();
+  app->add_option("--source.motion", s.synthetic.motion,
+                  "synthetic: swing (a hovering drone) | still (at rest, for bench tests)")
       ->capture_default_str();
   app->add_option("--source.max_frames", s.max_frames, "stop after N frames (0: never)")
       ->capture_default_str();
@@ -236,9 +244,33 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   FlightConfig& f = c->flight;
   flight::FlightStackParams& st = f.stack;
   app->add_option("--flight.backend", f.backend,
-                  "none (mapping only) | motors (motor_command_t over LCM: the simulator)")
+                  "none (mapping only) | motors (motor_command_t over LCM: the simulator) | "
+                  "mavlink (a PX4 or ArduPilot autopilot)")
       ->capture_default_str();
-  app->add_option("--flight.imu", f.imu, "lcm (imu_t on KINFLY_<vid>_IMU: the simulator)")
+  app->add_option("--flight.imu", f.imu,
+                  "lcm (imu_t on KINFLY_<vid>_IMU: the simulator) | mavlink (the autopilot's)")
+      ->capture_default_str();
+  app->add_option("--flight.mavlink_url", f.mavlink_url,
+                  "the autopilot: udpin:HOST:PORT, udpout:HOST:PORT or a /dev/ serial port")
+      ->capture_default_str();
+  app->add_option("--flight.mavlink_baud", f.mavlink_baud, "serial port baud rate")
+      ->capture_default_str();
+  app->add_option("--flight.mavlink_key", f.mavlink_key,
+                  "MAVLink 2 signing key file (32 bytes, mode 0600); empty: unsigned");
+  app->add_option("--flight.mavlink_system_id", f.mavlink.system_id,
+                  "our MAVLink system id (a companion shares its vehicle's)")
+      ->capture_default_str();
+  app->add_option("--flight.mavlink_component_id", f.mavlink.component_id,
+                  "our MAVLink component id (191: onboard computer)")
+      ->capture_default_str();
+  app->add_option("--flight.mavlink_timeout_s", f.mavlink.heartbeat_timeout_s,
+                  "no heartbeat this long: the autopilot is lost (a failsafe) [s]")
+      ->capture_default_str();
+  app->add_option("--flight.mavlink_setpoint_hz", f.mavlink.setpoint_rate_hz,
+                  "body-rate and thrust setpoints at most this often [Hz]")
+      ->capture_default_str();
+  app->add_option("--flight.mavlink_hover_thrust", f.mavlink.hover_thrust,
+                  "the autopilot's normalised hover thrust (PX4: MPC_THR_HOVER)")
       ->capture_default_str();
   app->add_option("--flight.lcm_url", f.lcm_url,
                   "the control task's LCM (IMU in, rotor commands out); empty: link.lcm_url's");
@@ -343,10 +375,29 @@ std::string LinkConfig::effectiveLcmUrl() const {
 }
 
 Status FlightConfig::validate() const {
-  if (!oneOf(backend, {"none", "motors"}))
-    return Status::error("flight.backend must be none or motors (got \"" + backend + "\")");
-  if (!oneOf(imu, {"lcm"}))
-    return Status::error("flight.imu must be lcm (got \"" + imu + "\")");
+  if (!oneOf(backend, {"none", "motors", "mavlink"}))
+    return Status::error("flight.backend must be none, motors or mavlink (got \"" + backend +
+                         "\")");
+  if (!oneOf(imu, {"lcm", "mavlink"}))
+    return Status::error("flight.imu must be lcm or mavlink (got \"" + imu + "\")");
+  // The autopilot's IMU is read by the mavlink backend's link, and that link needs it: the
+  // setpoints go out on its clock.
+  if ((imu == "mavlink") != (backend == "mavlink"))
+    return Status::error("flight.imu = mavlink goes with flight.backend = mavlink (got imu \"" +
+                         imu + "\", backend \"" + backend + "\")");
+  if (backend == "mavlink") {
+    if (Status url = actuators::MavlinkPort::checkUrl(mavlink_url); !url.ok())
+      return Status::error("flight.mavlink_url: " + url.message());
+    if (Status ap = namingKeys(autopilotParams().validate(),
+                               {{"mavlink.system_id", "flight.mavlink_system_id"},
+                                {"mavlink.component_id", "flight.mavlink_component_id"},
+                                {"mavlink.heartbeat_timeout_s", "flight.mavlink_timeout_s"},
+                                {"mavlink.setpoint_rate_hz", "flight.mavlink_setpoint_hz"},
+                                {"mavlink.imu_rate_hz", "flight.rate_hz (with mavlink)"},
+                                {"mavlink.hover_thrust", "flight.mavlink_hover_thrust"}});
+        !ap.ok())
+      return ap;
+  }
   if (!oneOf(attitude_law, {"geometric", "lqr"}))
     return Status::error("flight.attitude_law must be geometric or lqr (got \"" +
                          attitude_law + "\")");
@@ -369,7 +420,21 @@ flight::FlightStackParams FlightConfig::stackParams() const {
   params.attitude.law =
       attitude_law == "lqr" ? flight::AttitudeLaw::kLqr : flight::AttitudeLaw::kGeometric;
   // The simulator's motors can be stopped; a real autopilot (the mavlink backend) takes over.
-  params.modes.attitude_limit_action = flight::AttitudeLimitAction::kCutMotors;
+  params.modes.attitude_limit_action = backend == "mavlink"
+                                           ? flight::AttitudeLimitAction::kHandOver
+                                           : flight::AttitudeLimitAction::kCutMotors;
+  if (backend == "mavlink") {
+    // The autopilot's IMU comes over a UART or UDP in bursts, and its own rate loop holds the
+    // attitude meanwhile: a gap of a few samples is the link's, not a failure.
+    params.modes.imu_timeout_s = kMavlinkImuTimeoutS;
+    params.modes.imu_lost_s = kMavlinkImuLostS;
+  }
+  return params;
+}
+
+actuators::AutopilotParams FlightConfig::autopilotParams() const {
+  actuators::AutopilotParams params = mavlink;
+  params.imu_rate_hz = stack.rate_hz;
   return params;
 }
 

@@ -12,6 +12,7 @@
 #include <string>
 
 #include "kinfly/core/status.h"
+#include "kinfly/actuators/autopilot.h"
 #include "kinfly/flight/flight_stack.h"
 #include "kinfly/fw/correction_anchor.h"
 #include "kinfly/fw/keyframe_selector.h"
@@ -101,9 +102,11 @@ struct LinkConfig {                              // [link]
 
 struct FlightConfig {                            // [flight] docs/flight.md, "The control task"
   // backend: none (mapping only: no control task) | motors (rotor speeds as motor_command_t over
-  // LCM: the simulator, or ESCs behind a bridge)
+  // LCM: the simulator, or ESCs behind a bridge) | mavlink (body rates and thrust to a PX4 or
+  // ArduPilot autopilot, which is then the IMU too)
   std::string backend = "none";
-  std::string imu = "lcm";       // imu: lcm (imu_t on KINFLY_<vid>_IMU: the simulator)
+  // imu: lcm (imu_t on KINFLY_<vid>_IMU: the simulator) | mavlink (the autopilot's)
+  std::string imu = "lcm";
   // lcm_url: the control task's own LCM (IMU in, rotor commands out); empty: link.lcm_url's.
   // A simulator on this machine: udpm://239.255.76.67:7669?ttl=0, so 1 kHz never reaches Wi-Fi.
   std::string lcm_url;
@@ -114,7 +117,17 @@ struct FlightConfig {                            // [flight] docs/flight.md, "Th
   // and arm_length_m, max_speed_m_s, max_accel_m_s2, land_speed_m_s, vision_lost_s: the flight
   // stack's parameters; the rest keep the library's defaults.
   flight::FlightStackParams stack;
+  // The mavlink backend: mavlink_url (udpin:HOST:PORT, udpout:HOST:PORT or a /dev/ serial port),
+  // mavlink_baud (serial), mavlink_key (a 32-byte key file for MAVLink 2 signing; empty:
+  // unsigned), mavlink_system_id, mavlink_component_id, mavlink_timeout_s, mavlink_setpoint_hz,
+  // mavlink_hover_thrust (docs/flight.md, "The mavlink backend").
+  std::string mavlink_url = "udpin:0.0.0.0:14540";
+  int mavlink_baud = 921600;
+  std::string mavlink_key;
+  actuators::AutopilotParams mavlink;
   Status validate() const;
+  // The autopilot's parameters, with the IMU rate asked of it.
+  actuators::AutopilotParams autopilotParams() const;
   // The stack's parameters with the attitude law and the failsafe action for the backend.
   flight::FlightStackParams stackParams() const;
   bool enabled() const { return backend != "none"; }

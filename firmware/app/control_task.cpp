@@ -24,6 +24,10 @@ constexpr int kControlRecvBufBytes = 2 << 20;
 // Messages LCM queues for the IMU subscription before it drops the newest: a second of samples.
 // LCM's default, 30, dropped whatever came while the control thread waited 30 ms for a core.
 constexpr int kImuQueueMessages = 1000;
+// [ms] between ticks before the first IMU sample.
+constexpr int kIdleTickMs = 10;
+// [s] between attempts to open the autopilot's port (a USB serial port that is not there yet).
+constexpr double kReopenS = 1.0;
 
 // flight.lcm_url, else the link's; a udpm URL that does not say recv_buf_size asks for
 // kControlRecvBufBytes.
@@ -33,6 +37,27 @@ std::string controlUrl(const FirmwareConfig& config) {
   if (url.rfind("udpm://", 0) != 0 || url.find("recv_buf_size=") != std::string::npos) return url;
   return url + (url.find('?') == std::string::npos ? "?" : "&") +
          "recv_buf_size=" + std::to_string(kControlRecvBufBytes);
+}
+
+double steadySeconds() {
+  return std::chrono::duration<double>(Clock::now().time_since_epoch()).count();
+}
+
+actuators::AutopilotWant autopilotWant(flight::RotorCommand rotors) {
+  switch (rotors) {
+    case flight::RotorCommand::kStopped: return actuators::AutopilotWant::kDisarm;
+    case flight::RotorCommand::kIdle: return actuators::AutopilotWant::kIdle;
+    case flight::RotorCommand::kFlying: return actuators::AutopilotWant::kFly;
+    default: return actuators::AutopilotWant::kNothing;
+  }
+}
+
+// [rad] between two attitudes' tilts: the angle between the world's down seen from each body.
+// Their headings need not agree (the autopilot's NED against kinfly's world).
+double tiltBetweenRad(const Eigen::Quaterniond& q_a, const Eigen::Quaterniond& q_b) {
+  const Eigen::Vector3d down_a = q_a.conjugate() * Eigen::Vector3d::UnitZ();
+  const Eigen::Vector3d down_b = q_b.conjugate() * Eigen::Vector3d::UnitZ();
+  return std::atan2(down_a.cross(down_b).norm(), down_a.dot(down_b));
 }
 
 int8_t rotorState(flight::RotorCommand rotors) {
@@ -46,10 +71,12 @@ int8_t rotorState(flight::RotorCommand rotors) {
 }  // namespace
 
 ControlTask::ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
-                         LatestValue<OdometryPose>* poses, LatestValue<CommandMail>* commands,
-                         const StopToken* stop)
+                         std::optional<link::Key> mavlink_key, LatestValue<OdometryPose>* poses,
+                         LatestValue<CommandMail>* commands, const StopToken* stop)
     : config_(config),
       stack_(std::move(stack)),
+      mavlink_(config.flight.backend == "mavlink"),
+      mavlink_key_(std::move(mavlink_key)),
       poses_(poses),
       commands_(commands),
       stop_(stop) {
@@ -85,19 +112,25 @@ void ControlTask::applyScheduling() const {
 
 void ControlTask::run() {
   applyScheduling();
-  publisher_.emplace("control", controlUrl(config_), config_.vehicle.id, [this](lcm::LCM& lcm) {
-    lcm_subscription_t* imu =
-        lcm_subscribe(lcm.getUnderlyingLCM(),
-                      link::channelName(link::Channel::kImu, config_.vehicle.id).c_str(),
-                      &ControlTask::onImu, this);
-    lcm_subscription_set_queue_capacity(imu, kImuQueueMessages);
-  });
+  if (!mavlink_) {
+    publisher_.emplace("control", controlUrl(config_), config_.vehicle.id, [this](lcm::LCM& lcm) {
+      lcm_subscription_t* imu =
+          lcm_subscribe(lcm.getUnderlyingLCM(),
+                        link::channelName(link::Channel::kImu, config_.vehicle.id).c_str(),
+                        &ControlTask::onImu, this);
+      lcm_subscription_set_queue_capacity(imu, kImuQueueMessages);
+    });
+  }
   spdlog::info("control: {} backend, IMU from {} at {:.0f} Hz, position loop at {:.0f} Hz",
                config_.flight.backend, config_.flight.imu, stack_->params().rate_hz,
                stack_->params().position.rate_hz);
   const double silent_after_s = 2.0 / stack_->params().rate_hz;
+  next_open_ = Clock::now();
+  Clock::time_point next_idle_tick = Clock::now();
   while (!stop_->stopRequested()) {
-    if (!publisher_->handle(kHandleTimeoutMs)) {
+    if (mavlink_) {
+      serveAutopilot();
+    } else if (!publisher_->handle(kHandleTimeoutMs)) {
       publisher_->maintain();
       std::this_thread::sleep_for(std::chrono::milliseconds(kHandleTimeoutMs));
     }
@@ -109,11 +142,47 @@ void ControlTask::run() {
         ++summary_.silent_ticks;
         tick(last_imu_utime_ + static_cast<int64_t>(silent_s * 1e6));
       }
+    } else if (Clock::now() >= next_idle_tick) {
+      // No IMU yet (the simulator not started, the autopilot not heard): the ground's commands
+      // still get their answer, and the autopilot's loss is still seen, on the wall clock.
+      // Disarmed without an IMU, nothing in the stack depends on that clock.
+      ++summary_.silent_ticks;
+      tick(link::wallClockUtime());
+      next_idle_tick = Clock::now() + std::chrono::milliseconds(kIdleTickMs);
     }
   }
   summary_.estimator_started = stack_->estimator().initialised();
   summary_.mode = stack_->modes().mode();
   summary_.modes = stack_->modes().counters();
+  if (autopilot_) summary_.autopilot = autopilot_->counters();
+}
+
+void ControlTask::serveAutopilot() {
+  if (!autopilot_) {
+    if (Clock::now() < next_open_) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(kHandleTimeoutMs));
+      return;
+    }
+    auto opened = actuators::Autopilot::open(config_.flight.autopilotParams(),
+                                             config_.flight.mavlink_url,
+                                             config_.flight.mavlink_baud, mavlink_key_);
+    if (!opened.ok()) {
+      // Logged at the first failure and then every minute; the odometry goes on meanwhile.
+      if (open_failures_++ % 60 == 0)
+        spdlog::error("control: {} (retrying every {:.0f} s)", opened.status().message(),
+                      kReopenS);
+      next_open_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                      std::chrono::duration<double>(kReopenS));
+      return;
+    }
+    autopilot_ = *std::move(opened);
+    spdlog::info("control: autopilot link on {}", config_.flight.mavlink_url);
+  }
+  const double now_s = steadySeconds();
+  const int samples = autopilot_->receive(kHandleTimeoutMs, now_s);
+  for (int i = 0; i < samples; ++i) takeImu(autopilot_->imu(i));
+  // Heartbeat, stream requests and the handshake go out whether or not the IMU runs yet.
+  autopilot_->send(autopilot_setpoint_, steadySeconds());
 }
 
 void ControlTask::onImu(const lcm_recv_buf_t* message, const char*, void* self) {
@@ -132,6 +201,10 @@ void ControlTask::handleImu(const lcm_recv_buf_t* message) {
     sample.gyro_rad_s(i) = imu_.angular_velocity_rad_s[i];
     sample.accel_m_s2(i) = imu_.linear_acceleration_m_s2[i];
   }
+  takeImu(sample);
+}
+
+void ControlTask::takeImu(const flight::ImuSample& sample) {
   if (!stack_->addImu(sample)) {
     ++summary_.imu_rejected;
     return;
@@ -160,9 +233,24 @@ void ControlTask::tick(int64_t utime) {
     } else {
       ++summary_.poses_rejected;
     }
+    // The autopilot's EKF gets every pose (it gates them its own way), as the body's in world.
+    const flight::Estimator& estimator = stack_->estimator();
+    if (autopilot_ && estimator.initialised()) {
+      const flight::EstimatorParams& p = stack_->params().estimator;
+      autopilot_->sendVision(vision.vision.utime,
+                             estimator.T_world_odom() * vision.vision.T_odom_cam *
+                                 p.T_body_cam.inverse(),
+                             p.vision_pos_std_m * p.vision_pos_std_m,
+                             p.vision_att_std_rad * p.vision_att_std_rad,
+                             poses_->front().reset_counter);
+    }
   }
   flight::TickInputs in;
   in.utime = utime;
+  if (mavlink_) {
+    in.autopilot = autopilot_ ? autopilot_->state(steadySeconds()) : flight::AutopilotInputs();
+    in.autopilot.used = true;
+  }
   int64_t command_id = -1;
   if (commands_->fetch()) {
     const CommandMail& mail = commands_->front();
@@ -197,6 +285,29 @@ void ControlTask::tick(int64_t utime) {
       spdlog::info("control: {}: {} -> {}", flight::toString(event.reason),
                    flight::toString(event.from), flight::toString(event.to));
     }
+  }
+  sendToBackend(out, utime);
+}
+
+void ControlTask::sendToBackend(const flight::TickOutput& out, int64_t utime) {
+  if (mavlink_) {
+    // Body rates and thrust: the autopilot runs its own rate loop, so the attitude loop here is
+    // the geometric law's P part whatever flight.attitude_law says (the LQR gives moments).
+    actuators::AutopilotSetpoint& sp = autopilot_setpoint_;
+    const flight::EstimatorState& state = stack_->estimator().state();
+    sp.want = autopilotWant(out.rotors);
+    sp.q_world_body_sp = out.position.q_world_body_sp;
+    sp.rate_body_rad_s = flight::geometricRateSetpointRadS(
+        stack_->params().attitude.geometric, state.q_world_body, sp.q_world_body_sp);
+    sp.thrust_ratio = out.position.thrust_n / stack_->vehicle().weightN();
+    if (!autopilot_) return;
+    if (autopilot_->attitude() && stack_->estimator().initialised()) {
+      summary_.max_tilt_vs_autopilot_rad =
+          std::max(summary_.max_tilt_vs_autopilot_rad,
+                   tiltBetweenRad(*autopilot_->attitude(), state.q_world_body));
+    }
+    autopilot_->send(sp, steadySeconds());
+    return;
   }
   if (out.rotors == flight::RotorCommand::kNone) return;
   command_.utime = utime;

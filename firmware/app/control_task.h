@@ -1,8 +1,9 @@
 // The control task: kinfly::flight::FlightStack driven by an IMU source, one tick per IMU sample
 // (as PX4's rate controller runs on each gyro sample), the odometry's newest pose handed over
-// through a LatestValue (never a lock the vision thread could hold), the rotor commands to the
-// actuator backend. Its own thread and its own LCM instance: neither the odometry nor the
-// keyframe link can hold it up. docs/flight.md, "The control task".
+// through a LatestValue (never a lock the vision thread could hold), the output to the actuator
+// backend: rotor speeds over its own LCM (motors), or body rates and thrust to an autopilot over
+// MAVLink (mavlink), which is then the IMU source too. Its own thread: neither the odometry nor
+// the keyframe link can hold it up. docs/flight.md, "The control task".
 #pragma once
 
 #include <lcm/lcm.h>
@@ -12,6 +13,7 @@
 #include <optional>
 
 #include "config.h"
+#include "kinfly/actuators/autopilot.h"
 #include "kinfly/flight/flight_stack.h"
 #include "kinfly/fw/latest_value.h"
 #include "kinfly/imu_t.hpp"
@@ -27,7 +29,7 @@ struct ControlSummary {
   int64_t imu_rejected = 0;    // another vehicle's, undecodable, or not after the last in time
   int64_t ticks = 0;           // all ticks ...
   int64_t silent_ticks = 0;    // ... of which without a new IMU sample (the IMU gone quiet)
-  int64_t commands_sent = 0;   // motor_command_t published
+  int64_t commands_sent = 0;   // motor_command_t published (motors backend)
   int64_t commands_unsent = 0;  // not: the control task's LCM was down
   int64_t poses_fused = 0;
   int64_t poses_rejected = 0;  // gated, too old, out of order, or before the estimator started
@@ -36,15 +38,19 @@ struct ControlSummary {
   bool estimator_started = false;
   flight::FlightMode mode = flight::FlightMode::kDisarmed;
   flight::FlightCounters modes;
+  std::optional<actuators::AutopilotCounters> autopilot;  // the mavlink backend's
+  // [rad] the largest tilt between the estimate and the autopilot's own attitude (mavlink)
+  double max_tilt_vs_autopilot_rad = 0.0;
 };
 
 class ControlTask {
  public:
   // stack: made from config.flight.stackParams(). poses: written by the odometry thread.
   // commands: written by the link thread (authenticated commands from the ground).
+  // mavlink_key: the mavlink backend's signing key, if any.
   ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
-              LatestValue<OdometryPose>* poses, LatestValue<CommandMail>* commands,
-              const StopToken* stop);
+              std::optional<link::Key> mavlink_key, LatestValue<OdometryPose>* poses,
+              LatestValue<CommandMail>* commands, const StopToken* stop);
 
   // Until a stop is requested. Sets the thread's real-time priority and core first, where the
   // configuration asks and the system allows (a warning where it does not).
@@ -54,18 +60,30 @@ class ControlTask {
  private:
   static void onImu(const lcm_recv_buf_t* message, const char* channel, void* self);
   void handleImu(const lcm_recv_buf_t* message);
+  // A sample from either source: into the estimator, then one tick.
+  void takeImu(const flight::ImuSample& sample);
+  // The mavlink backend's loop body: the autopilot's bytes, then what we send it.
+  void serveAutopilot();
+  void sendToBackend(const flight::TickOutput& out, int64_t utime);
   // One tick at `utime` (the IMU's clock): the newest pose, the stack, the backend.
   void tick(int64_t utime);
   void applyScheduling() const;
 
   const FirmwareConfig& config_;
   std::unique_ptr<flight::FlightStack> stack_;
+  const bool mavlink_;  // flight.backend = mavlink
+  std::optional<link::Key> mavlink_key_;
   LatestValue<OdometryPose>* poses_;
   LatestValue<CommandMail>* commands_;
   const StopToken* stop_;
   // Made by run() after the thread's priority is set: LCM's receive thread, which empties the
   // IMU's socket, is started from it and inherits the priority.
   std::optional<Publisher> publisher_;
+  // The mavlink backend's; opened by run(), again after a failure (a serial port not yet there).
+  std::unique_ptr<actuators::Autopilot> autopilot_;
+  Clock::time_point next_open_;  // when to try opening the autopilot's port again
+  int64_t open_failures_ = 0;
+  actuators::AutopilotSetpoint autopilot_setpoint_;
   flight::AnchoredVision anchored_;
   imu_t imu_{};
   motor_command_t command_{};

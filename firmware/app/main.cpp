@@ -189,6 +189,16 @@ int run(int argc, char** argv) {
     }
     stack = *std::move(made);
   }
+  std::optional<link::Key> mavlink_key;
+  if (config.flight.backend == "mavlink" && !config.flight.mavlink_key.empty()) {
+    StatusOr<link::Key> loaded = link::loadKeyFile(config.flight.mavlink_key);
+    if (!loaded.ok()) {
+      spdlog::critical("{} (flight.mavlink_key; empty for an unsigned MAVLink link)",
+                       loaded.status().message());
+      return 2;
+    }
+    mavlink_key = *loaded;
+  }
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   spdlog::info("kinfly-fw {} vehicle {}: {}, {}x{} -> {}x{} odometry", kVersion,
@@ -213,7 +223,7 @@ int run(int argc, char** argv) {
   OdometryTask odometry(config, camera, volume_params, pipeline_params, &anchor, &counters,
                         &capture_queue, &keyframe_queue, stack ? &poses : nullptr, &stop);
   std::optional<ControlTask> control;
-  if (stack) control.emplace(config, std::move(stack), &poses, &commands, &stop);
+  if (stack) control.emplace(config, std::move(stack), mavlink_key, &poses, &commands, &stop);
   LinkTask link(config, key, &anchor, &counters, &keyframe_queue, &capture_queue, camera,
                 source->depthScaleM(), control ? &commands : nullptr, &stop);
 
@@ -280,6 +290,23 @@ int run(int argc, char** argv) {
         n(f.commands_refused), n(f.vision_lost), n(f.estimator_diverged), n(f.attitude_limit),
         n(f.imu_lost), n(f.geofence), n(c.commands_sent), n(c.commands_unsent),
         n(link.commandsPassed()), n(link.commandsDropped()));
+    if (const auto& a = c.autopilot) {
+      std::printf(
+          "kinfly-fw: mavlink: %lld heartbeats, %lld IMU samples (%lld rejected), %lld "
+          "attitudes (tilt against the estimate at most %.2f deg); %lld setpoints and %lld "
+          "poses sent, %lld not; %lld mode, %lld arm and %lld disarm requests, %lld accepted, "
+          "%lld refused; %lld bad signatures, %lld bad CRC, %lld from other sources; lost %lld "
+          "times; %lld port errors\n",
+          n(a->heartbeats), n(a->imu_samples), n(a->imu_rejected), n(a->attitudes),
+          c.max_tilt_vs_autopilot_rad * 180.0 / 3.14159265358979323846, n(a->setpoints_sent),
+          n(a->odometry_sent), n(a->send_failures), n(a->mode_requests), n(a->arm_requests),
+          n(a->disarm_requests), n(a->commands_accepted), n(a->commands_refused),
+          n(a->bad_signature), n(a->bad_crc), n(a->other_source), n(a->lost),
+          n(a->port_errors));
+    } else if (config.flight.backend == "mavlink") {
+      std::printf("kinfly-fw: mavlink: the autopilot's port never opened (%s)\n",
+                  config.flight.mavlink_url.c_str());
+    }
   }
   if (!interrupted && counters.frames_captured == 0) {
     spdlog::error("source: {} ended without delivering a frame", source->describe());

@@ -161,7 +161,8 @@ def test_signed_commands_reach_the_flight_modes_and_unsigned_ones_do_not(
 
 
 @pytest.mark.parametrize("args,message", [
-    (["--flight.backend", "rotors"], 'flight.backend must be none or motors (got "rotors")'),
+    (["--flight.backend", "rotors"],
+     'flight.backend must be none, motors or mavlink (got "rotors")'),
     (["--flight.attitude_law", "pid"], 'flight.attitude_law must be geometric or lqr (got "pid")'),
     (["--flight.rate_hz", "50"], "flight.rate_hz must be in [100, 4000] (got 50)"),
     (["--flight.rate_hz", "200", "--flight.position_rate_hz", "250"],

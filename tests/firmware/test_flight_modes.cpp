@@ -489,6 +489,82 @@ TEST(FlightModes, CountsEveryModeChangeAndCommand) {
   EXPECT_EQ(changes, counters.mode_changes);
 }
 
+// ---- The autopilot (mavlink backend) ---------------------------------------------------------
+
+// Arming needs the autopilot heard; take-off needs it armed in offboard (the backend asks for
+// both once kinfly is armed).
+TEST(FlightModes, ArmingNeedsTheAutopilotAndTakeOffItsControl) {
+  Flight flight;
+  AutopilotInputs& ap = flight.in().autopilot;
+  ap.used = true;
+  flight.run(0.1);
+  EXPECT_EQ(flight.command(CommandKind::kArm).refusal, CommandRefusal::kNoAutopilot);
+  ap.alive = true;
+  ASSERT_TRUE(flight.command(CommandKind::kArm).accepted());
+  const FlightCommand take_off{CommandKind::kTakeOff, kTakeOffHeightM};
+  EXPECT_EQ(flight.command(take_off).refusal, CommandRefusal::kAutopilotNotReady);
+  ap.armed = true;
+  EXPECT_EQ(flight.command(take_off).refusal, CommandRefusal::kAutopilotNotReady);
+  ap.offboard = true;
+  EXPECT_TRUE(flight.command(take_off).accepted());
+  EXPECT_EQ(flight.modes().mode(), FlightMode::kTakeOff);
+}
+
+// The autopilot's heartbeat stops in flight: a failsafe, handed over (it flies on by its own
+// failsafe); on the ground, kinfly disarms.
+TEST(FlightModes, AutopilotLostHandsOverInTheAirAndDisarmsOnTheGround) {
+  Flight flight;
+  AutopilotInputs& ap = flight.in().autopilot;
+  ap = {true, true, true, true};
+  flight.takeOffAndHold();
+  ap.alive = false;
+  EXPECT_EQ(flight.tick().mode, FlightMode::kHandedOver);
+  EXPECT_EQ(flight.count(EventReason::kAutopilotLost), 1);
+  EXPECT_TRUE(isFailsafe(EventReason::kAutopilotLost));
+  flight.run(0.5);  // acts once
+  EXPECT_EQ(flight.modes().counters().autopilot_lost, 1);
+  EXPECT_EQ(flight.command(CommandKind::kHold).refusal, CommandRefusal::kNoControl);
+  // Back, and disarmed by its own landing: so is kinfly.
+  ap = {true, true, false, false};
+  EXPECT_EQ(flight.tick().mode, FlightMode::kDisarmed);
+  EXPECT_EQ(flight.count(EventReason::kAutopilotDisarmed), 1);
+
+  Flight ground;
+  AutopilotInputs& gap = ground.in().autopilot;
+  gap = {true, true, false, false};
+  ground.run(0.1);
+  ASSERT_TRUE(ground.command(CommandKind::kArm).accepted());
+  gap.alive = false;
+  EXPECT_EQ(ground.tick().mode, FlightMode::kDisarmed);
+  EXPECT_EQ(ground.modes().counters().autopilot_lost, 1);
+}
+
+// A pilot's mode switch (or the autopilot's own failsafe) takes the drone out of offboard: not a
+// failsafe of kinfly's, but kinfly stops flying it.
+TEST(FlightModes, LeavingOffboardHandsOver) {
+  Flight flight;
+  AutopilotInputs& ap = flight.in().autopilot;
+  ap = {true, true, true, true};
+  flight.takeOffAndHold();
+  ap.offboard = false;
+  const FlightOutput out = flight.tick();
+  EXPECT_EQ(out.mode, FlightMode::kHandedOver);
+  EXPECT_TRUE(out.hand_over);
+  EXPECT_EQ(flight.count(EventReason::kAutopilotTookOver), 1);
+  EXPECT_FALSE(isFailsafe(EventReason::kAutopilotTookOver));
+  EXPECT_EQ(flight.modes().counters().autopilot_took_over, 1);
+  EXPECT_EQ(flight.modes().counters().autopilot_lost, 0);
+}
+
+// The motors backend has no autopilot: nothing about it is checked or changes a mode.
+TEST(FlightModes, WithoutAnAutopilotItsInputsAreIgnored) {
+  Flight flight;
+  flight.takeOffAndHold();
+  flight.run(0.5);
+  EXPECT_EQ(flight.modes().mode(), FlightMode::kHold);
+  EXPECT_EQ(flight.modes().counters().autopilot_lost, 0);
+}
+
 TEST(FlightModes, UpdateAllocatesNothing) {
   FlightModeParams params;
   params.attitude_limit_action = AttitudeLimitAction::kCutMotors;
@@ -518,10 +594,10 @@ TEST(FlightModes, EveryEnumHasAName) {
   for (int i = 0; i <= static_cast<int>(FlightMode::kHandedOver); ++i) {
     EXPECT_STRNE(toString(static_cast<FlightMode>(i)), "?");
   }
-  for (int i = 0; i <= static_cast<int>(CommandRefusal::kNoControl); ++i) {
+  for (int i = 0; i <= static_cast<int>(CommandRefusal::kAutopilotNotReady); ++i) {
     EXPECT_STRNE(toString(static_cast<CommandRefusal>(i)), "?");
   }
-  for (int i = 0; i <= static_cast<int>(EventReason::kGroundRegained); ++i) {
+  for (int i = 0; i <= static_cast<int>(EventReason::kAutopilotDisarmed); ++i) {
     EXPECT_STRNE(toString(static_cast<EventReason>(i)), "?");
   }
   for (int i = 0; i <= static_cast<int>(SetpointKind::kDescend); ++i) {

@@ -92,6 +92,25 @@ _CONTROL = re.compile(
     r"(?P<passed>\d+) signed commands passed by the link, (?P<dropped>\d+) dropped")
 
 
+_MAVLINK = re.compile(
+    r"kinfly-fw: mavlink: (?P<heartbeats>\d+) heartbeats, (?P<imu_samples>\d+) IMU samples "
+    r"\((?P<imu_rejected>\d+) rejected\), (?P<attitudes>\d+) attitudes \(tilt against the "
+    r"estimate at most (?P<max_tilt_deg>[\d.]+) deg\); (?P<setpoints>\d+) setpoints and "
+    r"(?P<poses>\d+) poses sent, (?P<unsent>\d+) not; (?P<mode_requests>\d+) mode, "
+    r"(?P<arm_requests>\d+) arm and (?P<disarm_requests>\d+) disarm requests, "
+    r"(?P<accepted>\d+) accepted, (?P<refused>\d+) refused; (?P<bad_signature>\d+) bad "
+    r"signatures, (?P<bad_crc>\d+) bad CRC, (?P<other_source>\d+) from other sources; lost "
+    r"(?P<lost>\d+) times; (?P<port_errors>\d+) port errors")
+
+
+def mavlink_summary(stdout: str) -> dict[str, float]:
+    """The counts of kinfly-fw's mavlink line (flight.backend = mavlink); fails the test if
+    there is none."""
+    match = _MAVLINK.search(stdout)
+    assert match is not None, f"no mavlink summary line in {stdout!r}"
+    return {k: float(v) for k, v in match.groupdict().items()}
+
+
 def control_summary(stdout: str) -> dict[str, int | str]:
     """The counts of kinfly-fw's control line (flight.backend other than none), the estimator's
     and the mode's words as strings; fails the test if there is none."""

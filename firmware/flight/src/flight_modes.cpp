@@ -122,6 +122,7 @@ CommandRefusal FlightModes::positionChecks(const FlightInputs& in) const {
 }
 
 CommandRefusal FlightModes::armingChecks(const FlightInputs& in) const {
+  if (in.autopilot.used && !in.autopilot.alive) return CommandRefusal::kNoAutopilot;
   const CommandRefusal position = positionChecks(in);
   if (position != CommandRefusal::kNone) return position;
   if (!(in.state.v_world_body_m_s.norm() <= params_.landed_speed_m_s) ||
@@ -165,6 +166,31 @@ void FlightModes::monitorGround(const FlightInputs& in, FlightOutput& out) {
   ground_heard_ = ground_heard_ || alive;
   ground_lost_ = ground_heard_ && !alive;
   out.ground_alive = alive;
+}
+
+void FlightModes::watchAutopilot(const FlightInputs& in, FlightOutput& out) {
+  const AutopilotInputs& ap = in.autopilot;
+  const bool lost = autopilot_heard_ && autopilot_alive_ && !ap.alive;
+  const bool took_over = autopilot_in_control_ && ap.alive && !ap.inControl();
+  autopilot_heard_ = autopilot_heard_ || ap.alive;
+  autopilot_alive_ = ap.alive;
+  autopilot_in_control_ = ap.inControl();
+  // On the ground kinfly's arming ends with the autopilot's; in the air the autopilot flies on
+  // (its own failsafe, or the pilot), and kinfly sends it nothing more.
+  const FlightMode after = mode_ == FlightMode::kArmed ? FlightMode::kDisarmed
+                                                       : FlightMode::kHandedOver;
+  if (lost) {
+    ++counters_.autopilot_lost;
+    if (kinflyFlies(mode_)) setpoint_ = ModeSetpoint();
+    setMode(kinflyFlies(mode_) ? after : mode_, EventReason::kAutopilotLost, in, out);
+  } else if (took_over && kinflyFlies(mode_)) {
+    ++counters_.autopilot_took_over;
+    setpoint_ = ModeSetpoint();
+    setMode(after, EventReason::kAutopilotTookOver, in, out);
+  }
+  if (mode_ == FlightMode::kHandedOver && ap.alive && !ap.armed) {
+    setMode(FlightMode::kDisarmed, EventReason::kAutopilotDisarmed, in, out);
+  }
 }
 
 void FlightModes::detectLanded(const FlightInputs& in) {
@@ -317,6 +343,9 @@ CommandResult FlightModes::handle(const FlightCommand& command, const FlightInpu
       } else {
         refusal = positionChecks(in);
       }
+      if (refusal == CommandRefusal::kNone && in.autopilot.used && !in.autopilot.inControl()) {
+        refusal = CommandRefusal::kAutopilotNotReady;
+      }
       // Straight up from here; the ground is height_above_ground_m below the body.
       const double ground_z_m = p_world_m.z() + in.height_above_ground_m;
       const Vector3d target_world_m(p_world_m.x(), p_world_m.y(), ground_z_m - command.height_m);
@@ -392,6 +421,7 @@ FlightOutput FlightModes::update(const FlightInputs& in,
                                  const std::optional<FlightCommand>& command) {
   FlightOutput out;
   monitorGround(in, out);
+  if (in.autopilot.used) watchAutopilot(in, out);
   if (mode_ != FlightMode::kDisarmed) detectLanded(in);
   if (kinflyFlies(mode_)) runFailsafes(in, out);
   // After the geofence check, so that a breach holds at the point before it.
@@ -453,6 +483,9 @@ const char* toString(CommandRefusal refusal) {
     case CommandRefusal::kAirborne: return "flying: land first";
     case CommandRefusal::kNoControl: return "motors cut or the autopilot has control";
     case CommandRefusal::kNoMission: return "no mission loaded";
+    case CommandRefusal::kNoAutopilot: return "the autopilot is not heard";
+    case CommandRefusal::kAutopilotNotReady:
+      return "the autopilot is not armed in offboard (yet)";
   }
   return "?";
 }
@@ -483,7 +516,10 @@ const char* toString(EventReason reason) {
     case EventReason::kAttitudeLimit: return "failsafe: tilt or rate beyond limits";
     case EventReason::kImuLost: return "failsafe: IMU silent";
     case EventReason::kGeofence: return "failsafe: geofence";
+    case EventReason::kAutopilotLost: return "failsafe: autopilot lost";
     case EventReason::kGroundRegained: return "ground station back";
+    case EventReason::kAutopilotTookOver: return "the autopilot took over";
+    case EventReason::kAutopilotDisarmed: return "the autopilot disarmed";
   }
   return "?";
 }
@@ -491,7 +527,8 @@ const char* toString(EventReason reason) {
 bool isFailsafe(EventReason reason) {
   return reason == EventReason::kVisionLost || reason == EventReason::kEstimatorDiverged ||
          reason == EventReason::kGroundLost || reason == EventReason::kAttitudeLimit ||
-         reason == EventReason::kImuLost || reason == EventReason::kGeofence;
+         reason == EventReason::kImuLost || reason == EventReason::kGeofence ||
+         reason == EventReason::kAutopilotLost;
 }
 
 }  // namespace kinfly::flight

@@ -86,6 +86,7 @@ TickOutput FlightStack::tick(const TickInputs& in) {
   inputs.mission_loaded = mission_.has_value();
   inputs.mission_finished = mission_finished_;
   inputs.mission_end_world_m = mission_end_world_m_;
+  inputs.autopilot = in.autopilot;
 
   TickOutput out;
   out.modes = modes_.update(inputs, in.command);

@@ -24,7 +24,8 @@ class SyntheticSource : public DepthSource {
  public:
   SyntheticSource(const SyntheticSourceParams& params, const PinholeCamera& camera)
       : params_(params), camera_(camera), scene_(SyntheticScene::cornerRoom()),
-        rng_(static_cast<uint32_t>(params.seed)), T_first_world_(poseAt(0.0).inverse()) {}
+        rng_(static_cast<uint32_t>(params.seed)), still_(params.motion == "still"),
+        T_first_world_(poseAt(0.0).inverse()) {}
 
   const PinholeCamera& camera() const override { return camera_; }
   double depthScaleM() const override { return kDepthScaleM; }
@@ -36,7 +37,7 @@ class SyntheticSource : public DepthSource {
 
   SourceStatus next(DepthCapture* out, std::string*) override {
     const double t_s = static_cast<double>(frames_) / params_.rate_hz;
-    const Pose T_world_cam = poseAt(t_s);
+    const Pose T_world_cam = poseAt(still_ ? 0.0 : t_s);
     if (out->depth.width() != camera_.width || out->depth.height() != camera_.height)
       out->depth = Image<uint16_t>(camera_.width, camera_.height);
     scene_.renderRawDepth(camera_, T_world_cam, kMaxDepthM, kDepthScaleM, &rng_,
@@ -63,6 +64,7 @@ class SyntheticSource : public DepthSource {
   PinholeCamera camera_;
   SyntheticScene scene_;
   std::mt19937 rng_;
+  bool still_;
   Pose T_first_world_;
   int64_t frames_ = 0;
 };
@@ -70,6 +72,8 @@ class SyntheticSource : public DepthSource {
 }  // namespace
 
 Status SyntheticSourceParams::validate() const {
+  if (motion != "swing" && motion != "still")
+    return Status::error("source.motion must be swing or still (got \"" + motion + "\")");
   return firstError(checkSourceSize(width_px, height_px),
                       outOfRange("source.rate_hz", rate_hz, 0, 1000, Bound::kOpen),
                       outOfRange("source.seed", seed, 0, 2147483647));

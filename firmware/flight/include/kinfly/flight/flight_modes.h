@@ -102,6 +102,9 @@ enum class CommandRefusal {
   kAirborne,             // take-off while flying, disarm before landed
   kNoControl,            // the rotors are cut or the autopilot has control
   kNoMission,            // a mission command with no mission loaded
+  kNoAutopilot,          // arming: the autopilot (mavlink backend) is not heard
+  kAutopilotNotReady,    // take-off: the autopilot is not armed in the mode that takes
+                         // kinfly's setpoints (yet: the backend asks it on arming)
 };
 
 struct CommandResult {
@@ -141,7 +144,12 @@ enum class EventReason {
   kAttitudeLimit,     // tilt or rate
   kImuLost,
   kGeofence,
+  kAutopilotLost,     // the autopilot's heartbeat stopped (mavlink backend)
   kGroundRegained,    // not a failsafe: the end of kGroundLost
+  // Not failsafes: the autopilot left kinfly's control (a pilot's mode switch, its own
+  // failsafe or disarm), or disarmed after kinfly handed over.
+  kAutopilotTookOver,
+  kAutopilotDisarmed,
 };
 
 // A mode change, or a failsafe (from == to when it changed no mode).
@@ -164,6 +172,18 @@ struct FlightCounters {
   int64_t attitude_limit = 0;
   int64_t imu_lost = 0;
   int64_t geofence = 0;
+  int64_t autopilot_lost = 0;
+  int64_t autopilot_took_over = 0;
+};
+
+// The autopilot under the mavlink backend, as the control task's link to it sees it.
+struct AutopilotInputs {
+  bool used = false;      // an autopilot flies kinfly's setpoints (else the rest is ignored)
+  bool alive = false;     // its heartbeat heard within the backend's timeout
+  bool armed = false;     // its heartbeat says armed
+  bool offboard = false;  // in the mode that takes kinfly's setpoints (PX4 offboard, ArduPilot
+                          // guided without GPS)
+  bool inControl() const { return alive && armed && offboard; }
 };
 
 // One update's inputs, all from the control task's tick.
@@ -184,10 +204,12 @@ struct FlightInputs {
   // commands none (handed over, motors cut), or a drone the autopilot landed could never disarm.
   double height_above_ground_m = 0.0;  // [m]
   double thrust_ratio = 0.0;           // [-]
+  AutopilotInputs autopilot;
 };
 
-// At most one event per failsafe (5), the ground link, the command and the mode's own end.
-constexpr int kMaxEventsPerUpdate = 8;
+// At most one event per failsafe (5), the ground link, the autopilot, the command and the mode's
+// own end.
+constexpr int kMaxEventsPerUpdate = 9;
 
 struct FlightOutput {
   FlightMode mode = FlightMode::kDisarmed;
@@ -219,6 +241,8 @@ class FlightModes {
   // Logs the event (a failsafe that changes no mode passes to == mode_) and counts the change.
   void setMode(FlightMode to, EventReason reason, const FlightInputs& in, FlightOutput& out);
   void monitorGround(const FlightInputs& in, FlightOutput& out);
+  // The mavlink backend's autopilot: lost, or out of kinfly's control.
+  void watchAutopilot(const FlightInputs& in, FlightOutput& out);
   void detectLanded(const FlightInputs& in);
   void runFailsafes(const FlightInputs& in, FlightOutput& out);
   CommandResult handle(const FlightCommand& command, const FlightInputs& in, FlightOutput& out);
@@ -238,6 +262,10 @@ class FlightModes {
   // The ground link: lost only once it was heard (a drone may fly with no ground station).
   bool ground_heard_ = false;
   bool ground_lost_ = false;
+  // The autopilot as of the last update: heard once, alive, flying kinfly's setpoints.
+  bool autopilot_heard_ = false;
+  bool autopilot_alive_ = false;
+  bool autopilot_in_control_ = false;
   // Since when the landed and attitude-limit conditions hold; -1 while they do not.
   int64_t landed_since_utime_ = -1;
   int64_t attitude_limit_since_utime_ = -1;

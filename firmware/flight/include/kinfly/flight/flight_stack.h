@@ -45,6 +45,7 @@ struct TickInputs {
   // [m] the ground under the body where a sensor measures it; NaN: the estimate's height above
   // the world's origin, the body where the estimator started (on the ground, before take-off).
   double height_above_ground_m = NAN;
+  AutopilotInputs autopilot;  // the mavlink backend's autopilot; unused by default
 };
 
 // What the actuators get.

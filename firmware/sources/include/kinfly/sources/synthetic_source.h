@@ -18,6 +18,9 @@ struct SyntheticSourceParams {
   int height_px = 480;         // source.height [px] [16, 4096]
   double rate_hz = 30.0;       // source.rate_hz [Hz] (0, 1000]: frame times 1 / rate_hz apart
   int seed = 1;                // source.seed [0, 2^31): the same seed gives the same frames
+  // source.motion: swing (the hovering drone's swing and bob) | still (at rest where the swing
+  // starts: a drone on the floor, for bench tests with an IMU at rest)
+  std::string motion = "swing";
   int64_t first_utime = 0;     // [us] capture time of frame 0 (kinfly-fw: the wall clock)
   Status validate() const;  // an error names the key, its range and the value
 };

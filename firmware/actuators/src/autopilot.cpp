@@ -1,0 +1,391 @@
+#include "kinfly/actuators/autopilot.h"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <thread>
+#include <utility>
+
+#include "kinfly/core/range_check.h"
+#include "mavlink/common/mavlink.h"
+
+namespace kinfly::actuators {
+namespace {
+
+constexpr mavlink_channel_t kChannel = MAVLINK_COMM_0;
+constexpr double kHeartbeatPeriodS = 1.0;
+// [µs per µs] how fast the autopilot's clock may drift from ours (two crystals of 50 ppm).
+constexpr double kClockDrift = 100e-6;
+// PX4's custom mode: main mode in bits 16-23; offboard is 6. ArduPilot Copter: GUIDED_NOGPS (20)
+// takes attitude and rate setpoints without a position of its own.
+constexpr uint32_t kPx4MainModeOffboard = 6;
+constexpr uint32_t kArduCopterGuidedNoGps = 20;
+// MAVLink signing's clock: 10 µs units since 2015-01-01 00:00:00 UTC.
+constexpr int64_t kSigningEpochUnixUs = 1420070400LL * 1000000LL;
+constexpr uint8_t kAllImuFields = 0x3F;  // HIGHRES_IMU fields_updated: x/y/z acc and gyro
+constexpr double kMilliG = 9.80665e-3;   // [m/s² per mG] SCALED_IMU
+
+const char* autopilotName(int type) {
+  switch (type) {
+    case MAV_AUTOPILOT_PX4: return "PX4";
+    case MAV_AUTOPILOT_ARDUPILOTMEGA: return "ArduPilot";
+    default: return "an autopilot";
+  }
+}
+
+}  // namespace
+
+Status AutopilotParams::validate() const {
+  return firstError(outOfRange("mavlink.system_id", system_id, 1, 255),
+                    outOfRange("mavlink.component_id", component_id, 1, 255),
+                    outOfRange("mavlink.heartbeat_timeout_s", heartbeat_timeout_s, 0, 10,
+                               Bound::kOpen),
+                    outOfRange("mavlink.setpoint_rate_hz", setpoint_rate_hz, 100, 1000),
+                    outOfRange("mavlink.imu_rate_hz", imu_rate_hz, 50, 1000),
+                    outOfRange("mavlink.attitude_rate_hz", attitude_rate_hz, 1, 500),
+                    outOfRange("mavlink.request_interval_s", request_interval_s, 0.05, 10),
+                    outOfRange("mavlink.prestream_s", prestream_s, 0, 10),
+                    outOfRange("mavlink.hover_thrust", hover_thrust, 0.05, 0.95));
+}
+
+struct Autopilot::Mavlink {
+  mavlink_message_t rx{};
+  mavlink_status_t rx_status{};
+  mavlink_message_t tx{};
+  mavlink_signing_t signing{};
+  mavlink_signing_streams_t streams{};
+  uint8_t buffer[MAVLINK_MAX_PACKET_LEN]{};
+};
+
+StatusOr<std::unique_ptr<Autopilot>> Autopilot::open(const AutopilotParams& params,
+                                                     const std::string& url, int baud,
+                                                     const std::optional<link::Key>& key) {
+  if (Status valid = params.validate(); !valid.ok()) return valid;
+  auto port = MavlinkPort::open(url, baud);
+  if (!port.ok()) return port.status();
+  std::unique_ptr<Autopilot> autopilot(new Autopilot(params, std::move(*port)));
+  Mavlink& m = *autopilot->mavlink_;
+  // The channel's status holds the parser's state, our sequence number and the signing.
+  mavlink_status_t* status = mavlink_get_channel_status(kChannel);
+  *status = mavlink_status_t{};
+  if (key) {
+    std::memcpy(m.signing.secret_key, key->bytes.data(), sizeof(m.signing.secret_key));
+    m.signing.link_id = static_cast<uint8_t>(kChannel);
+    m.signing.flags = MAVLINK_SIGNING_FLAG_SIGN_OUTGOING;
+    m.signing.timestamp =
+        static_cast<uint64_t>((link::wallClockUtime() - kSigningEpochUnixUs) / 10);
+    // No accept_unsigned_callback: an unsigned or wrongly signed frame is dropped, whatever it.
+    status->signing = &m.signing;
+    status->signing_streams = &m.streams;
+    spdlog::info("mavlink: {}: MAVLink 2, signed (key {:08x})", url, key->id);
+  } else {
+    spdlog::warn("mavlink: {}: MAVLink 2 unsigned (no flight.mavlink_key): anyone on this link "
+                 "can command the autopilot, and one that requires signing ignores us",
+                 url);
+  }
+  return autopilot;
+}
+
+Autopilot::Autopilot(const AutopilotParams& params, std::unique_ptr<MavlinkPort> port)
+    : params_(params), port_(std::move(port)), mavlink_(std::make_unique<Mavlink>()) {}
+
+Autopilot::~Autopilot() {
+  // The channel's status points into mavlink_.
+  mavlink_status_t* status = mavlink_get_channel_status(kChannel);
+  status->signing = nullptr;
+  status->signing_streams = nullptr;
+}
+
+bool Autopilot::alive(double now_s) const {
+  return heard_ && last_heartbeat_s_ >= 0.0 &&
+         now_s - last_heartbeat_s_ <= params_.heartbeat_timeout_s;
+}
+
+flight::AutopilotInputs Autopilot::state(double now_s) const {
+  flight::AutopilotInputs in;
+  in.used = true;
+  in.alive = alive(now_s);
+  in.armed = in.alive && armed_;
+  in.offboard = in.alive && offboard_;
+  return in;
+}
+
+int Autopilot::receive(int timeout_ms, double now_s) {
+  imu_count_ = 0;
+  uint8_t bytes[2048];
+  const ssize_t n = port_->read(bytes, sizeof(bytes), timeout_ms);
+  if (n < 0) {
+    // A device that went away: its heartbeat times out (the autopilot-lost failsafe); no busy
+    // loop meanwhile.
+    if (counters_.port_errors++ == 0)
+      spdlog::error("mavlink: reading {} failed: the autopilot link is down", port_->url());
+    std::this_thread::sleep_for(std::chrono::milliseconds(timeout_ms));
+    return 0;
+  }
+  const int64_t arrival_utime = link::wallClockUtime();
+  Mavlink& m = *mavlink_;
+  for (ssize_t i = 0; i < n; ++i) {
+    switch (mavlink_frame_char(kChannel, bytes[i], &m.rx, &m.rx_status)) {
+      case MAVLINK_FRAMING_OK: handle(now_s, arrival_utime); break;
+      case MAVLINK_FRAMING_BAD_SIGNATURE: ++counters_.bad_signature; break;
+      case MAVLINK_FRAMING_BAD_CRC: ++counters_.bad_crc; break;
+      default: break;
+    }
+  }
+  return imu_count_;
+}
+
+void Autopilot::handle(double now_s, int64_t arrival_utime) {
+  const mavlink_message_t& msg = mavlink_->rx;
+  if (msg.msgid == MAVLINK_MSG_ID_HEARTBEAT && !heard_) {
+    mavlink_heartbeat_t hb;
+    mavlink_msg_heartbeat_decode(&msg, &hb);
+    // GCSs, companions and gimbals send INVALID.
+    if (hb.autopilot != MAV_AUTOPILOT_INVALID) {
+      heard_ = true;
+      target_system_ = msg.sysid;
+      target_component_ = msg.compid;
+      autopilot_type_ = hb.autopilot;
+      spdlog::info("mavlink: heard {} (system {}, component {})", autopilotName(hb.autopilot),
+                   msg.sysid, msg.compid);
+      if (hb.autopilot != MAV_AUTOPILOT_PX4 && hb.autopilot != MAV_AUTOPILOT_ARDUPILOTMEGA)
+        spdlog::warn("mavlink: autopilot type {}: kinfly knows the offboard modes of PX4 and "
+                     "ArduPilot only, so it will never fly it",
+                     hb.autopilot);
+    }
+  }
+  if (!heard_ || msg.sysid != target_system_ || msg.compid != target_component_) {
+    ++counters_.other_source;
+    return;
+  }
+  switch (msg.msgid) {
+    case MAVLINK_MSG_ID_HEARTBEAT: {
+      mavlink_heartbeat_t hb;
+      mavlink_msg_heartbeat_decode(&msg, &hb);
+      ++counters_.heartbeats;
+      if (!alive(now_s)) spdlog::info("mavlink: {} alive", autopilotName(autopilot_type_));
+      last_heartbeat_s_ = now_s;
+      const bool armed = (hb.base_mode & MAV_MODE_FLAG_SAFETY_ARMED) != 0;
+      const bool offboard =
+          autopilot_type_ == MAV_AUTOPILOT_PX4
+              ? ((hb.custom_mode >> 16) & 0xFF) == kPx4MainModeOffboard
+              : autopilot_type_ == MAV_AUTOPILOT_ARDUPILOTMEGA &&
+                    hb.custom_mode == kArduCopterGuidedNoGps;
+      if (armed != armed_) spdlog::info("mavlink: autopilot {}", armed ? "armed" : "disarmed");
+      if (offboard != offboard_)
+        spdlog::info("mavlink: autopilot {} offboard (custom mode {:#x})",
+                     offboard ? "in" : "out of", hb.custom_mode);
+      armed_ = armed;
+      offboard_ = offboard;
+      break;
+    }
+    case MAVLINK_MSG_ID_HIGHRES_IMU: {
+      mavlink_highres_imu_t imu;
+      mavlink_msg_highres_imu_decode(&msg, &imu);
+      highres_seen_ = true;
+      if ((imu.fields_updated & kAllImuFields) != kAllImuFields) {
+        ++counters_.imu_rejected;
+        break;
+      }
+      addImu(imu.time_usec, Eigen::Vector3d(imu.xgyro, imu.ygyro, imu.zgyro),
+             Eigen::Vector3d(imu.xacc, imu.yacc, imu.zacc), arrival_utime);
+      break;
+    }
+    case MAVLINK_MSG_ID_SCALED_IMU: {
+      if (highres_seen_) break;  // the same sensor, coarser
+      mavlink_scaled_imu_t imu;
+      mavlink_msg_scaled_imu_decode(&msg, &imu);
+      addImu(static_cast<uint64_t>(imu.time_boot_ms) * 1000,
+             Eigen::Vector3d(imu.xgyro, imu.ygyro, imu.zgyro) * 1e-3,
+             Eigen::Vector3d(imu.xacc, imu.yacc, imu.zacc) * kMilliG, arrival_utime);
+      break;
+    }
+    case MAVLINK_MSG_ID_ATTITUDE_QUATERNION: {
+      mavlink_attitude_quaternion_t att;
+      mavlink_msg_attitude_quaternion_decode(&msg, &att);
+      const Eigen::Quaterniond q(att.q1, att.q2, att.q3, att.q4);  // MAVLink's (w, x, y, z)
+      if (std::isfinite(q.norm()) && q.norm() > 0.5) {
+        attitude_ = q.normalized();
+        ++counters_.attitudes;
+      }
+      break;
+    }
+    case MAVLINK_MSG_ID_COMMAND_ACK: {
+      mavlink_command_ack_t ack;
+      mavlink_msg_command_ack_decode(&msg, &ack);
+      if (ack.target_system != 0 && ack.target_system != params_.system_id) break;
+      if (ack.result == MAV_RESULT_ACCEPTED) {
+        ++counters_.commands_accepted;
+      } else if (ack.result != MAV_RESULT_IN_PROGRESS) {
+        ++counters_.commands_refused;
+        spdlog::warn("mavlink: the autopilot refused command {} (result {})", ack.command,
+                     ack.result);
+      }
+      break;
+    }
+    default: break;
+  }
+}
+
+void Autopilot::addImu(uint64_t remote_us, const Eigen::Vector3d& gyro_rad_s,
+                       const Eigen::Vector3d& accel_m_s2, int64_t arrival_utime) {
+  if (!gyro_rad_s.allFinite() || !accel_m_s2.allFinite() ||
+      imu_count_ == static_cast<int>(imu_.size())) {
+    ++counters_.imu_rejected;
+    return;
+  }
+  // The smallest delay seen is the best estimate of the clocks' offset; it may grow only as
+  // fast as the clocks can drift, and starts again when the autopilot restarted (its time fell).
+  const int64_t remote = static_cast<int64_t>(remote_us);
+  const int64_t candidate = arrival_utime - remote;
+  if (!have_offset_ || remote + offset_us_ < last_imu_utime_ - 1000000) {
+    offset_us_ = candidate;
+    have_offset_ = true;
+  } else {
+    const auto grown =
+        offset_us_ + static_cast<int64_t>(
+                         std::ceil(kClockDrift * static_cast<double>(arrival_utime -
+                                                                      last_offset_arrival_us_)));
+    offset_us_ = std::min(grown, candidate);
+  }
+  last_offset_arrival_us_ = arrival_utime;
+  // A smaller offset can map a sample before the last: time must increase for the estimator.
+  const int64_t utime = std::max(remote + offset_us_, last_imu_utime_ + 1);
+  last_imu_utime_ = utime;
+  flight::ImuSample& sample = imu_[static_cast<size_t>(imu_count_++)];
+  sample.utime = utime;
+  sample.gyro_rad_s = gyro_rad_s;
+  sample.accel_m_s2 = accel_m_s2;
+  ++counters_.imu_samples;
+}
+
+bool Autopilot::sendMessage() {
+  Mavlink& m = *mavlink_;
+  const uint16_t len = mavlink_msg_to_send_buffer(m.buffer, &m.tx);
+  if (port_->write(m.buffer, len)) return true;
+  ++counters_.send_failures;
+  return false;
+}
+
+void Autopilot::sendCommand(uint16_t command, float p1, float p2, float p3, float p4) {
+  mavlink_msg_command_long_pack_chan(
+      static_cast<uint8_t>(params_.system_id), static_cast<uint8_t>(params_.component_id),
+      kChannel, &mavlink_->tx, static_cast<uint8_t>(target_system_),
+      static_cast<uint8_t>(target_component_), command, 0, p1, p2, p3, p4, 0.0f, 0.0f, 0.0f);
+  sendMessage();
+}
+
+void Autopilot::send(const AutopilotSetpoint& setpoint, double now_s) {
+  const auto sys = static_cast<uint8_t>(params_.system_id);
+  const auto comp = static_cast<uint8_t>(params_.component_id);
+  Mavlink& m = *mavlink_;
+  if (now_s - last_heartbeat_sent_s_ >= kHeartbeatPeriodS) {
+    mavlink_msg_heartbeat_pack_chan(sys, comp, kChannel, &m.tx, MAV_TYPE_ONBOARD_CONTROLLER,
+                                    MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE);
+    sendMessage();
+    last_heartbeat_sent_s_ = now_s;
+  }
+  const bool alive_now = alive(now_s);
+  if (was_alive_ && !alive_now) {
+    ++counters_.lost;
+    spdlog::warn("mavlink: {} lost: no heartbeat for {:.1f} s", autopilotName(autopilot_type_),
+                 now_s - last_heartbeat_s_);
+  }
+  was_alive_ = alive_now;
+  if (!alive_now) {
+    streaming_since_s_ = -1.0;
+    return;
+  }
+  const double interval_s = params_.request_interval_s;
+  // Until its IMU comes, ask for the streams kinfly flies on.
+  if (counters_.imu_samples == 0 && now_s - last_stream_request_s_ >= interval_s) {
+    sendCommand(MAV_CMD_SET_MESSAGE_INTERVAL, MAVLINK_MSG_ID_HIGHRES_IMU,
+                static_cast<float>(1e6 / params_.imu_rate_hz), 0.0f);
+    sendCommand(MAV_CMD_SET_MESSAGE_INTERVAL, MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
+                static_cast<float>(1e6 / params_.attitude_rate_hz), 0.0f);
+    last_stream_request_s_ = now_s;
+  }
+
+  switch (setpoint.want) {
+    case AutopilotWant::kNothing: streaming_since_s_ = -1.0; return;
+    case AutopilotWant::kDisarm:
+      streaming_since_s_ = -1.0;
+      // Only an autopilot kinfly flew (armed in offboard): a pilot's flight is never touched.
+      if (armed_ && offboard_ && now_s - last_arm_request_s_ >= interval_s) {
+        sendCommand(MAV_CMD_COMPONENT_ARM_DISARM, 0.0f, 0.0f, 0.0f);
+        ++counters_.disarm_requests;
+        last_arm_request_s_ = now_s;
+      }
+      return;
+    case AutopilotWant::kIdle:
+    case AutopilotWant::kFly: break;
+  }
+  if (now_s - last_setpoint_s_ >= 1.0 / params_.setpoint_rate_hz) {
+    const bool idle = setpoint.want == AutopilotWant::kIdle;
+    const Eigen::Quaterniond& q = setpoint.q_world_body_sp;
+    const float q_wxyz[4] = {static_cast<float>(q.w()), static_cast<float>(q.x()),
+                             static_cast<float>(q.y()), static_cast<float>(q.z())};
+    const Eigen::Vector3d rate = idle ? Eigen::Vector3d::Zero() : setpoint.rate_body_rad_s;
+    const double thrust =
+        idle ? 0.0 : std::clamp(params_.hover_thrust * setpoint.thrust_ratio, 0.0, 1.0);
+    const int64_t remote_us = link::wallClockUtime() - offset_us_;
+    mavlink_msg_set_attitude_target_pack_chan(
+        sys, comp, kChannel, &m.tx, static_cast<uint32_t>(remote_us / 1000),
+        static_cast<uint8_t>(target_system_), static_cast<uint8_t>(target_component_),
+        ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE, q_wxyz, static_cast<float>(rate.x()),
+        static_cast<float>(rate.y()), static_cast<float>(rate.z()), static_cast<float>(thrust));
+    if (sendMessage()) ++counters_.setpoints_sent;
+    last_setpoint_s_ = now_s;
+    if (streaming_since_s_ < 0.0) streaming_since_s_ = now_s;
+  }
+  // The handshake: offboard once the setpoints have streamed a while, then arming (on the
+  // ground: in the air a drone that left offboard was handed over, not re-armed).
+  if (!offboard_) {
+    if (streaming_since_s_ >= 0.0 && now_s - streaming_since_s_ >= params_.prestream_s &&
+        now_s - last_mode_request_s_ >= interval_s) {
+      const bool px4 = autopilot_type_ == MAV_AUTOPILOT_PX4;
+      sendCommand(MAV_CMD_DO_SET_MODE, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                  static_cast<float>(px4 ? kPx4MainModeOffboard : kArduCopterGuidedNoGps),
+                  0.0f);
+      ++counters_.mode_requests;
+      last_mode_request_s_ = now_s;
+    }
+  } else if (!armed_ && setpoint.want == AutopilotWant::kIdle &&
+             now_s - last_arm_request_s_ >= interval_s) {
+    sendCommand(MAV_CMD_COMPONENT_ARM_DISARM, 1.0f, 0.0f, 0.0f);
+    ++counters_.arm_requests;
+    last_arm_request_s_ = now_s;
+  }
+}
+
+void Autopilot::sendVision(int64_t capture_utime, const Pose& T_world_body,
+                           double position_var_m2, double attitude_var_rad2,
+                           int32_t reset_counter) {
+  if (!heard_ || !have_offset_) return;  // nobody to send to, or no clock to stamp it on
+  const Eigen::Vector3d p = T_world_body.translation();
+  const Eigen::Quaterniond q(T_world_body.rotation());
+  const float q_wxyz[4] = {static_cast<float>(q.w()), static_cast<float>(q.x()),
+                           static_cast<float>(q.y()), static_cast<float>(q.z())};
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  // The upper triangle of the 6x6 (x, y, z, roll, pitch, yaw) row by row: the diagonal is at
+  // 0, 6, 11, 15, 18, 20. Velocity unknown: NaN first, as MAVLink specifies.
+  float pose_cov[21] = {};
+  for (int i : {0, 6, 11}) pose_cov[i] = static_cast<float>(position_var_m2);
+  for (int i : {15, 18, 20}) pose_cov[i] = static_cast<float>(attitude_var_rad2);
+  float velocity_cov[21] = {};
+  velocity_cov[0] = nan;
+  mavlink_msg_odometry_pack_chan(
+      static_cast<uint8_t>(params_.system_id), static_cast<uint8_t>(params_.component_id),
+      kChannel, &mavlink_->tx, static_cast<uint64_t>(std::max<int64_t>(0, capture_utime - offset_us_)),
+      MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, static_cast<float>(p.x()),
+      static_cast<float>(p.y()), static_cast<float>(p.z()), q_wxyz, nan, nan, nan, nan, nan, nan,
+      pose_cov, velocity_cov, static_cast<uint8_t>(reset_counter & 0xFF),
+      MAV_ESTIMATOR_TYPE_VISION, 0);
+  if (sendMessage()) ++counters_.odometry_sent;
+}
+
+}  // namespace kinfly::actuators

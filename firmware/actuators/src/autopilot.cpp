@@ -18,8 +18,6 @@ namespace {
 
 constexpr mavlink_channel_t kChannel = MAVLINK_COMM_0;
 constexpr double kHeartbeatPeriodS = 1.0;
-// [µs per µs] how fast the autopilot's clock may drift from ours (two crystals of 50 ppm).
-constexpr double kClockDrift = 100e-6;
 // PX4's custom mode: main mode in bits 16-23; offboard is 6. ArduPilot Copter: GUIDED_NOGPS (20)
 // takes attitude and rate setpoints without a position of its own.
 constexpr uint32_t kPx4MainModeOffboard = 6;
@@ -38,6 +36,22 @@ const char* autopilotName(int type) {
 }
 
 }  // namespace
+
+int64_t ClockMap::map(int64_t remote_us, int64_t arrival_utime) {
+  const int64_t delay_offset = arrival_utime - remote_us;
+  if (!have_offset_ || remote_us + offset_us_ < last_utime_ - kRestartUs) {
+    offset_us_ = delay_offset;
+    have_offset_ = true;
+  } else {
+    const auto grown = static_cast<int64_t>(std::ceil(
+        kDrift * static_cast<double>(arrival_utime - last_arrival_utime_)));
+    offset_us_ = std::min(offset_us_ + grown, delay_offset);
+  }
+  last_arrival_utime_ = arrival_utime;
+  // A smaller offset can map a sample before the last: time must increase for the estimator.
+  last_utime_ = std::max(remote_us + offset_us_, last_utime_ + 1);
+  return last_utime_;
+}
 
 Status AutopilotParams::validate() const {
   return firstError(outOfRange("mavlink.system_id", system_id, 1, 255),
@@ -78,7 +92,8 @@ StatusOr<std::unique_ptr<Autopilot>> Autopilot::open(const AutopilotParams& para
     m.signing.flags = MAVLINK_SIGNING_FLAG_SIGN_OUTGOING;
     m.signing.timestamp =
         static_cast<uint64_t>((link::wallClockUtime() - kSigningEpochUnixUs) / 10);
-    // No accept_unsigned_callback: an unsigned or wrongly signed frame is dropped, whatever it.
+    // No accept_unsigned_callback: an unsigned or wrongly signed frame is dropped and counted,
+    // whatever its message (PX4 lets some through unsigned; kinfly has nothing to gain).
     status->signing = &m.signing;
     status->signing_streams = &m.streams;
     spdlog::info("mavlink: {}: MAVLink 2, signed (key {:08x})", url, key->id);
@@ -238,26 +253,8 @@ void Autopilot::addImu(uint64_t remote_us, const Eigen::Vector3d& gyro_rad_s,
     ++counters_.imu_rejected;
     return;
   }
-  // The smallest delay seen is the best estimate of the clocks' offset; it may grow only as
-  // fast as the clocks can drift, and starts again when the autopilot restarted (its time fell).
-  const int64_t remote = static_cast<int64_t>(remote_us);
-  const int64_t candidate = arrival_utime - remote;
-  if (!have_offset_ || remote + offset_us_ < last_imu_utime_ - 1000000) {
-    offset_us_ = candidate;
-    have_offset_ = true;
-  } else {
-    const auto grown =
-        offset_us_ + static_cast<int64_t>(
-                         std::ceil(kClockDrift * static_cast<double>(arrival_utime -
-                                                                      last_offset_arrival_us_)));
-    offset_us_ = std::min(grown, candidate);
-  }
-  last_offset_arrival_us_ = arrival_utime;
-  // A smaller offset can map a sample before the last: time must increase for the estimator.
-  const int64_t utime = std::max(remote + offset_us_, last_imu_utime_ + 1);
-  last_imu_utime_ = utime;
   flight::ImuSample& sample = imu_[static_cast<size_t>(imu_count_++)];
-  sample.utime = utime;
+  sample.utime = clock_.map(static_cast<int64_t>(remote_us), arrival_utime);
   sample.gyro_rad_s = gyro_rad_s;
   sample.accel_m_s2 = accel_m_s2;
   ++counters_.imu_samples;
@@ -332,7 +329,7 @@ void Autopilot::send(const AutopilotSetpoint& setpoint, double now_s) {
     const Eigen::Vector3d rate = idle ? Eigen::Vector3d::Zero() : setpoint.rate_body_rad_s;
     const double thrust =
         idle ? 0.0 : std::clamp(params_.hover_thrust * setpoint.thrust_ratio, 0.0, 1.0);
-    const int64_t remote_us = link::wallClockUtime() - offset_us_;
+    const int64_t remote_us = clock_.toRemote(link::wallClockUtime());
     mavlink_msg_set_attitude_target_pack_chan(
         sys, comp, kChannel, &m.tx, static_cast<uint32_t>(remote_us / 1000),
         static_cast<uint8_t>(target_system_), static_cast<uint8_t>(target_component_),
@@ -365,7 +362,7 @@ void Autopilot::send(const AutopilotSetpoint& setpoint, double now_s) {
 void Autopilot::sendVision(int64_t capture_utime, const Pose& T_world_body,
                            double position_var_m2, double attitude_var_rad2,
                            int32_t reset_counter) {
-  if (!heard_ || !have_offset_) return;  // nobody to send to, or no clock to stamp it on
+  if (!heard_ || !clock_.ready()) return;  // nobody to send to, or no clock to stamp it on
   const Eigen::Vector3d p = T_world_body.translation();
   const Eigen::Quaterniond q(T_world_body.rotation());
   const float q_wxyz[4] = {static_cast<float>(q.w()), static_cast<float>(q.x()),
@@ -380,7 +377,8 @@ void Autopilot::sendVision(int64_t capture_utime, const Pose& T_world_body,
   velocity_cov[0] = nan;
   mavlink_msg_odometry_pack_chan(
       static_cast<uint8_t>(params_.system_id), static_cast<uint8_t>(params_.component_id),
-      kChannel, &mavlink_->tx, static_cast<uint64_t>(std::max<int64_t>(0, capture_utime - offset_us_)),
+      kChannel, &mavlink_->tx,
+      static_cast<uint64_t>(std::max<int64_t>(0, clock_.toRemote(capture_utime))),
       MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, static_cast<float>(p.x()),
       static_cast<float>(p.y()), static_cast<float>(p.z()), q_wxyz, nan, nan, nan, nan, nan, nan,
       pose_cov, velocity_cov, static_cast<uint8_t>(reset_counter & 0xFF),

@@ -42,6 +42,31 @@ struct AutopilotParams {
   Status validate() const;
 };
 
+// The autopilot's clock (µs since its boot) on ours (the wall clock the depth sources stamp
+// frames with): wall = remote + offset, the offset the smallest delay seen (arrival - remote),
+// which may grow only as fast as two crystals drift apart, and is found again when the
+// autopilot restarted (its time fell back). Mapped times always increase.
+class ClockMap {
+ public:
+  // [µs per µs] the largest drift between the clocks followed upwards (two 50 ppm crystals).
+  static constexpr double kDrift = 100e-6;
+  // [µs] a fall of the autopilot's time beyond this is its restart, not jitter.
+  static constexpr int64_t kRestartUs = 1000000;
+
+  // The sample's time on our clock.
+  int64_t map(int64_t remote_us, int64_t arrival_utime);
+  // Our time on the autopilot's clock (for what we stamp); 0 before the first map().
+  int64_t toRemote(int64_t utime) const { return have_offset_ ? utime - offset_us_ : 0; }
+  bool ready() const { return have_offset_; }
+  int64_t offsetUs() const { return offset_us_; }
+
+ private:
+  bool have_offset_ = false;
+  int64_t offset_us_ = 0;
+  int64_t last_arrival_utime_ = 0;
+  int64_t last_utime_ = -1;
+};
+
 // What kinfly wants of the autopilot this tick, from the flight stack's output.
 enum class AutopilotWant {
   kNothing,  // kinfly disarmed or handed over: no setpoints (the autopilot flies on its own)
@@ -133,12 +158,7 @@ class Autopilot {
   double last_heartbeat_s_ = -1.0;
   bool armed_ = false, offboard_ = false;
 
-  // Its clock: wall utime = its time_usec + offset, the offset the smallest delay seen, let grow
-  // by the clocks' drift allowance.
-  bool have_offset_ = false;
-  int64_t offset_us_ = 0;
-  int64_t last_offset_arrival_us_ = 0;
-  int64_t last_imu_utime_ = -1;
+  ClockMap clock_;
   bool highres_seen_ = false;
   std::array<flight::ImuSample, 64> imu_{};
   int imu_count_ = 0;

@@ -6,6 +6,7 @@ set(KINFLY_LCM_TYPES
   depth_keyframe_t
   drone_status_t
   flight_command_t
+  flight_status_t
   ground_status_t
   ground_truth_t
   imu_t

@@ -4,11 +4,14 @@
 #include <sched.h>
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <string>
 #include <thread>
 #include <utility>
 
+#include "kinfly/link/conversions.h"
 #include "kinfly/link/decode.h"
 #include "kinfly/link/multicast.h"
 
@@ -24,6 +27,9 @@ constexpr int kControlRecvBufBytes = 2 << 20;
 // Messages LCM queues for the IMU subscription before it drops the newest: a second of samples.
 // LCM's default, 30, dropped whatever came while the control thread waited 30 ms for a core.
 constexpr int kImuQueueMessages = 1000;
+// [µs of the IMU's clock] between flight status reports: 50 Hz, so the link's 10 Hz sends one
+// at most 20 ms old.
+constexpr int64_t kFlightStatusPeriodUs = 20000;
 // [ms] between ticks before the first IMU sample.
 constexpr int kIdleTickMs = 10;
 // [s] between attempts to open the autopilot's port (a USB serial port that is not there yet).
@@ -72,13 +78,15 @@ int8_t rotorState(flight::RotorCommand rotors) {
 
 ControlTask::ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
                          std::optional<link::Key> mavlink_key, LatestValue<OdometryPose>* poses,
-                         LatestValue<CommandMail>* commands, const StopToken* stop)
+                         LatestValue<CommandMail>* commands,
+                         LatestValue<flight_status_t>* flight_status, const StopToken* stop)
     : config_(config),
       stack_(std::move(stack)),
       mavlink_(config.flight.backend == "mavlink"),
       mavlink_key_(std::move(mavlink_key)),
       poses_(poses),
       commands_(commands),
+      flight_status_(flight_status),
       stop_(stop) {
   command_.vehicle_id = config.vehicle.id;
 }
@@ -268,6 +276,8 @@ void ControlTask::tick(int64_t utime) {
   ++summary_.ticks;
   if (out.modes.command) {
     const flight::CommandResult& result = *out.modes.command;
+    last_command_id_ = command_id;
+    last_command_ = result;
     if (result.accepted()) {
       spdlog::info("control: command {} ({}) accepted", command_id,
                    flight::toString(result.kind));
@@ -287,6 +297,77 @@ void ControlTask::tick(int64_t utime) {
     }
   }
   sendToBackend(out, utime);
+  reportStatus(out, utime);
+}
+
+void ControlTask::reportStatus(const flight::TickOutput& out, int64_t utime) {
+  // A tick earlier than the last report is a clock that started again (the IMU's first sample
+  // after the wall clock's ticks): report at once.
+  if (flight_status_ == nullptr ||
+      (utime >= last_status_utime_ && utime - last_status_utime_ < kFlightStatusPeriodUs &&
+       last_status_utime_ >= 0))
+    return;
+  last_status_utime_ = utime;
+  // The wire's constants are the library's enums in the same order.
+  static_assert(flight_status_t::MODE_HANDED_OVER ==
+                static_cast<int>(flight::FlightMode::kHandedOver));
+  static_assert(flight_status_t::REFUSED_AUTOPILOT_NOT_READY ==
+                static_cast<int>(flight::CommandRefusal::kAutopilotNotReady));
+  static_assert(flight_command_t::LAND == static_cast<int>(flight::CommandKind::kLand));
+  const flight::Estimator& estimator = stack_->estimator();
+  const flight::EstimatorState state = estimator.state();
+  const flight::EstimatorHealth health = estimator.health();
+  const flight::FlightCounters& counters = stack_->modes().counters();
+  flight_status_t& s = flight_status_->back();
+  s.utime = utime;
+  s.vehicle_id = config_.vehicle.id;
+  s.mode = static_cast<int8_t>(out.modes.mode);
+  s.command_id = last_command_id_;
+  s.command_kind = static_cast<int8_t>(last_command_.kind);
+  s.command_result = static_cast<int8_t>(last_command_.refusal);
+  s.estimator_initialised = health.initialised;
+  s.estimator_diverged = health.diverged;
+  const Eigen::Quaterniond q = state.q_world_body.normalized();
+  const double q_xyzw[4] = {q.x(), q.y(), q.z(), q.w()};
+  for (int i = 0; i < 3; ++i) {
+    s.p_world_m[i] = state.p_world_body_m(i);
+    s.v_world_m_s[i] = state.v_world_body_m_s(i);
+    s.setpoint_world_m[i] = out.setpoint.p_world_m(i);
+    s.setpoint_v_world_m_s[i] = out.setpoint.v_world_m_s(i);
+  }
+  std::copy(q_xyzw, q_xyzw + 4, s.q_world_body_xyzw);
+  s.position_std_m = health.initialised ? static_cast<float>(std::sqrt(
+                                              estimator.covariance().diagonal().head<3>().maxCoeff()))
+                                        : 0.0f;
+  s.vision_age_s = static_cast<float>(health.time_since_vision_s);
+  s.vision_fused = health.vision_fused_count;
+  s.vision_rejected = health.vision_rejected_gate + health.vision_rejected_too_old +
+                      health.vision_rejected_out_of_order + health.vision_rejected_invalid;
+  s.reset_counter = health.reset_counter;
+  s.resets = health.resets;
+  link::writePose(estimator.T_world_odom(), &s.T_world_map);
+  s.setpoint_yaw_rad = static_cast<float>(out.setpoint.yaw_rad);
+  s.thrust_n = static_cast<float>(out.position.thrust_n);
+  s.rotors = out.rotors == flight::RotorCommand::kNone ? flight_status_t::ROTORS_NONE
+                                                        : rotorState(out.rotors);
+  for (int i = 0; i < 4; ++i)
+    s.rotor_speed_rad_s[i] = static_cast<float>(out.mixer.rotor_speed_rad_s(i));
+  s.mode_changes = counters.mode_changes;
+  s.commands_accepted = counters.commands_accepted;
+  s.commands_refused = counters.commands_refused;
+  s.failsafe_vision_lost = counters.vision_lost;
+  s.failsafe_estimator_diverged = counters.estimator_diverged;
+  s.failsafe_attitude_limit = counters.attitude_limit;
+  s.failsafe_imu_lost = counters.imu_lost;
+  s.failsafe_geofence = counters.geofence;
+  s.failsafe_autopilot_lost = counters.autopilot_lost;
+  const flight::AutopilotInputs ap =
+      autopilot_ ? autopilot_->state(steadySeconds()) : flight::AutopilotInputs();
+  s.autopilot_used = mavlink_;
+  s.autopilot_alive = ap.alive;
+  s.autopilot_armed = ap.armed;
+  s.autopilot_offboard = ap.offboard;
+  flight_status_->publish();
 }
 
 void ControlTask::sendToBackend(const flight::TickOutput& out, int64_t utime) {

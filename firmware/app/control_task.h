@@ -14,6 +14,7 @@
 
 #include "config.h"
 #include "kinfly/actuators/autopilot.h"
+#include "kinfly/flight_status_t.hpp"
 #include "kinfly/flight/flight_stack.h"
 #include "kinfly/fw/latest_value.h"
 #include "kinfly/imu_t.hpp"
@@ -47,10 +48,12 @@ class ControlTask {
  public:
   // stack: made from config.flight.stackParams(). poses: written by the odometry thread.
   // commands: written by the link thread (authenticated commands from the ground).
-  // mavlink_key: the mavlink backend's signing key, if any.
+  // mavlink_key: the mavlink backend's signing key, if any. flight_status: read by the link
+  // thread, which sends it with the drone's status.
   ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
               std::optional<link::Key> mavlink_key, LatestValue<OdometryPose>* poses,
-              LatestValue<CommandMail>* commands, const StopToken* stop);
+              LatestValue<CommandMail>* commands, LatestValue<flight_status_t>* flight_status,
+              const StopToken* stop);
 
   // Until a stop is requested. Sets the thread's real-time priority and core first, where the
   // configuration asks and the system allows (a warning where it does not).
@@ -65,6 +68,8 @@ class ControlTask {
   // The mavlink backend's loop body: the autopilot's bytes, then what we send it.
   void serveAutopilot();
   void sendToBackend(const flight::TickOutput& out, int64_t utime);
+  // The stack's state into flight_status_, at most every kFlightStatusPeriodUs of IMU time.
+  void reportStatus(const flight::TickOutput& out, int64_t utime);
   // One tick at `utime` (the IMU's clock): the newest pose, the stack, the backend.
   void tick(int64_t utime);
   void applyScheduling() const;
@@ -75,6 +80,7 @@ class ControlTask {
   std::optional<link::Key> mavlink_key_;
   LatestValue<OdometryPose>* poses_;
   LatestValue<CommandMail>* commands_;
+  LatestValue<flight_status_t>* flight_status_;
   const StopToken* stop_;
   // Made by run() after the thread's priority is set: LCM's receive thread, which empties the
   // IMU's socket, is started from it and inherits the priority.
@@ -88,6 +94,10 @@ class ControlTask {
   imu_t imu_{};
   motor_command_t command_{};
   ControlSummary summary_;
+  // The last command the modes answered, for the flight status.
+  int64_t last_command_id_ = -1;
+  flight::CommandResult last_command_;
+  int64_t last_status_utime_ = -1;
   // The last sample's time, and when (steady clock) it came: the clock the silent ticks run on.
   int64_t last_imu_utime_ = -1;
   Clock::time_point last_imu_arrival_;

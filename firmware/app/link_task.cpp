@@ -14,7 +14,7 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
                    SharedAnchor* anchor, Counters* counters, BoundedQueue<KeyframeJob>* keyframes,
                    const BoundedQueue<DepthCapture>* capture_queue, const PinholeCamera& camera,
                    double depth_scale_m, LatestValue<CommandMail>* commands,
-                   const StopToken* stop)
+                   LatestValue<flight_status_t>* flight_status, const StopToken* stop)
     : config_(config), anchor_(anchor), counters_(counters), keyframes_(keyframes),
       capture_queue_(capture_queue), stop_token_(stop), camera_(camera), depth_scale_m_(depth_scale_m),
       codec_(DepthCodec::Params()), job_(withDepthImage<KeyframeJob>(camera)),
@@ -44,6 +44,7 @@ LinkTask::LinkTask(const FirmwareConfig& config, std::optional<link::Key> key,
                   handle(message, channel);
                 })) {
   commands_ = commands;
+  flight_status_ = flight_status;
   if (key) {
     corrections_.emplace(*key, config.vehicle.id, config.link.signing, link::DecodeBounds());
     command_receiver_.emplace(*key, config.vehicle.id, config.link.signing,
@@ -499,6 +500,10 @@ void LinkTask::publishStatus(bool is_final) {
   h.corrections_unknown_keyframe = counters_->corrections_unknown;
   link::fillDroneStatus(h, &status_);
   publisher_.publish(link::Channel::kStatus, status_);  // the publisher logs a network going down
+  // The flight stack's newest state, with the status: the Wi-Fi carries it at 10 Hz (about
+  // 3 kbit/s), however fast the control task runs.
+  if (flight_status_ != nullptr && flight_status_->fetch())
+    publisher_.publish(link::Channel::kFlight, flight_status_->front());
 }
 
 }  // namespace kinfly::fw

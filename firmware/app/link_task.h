@@ -19,6 +19,7 @@
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
 #include "kinfly/drone_status_t.hpp"
+#include "kinfly/flight_status_t.hpp"
 #include "kinfly/ground_status_t.hpp"
 #include "kinfly/sources/depth_source.h"
 #include "publisher.h"
@@ -31,7 +32,8 @@ class LinkTask {
   LinkTask(const FirmwareConfig& config, std::optional<link::Key> key, SharedAnchor* anchor,
            Counters* counters, BoundedQueue<KeyframeJob>* keyframes,
            const BoundedQueue<DepthCapture>* capture_queue, const PinholeCamera& camera,
-           double depth_scale_m, LatestValue<CommandMail>* commands, const StopToken* stop);
+           double depth_scale_m, LatestValue<CommandMail>* commands,
+           LatestValue<flight_status_t>* flight_status, const StopToken* stop);
 
   // Until stop(); then sends what is still queued, waits for the ground's last corrections when
   // asked to, and sends a last status (drone_status_t.RUN_FINAL).
@@ -122,6 +124,8 @@ class LinkTask {
   std::optional<link::CorrectionReceiver> corrections_;
   std::optional<link::CommandReceiver> command_receiver_;
   LatestValue<CommandMail>* commands_ = nullptr;  // to the control task; nullptr without one
+  // From the control task, sent with each status; nullptr without one.
+  LatestValue<flight_status_t>* flight_status_ = nullptr;
   int64_t commands_passed_ = 0, commands_dropped_ = 0;
   link::RejectCounters rejects_;
   SensorWatch watch_;

@@ -220,12 +220,17 @@ int run(int argc, char** argv) {
   StopToken stop;
   LatestValue<OdometryPose> poses;
   LatestValue<CommandMail> commands;
+  LatestValue<flight_status_t> flight_status;
   OdometryTask odometry(config, camera, volume_params, pipeline_params, &anchor, &counters,
                         &capture_queue, &keyframe_queue, stack ? &poses : nullptr, &stop);
   std::optional<ControlTask> control;
-  if (stack) control.emplace(config, std::move(stack), mavlink_key, &poses, &commands, &stop);
+  if (stack) {
+    control.emplace(config, std::move(stack), mavlink_key, &poses, &commands, &flight_status,
+                    &stop);
+  }
   LinkTask link(config, key, &anchor, &counters, &keyframe_queue, &capture_queue, camera,
-                source->depthScaleM(), control ? &commands : nullptr, &stop);
+                source->depthScaleM(), control ? &commands : nullptr,
+                control ? &flight_status : nullptr, &stop);
 
   std::thread capture_thread([&] {
     nameThisThread("kfw-capture");

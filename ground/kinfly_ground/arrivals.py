@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from ._native import Channel, DroneStatus, Keyframe, Receiver, Signer, channel_name
+from ._native import (Channel, DroneStatus, FlightStatus, Keyframe, Receiver, Signer,
+                      channel_name)
+from .flight import answer, mode_name
 from ._native import StampedPose as ReceivedPose
 from .uplink import Publish
 from .viewer import Viewer
@@ -93,6 +95,9 @@ class Arrivals:
             state.drone_heard_s = now_s
             self._on_drone_status(state, message)
             self._repair_newest(state, message, now_s)
+        elif channel is Channel.FLIGHT:
+            state.drone_heard_s = now_s
+            self._on_flight_status(state, message)
         elif channel is Channel.GROUND_TRUTH:
             with state.lock:
                 state.pending_truth.append((state.session, message.utime, message.T_world_cam))
@@ -115,6 +120,18 @@ class Arrivals:
                       f"{message.last_keyframe_id}); {state.counters.lost_on_link} lost on the "
                       f"link; {message.queue_drops} frames its odometry could not keep up with, "
                       f"{message.keyframes_dropped} keyframes its link could not send")
+
+    def _on_flight_status(self, state: VehicleState, message: FlightStatus) -> None:
+        """Logs the mode's changes and the answers to commands; the fusion worker draws it."""
+        last = state.flight_status
+        state.flight_status = message
+        with state.lock:
+            state.pending_flight = message
+        if last is None or message.mode != last.mode:
+            self._log(f"vehicle {state.vehicle_id}: flight mode {mode_name(message.mode)}")
+        if message.command_id >= 0 and (last is None or message.command_id != last.command_id):
+            self._log(f"vehicle {state.vehicle_id}: command {message.command_id} "
+                      f"{answer(message.command_result)}")
 
     def _on_chunk(self, state: VehicleState, message: Keyframe | None, now_s: float) -> None:
         """A keyframe chunk; MESSAGE is the keyframe it completed, if it did."""

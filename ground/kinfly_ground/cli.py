@@ -26,7 +26,8 @@ from kinfly import ground_status_t
 from . import __version__
 from ._native import (DEFAULT_PEER_PORT, MAX_VEHICLE_ID, Channel, KeyFileError, PeerLink, Signer,
                       channel_name, ground_subscriptions, load_key_file, parse_channel)
-from .command import KINDS, CommandError, read_waypoints, send
+from .command import KINDS, AnswerWatch, CommandError, read_waypoints, send
+from .flight import ACCEPTED, answer, mode_name
 from .command import build as build_command
 from .export import export, format_ms, print_summary
 from .mavlink import MavlinkBridge, MavlinkError, load_signing_key
@@ -148,8 +149,10 @@ def parser() -> argparse.ArgumentParser:
         description="Send one signed command (flight_command_t in signed_t, the vehicle's key) "
                     "to a drone's flight stack on KINFLY_<vid>_COMMAND, several copies of it "
                     "(the drone takes the first). Positions are in the flight stack's world: "
-                    "gravity-aligned, z down, so heights are negative z (docs/flight.md). The "
-                    "drone's log says whether the flight modes accepted it.")
+                    "gravity-aligned, z down, so heights are negative z (docs/flight.md). It "
+                    "then waits for the drone's answer (its flight_status_t on "
+                    "KINFLY_<vid>_FLIGHT) and prints it. Exit status: 0 accepted, 1 refused or "
+                    "no answer within --wait, 2 a bad command line.")
     command.add_argument("action", choices=sorted(KINDS), help="what the drone is to do")
     command.add_argument("values", nargs="*", metavar="VALUE",
                          help="takeoff: HEIGHT_M; goto: X Y Z; mission: WAYPOINT_FILE (a line "
@@ -162,6 +165,9 @@ def parser() -> argparse.ArgumentParser:
                               "flight.max_speed_m_s)")
     command.add_argument("--copies", type=int, default=3,
                          help="copies sent, 20 ms apart (default 3)")
+    command.add_argument("--wait", type=float, default=5.0, metavar="S",
+                         help="how long to wait for the drone's answer (default 5; 0: do not "
+                              "wait, exit 0 once sent)")
     command.add_argument("--lcm-url", default=os.environ.get("LCM_DEFAULT_URL"),
                          help=f"LCM provider URL (default $LCM_DEFAULT_URL, else "
                               f"{DEFAULT_LCM_URL})")
@@ -524,14 +530,26 @@ def send_command(args: argparse.Namespace) -> int:
                             height_m=numbers[0] if args.action == "takeoff" else 0.0,
                             target=numbers if args.action == "goto" else (0.0, 0.0, 0.0),
                             waypoints=waypoints, max_speed_m_s=args.max_speed)
+    if not 0.0 <= args.wait <= 600.0:
+        raise UsageError(f"--wait {args.wait:g} outside [0, 600] s")
     signer = Signer(load_key_file(args.key), args.vehicle)
     import lcm  # as in run: only the commands that use the network load it
 
     lc = lcm.LCM(args.lcm_url or DEFAULT_LCM_URL)
+    answers = AnswerWatch(lc, args.vehicle, command_id)  # before sending: never miss it
     send(lc, signer, message, args.copies)
     log(f"command {command_id} ({args.action}) sent to vehicle {args.vehicle}, "
         f"{args.copies} copies")
-    return 0
+    if args.wait == 0.0:
+        return 0
+    status = answers.wait(args.wait)
+    if status is None:
+        log(f"command {command_id} ({args.action}): no answer from vehicle {args.vehicle} "
+            f"within {args.wait:g} s (is its flight backend on, and the link up?)")
+        return 1
+    log(f"command {command_id} ({args.action}) {answer(status.command_result)}; vehicle "
+        f"{args.vehicle} is in {mode_name(status.mode)}")
+    return 0 if status.command_result == ACCEPTED else 1
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from kinfly import flight_command_t
 
-from ._native import Channel, Signer, channel_name
+from ._native import Channel, FlightStatus, Receiver, Signer, channel_name
 
 KINDS = {"arm": flight_command_t.ARM, "disarm": flight_command_t.DISARM,
          "takeoff": flight_command_t.TAKE_OFF, "hold": flight_command_t.HOLD,
@@ -64,6 +64,38 @@ def build(vehicle: int, kind: str, command_id: int, *, height_m: float = 0.0,
     m.waypoint_count = len(waypoints)
     m.waypoints_world_m = [[float(v) for v in w] for w in waypoints]
     return m
+
+
+class AnswerWatch:
+    """The drone's answer to one command: the first flight_status_t of the vehicle that names
+    the command (decoded by the native Receiver, within bounds, as the station does)."""
+
+    def __init__(self, lc, vehicle: int, command_id: int) -> None:
+        self._lc = lc
+        self._vehicle = vehicle
+        self._command_id = command_id
+        self._receiver = Receiver()
+        self.answer: FlightStatus | None = None
+        lc.subscribe(channel_name(Channel.FLIGHT, vehicle), self._on_message)
+
+    def _on_message(self, channel: str, data: bytes) -> None:
+        received = self._receiver.receive(channel, data)
+        if received is None:
+            return
+        channel_kind, vehicle, status = received
+        if (channel_kind is Channel.FLIGHT and vehicle == self._vehicle
+                and status.command_id == self._command_id):
+            self.answer = status
+
+    def wait(self, timeout_s: float) -> FlightStatus | None:
+        """The answer, once it arrives; None if none within TIMEOUT_S."""
+        deadline = time.monotonic() + timeout_s
+        while self.answer is None:
+            remaining_ms = int((deadline - time.monotonic()) * 1000)
+            if remaining_ms <= 0:
+                break
+            self._lc.handle_timeout(remaining_ms)
+        return self.answer
 
 
 def send(lc, signer: Signer, command: flight_command_t, copies: int) -> bytes:

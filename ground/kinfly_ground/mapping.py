@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from . import flight
 from ._native import Fusion, Keyframe, MapSnapshot, TrackingStatus, rotation_angle_rad
 from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
 from .uplink import Uplink
@@ -126,6 +127,7 @@ class Mapper:
     def _show(self, state: VehicleState, m: Keyframe, depth: np.ndarray,
               T_onboard: np.ndarray, T_corrected: np.ndarray | None, result: Any) -> None:
         self._file_truth(state)
+        self._draw_flight(state)
         c = m.camera
         state.view.keyframe(m.utime, depth, m.depth_scale_m, (c.fx, c.fy, c.cx, c.cy), T_onboard,
                             T_corrected)
@@ -168,6 +170,16 @@ class Mapper:
                                 or m.utime - state.mesh_utime >= interval_us):
             state.mesh_utime = m.utime
             self._mesh(state, m.utime, fusion.snapshot())
+
+    def _draw_flight(self, state: VehicleState) -> None:
+        """The flight stack's newest state with each keyframe: the estimate and the setpoint in
+        the map's frame (by the estimator's alignment), and its scalars."""
+        with state.lock:
+            status, state.pending_flight = state.pending_flight, None
+        if status is None or not status.estimator_initialised:
+            return
+        estimate, setpoint = flight.in_map(status, [status.p_world_m, status.setpoint_world_m])
+        state.view.flight(status.utime, estimate, setpoint, flight.metrics(status))
 
     def _file_truth(self, state: VehicleState) -> None:
         """Ground truth goes with the map of the session it arrived in: a restarted drone's

@@ -11,7 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from ._native import DroneStatus, Fusion, Keyframe, LinkQuality, MapSnapshot, Signer
+from ._native import (DroneStatus, FlightStatus, Fusion, Keyframe, LinkQuality, MapSnapshot,
+                      Signer)
 from .viewer import VehicleView
 
 StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4 T_world_cam)
@@ -109,6 +110,10 @@ class VehicleState:
         self.link_quality: LinkQuality | None = None
         # The drone's latest status in this session, and what the link lost in earlier ones.
         self.drone_status: DroneStatus | None = None
+        # The flight stack's newest status (LCM thread), and the newest not yet drawn (taken by
+        # the fusion worker with the next keyframe).
+        self.flight_status: FlightStatus | None = None
+        self.pending_flight: FlightStatus | None = None
         self.session_keyframe_ids: set[int] = set()
         self.lost_on_link_before = 0
         # The highest keyframe id of this session the worker is done with (fused, lost or
@@ -117,7 +122,8 @@ class VehicleState:
         # Ground truth heard but not yet filed, tagged with the session it arrived in.
         self.pending_truth: list[tuple[int, int, np.ndarray]] = []
         self.rates = {name: RateMeter() for name in ("received", "fused", "corrections")}
-        self.lock = threading.Lock()  # pending_truth, segment swaps, last_done_keyframe_id
+        # pending_truth, pending_flight, segment swaps, last_done_keyframe_id
+        self.lock = threading.Lock()
 
     @property
     def view(self) -> VehicleView:

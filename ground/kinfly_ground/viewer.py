@@ -7,10 +7,14 @@ when serving several):
                                    one) + Pinhole
   world/drone/camera/depth         DepthImage, raw uint16
   world/drone/camera/render        raycast shaded render from the current pose
+  world/drone/estimate             Points3D: the drone's own state estimate of its body, and ...
+  world/drone/setpoint             ... the setpoint its position loop follows (flight_status_t,
+                                   in the map's frame by the estimator's alignment)
   world/trajectory/<name>/<block>  onboard, corrected, ground_truth (see _Trajectory)
   world/map/mesh                   Mesh3D
   health/<group>/<name>            Scalars, names from the caller ("link/latency_ms")
   autopilot/<name>                 Scalars, MAVLink telemetry
+  flight/<name>                    Scalars, the flight stack's (flight.metrics)
 Every entry is stamped with its capture time `utime` on the timestamp timeline "capture_time".
 
 The layout (a rerun blueprint, see _layout) is sent with each new vehicle, so a recording opens
@@ -43,6 +47,10 @@ _TRAJECTORY_COLORS = {
     "corrected": (0, 200, 80),
     "ground_truth": (200, 200, 200),
 }
+# The flight stack's estimate and setpoint: larger than a trajectory's points, in colours of
+# their own (the trajectories' are orange, green and grey).
+_FLIGHT_RADIUS = rr.Radius.ui_points(6.0)
+_FLIGHT_COLORS = {"estimate": (60, 120, 255), "setpoint": (230, 0, 200)}
 # The map's column against the side column (camera over the two plots): the map is what a
 # person flies by, and the side views stay readable at a laptop's 1600 px.
 _MAP_COLUMN_SHARES = [2.0, 1.0]
@@ -217,6 +225,21 @@ class VehicleView:
     def health(self, utime: int, metrics: dict[str, float]) -> None:
         """METRICS: "group/name" -> value, each its own series health/group/name."""
         self._series(utime, "health", metrics)
+
+    def flight(self, utime: int, estimate_m: np.ndarray, setpoint_m: np.ndarray,
+               metrics: dict[str, float]) -> None:
+        """The flight stack's estimate and setpoint of the body (map frame, metres) and METRICS,
+        each its own series flight/name."""
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        self._rec.log(f"{self._prefix}world/drone/estimate",
+                      rr.Points3D([estimate_m], colors=[_FLIGHT_COLORS["estimate"]],
+                                  radii=_FLIGHT_RADIUS))
+        self._rec.log(f"{self._prefix}world/drone/setpoint",
+                      rr.Points3D([setpoint_m], colors=[_FLIGHT_COLORS["setpoint"]],
+                                  radii=_FLIGHT_RADIUS))
+        self._series(utime, "flight", metrics)
 
     def telemetry(self, utime: int, metrics: dict[str, float]) -> None:
         """METRICS: MAVLink telemetry name -> value, each its own series autopilot/name."""

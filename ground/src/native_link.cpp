@@ -130,8 +130,8 @@ class Receiver {
   }
 
   // None, or (channel, vehicle id, what arrived: Keyframe (whole, or the chunk that completed
-  // one), Odometry/GroundTruth (StampedPose), the drone's status, or None for IMU samples and
-  // chunks that completed nothing). ARRIVAL_UTIME: the ground's wall clock by default.
+  // one), Odometry/GroundTruth (StampedPose), the drone's status, its flight status, or None for
+  // IMU samples and chunks that completed nothing). ARRIVAL_UTIME: the ground's wall clock by default.
   nb::object receive(const std::string& channel, const nb::bytes& data,
                      std::optional<int64_t> arrival_utime) {
     const std::optional<link::ParsedChannel> parsed = link::parseChannel(channel);
@@ -192,6 +192,11 @@ class Receiver {
       }
       case link::Channel::kStatus: {
         drone_status_t m;
+        if (!decode(data, &m) || !sameVehicle(m.vehicle_id, vehicle)) return nb::none();
+        return result(nb::cast(m));
+      }
+      case link::Channel::kFlight: {
+        flight_status_t m;
         if (!decode(data, &m) || !sameVehicle(m.vehicle_id, vehicle)) return nb::none();
         return result(nb::cast(m));
       }
@@ -520,7 +525,8 @@ void bindLink(nb::module_& m) {
       .value("KEYFRAME_CHUNK", link::Channel::kKeyframeChunk)
       .value("CHUNK_REQUEST", link::Channel::kChunkRequest)
       .value("MOTOR_COMMAND", link::Channel::kMotorCommand)
-      .value("COMMAND", link::Channel::kCommand);
+      .value("COMMAND", link::Channel::kCommand)
+      .value("FLIGHT", link::Channel::kFlight);
   m.attr("MAX_VEHICLE_ID") = link::kMaxVehicleId;
   m.def("channel_name",
         [](link::Channel channel, int vehicle_id) {
@@ -605,6 +611,34 @@ void bindLink(nb::module_& m) {
       .def_prop_ro("final", [](const drone_status_t& s) {
         return s.run_state == drone_status_t::RUN_FINAL;
       }, "its last status before kinfly-fw exits");
+
+  nb::class_<flight_status_t>(m, "FlightStatus",
+                             "The drone's flight stack (flight_status_t; world z down, body FRD)")
+#define KINFLY_FIELD(name) .def_ro(#name, &flight_status_t::name)
+      KINFLY_FIELD(utime) KINFLY_FIELD(vehicle_id) KINFLY_FIELD(mode) KINFLY_FIELD(command_id)
+      KINFLY_FIELD(command_kind) KINFLY_FIELD(command_result)
+      KINFLY_FIELD(estimator_initialised) KINFLY_FIELD(estimator_diverged)
+      KINFLY_FIELD(position_std_m) KINFLY_FIELD(vision_age_s) KINFLY_FIELD(vision_fused)
+      KINFLY_FIELD(vision_rejected) KINFLY_FIELD(reset_counter) KINFLY_FIELD(resets)
+      KINFLY_FIELD(setpoint_yaw_rad) KINFLY_FIELD(thrust_n) KINFLY_FIELD(rotors)
+      KINFLY_FIELD(mode_changes) KINFLY_FIELD(commands_accepted) KINFLY_FIELD(commands_refused)
+      KINFLY_FIELD(failsafe_vision_lost) KINFLY_FIELD(failsafe_estimator_diverged)
+      KINFLY_FIELD(failsafe_attitude_limit) KINFLY_FIELD(failsafe_imu_lost)
+      KINFLY_FIELD(failsafe_geofence) KINFLY_FIELD(failsafe_autopilot_lost)
+      KINFLY_FIELD(autopilot_used) KINFLY_FIELD(autopilot_alive) KINFLY_FIELD(autopilot_armed)
+      KINFLY_FIELD(autopilot_offboard)
+#undef KINFLY_FIELD
+#define KINFLY_ARRAY(name)                                                          \
+  .def_prop_ro(#name, [](const flight_status_t& s) {                                \
+    return std::vector<double>(std::begin(s.name), std::end(s.name));               \
+  })
+      KINFLY_ARRAY(p_world_m) KINFLY_ARRAY(v_world_m_s) KINFLY_ARRAY(q_world_body_xyzw)
+      KINFLY_ARRAY(setpoint_world_m) KINFLY_ARRAY(setpoint_v_world_m_s)
+      KINFLY_ARRAY(rotor_speed_rad_s)
+#undef KINFLY_ARRAY
+      .def_prop_ro("T_world_map", [](const flight_status_t& s) {
+        return matrixOf(link::readPose(s.T_world_map));
+      }, nb::rv_policy::move, "the map's frame in world: the estimator's alignment");
 
   nb::class_<link::ChunkCounters>(m, "ChunkCounters",
                                   "Keyframe chunks by outcome (firmware/link/chunking.h)")

@@ -114,9 +114,10 @@ def test_the_control_task_allocates_at_start_only(netns: list[str], tmp_path: Pa
 def test_signed_commands_reach_the_flight_modes_and_unsigned_ones_do_not(
         netns: list[str], tmp_path: Path) -> None:
     """`kinfly-ground command` signs with the vehicle's key; the drone's link verifies and hands
-    the command to the control task, whose flight modes answer it: a disarm of a disarmed drone
-    is accepted (nothing to do), a take-off is refused (disarmed: arm first). The same command
-    unsigned is rejected by the link and never reaches the modes."""
+    the command to the control task, whose flight modes answer it, and the answer comes back in
+    the drone's flight status, which `kinfly-ground command` waits for: a disarm of a disarmed
+    drone is accepted (nothing to do, exit 0), a take-off is refused (disarmed: arm first;
+    exit 1). The same command unsigned is rejected by the link and never reaches the modes."""
     key = tmp_path / "v.key"
     subprocess.run([built("bin/kinfly-keygen"), "--out", key], check=True, capture_output=True)
     drone = Watched([*netns, *firmware("--vehicle.id", VEHICLE, "--source.kind", "synthetic",
@@ -130,14 +131,20 @@ def test_signed_commands_reach_the_flight_modes_and_unsigned_ones_do_not(
                                 str(VEHICLE), "--seconds", str(COMMAND_IMU_SECONDS)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
-        def command(*args: object) -> None:
-            subprocess.run([*netns, str(GROUND), "command", *map(str, args), "--vehicle",
-                            str(VEHICLE), "--key", str(key)], check=True, capture_output=True,
-                           timeout=60)
+        def command(*args: object) -> subprocess.CompletedProcess:
+            """kinfly-ground command, waiting for the drone's answer (its flight status)."""
+            return subprocess.run([*netns, str(GROUND), "command", *map(str, args),
+                                   "--vehicle", str(VEHICLE), "--key", str(key), "--wait",
+                                   str(STARTUP_TIMEOUT_S)], capture_output=True, text=True,
+                                  timeout=2 * STARTUP_TIMEOUT_S)
 
-        command("disarm")
+        disarm = command("disarm")
+        assert disarm.returncode == 0, disarm.stderr
+        assert f"(disarm) accepted; vehicle {VEHICLE} is in disarmed" in disarm.stderr
         assert drone.wait_for("(disarm) accepted", 1, STARTUP_TIMEOUT_S), drone.output()
-        command("takeoff", 1.0)
+        take_off = command("takeoff", 1.0)
+        assert take_off.returncode == 1, take_off.stderr
+        assert "(takeoff) refused: disarmed" in take_off.stderr, take_off.stderr
         assert drone.wait_for("(take-off) refused: disarmed", 1, STARTUP_TIMEOUT_S), \
             drone.output()
         unsigned = subprocess.run(

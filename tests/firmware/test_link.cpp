@@ -10,6 +10,8 @@
 #include <fstream>
 #include <limits>
 #include <random>
+#include <string>
+#include <utility>
 #include <vector>
 
 #include "kinfly/link/channels.h"
@@ -18,6 +20,7 @@
 #include "kinfly/link/decode.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
+#include "kinfly/motor_command_t.hpp"
 
 namespace kinfly::link {
 namespace {
@@ -88,7 +91,7 @@ TEST(Channels, NamesCarryTheVehicleAndParseBack) {
   for (Channel c : {Channel::kDepth, Channel::kKeyframe, Channel::kOdometry, Channel::kImu,
                     Channel::kStatus, Channel::kCorrection, Channel::kGroundStatus,
                     Channel::kGroundTruth, Channel::kKeyframeChunk, Channel::kChunkRequest,
-                    Channel::kMotorCommand, Channel::kCommand}) {
+                    Channel::kMotorCommand, Channel::kCommand, Channel::kFlight}) {
     for (int vehicle : {0, 7, kMaxVehicleId}) {
       const std::string name = channelName(c, vehicle);
       EXPECT_NE(name.find(std::to_string(vehicle)), std::string::npos) << name;
@@ -314,6 +317,42 @@ TEST(Decode, ImpossibleFieldsAreRejected) {
   EXPECT_TRUE(decodeMessage(bytes.data(), bytes.size(), bounds, &got).ok());
 }
 
+flight_status_t sampleFlightStatus() {
+  flight_status_t m{};
+  m.vehicle_id = kVehicle;
+  m.mode = flight_status_t::MODE_HOLD;
+  m.command_result = flight_status_t::REFUSED_AUTOPILOT_NOT_READY;
+  m.rotors = flight_status_t::ROTORS_NONE;
+  m.q_world_body_xyzw[3] = 1.0;
+  writePose(Pose::Identity(), &m.T_world_map);
+  return m;
+}
+
+// The flight status's values: every enum within its constants, state and setpoint finite.
+TEST(Decode, FlightStatusFieldsAreChecked) {
+  const auto decodes = [](const flight_status_t& m) {
+    const auto bytes = encode(m);
+    flight_status_t got;
+    return decodeMessage(bytes.data(), bytes.size(), DecodeBounds(), &got);
+  };
+  EXPECT_TRUE(decodes(sampleFlightStatus()).ok());
+  const std::vector<std::pair<const char*, void (*)(flight_status_t&)>> wrong = {
+      {"mode", [](flight_status_t& m) { m.mode = flight_status_t::MODE_HANDED_OVER + 1; }},
+      {"command_result", [](flight_status_t& m) { m.command_result = -1; }},
+      {"rotors", [](flight_status_t& m) { m.rotors = motor_command_t::FLYING + 1; }},
+      {"not finite", [](flight_status_t& m) { m.setpoint_world_m[2] = std::nan(""); }},
+      {"orientation", [](flight_status_t& m) { m.T_world_map.orientation_xyzw[3] = 2.0; }},
+      {"vehicle", [](flight_status_t& m) { m.vehicle_id = -3; }},
+  };
+  for (const auto& [what, spoil] : wrong) {
+    flight_status_t m = sampleFlightStatus();
+    spoil(m);
+    const DecodeResult r = decodes(m);
+    EXPECT_EQ(r.status, DecodeStatus::kBadField) << what;
+    EXPECT_NE(r.detail.find(what), std::string::npos) << r.detail;
+  }
+}
+
 // Seeded random corruption of valid messages of every type: never a crash (ASan runs this too),
 // and whatever is accepted re-encodes to exactly the bytes received.
 template <class T>
@@ -338,6 +377,7 @@ TEST(Decode, RandomCorruptionNeverCrashes) {
   drone_status_t status{};
   status.vehicle_id = kVehicle;
   fuzzDecode<drone_status_t>(encode(status), 3);
+  fuzzDecode<flight_status_t>(encode(sampleFlightStatus()), 11);
   ground_status_t ground_status{};
   ground_status.vehicle_id = kVehicle;
   fuzzDecode<ground_status_t>(encode(ground_status), 5);

@@ -67,19 +67,21 @@ def drone_command(netns: list[str], key: Path) -> list[str]:
                               key_file=str(key), lcm_url=None)]
 
 
-def ground_command(netns: list[str], key: Path, *args: object) -> None:
-    subprocess.run([*netns, str(GROUND), "command", *map(str, args), "--vehicle", str(VEHICLE),
-                    "--key", str(key)], check=True, capture_output=True, timeout=STEP_TIMEOUT_S)
+def ground_command(netns: list[str], key: Path, *args: object) -> subprocess.CompletedProcess:
+    """`kinfly-ground command`, which waits for the drone's answer (exit 0: accepted)."""
+    return subprocess.run([*netns, str(GROUND), "command", *map(str, args), "--vehicle",
+                           str(VEHICLE), "--key", str(key), "--wait", str(STEP_TIMEOUT_S)],
+                          capture_output=True, text=True, timeout=2 * STEP_TIMEOUT_S)
 
 
 def arm(netns: list[str], key: Path, drone: Watched) -> None:
     """Asks until the drone's answer is yes (the estimator needs its still start first)."""
-    for attempt in range(1, ARM_ATTEMPTS + 1):
-        ground_command(netns, key, "arm")
-        answered = drone.wait_for("(arm) ", attempt, STEP_TIMEOUT_S)
-        assert answered, drone.output()
-        if "(arm) accepted" in drone.output():
+    for _ in range(ARM_ATTEMPTS):
+        answered = ground_command(netns, key, "arm")
+        if answered.returncode == 0:
+            assert "(arm) accepted" in answered.stderr, answered.stderr
             return
+        assert "(arm) refused: " in answered.stderr, answered.stderr + drone.output()
     raise AssertionError(f"arming refused {ARM_ATTEMPTS} times:\n{drone.output()}")
 
 
@@ -122,8 +124,9 @@ def test_offboard_handshake_setpoints_and_the_autopilot_lost(netns: list[str],
         # Armed, kinfly streams idle setpoints; the autopilot goes offboard, then arms.
         assert peer.wait_for("peer: armed", 1, STEP_TIMEOUT_S), peer.output() + drone.output()
         assert drone.wait_for("mavlink: autopilot armed", 1, STEP_TIMEOUT_S), drone.output()
-        ground_command(netns, key, "takeoff", 1.0)
-        assert drone.wait_for("(take-off) accepted", 1, STEP_TIMEOUT_S), drone.output()
+        take_off = ground_command(netns, key, "takeoff", 1.0)
+        assert take_off.returncode == 0, take_off.stderr + drone.output()
+        assert "(takeoff) accepted; vehicle 9 is in take off" in take_off.stderr, take_off.stderr
         # The stand-in does not fly: the climb's thrust grows while its IMU stays at rest.
         assert peer.wait_for("peer: climb thrust", 3, STEP_TIMEOUT_S), peer.output()
         # The autopilot disappears: its IMU stops at once, its heartbeat too.
@@ -169,9 +172,9 @@ def test_offboard_handshake_setpoints_and_the_autopilot_lost(netns: list[str],
 def test_a_wrongly_signed_autopilot_is_never_heard(netns: list[str], tmp_path: Path) -> None:
     key = keygen(tmp_path / "vehicle.key")
     with drone_and_autopilot(netns, key, keygen(tmp_path / "other.key")) as (drone, peer):
-        ground_command(netns, key, "arm")
-        assert drone.wait_for("(arm) refused: the autopilot is not heard", 1, STEP_TIMEOUT_S), \
-            drone.output()
+        refused = ground_command(netns, key, "arm")
+        assert refused.returncode == 1, refused.stderr
+        assert "(arm) refused: no autopilot" in refused.stderr, refused.stderr
         # kinfly's heartbeat, signed with its own key, is rejected in turn.
         assert peer.wait_for("peer: rejected a frame", 1, STEP_TIMEOUT_S), peer.output()
         got = report(stop(peer))

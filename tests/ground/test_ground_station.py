@@ -17,8 +17,9 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from keyframe_chunks import chunks_of
-from kinfly import (chunk_request_t, depth_keyframe_t, drone_status_t, ground_status_t,
-                    ground_truth_t, odometry_t, pose3d_t, pose_correction_t, signed_t)
+from kinfly import (chunk_request_t, depth_keyframe_t, drone_status_t, flight_status_t,
+                    ground_status_t, ground_truth_t, odometry_t, pose3d_t, pose_correction_t,
+                    signed_t)
 from kinfly_ground._native import (Channel, CorrectionReceiver, DepthCodec, Signer, channel_name,
                                    key_id)
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
@@ -655,6 +656,47 @@ def test_keyframes_lost_on_the_link_are_counted_from_the_drones_status(sample) -
     assert state.counters.lost_on_link == 2 + 1  # keyframe 3 of the second flight
     ground = rig.station.ground_status(state, time.monotonic(), LINK_TIMEOUT_S)
     assert ground.last_keyframe_id == 2
+
+
+def flight_status(mode: int, command_id: int = -1, result: int = flight_status_t.ACCEPTED,
+                  *, vehicle: int = VEHICLE) -> flight_status_t:
+    """The drone's flight status, its estimator started at rest at the world's origin."""
+    m = flight_status_t()
+    m.utime, m.vehicle_id, m.mode = 1_700_000_000_000_000, vehicle, mode
+    m.command_id, m.command_result = command_id, result
+    m.estimator_initialised = True
+    m.q_world_body_xyzw = [0.0, 0.0, 0.0, 1.0]
+    m.T_world_map = pose3d(np.eye(4))
+    m.rotors = flight_status_t.ROTORS_NONE
+    return m
+
+
+def test_the_drones_flight_status_is_logged_and_drawn_with_the_next_keyframe(sample) -> None:
+    """Each mode change and each command's answer is logged once (the status repeats them at
+    10 Hz); a status that fails the bounded decoding is counted, never handled; the newest
+    status is drawn with the next keyframe, by the fusion thread."""
+    rig = Rig()
+    channel = channel_name(Channel.FLIGHT, VEHICLE)
+    rig.station.on_message(channel, flight_status(flight_status_t.MODE_DISARMED).encode())
+    rig.station.on_message(channel, flight_status(flight_status_t.MODE_ARMED, 77).encode())
+    refused = flight_status(flight_status_t.MODE_ARMED, 78,
+                            flight_status_t.REFUSED_VISION_NOT_FUSED).encode()
+    rig.station.on_message(channel, refused)
+    rig.station.on_message(channel, refused)
+    spoiled = flight_status(flight_status_t.MODE_HOLD)
+    spoiled.mode = 42
+    rig.station.on_message(channel, spoiled.encode())
+    flight_lines = [line for line in rig.logs if "flight mode" in line or "command" in line]
+    assert flight_lines == [f"vehicle {VEHICLE}: flight mode disarmed",
+                            f"vehicle {VEHICLE}: flight mode armed",
+                            f"vehicle {VEHICLE}: command 77 accepted",
+                            f"vehicle {VEHICLE}: command 78 refused: vision not fused"]
+    assert rig.station.receiver.rejects.malformed == 1
+    state = rig.state()
+    assert state.flight_status.command_id == 78 and state.pending_flight is not None
+    (message, _), = flight(sample, 1)
+    rig.send(message)
+    assert state.pending_flight is None
 
 
 def test_station_params_build_the_engines_parameters() -> None:

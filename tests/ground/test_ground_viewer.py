@@ -83,6 +83,11 @@ def run_session(viewer: Viewer) -> dict[str, Any]:
         view.health(utime, {"link/latency_ms": 12.0 + k, "link/received": k + 1,
                             "tracking/inlier_fraction": 0.9, "tracking/rmse_mm": 4.0})
         view.telemetry(utime, {"battery_voltage_v": 16.0 - 0.01 * k, "altitude_m": 1.5})
+        # The flight stack's estimate a centimetre off the camera, its setpoint 10 cm ahead.
+        estimate = T_onboard[:3, 3] + [0.01, 0.0, 0.0]
+        setpoint = T_onboard[:3, 3] + [0.0, 0.0, 0.1]
+        view.flight(utime, estimate, setpoint, {"mode": 3.0, "thrust_n": 4.9 + 0.01 * k})
+        last_flight = (estimate, setpoint)
         if k in (2, 8):
             view.render(utime, rng.integers(0, 256, (HEIGHT, WIDTH), dtype=np.uint8))
         utimes.add(utime)
@@ -91,7 +96,7 @@ def run_session(viewer: Viewer) -> dict[str, Any]:
     view.mesh(mesh_utime, tetrahedron,
               np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int32), None)
     utimes.add(mesh_utime)
-    return {"utimes": utimes, "last_T_world_cam": last_T_world_cam,
+    return {"utimes": utimes, "last_T_world_cam": last_T_world_cam, "last_flight": last_flight,
             "onboard_since_restart": np.array(onboard_since_restart),
             "restart_utime": restart_utime}
 
@@ -118,7 +123,8 @@ def test_session_recorded_and_read_back(tmp_path: Path) -> None:
                      "world/trajectory/ground_truth/0", "health/link/latency_ms",
                      "health/link/received", "health/tracking/inlier_fraction",
                      "health/tracking/rmse_mm", "autopilot/battery_voltage_v",
-                     "autopilot/altitude_m"]:
+                     "autopilot/altitude_m", "world/drone/estimate", "world/drone/setpoint",
+                     "flight/mode", "flight/thrust_n"]:
         assert expected in entities, f"{expected} missing from {sorted(entities)}"
 
     temporal = [r for r in rows if r.utime is not None]
@@ -145,6 +151,11 @@ def test_session_recorded_and_read_back(tmp_path: Path) -> None:
     assert latest(rows, "world/drone/camera/depth", "DepthImage:meter") == [
         pytest.approx(1 / DEPTH_SCALE_M)]
     assert latest(rows, "health/link/latency_ms", "Scalars:scalars") == [12.0 + KEYFRAMES - 1]
+    estimate, setpoint = logged["last_flight"]
+    np.testing.assert_allclose(latest(rows, "world/drone/estimate", "Points3D:positions")[0],
+                               estimate, atol=TRANSLATION_TOL_M)
+    np.testing.assert_allclose(latest(rows, "world/drone/setpoint", "Points3D:positions")[0],
+                               setpoint, atol=TRANSLATION_TOL_M)
 
 
 def test_long_trajectory_split_into_blocks_without_gaps(tmp_path: Path) -> None:

@@ -22,6 +22,7 @@ constexpr std::array<std::pair<Channel, const char*>, kChannelCount> kKinds{{
     {Channel::kChunkRequest, "CHUNK_REQUEST"},
     {Channel::kMotorCommand, "MOTOR_COMMAND"},
     {Channel::kCommand, "COMMAND"},
+    {Channel::kFlight, "FLIGHT"},
 }};
 
 }  // namespace

@@ -6,6 +6,7 @@
 
 #include "kinfly/link/channels.h"
 #include "kinfly/link/chunking.h"
+#include "kinfly/motor_command_t.hpp"
 
 namespace kinfly::link {
 namespace {
@@ -147,6 +148,21 @@ std::string statusProblem(const StatusMessage& m) {
   return {};
 }
 
+std::string fieldProblem(const flight_status_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (m.mode < flight_status_t::MODE_DISARMED || m.mode > flight_status_t::MODE_HANDED_OVER)
+    return "unknown mode " + std::to_string(m.mode);
+  if (m.command_result < flight_status_t::ACCEPTED ||
+      m.command_result > flight_status_t::REFUSED_AUTOPILOT_NOT_READY)
+    return "unknown command_result " + std::to_string(m.command_result);
+  if (m.rotors < flight_status_t::ROTORS_NONE || m.rotors > motor_command_t::FLYING)
+    return "unknown rotors " + std::to_string(m.rotors);
+  if (!finite(m.p_world_m, 3) || !finite(m.v_world_m_s, 3) || !finite(m.q_world_body_xyzw, 4) ||
+      !finite(m.setpoint_world_m, 3) || !finite(m.setpoint_v_world_m_s, 3))
+    return "a state or setpoint is not finite";
+  return poseProblem(m.T_world_map);
+}
+
 std::string fieldProblem(const drone_status_t& m, const DecodeBounds&) {
   return statusProblem(m);
 }
@@ -258,6 +274,7 @@ KINFLY_INSTANTIATE_DECODE(signed_t)
 KINFLY_INSTANTIATE_DECODE(keyframe_chunk_t)
 KINFLY_INSTANTIATE_DECODE(chunk_request_t)
 KINFLY_INSTANTIATE_DECODE(flight_command_t)
+KINFLY_INSTANTIATE_DECODE(flight_status_t)
 #undef KINFLY_INSTANTIATE_DECODE
 
 }  // namespace kinfly::link

@@ -25,9 +25,10 @@ enum class Channel {
   kChunkRequest,  // chunk_request_t, resends the ground asks for (ground -> drone)
   kMotorCommand,  // motor_command_t, the control task's rotor speeds (drone -> simulator/ESCs)
   kCommand,       // signed_t around flight_command_t (ground -> drone)
+  kFlight,        // flight_status_t, the flight stack's state (drone -> ground)
 };
 // Channels are numbered from 0 in the order above (arrays of per-channel names index by it).
-constexpr size_t kChannelCount = static_cast<size_t>(Channel::kCommand) + 1;
+constexpr size_t kChannelCount = static_cast<size_t>(Channel::kFlight) + 1;
 
 constexpr int kMaxVehicleId = 65535;  // ids are 0..kMaxVehicleId
 

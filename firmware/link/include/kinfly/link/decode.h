@@ -13,6 +13,7 @@
 #include "kinfly/depth_keyframe_t.hpp"
 #include "kinfly/drone_status_t.hpp"
 #include "kinfly/flight_command_t.hpp"
+#include "kinfly/flight_status_t.hpp"
 #include "kinfly/ground_status_t.hpp"
 #include "kinfly/ground_truth_t.hpp"
 #include "kinfly/imu_t.hpp"

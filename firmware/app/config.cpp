@@ -251,7 +251,7 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "lcm (imu_t on KINFLY_<vid>_IMU: the simulator) | mavlink (the autopilot's)")
       ->capture_default_str();
   app->add_option("--flight.mavlink_url", f.mavlink_url,
-                  "the autopilot: udpin:HOST:PORT, udpout:HOST:PORT or a /dev/ serial port")
+                  "the autopilot: udpin:HOST:PORT, udpout:HOST:PORT or a serial port's path")
       ->capture_default_str();
   app->add_option("--flight.mavlink_baud", f.mavlink_baud, "serial port baud rate")
       ->capture_default_str();

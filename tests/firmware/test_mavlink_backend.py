@@ -8,6 +8,7 @@ a failsafe."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -22,6 +23,7 @@ from firmware_run import control_summary, firmware, mavlink_summary
 
 VEHICLE = 9
 PEER = REPO_ROOT / "tests" / "tools" / "autopilot_peer.py"
+SERIAL_BRIDGE = REPO_ROOT / "tests" / "tools" / "serial_bridge.py"
 GROUND = Path(sys.executable).parent / "kinfly-ground"
 PORT = 14540
 IMU_RATE_HZ = 250.0
@@ -54,7 +56,7 @@ def keygen(path: Path) -> Path:
     return path
 
 
-def drone_command(netns: list[str], key: Path) -> list[str]:
+def drone_command(netns: list[str], key: Path, url: str = f"udpin:127.0.0.1:{PORT}") -> list[str]:
     """kinfly-fw with the mavlink backend at real-time priority, on the synthetic camera at rest
     at QVGA: at VGA, beside two busy loops, the synthetic depth was rendered and tracked so late
     that no pose was ever fresh enough to arm on (the sensor's stamps fell behind the IMU's)."""
@@ -62,7 +64,7 @@ def drone_command(netns: list[str], key: Path) -> list[str]:
                               "--source.motion", "still", "--source.width", 320,
                               "--source.height", 240, "--flight.backend", "mavlink",
                               "--flight.imu", "mavlink", "--flight.rate_hz", IMU_RATE_HZ,
-                              "--flight.mavlink_url", f"udpin:127.0.0.1:{PORT}",
+                              "--flight.mavlink_url", url,
                               "--flight.mavlink_key", key, "--flight.rt_priority", 10,
                               key_file=str(key), lcm_url=None)]
 
@@ -183,6 +185,40 @@ def test_a_wrongly_signed_autopilot_is_never_heard(netns: list[str], tmp_path: P
     assert link["bad_signature"] > 0 and link["heartbeats"] == 0 and link["imu_samples"] == 0
     assert "mavlink: heard" not in output
     assert got["companion_heartbeats"] == 0 and got["signing"]["bad"] > 0
+
+
+def test_a_serial_autopilot_unplugged_and_plugged_back_is_heard_again(netns: list[str],
+                                                                      tmp_path: Path) -> None:
+    """The autopilot on a serial port (a pseudo-terminal bridged to the stand-in), named by a
+    fixed path as udev names a USB adapter: pulled out, kinfly-fw's reads fail, it counts the
+    error, the autopilot is lost (the failsafe), and the port is opened again by its path until
+    the adapter is back; then the autopilot is heard again."""
+    key = keygen(tmp_path / "vehicle.key")
+    link = tmp_path / "ttyAutopilot"
+    bridge = Watched([*netns, sys.executable, str(SERIAL_BRIDGE), "--link", str(link), "--udp",
+                      f"127.0.0.1:{PORT}"])
+    peer = drone = None
+    try:
+        assert bridge.wait_for("bridge: plugged", 1, STEP_TIMEOUT_S), bridge.output()
+        peer = Watched([*netns, *AUTOPILOT_PRIORITY, sys.executable, str(PEER), "--url",
+                        f"udpin:127.0.0.1:{PORT}", "--key", str(key)])
+        drone = Watched(drone_command(netns, key, url=str(link)))
+        assert drone.wait_for("mavlink: PX4 alive", 1, STEP_TIMEOUT_S), drone.output()
+        bridge.process.send_signal(signal.SIGUSR1)
+        assert drone.wait_for("the autopilot link is down", 1, STEP_TIMEOUT_S), drone.output()
+        assert drone.wait_for("failsafe: autopilot lost", 1, STEP_TIMEOUT_S), drone.output()
+        bridge.process.send_signal(signal.SIGUSR2)
+        assert bridge.wait_for("bridge: plugged", 2, STEP_TIMEOUT_S), bridge.output()
+        assert drone.wait_for(f"mavlink: {link} open again", 1, STEP_TIMEOUT_S), drone.output()
+        assert drone.wait_for("mavlink: PX4 alive", 2, STEP_TIMEOUT_S), drone.output()
+        output = stop(drone)
+    finally:
+        for process in (drone, peer, bridge):
+            if process is not None:
+                process.process.kill()
+    link_summary = mavlink_summary(output)
+    assert link_summary["port_errors"] == 1 and link_summary["lost"] == 1
+    assert link_summary["bad_signature"] == 0 and link_summary["imu_samples"] > 0
 
 
 @pytest.mark.parametrize("args,message", [

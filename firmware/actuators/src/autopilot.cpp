@@ -18,6 +18,8 @@ namespace {
 
 constexpr mavlink_channel_t kChannel = MAVLINK_COMM_0;
 constexpr double kHeartbeatPeriodS = 1.0;
+// [s] between attempts to open a port that failed again.
+constexpr double kReopenS = 1.0;
 // PX4's custom mode: main mode in bits 16-23; offboard is 6. ArduPilot Copter: GUIDED_NOGPS (20)
 // takes attitude and rate setpoints without a position of its own.
 constexpr uint32_t kPx4MainModeOffboard = 6;
@@ -81,7 +83,7 @@ StatusOr<std::unique_ptr<Autopilot>> Autopilot::open(const AutopilotParams& para
   if (Status valid = params.validate(); !valid.ok()) return valid;
   auto port = MavlinkPort::open(url, baud);
   if (!port.ok()) return port.status();
-  std::unique_ptr<Autopilot> autopilot(new Autopilot(params, std::move(*port)));
+  std::unique_ptr<Autopilot> autopilot(new Autopilot(params, url, baud, std::move(*port)));
   Mavlink& m = *autopilot->mavlink_;
   // The channel's status holds the parser's state, our sequence number and the signing.
   mavlink_status_t* status = mavlink_get_channel_status(kChannel);
@@ -105,8 +107,25 @@ StatusOr<std::unique_ptr<Autopilot>> Autopilot::open(const AutopilotParams& para
   return autopilot;
 }
 
-Autopilot::Autopilot(const AutopilotParams& params, std::unique_ptr<MavlinkPort> port)
-    : params_(params), port_(std::move(port)), mavlink_(std::make_unique<Mavlink>()) {}
+Autopilot::Autopilot(const AutopilotParams& params, const std::string& url, int baud,
+                     std::unique_ptr<MavlinkPort> port)
+    : params_(params),
+      url_(url),
+      baud_(baud),
+      port_(std::move(port)),
+      mavlink_(std::make_unique<Mavlink>()) {}
+
+bool Autopilot::reopen(double now_s) {
+  if (now_s < next_reopen_s_) return false;
+  auto port = MavlinkPort::open(url_, baud_);
+  if (!port.ok()) {
+    next_reopen_s_ = now_s + kReopenS;
+    return false;
+  }
+  port_ = std::move(*port);
+  spdlog::info("mavlink: {} open again", url_);
+  return true;
+}
 
 Autopilot::~Autopilot() {
   // The channel's status points into mavlink_.
@@ -131,14 +150,21 @@ flight::AutopilotInputs Autopilot::state(double now_s) const {
 
 int Autopilot::receive(int timeout_ms, double now_s) {
   imu_count_ = 0;
+  if (!port_ && !reopen(now_s)) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(timeout_ms));
+    return 0;
+  }
   uint8_t bytes[2048];
   const ssize_t n = port_->read(bytes, sizeof(bytes), timeout_ms);
   if (n < 0) {
-    // A device that went away: its heartbeat times out (the autopilot-lost failsafe); no busy
-    // loop meanwhile.
-    if (counters_.port_errors++ == 0)
-      spdlog::error("mavlink: reading {} failed: the autopilot link is down", port_->url());
-    std::this_thread::sleep_for(std::chrono::milliseconds(timeout_ms));
+    // A device that went away (a USB serial adapter unplugged): closed, and opened again by
+    // its path every kReopenS; its heartbeat times out meanwhile (the autopilot-lost failsafe).
+    ++counters_.port_errors;
+    spdlog::error("mavlink: reading {} failed: the autopilot link is down; opening it again "
+                  "every {:.0f} s",
+                  url_, kReopenS);
+    port_.reset();
+    next_reopen_s_ = now_s + kReopenS;
     return 0;
   }
   const int64_t arrival_utime = link::wallClockUtime();
@@ -263,7 +289,7 @@ void Autopilot::addImu(uint64_t remote_us, const Eigen::Vector3d& gyro_rad_s,
 bool Autopilot::sendMessage() {
   Mavlink& m = *mavlink_;
   const uint16_t len = mavlink_msg_to_send_buffer(m.buffer, &m.tx);
-  if (port_->write(m.buffer, len)) return true;
+  if (port_ && port_->write(m.buffer, len)) return true;
   ++counters_.send_failures;
   return false;
 }

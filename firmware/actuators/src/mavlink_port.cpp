@@ -18,7 +18,7 @@ constexpr int kSerialWriteWaitMs = 5;
 
 Status urlError(const std::string& url, const std::string& what) {
   return Status::error("MAVLink URL \"" + url + "\": " + what +
-                       " (udpin:HOST:PORT, udpout:HOST:PORT or a /dev/ serial device)");
+                       " (udpin:HOST:PORT, udpout:HOST:PORT or a serial device's absolute path)");
 }
 
 struct HostPort {
@@ -60,7 +60,7 @@ speed_t baudConstant(int baud) {
 }  // namespace
 
 Status MavlinkPort::checkUrl(const std::string& url) {
-  if (url.rfind("/dev/", 0) == 0) return {};
+  if (url.rfind('/', 0) == 0) return {};
   for (const char* scheme : {"udpin:", "udpout:"}) {
     if (url.rfind(scheme, 0) == 0) {
       const auto hp = splitHostPort(url, url.substr(std::strlen(scheme)));
@@ -72,7 +72,7 @@ Status MavlinkPort::checkUrl(const std::string& url) {
 
 StatusOr<std::unique_ptr<MavlinkPort>> MavlinkPort::open(const std::string& url, int baud) {
   if (Status form = checkUrl(url); !form.ok()) return form;
-  if (url.rfind("/dev/", 0) == 0) {
+  if (url.rfind('/', 0) == 0) {
     const speed_t speed = baudConstant(baud);
     if (speed == B0) return urlError(url, "unsupported baud rate " + std::to_string(baud));
     const int fd = ::open(url.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);

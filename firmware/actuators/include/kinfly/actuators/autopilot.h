@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <memory>
 #include <optional>
+#include <string>
 
 #include "kinfly/actuators/mavlink_port.h"
 #include "kinfly/core/se3.h"
@@ -99,7 +100,7 @@ struct AutopilotCounters {
   int64_t commands_refused = 0;   // ... anything else (denied, failed, unsupported)
   int64_t send_failures = 0;      // the port refused a frame
   int64_t lost = 0;               // heard, then silent for heartbeat_timeout_s
-  int64_t port_errors = 0;        // reads that failed (a serial port unplugged)
+  int64_t port_errors = 0;        // reads that failed (a serial port unplugged): reopened
 };
 
 // One per process: the generated C code keeps the link's parser, sequence and signing state in
@@ -137,7 +138,10 @@ class Autopilot {
 
  private:
   struct Mavlink;  // the generated headers' state, kept out of this header
-  Autopilot(const AutopilotParams& params, std::unique_ptr<MavlinkPort> port);
+  Autopilot(const AutopilotParams& params, const std::string& url, int baud,
+            std::unique_ptr<MavlinkPort> port);
+  // Opens the port again after it failed, at most every second; false while it cannot.
+  bool reopen(double now_s);
   void handle(double now_s, int64_t arrival_utime);
   void addImu(uint64_t remote_us, const Eigen::Vector3d& gyro_rad_s,
               const Eigen::Vector3d& accel_m_s2, int64_t arrival_utime);
@@ -146,7 +150,10 @@ class Autopilot {
   bool alive(double now_s) const;
 
   AutopilotParams params_;
-  std::unique_ptr<MavlinkPort> port_;
+  std::string url_;
+  int baud_;
+  std::unique_ptr<MavlinkPort> port_;  // null after a failure, until reopen()
+  double next_reopen_s_ = 0.0;
   std::unique_ptr<Mavlink> mavlink_;
   AutopilotCounters counters_;
 

@@ -1,7 +1,8 @@
 // The byte stream to an autopilot, as the ground's MAVLink bridge names it (docs/mavlink.md):
 //   udpin:HOST:PORT   listen on HOST:PORT; replies go to whoever sent to us last
 //   udpout:HOST:PORT  send to HOST:PORT (the autopilot listens), from an ephemeral port
-//   /dev/...          a serial device (a flight controller's TELEM or USB port), at `baud`
+//   /dev/...          a serial device (a flight controller's TELEM or USB port), at `baud`: any
+//                     absolute path, so that udev's stable names (/dev/serial/by-id/...) do
 // Non-blocking underneath; read() waits at most its timeout.
 #pragma once
 

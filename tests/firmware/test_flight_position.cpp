@@ -220,6 +220,42 @@ TEST(Trajectory, ThroughWaypointsMeetsThemSmoothlyAndStopsAtTheEnds) {
   EXPECT_LT((trajectory->sample(-1.0).p_world_m - waypoints.front()).norm(), kTight);
 }
 
+// The optimality condition of the minimum-snap spline (the Euler-Lagrange conditions at the
+// knots, de Boor's natural conditions for the interpolating spline that minimises the integral
+// of the squared 4th derivative): with only position fixed at the inner waypoints and
+// continuity imposed up to snap, the optimum is also continuous in the 5th and 6th derivatives.
+// The solve never imposes those, so a wrong cost (its weights, its time scaling) would leave
+// them broken while every imposed constraint held.
+TEST(Trajectory, TheSolutionMeetsTheMinimumSnapOptimalityConditions) {
+  const std::vector<Vector3d> waypoints = test::figureEightWaypoints();
+  const std::vector<double> times_s = {1.0, 0.7, 1.3, 0.9, 1.1, 0.8, 1.2, 1.0};
+  auto trajectory = Trajectory::minimumSnapWithTimes(waypoints, times_s, 0.0);
+  ASSERT_TRUE(trajectory.ok()) << trajectory.status().message();
+  // Relative to the derivative's size along the trajectory: the KKT solve's rounding.
+  constexpr double kRelative = 1e-6;
+  for (int order = 5; order <= 6; ++order) {
+    double largest = 0.0;
+    for (double t_s = 0.0; t_s < trajectory->durationS(); t_s += 0.01)
+      largest = std::max(largest, trajectory->derivative(t_s, order).norm());
+    ASSERT_GT(largest, 0.0);
+    for (int i = 1; i < trajectory->segmentCount(); ++i) {
+      const double knot_s = trajectory->segmentStartS(i);
+      const Vector3d jump = trajectory->derivative(knot_s, order) -
+                            trajectory->derivative(std::nextafter(knot_s, 0.0), order);
+      EXPECT_LT(jump.norm(), kRelative * largest) << "derivative " << order << " at knot " << i;
+    }
+  }
+  // The 7th is the spline's free one: it jumps (else the waypoints would lie on one polynomial).
+  double jumps = 0.0;
+  for (int i = 1; i < trajectory->segmentCount(); ++i) {
+    const double knot_s = trajectory->segmentStartS(i);
+    jumps += (trajectory->derivative(knot_s, 7) -
+              trajectory->derivative(std::nextafter(knot_s, 0.0), 7))
+                 .norm();
+  }
+  EXPECT_GT(jumps, 1.0);
+}
+
 TEST(Trajectory, AllocatedTimesReachTheMaxSpeed) {
   TrajectoryParams params;
   params.max_speed_m_s = 1.5;

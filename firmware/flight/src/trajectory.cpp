@@ -209,11 +209,7 @@ PositionSetpoint Trajectory::sample(double t_s) const {
     sp.p_world_m = first_world_m_;
     return sp;
   }
-  // The last segment starting at or before t_s.
-  const auto after = std::upper_bound(
-      segments_.begin(), segments_.end(), t_s,
-      [](double t, const Segment& segment) { return t < segment.start_s; });
-  const Segment& segment = *(after - 1);
+  const Segment& segment = segmentAt(t_s);
   const double s = (t_s - segment.start_s) / segment.duration_s;
   Eigen::Vector3d* const out[4] = {&sp.p_world_m, &sp.v_world_m_s, &sp.a_world_m_s2,
                                    &sp.j_world_m_s3};
@@ -221,6 +217,24 @@ PositionSetpoint Trajectory::sample(double t_s) const {
     *out[k] = (derivativeRow(k, s, segment.duration_s, 1.0) * segment.coeffs).transpose();
   }
   return sp;
+}
+
+Eigen::Vector3d Trajectory::derivative(double t_s, int order) const {
+  if (segments_.empty() || !(t_s < duration_s_) || t_s < 0.0 || order < 0 || order >= kN) {
+    if (order != 0) return Eigen::Vector3d::Zero();
+    return t_s < 0.0 ? first_world_m_ : last_world_m_;
+  }
+  const Segment& segment = segmentAt(t_s);
+  const double s = (t_s - segment.start_s) / segment.duration_s;
+  return (derivativeRow(order, s, segment.duration_s, 1.0) * segment.coeffs).transpose();
+}
+
+const Trajectory::Segment& Trajectory::segmentAt(double t_s) const {
+  // The last segment starting at or before t_s.
+  const auto after = std::upper_bound(
+      segments_.begin(), segments_.end(), t_s,
+      [](double t, const Segment& segment) { return t < segment.start_s; });
+  return *(after - 1);
 }
 
 namespace {

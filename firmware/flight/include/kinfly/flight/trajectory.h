@@ -52,6 +52,9 @@ class Trajectory {
 
   // Allocation-free. t_s from the trajectory's start.
   PositionSetpoint sample(double t_s) const;
+  // [m/s^order] the order-th time derivative (0 to 7) at t_s; before the start and after the end
+  // the position held there (order 0) and zero (at rest) as sample() gives.
+  Eigen::Vector3d derivative(double t_s, int order) const;
   double durationS() const { return duration_s_; }
   int segmentCount() const { return static_cast<int>(segments_.size()); }
   // [s] from the start to the start of each segment.
@@ -65,6 +68,9 @@ class Trajectory {
     double duration_s = 0.0;
     Coefficients coeffs = Coefficients::Zero();
   };
+
+  // The segment t_s falls in; t_s in [0, duration_s_).
+  const Segment& segmentAt(double t_s) const;
 
   Trajectory(std::vector<Segment> segments, const Eigen::Vector3d& first_world_m,
              const Eigen::Vector3d& last_world_m, double yaw_rad);

@@ -218,12 +218,20 @@ void ControlTask::takeImu(const flight::ImuSample& sample) {
     return;
   }
   ++summary_.imu_samples;
+  // The wall clock of the ticks before the first sample gives way to the IMU's (a simulator's
+  // starts anywhere): disarmed without an IMU, nothing of theirs carries over.
+  if (last_imu_utime_ < 0) last_tick_utime_ = -1;
   last_imu_utime_ = sample.utime;
   last_imu_arrival_ = Clock::now();
   tick(sample.utime);
 }
 
 void ControlTask::tick(int64_t utime) {
+  // Never back in time: a tick of a silent IMU, carried on by the steady clock, can run ahead of
+  // the stamp of a sample that then arrives late, and the modes' timers (landed for a second,
+  // the tilt held beyond its limit) take a time before their start as long ago.
+  utime = std::max(utime, last_tick_utime_);
+  last_tick_utime_ = utime;
   if (poses_->fetch()) {
     const flight::AnchoredVision::Inputs vision = anchored_.take(poses_->front());
     if (vision.reset) {

@@ -98,6 +98,7 @@ class ControlTask {
   int64_t last_command_id_ = -1;
   flight::CommandResult last_command_;
   int64_t last_status_utime_ = -1;
+  int64_t last_tick_utime_ = -1;  // [µs] the last tick's: ticks never go back in time
   // The last sample's time, and when (steady clock) it came: the clock the silent ticks run on.
   int64_t last_imu_utime_ = -1;
   Clock::time_point last_imu_arrival_;

@@ -278,6 +278,33 @@ TEST(FlightModes, LandedInLandModeDisarms) {
   EXPECT_EQ(flight.modes().counters().landed_disarms, 1);
 }
 
+// A caller's clock that steps back to before a timer began (a late sample after ticks carried on
+// by another clock) must restart the modes' own timers, not make them look long expired: landed
+// must still take landed_time_s, and the tilt its attitude_limit_s.
+TEST(FlightModes, AClockThatStepsBackNeverFiresATimer) {
+  const FlightModeParams params;
+  Flight flight(params);
+  flight.takeOffAndHold();
+  ASSERT_TRUE(flight.command(CommandKind::kLand).accepted());
+  flight.state().p_world_body_m.z() = -0.05;
+  flight.in().height_above_ground_m = 0.05;
+  flight.in().thrust_ratio = 0.1;
+  flight.run(0.01);                   // resting for 10 ms ...
+  flight.in().utime -= 30 * kTickUs;  // ... when the clock steps back to before that began
+  EXPECT_FALSE(flight.tick().landed);
+  EXPECT_EQ(flight.run(params.landed_time_s - 0.01).mode, FlightMode::kLand);
+  EXPECT_EQ(flight.run(0.02).mode, FlightMode::kDisarmed);
+
+  Flight tilted(params);
+  tilted.takeOffAndHold();
+  tilted.state().q_world_body = Eigen::AngleAxisd(kPi / 2.0, Vector3d::UnitX());
+  tilted.run(0.005);
+  tilted.in().utime -= 30 * kTickUs;
+  EXPECT_EQ(tilted.tick().mode, FlightMode::kHold);
+  EXPECT_EQ(tilted.run(params.attitude_limit_s - 0.002).mode, FlightMode::kHold);
+  EXPECT_EQ(tilted.run(0.005).mode, FlightMode::kHandedOver);
+}
+
 // ---- Failsafes, one by one ---------------------------------------------------------------------
 
 TEST(FlightModes, VisionLostDescendsOnAttitudeAloneUntilLanded) {

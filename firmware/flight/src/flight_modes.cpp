@@ -103,6 +103,13 @@ double FlightModes::ageS(const FlightInputs& in, int64_t utime) const {
   return static_cast<double>(in.utime - utime) * kUsToS;
 }
 
+double FlightModes::heldS(const FlightInputs& in, int64_t* since_utime) const {
+  // Starts now; and a time before its start (a caller's clock that went back) starts it again,
+  // where ageS would take it as long ago and let the condition act at once.
+  if (*since_utime < 0 || *since_utime > in.utime) *since_utime = in.utime;
+  return static_cast<double>(in.utime - *since_utime) * kUsToS;
+}
+
 bool FlightModes::insideGeofence(const Vector3d& p_world_m) const {
   if (!params_.geofence_enabled) return true;
   // Written so that a non-finite position is outside.
@@ -206,8 +213,7 @@ void FlightModes::detectLanded(const FlightInputs& in) {
     landed_ = false;
     return;
   }
-  if (landed_since_utime_ < 0) landed_since_utime_ = in.utime;
-  landed_ = ageS(in, landed_since_utime_) >= params_.landed_time_s;
+  landed_ = heldS(in, &landed_since_utime_) >= params_.landed_time_s;
 }
 
 void FlightModes::runFailsafes(const FlightInputs& in, FlightOutput& out) {
@@ -227,9 +233,8 @@ void FlightModes::runFailsafes(const FlightInputs& in, FlightOutput& out) {
   const bool beyond = !(tiltRad(in.state.q_world_body) <= params_.max_tilt_rad) ||
                       !(in.state.omega_body_rad_s.norm() <= params_.max_rate_rad_s);
   if (!beyond) attitude_limit_since_utime_ = -1;
-  if (beyond && attitude_limit_since_utime_ < 0) attitude_limit_since_utime_ = in.utime;
   const bool attitude_limit =
-      beyond && ageS(in, attitude_limit_since_utime_) >= params_.attitude_limit_s;
+      beyond && heldS(in, &attitude_limit_since_utime_) >= params_.attitude_limit_s;
   const bool attitude_starts = attitude_limit && !attitude_limit_;
   attitude_limit_ = attitude_limit;
   if (attitude_starts) {

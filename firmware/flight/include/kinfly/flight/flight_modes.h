@@ -254,6 +254,8 @@ class FlightModes {
   CommandRefusal armingChecks(const FlightInputs& in) const;
   bool insideGeofence(const Eigen::Vector3d& p_world_m) const;
   double ageS(const FlightInputs& in, int64_t utime) const;
+  // [s] a condition of the modes' own has held, since *since_utime (set to now when unset).
+  double heldS(const FlightInputs& in, int64_t* since_utime) const;
 
   FlightModeParams params_;
   FlightMode mode_ = FlightMode::kDisarmed;

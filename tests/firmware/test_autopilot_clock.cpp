@@ -87,5 +87,32 @@ TEST(ClockMap, StartsAgainWhenTheAutopilotRestarts) {
   EXPECT_LE(worst, kSettledToleranceUs);
 }
 
+TEST(ClockMap, ABurstAfterAStallOfThisComputerKeepsTheOffset) {
+  // Ten seconds as usual, then this computer stalls for a second: that second's samples all
+  // arrive at its end. Late as they look, they are no restart.
+  ClockMap clock;
+  const auto wall = [](int i) { return kClockOffsetUs + int64_t{i} * kPeriodUs; };
+  worstError(clock, 2500, [](int i) { return int64_t{i} * kPeriodUs; }, wall, 5);
+  const int64_t offset = clock.offsetUs();
+  for (int i = 2500; i < 2750; ++i) clock.map(int64_t{i} * kPeriodUs, wall(2750) + kMinDelayUs);
+  // At most the drift allowance over the second.
+  EXPECT_LE(clock.offsetUs() - offset, static_cast<int64_t>(ClockMap::kDrift * 1e6) + 1);
+}
+
+TEST(ClockMap, StartsAgainAfterAnOutageLongerThanTheUptimeBefore) {
+  // Up for half a second, then gone for five (a battery swap), then up again from 0: its time
+  // hardly falls back, but the samples would seem 5 s late.
+  ClockMap clock;
+  constexpr int kUp = 125, kGapSamples = 250 * 5;
+  const auto wall = [](int i) {
+    return kClockOffsetUs + int64_t{i < kUp ? i : i + kGapSamples} * kPeriodUs;
+  };
+  const auto remote = [](int i) { return int64_t{i < kUp ? i : i - kUp} * kPeriodUs; };
+  const int64_t worst = worstError(clock, 250 * 20, remote, wall, 4, kUp);
+  std::printf("[clock] after an outage longer than the uptime before: worst %lld us\n",
+              static_cast<long long>(worst));
+  EXPECT_LE(worst, kSettledToleranceUs);
+}
+
 }  // namespace
 }  // namespace kinfly::actuators

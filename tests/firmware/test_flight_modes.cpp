@@ -586,10 +586,16 @@ TEST(FlightModes, LeavingOffboardHandsOver) {
 // The motors backend has no autopilot: nothing about it is checked or changes a mode.
 TEST(FlightModes, WithoutAnAutopilotItsInputsAreIgnored) {
   Flight flight;
+  AutopilotInputs& ap = flight.in().autopilot;
+  ap = {false, true, true, true};  // in control, but not used: the motors backend
   flight.takeOffAndHold();
+  ap.alive = false;  // would be lost ...
+  flight.run(0.5);
+  ap = {false, true, true, false};  // ... or taken over, were it used
   flight.run(0.5);
   EXPECT_EQ(flight.modes().mode(), FlightMode::kHold);
   EXPECT_EQ(flight.modes().counters().autopilot_lost, 0);
+  EXPECT_EQ(flight.modes().counters().autopilot_took_over, 0);
 }
 
 TEST(FlightModes, UpdateAllocatesNothing) {

@@ -339,6 +339,7 @@ TEST(Decode, FlightStatusFieldsAreChecked) {
   const std::vector<std::pair<const char*, void (*)(flight_status_t&)>> wrong = {
       {"mode", [](flight_status_t& m) { m.mode = flight_status_t::MODE_HANDED_OVER + 1; }},
       {"command_result", [](flight_status_t& m) { m.command_result = -1; }},
+      {"command_kind", [](flight_status_t& m) { m.command_kind = flight_command_t::LAND + 1; }},
       {"rotors", [](flight_status_t& m) { m.rotors = motor_command_t::FLYING + 1; }},
       {"not finite", [](flight_status_t& m) { m.setpoint_world_m[2] = std::nan(""); }},
       {"orientation", [](flight_status_t& m) { m.T_world_map.orientation_xyzw[3] = 2.0; }},

@@ -11,7 +11,8 @@ computer:
   stop for OFFBOARD_LOSS_S (PX4's COM_OF_LOSS_T);
 - MAVLink 2 signing with --key (pymavlink rejects and counts what is not signed with it).
 
-It runs until SIGTERM, then disappears at once (no more heartbeats: the autopilot lost, for
+SIGUSR1 is a pilot's mode switch: position mode, out of offboard (what the companion sends
+after it is recorded apart). It runs until SIGTERM, then disappears at once (no more heartbeats: the autopilot lost, for
 kinfly-fw) and prints one JSON object of what it received; progress lines ("peer: offboard",
 "peer: armed", "peer: climb thrust ...", "peer: rejected a frame: bad signature") go to stdout
 as they happen.
@@ -36,6 +37,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 GRAVITY_M_S2 = 9.81
 PX4_MAIN_MODE_HOLD = 4 << 16 | 3 << 24  # AUTO.LOITER
 PX4_MAIN_MODE_OFFBOARD = 6
+PX4_MAIN_MODE_POSCTL = 3 << 16
 OFFBOARD_WINDOW_S = 0.5
 OFFBOARD_MIN_SETPOINTS = 2  # PX4 wants more than 2 Hz
 OFFBOARD_LOSS_S = 0.5
@@ -58,8 +60,10 @@ def main() -> int:
     if args.key is not None:
         conn.setup_signing(args.key.read_bytes(), sign_outgoing=True)
     rng = random.Random(args.seed)
-    stop = {"now": False}
+    stop = {"now": False, "takeover": False}
     signal.signal(signal.SIGTERM, lambda *_: stop.update(now=True))
+    signal.signal(signal.SIGUSR1, lambda *_: stop.update(takeover=True))
+    taken_over = False
 
     boot = time.monotonic()
     armed = False
@@ -75,7 +79,11 @@ def main() -> int:
         "mode_requests": 0, "mode_rejected": 0, "arm_requests": 0, "disarm_requests": 0,
         "stream_requests": {}, "offboard_at_s": None, "armed_at_s": None,
         "first_setpoint_at_s": None, "setpoints_before_offboard": 0,
+        "climb_setpoints": 0, "climb_rate_hz": None,
+        "mode_requests_after_takeover": 0, "arm_requests_after_takeover": 0,
+        "heartbeats_after_takeover": 0,
     }
+    climb: list[float] = []  # arrival times of setpoints with thrust, armed in offboard
 
     def now_s() -> float:
         return time.monotonic() - boot
@@ -98,6 +106,10 @@ def main() -> int:
         kind = msg.get_type()
         if kind == "HEARTBEAT":
             got["companion_heartbeats"] += 1
+            if taken_over:
+                got["heartbeats_after_takeover"] += 1
+                if got["heartbeats_after_takeover"] == 1:
+                    print("peer: companion heartbeat after the takeover", flush=True)
         elif kind == "SET_ATTITUDE_TARGET":
             t = time.monotonic()
             setpoints.append(t)
@@ -109,8 +121,10 @@ def main() -> int:
             target = [msg.target_system, msg.target_component]
             if target not in got["setpoint_targets"]:
                 got["setpoint_targets"].append(target)
-            if msg.thrust > got["max_thrust"] and armed and offboard():
-                print(f"peer: climb thrust {msg.thrust:.3f}", flush=True)
+            if msg.thrust > 0.0 and armed and offboard():
+                climb.append(t)
+                if msg.thrust > got["max_thrust"]:
+                    print(f"peer: climb thrust {msg.thrust:.3f}", flush=True)
             got["max_thrust"] = max(got["max_thrust"], msg.thrust)
         elif kind == "ODOMETRY":
             got["odometry"] += 1
@@ -133,6 +147,7 @@ def main() -> int:
                 ack(msg.command, mavlink.MAV_RESULT_ACCEPTED)
             elif msg.command == mavlink.MAV_CMD_DO_SET_MODE:
                 got["mode_requests"] += 1
+                got["mode_requests_after_takeover"] += taken_over
                 wanted = int(msg.param2)
                 recent = [t for t in setpoints if t >= time.monotonic() - OFFBOARD_WINDOW_S]
                 if (int(msg.param1) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED and
@@ -150,6 +165,7 @@ def main() -> int:
             elif msg.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
                 if msg.param1 == 1.0:
                     got["arm_requests"] += 1
+                    got["arm_requests_after_takeover"] += taken_over
                     if offboard():
                         if not armed:
                             got["armed_at_s"] = now_s()
@@ -169,6 +185,11 @@ def main() -> int:
     reported_bad_signature = False
     while not stop["now"]:
         t = time.monotonic()
+        if stop["takeover"] and not taken_over:
+            taken_over = True
+            custom_mode = PX4_MAIN_MODE_POSCTL
+            heartbeat()  # a mode change is announced at once, as PX4 does
+            print("peer: pilot took over", flush=True)
         if t >= next_heartbeat:
             heartbeat()
             next_heartbeat += 1.0
@@ -201,6 +222,9 @@ def main() -> int:
 
     if len(setpoints) >= 2:
         got["setpoint_rate_hz"] = (len(setpoints) - 1) / (setpoints[-1] - setpoints[0])
+    got["climb_setpoints"] = len(climb)
+    if len(climb) >= 2:
+        got["climb_rate_hz"] = (len(climb) - 1) / (climb[-1] - climb[0])
     signing = conn.mav.signing
     got["signing"] = {"good": signing.goodsig_count, "bad": signing.badsig_count,
                       "unsigned": signing.unsigned_count, "rejected": signing.reject_count}

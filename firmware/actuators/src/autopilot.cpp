@@ -41,7 +41,11 @@ const char* autopilotName(int type) {
 
 int64_t ClockMap::map(int64_t remote_us, int64_t arrival_utime) {
   const int64_t delay_offset = arrival_utime - remote_us;
-  if (!have_offset_ || remote_us + offset_us_ < last_utime_ - kRestartUs) {
+  // A restart: its time fell back, or (after an outage longer than its uptime before) the
+  // sample would have been on its way for longer than any link delays one, or than this
+  // computer stalls for without the IMU-lost failsafe long since acting.
+  if (!have_offset_ || remote_us + offset_us_ < last_utime_ - kRestartUs ||
+      delay_offset - offset_us_ > kLateRestartUs) {
     offset_us_ = delay_offset;
     have_offset_ = true;
   } else {
@@ -172,7 +176,11 @@ int Autopilot::receive(int timeout_ms, double now_s) {
   for (ssize_t i = 0; i < n; ++i) {
     switch (mavlink_frame_char(kChannel, bytes[i], &m.rx, &m.rx_status)) {
       case MAVLINK_FRAMING_OK: handle(now_s, arrival_utime); break;
-      case MAVLINK_FRAMING_BAD_SIGNATURE: ++counters_.bad_signature; break;
+      case MAVLINK_FRAMING_BAD_SIGNATURE:
+        if (counters_.bad_signature++ == 0)
+          spdlog::warn("mavlink: dropped a frame unsigned or signed with another key "
+                       "(flight.mavlink_key must hold the autopilot's); the rest are counted");
+        break;
       case MAVLINK_FRAMING_BAD_CRC: ++counters_.bad_crc; break;
       default: break;
     }
@@ -203,6 +211,8 @@ void Autopilot::handle(double now_s, int64_t arrival_utime) {
     ++counters_.other_source;
     return;
   }
+  // Framed, signed (with a key) and the autopilot's: where replies go on a udpin port.
+  port_->keepPeer();
   switch (msg.msgid) {
     case MAVLINK_MSG_ID_HEARTBEAT: {
       mavlink_heartbeat_t hb;
@@ -228,6 +238,7 @@ void Autopilot::handle(double now_s, int64_t arrival_utime) {
       mavlink_highres_imu_t imu;
       mavlink_msg_highres_imu_decode(&msg, &imu);
       highres_seen_ = true;
+      last_imu_s_ = now_s;
       if ((imu.fields_updated & kAllImuFields) != kAllImuFields) {
         ++counters_.imu_rejected;
         break;
@@ -240,6 +251,7 @@ void Autopilot::handle(double now_s, int64_t arrival_utime) {
       if (highres_seen_) break;  // the same sensor, coarser
       mavlink_scaled_imu_t imu;
       mavlink_msg_scaled_imu_decode(&msg, &imu);
+      last_imu_s_ = now_s;
       addImu(static_cast<uint64_t>(imu.time_boot_ms) * 1000,
              Eigen::Vector3d(imu.xgyro, imu.ygyro, imu.zgyro) * 1e-3,
              Eigen::Vector3d(imu.xacc, imu.yacc, imu.zacc) * kMilliG, arrival_utime);
@@ -324,8 +336,9 @@ void Autopilot::send(const AutopilotSetpoint& setpoint, double now_s) {
     return;
   }
   const double interval_s = params_.request_interval_s;
-  // Until its IMU comes, ask for the streams kinfly flies on.
-  if (counters_.imu_samples == 0 && now_s - last_stream_request_s_ >= interval_s) {
+  // Whenever its IMU is not coming (at the start, after the autopilot restarted), ask for the
+  // streams kinfly flies on.
+  if (now_s - last_imu_s_ >= interval_s && now_s - last_stream_request_s_ >= interval_s) {
     sendCommand(MAV_CMD_SET_MESSAGE_INTERVAL, MAVLINK_MSG_ID_HIGHRES_IMU,
                 static_cast<float>(1e6 / params_.imu_rate_hz), 0.0f);
     sendCommand(MAV_CMD_SET_MESSAGE_INTERVAL, MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
@@ -333,15 +346,25 @@ void Autopilot::send(const AutopilotSetpoint& setpoint, double now_s) {
     last_stream_request_s_ = now_s;
   }
 
+  // The autopilot took kinfly's setpoints since kinfly armed; once it has, kinfly never asks
+  // for offboard or arming again in this arming: leaving them is the pilot's or the autopilot's
+  // choice (a mode switch, its own failsafe or disarm), which the flight modes answer by handing
+  // over or disarming on their next tick. Only an autopilot kinfly flew is ever disarmed.
+  if (armed_ && offboard_ &&
+      (setpoint.want == AutopilotWant::kIdle || setpoint.want == AutopilotWant::kFly))
+    flown_ = true;
   switch (setpoint.want) {
-    case AutopilotWant::kNothing: streaming_since_s_ = -1.0; return;
+    case AutopilotWant::kNothing:
+      streaming_since_s_ = -1.0;
+      flown_ = false;
+      return;
     case AutopilotWant::kDisarm:
       streaming_since_s_ = -1.0;
-      // Only an autopilot kinfly flew (armed in offboard): a pilot's flight is never touched.
-      if (armed_ && offboard_ && now_s - last_arm_request_s_ >= interval_s) {
+      if (!armed_) flown_ = false;
+      if (flown_ && now_s - last_disarm_request_s_ >= interval_s) {
         sendCommand(MAV_CMD_COMPONENT_ARM_DISARM, 0.0f, 0.0f, 0.0f);
         ++counters_.disarm_requests;
-        last_arm_request_s_ = now_s;
+        last_disarm_request_s_ = now_s;
       }
       return;
     case AutopilotWant::kIdle:
@@ -365,8 +388,9 @@ void Autopilot::send(const AutopilotSetpoint& setpoint, double now_s) {
     last_setpoint_s_ = now_s;
     if (streaming_since_s_ < 0.0) streaming_since_s_ = now_s;
   }
-  // The handshake: offboard once the setpoints have streamed a while, then arming (on the
-  // ground: in the air a drone that left offboard was handed over, not re-armed).
+  // The handshake, on the ground only (kIdle): offboard once the setpoints have streamed a
+  // while, then arming.
+  if (setpoint.want != AutopilotWant::kIdle || flown_) return;
   if (!offboard_) {
     if (streaming_since_s_ >= 0.0 && now_s - streaming_since_s_ >= params_.prestream_s &&
         now_s - last_mode_request_s_ >= interval_s) {
@@ -377,8 +401,7 @@ void Autopilot::send(const AutopilotSetpoint& setpoint, double now_s) {
       ++counters_.mode_requests;
       last_mode_request_s_ = now_s;
     }
-  } else if (!armed_ && setpoint.want == AutopilotWant::kIdle &&
-             now_s - last_arm_request_s_ >= interval_s) {
+  } else if (!armed_ && now_s - last_arm_request_s_ >= interval_s) {
     sendCommand(MAV_CMD_COMPONENT_ARM_DISARM, 1.0f, 0.0f, 0.0f);
     ++counters_.arm_requests;
     last_arm_request_s_ = now_s;

@@ -149,11 +149,15 @@ ssize_t MavlinkPort::read(uint8_t* data, size_t size, int timeout_ms) {
   const ssize_t n =
       recvfrom(fd_, data, size, 0, reinterpret_cast<sockaddr*>(&from), &from_len);
   if (n < 0) return errno == EAGAIN || errno == EINTR ? 0 : -1;
-  if (kind_ == Kind::kUdpIn) {
-    peer_ = from;
-    peer_len_ = from_len;
-  }
+  last_from_ = from;
+  last_from_len_ = from_len;
   return n;
+}
+
+void MavlinkPort::keepPeer() {
+  if (kind_ != Kind::kUdpIn || last_from_len_ == 0) return;
+  peer_ = last_from_;
+  peer_len_ = last_from_len_;
 }
 
 bool MavlinkPort::write(const uint8_t* data, size_t size) {

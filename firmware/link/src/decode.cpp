@@ -152,6 +152,8 @@ std::string fieldProblem(const flight_status_t& m, const DecodeBounds&) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
   if (m.mode < flight_status_t::MODE_DISARMED || m.mode > flight_status_t::MODE_HANDED_OVER)
     return "unknown mode " + std::to_string(m.mode);
+  if (m.command_kind < flight_command_t::ARM || m.command_kind > flight_command_t::LAND)
+    return "unknown command_kind " + std::to_string(m.command_kind);
   if (m.command_result < flight_status_t::ACCEPTED ||
       m.command_result > flight_status_t::REFUSED_AUTOPILOT_NOT_READY)
     return "unknown command_result " + std::to_string(m.command_result);

@@ -46,13 +46,17 @@ struct AutopilotParams {
 // The autopilot's clock (µs since its boot) on ours (the wall clock the depth sources stamp
 // frames with): wall = remote + offset, the offset the smallest delay seen (arrival - remote),
 // which may grow only as fast as two crystals drift apart, and is found again when the
-// autopilot restarted (its time fell back). Mapped times always increase.
+// autopilot restarted (its time fell back, or a sample seems seconds late). Mapped times
+// always increase.
 class ClockMap {
  public:
   // [µs per µs] the largest drift between the clocks followed upwards (two 50 ppm crystals).
   static constexpr double kDrift = 100e-6;
-  // [µs] a fall of the autopilot's time beyond this is its restart, not jitter.
+  // [µs] a fall of the autopilot's time beyond this is its restart, not jitter ...
   static constexpr int64_t kRestartUs = 1000000;
+  // [µs] ... and so is a sample this much later than the smallest delay says (a burst after a
+  // stall of this computer is shorter: the IMU-lost failsafe acts after 0.25 s).
+  static constexpr int64_t kLateRestartUs = 3000000;
 
   // The sample's time on our clock.
   int64_t map(int64_t remote_us, int64_t arrival_utime);
@@ -177,6 +181,10 @@ class Autopilot {
   double streaming_since_s_ = -1.0;  // -1: not streaming setpoints
   double last_mode_request_s_ = -1e9;
   double last_arm_request_s_ = -1e9;
+  double last_disarm_request_s_ = -1e9;
+  double last_imu_s_ = -1e9;  // the autopilot's last IMU sample (steady clock)
+  // The autopilot has been armed in offboard under kinfly's setpoints since kinfly armed.
+  bool flown_ = false;
   double last_stream_request_s_ = -1e9;
 };
 

@@ -43,8 +43,15 @@ def send_keyframes(prefix: list[str], sample_dir: Path, shape: LinkShape, repair
              "--rate", str(RATE_HZ), "--seconds", str((KEYFRAMES - 0.5) / RATE_HZ),
              "--loss", str(shape.loss), "--loss-run", str(shape.loss_run_packets), *flags],
             check=True, capture_output=True, text=True, timeout=60)
-        # The ground ends by itself after the drone's final status.
-        ground_out, _ = ground.communicate(timeout=30)
+        # The ground ends by itself after the drone's final status (or 1 s without its status).
+        try:
+            ground_out, _ = ground.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            ground.kill()
+            out, err = ground.communicate()
+            raise AssertionError(f"the ground end did not stop after the drone's end "
+                                 f"(drone: {drone.stdout.strip()}): stdout {out!r}, "
+                                 f"stderr {err!r}") from None
     finally:
         ground.kill()
     return {"drone": json.loads(drone.stdout), "ground": json.loads(ground_out)}

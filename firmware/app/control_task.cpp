@@ -32,8 +32,6 @@ constexpr int kImuQueueMessages = 1000;
 constexpr int64_t kFlightStatusPeriodUs = 20000;
 // [ms] between ticks before the first IMU sample.
 constexpr int kIdleTickMs = 10;
-// [s] between attempts to open the autopilot's port (a USB serial port that is not there yet).
-constexpr double kReopenS = 1.0;
 
 // flight.lcm_url, else the link's; a udpm URL that does not say recv_buf_size asks for
 // kControlRecvBufBytes.
@@ -133,7 +131,17 @@ void ControlTask::run() {
                config_.flight.backend, config_.flight.imu, stack_->params().rate_hz,
                stack_->params().position.rate_hz);
   const double silent_after_s = 2.0 / stack_->params().rate_hz;
-  next_open_ = Clock::now();
+  if (mavlink_) {
+    auto opened = actuators::Autopilot::open(config_.flight.autopilotParams(),
+                                             config_.flight.mavlink_url,
+                                             config_.flight.mavlink_baud, mavlink_key_);
+    if (!opened.ok()) {  // the configuration's check let it through: a bug, said so
+      spdlog::error("control: {}: the control task stops", opened.status().message());
+      return;
+    }
+    autopilot_ = *std::move(opened);
+    spdlog::info("control: autopilot link on {}", config_.flight.mavlink_url);
+  }
   Clock::time_point next_idle_tick = Clock::now();
   while (!stop_->stopRequested()) {
     if (mavlink_) {
@@ -166,26 +174,6 @@ void ControlTask::run() {
 }
 
 void ControlTask::serveAutopilot() {
-  if (!autopilot_) {
-    if (Clock::now() < next_open_) {
-      std::this_thread::sleep_for(std::chrono::milliseconds(kHandleTimeoutMs));
-      return;
-    }
-    auto opened = actuators::Autopilot::open(config_.flight.autopilotParams(),
-                                             config_.flight.mavlink_url,
-                                             config_.flight.mavlink_baud, mavlink_key_);
-    if (!opened.ok()) {
-      // Logged at the first failure and then every minute; the odometry goes on meanwhile.
-      if (open_failures_++ % 60 == 0)
-        spdlog::error("control: {} (retrying every {:.0f} s)", opened.status().message(),
-                      kReopenS);
-      next_open_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(
-                                      std::chrono::duration<double>(kReopenS));
-      return;
-    }
-    autopilot_ = *std::move(opened);
-    spdlog::info("control: autopilot link on {}", config_.flight.mavlink_url);
-  }
   const double now_s = steadySeconds();
   const int samples = autopilot_->receive(kHandleTimeoutMs, now_s);
   for (int i = 0; i < samples; ++i) takeImu(autopilot_->imu(i));
@@ -263,10 +251,7 @@ void ControlTask::tick(int64_t utime) {
   }
   flight::TickInputs in;
   in.utime = utime;
-  if (mavlink_) {
-    in.autopilot = autopilot_ ? autopilot_->state(steadySeconds()) : flight::AutopilotInputs();
-    in.autopilot.used = true;
-  }
+  if (mavlink_) in.autopilot = autopilot_->state(steadySeconds());
   int64_t command_id = -1;
   if (commands_->fetch()) {
     const CommandMail& mail = commands_->front();
@@ -370,8 +355,8 @@ void ControlTask::reportStatus(const flight::TickOutput& out, int64_t utime) {
   s.failsafe_geofence = counters.geofence;
   s.failsafe_autopilot_lost = counters.autopilot_lost;
   const flight::AutopilotInputs ap =
-      autopilot_ ? autopilot_->state(steadySeconds()) : flight::AutopilotInputs();
-  s.autopilot_used = mavlink_;
+      mavlink_ ? autopilot_->state(steadySeconds()) : flight::AutopilotInputs();
+  s.autopilot_used = ap.used;
   s.autopilot_alive = ap.alive;
   s.autopilot_armed = ap.armed;
   s.autopilot_offboard = ap.offboard;
@@ -389,7 +374,6 @@ void ControlTask::sendToBackend(const flight::TickOutput& out, int64_t utime) {
     sp.rate_body_rad_s = flight::geometricRateSetpointRadS(
         stack_->params().attitude.geometric, state.q_world_body, sp.q_world_body_sp);
     sp.thrust_ratio = out.position.thrust_n / stack_->vehicle().weightN();
-    if (!autopilot_) return;
     if (autopilot_->attitude() && stack_->estimator().initialised()) {
       summary_.max_tilt_vs_autopilot_rad =
           std::max(summary_.max_tilt_vs_autopilot_rad,

@@ -85,10 +85,8 @@ class ControlTask {
   // Made by run() after the thread's priority is set: LCM's receive thread, which empties the
   // IMU's socket, is started from it and inherits the priority.
   std::optional<Publisher> publisher_;
-  // The mavlink backend's; opened by run(), again after a failure (a serial port not yet there).
+  // The mavlink backend's, made by run(); it opens its port, and again after a failure.
   std::unique_ptr<actuators::Autopilot> autopilot_;
-  Clock::time_point next_open_;  // when to try opening the autopilot's port again
-  int64_t open_failures_ = 0;
   actuators::AutopilotSetpoint autopilot_setpoint_;
   flight::AnchoredVision anchored_;
   imu_t imu_{};

@@ -46,6 +46,19 @@ volatile std::sig_atomic_t g_signal_received = 0;
 
 void onSignal(int) { g_signal_received = 1; }
 
+// The key in PATH into *key (none for an empty path); false, said with WHAT (the config key and
+// what an empty one means), when the file cannot be used.
+bool loadKey(const std::string& path, const char* what, std::optional<link::Key>* key) {
+  if (path.empty()) return true;
+  StatusOr<link::Key> loaded = link::loadKeyFile(path);
+  if (!loaded.ok()) {
+    spdlog::critical("{} ({})", loaded.status().message(), what);
+    return false;
+  }
+  *key = *loaded;
+  return true;
+}
+
 // Waits for a task's thread to end (`finished` set as its last act), meanwhile passing a signal
 // on to the tasks.
 void awaitTask(std::thread* thread, const std::atomic<bool>& finished, StopToken* stop) {
@@ -154,17 +167,10 @@ int run(int argc, char** argv) {
   }
 
   std::optional<link::Key> key;
-  if (!config.vehicle.key_file.empty()) {
-    StatusOr<link::Key> loaded = link::loadKeyFile(config.vehicle.key_file);
-    if (!loaded.ok()) {
-      spdlog::critical("{} (vehicle.key_file; empty to run without corrections)",
-                       loaded.status().message());
-      return 2;
-    }
-    key = *loaded;
-  } else {
-    spdlog::warn("no vehicle.key_file: every correction will be rejected as unsigned");
-  }
+  if (!loadKey(config.vehicle.key_file, "vehicle.key_file; empty to run without corrections",
+               &key))
+    return 2;
+  if (!key) spdlog::warn("no vehicle.key_file: every correction will be rejected as unsigned");
   StatusOr<std::unique_ptr<DepthSource>> opened = openSource(config);
   if (!opened.ok()) {
     spdlog::critical("source: {}", opened.status().message());
@@ -190,15 +196,10 @@ int run(int argc, char** argv) {
     stack = *std::move(made);
   }
   std::optional<link::Key> mavlink_key;
-  if (config.flight.backend == "mavlink" && !config.flight.mavlink_key.empty()) {
-    StatusOr<link::Key> loaded = link::loadKeyFile(config.flight.mavlink_key);
-    if (!loaded.ok()) {
-      spdlog::critical("{} (flight.mavlink_key; empty for an unsigned MAVLink link)",
-                       loaded.status().message());
-      return 2;
-    }
-    mavlink_key = *loaded;
-  }
+  if (config.flight.backend == "mavlink" &&
+      !loadKey(config.flight.mavlink_key, "flight.mavlink_key; empty for an unsigned MAVLink link",
+               &mavlink_key))
+    return 2;
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   spdlog::info("kinfly-fw {} vehicle {}: {}, {}x{} -> {}x{} odometry", kVersion,
@@ -308,9 +309,6 @@ int run(int argc, char** argv) {
           n(a->disarm_requests), n(a->commands_accepted), n(a->commands_refused),
           n(a->bad_signature), n(a->bad_crc), n(a->other_source), n(a->lost),
           n(a->port_errors));
-    } else if (config.flight.backend == "mavlink") {
-      std::printf("kinfly-fw: mavlink: the autopilot's port never opened (%s)\n",
-                  config.flight.mavlink_url.c_str());
     }
   }
   if (!interrupted && counters.frames_captured == 0) {

@@ -229,7 +229,7 @@ def test_a_serial_autopilot_unplugged_and_plugged_back_is_heard_again(netns: lis
         assert drone.wait_for("failsafe: autopilot lost", 1, STEP_TIMEOUT_S), drone.output()
         bridge.process.send_signal(signal.SIGUSR2)
         assert bridge.wait_for("bridge: plugged", 2, STEP_TIMEOUT_S), bridge.output()
-        assert drone.wait_for(f"mavlink: {link} open again", 1, STEP_TIMEOUT_S), drone.output()
+        assert drone.wait_for(f"mavlink: {link} open", 2, STEP_TIMEOUT_S), drone.output()
         assert drone.wait_for("mavlink: PX4 alive", 2, STEP_TIMEOUT_S), drone.output()
         output = stop(drone)
     finally:

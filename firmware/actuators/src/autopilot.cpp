@@ -85,9 +85,8 @@ StatusOr<std::unique_ptr<Autopilot>> Autopilot::open(const AutopilotParams& para
                                                      const std::string& url, int baud,
                                                      const std::optional<link::Key>& key) {
   if (Status valid = params.validate(); !valid.ok()) return valid;
-  auto port = MavlinkPort::open(url, baud);
-  if (!port.ok()) return port.status();
-  std::unique_ptr<Autopilot> autopilot(new Autopilot(params, url, baud, std::move(*port)));
+  if (Status form = MavlinkPort::checkUrl(url); !form.ok()) return form;
+  std::unique_ptr<Autopilot> autopilot(new Autopilot(params, url, baud));
   Mavlink& m = *autopilot->mavlink_;
   // The channel's status holds the parser's state, our sequence number and the signing.
   mavlink_status_t* status = mavlink_get_channel_status(kChannel);
@@ -108,26 +107,29 @@ StatusOr<std::unique_ptr<Autopilot>> Autopilot::open(const AutopilotParams& para
                  "can command the autopilot, and one that requires signing ignores us",
                  url);
   }
+  // Opened now if it can be; if not (a USB adapter not there yet), by receive(), every second.
+  autopilot->reopen(0.0);
   return autopilot;
 }
 
-Autopilot::Autopilot(const AutopilotParams& params, const std::string& url, int baud,
-                     std::unique_ptr<MavlinkPort> port)
-    : params_(params),
-      url_(url),
-      baud_(baud),
-      port_(std::move(port)),
-      mavlink_(std::make_unique<Mavlink>()) {}
+Autopilot::Autopilot(const AutopilotParams& params, const std::string& url, int baud)
+    : params_(params), url_(url), baud_(baud), mavlink_(std::make_unique<Mavlink>()) {}
 
 bool Autopilot::reopen(double now_s) {
   if (now_s < next_reopen_s_) return false;
   auto port = MavlinkPort::open(url_, baud_);
   if (!port.ok()) {
+    // Said once for each time the port is missing, not every second.
+    if (!reopen_failing_)
+      spdlog::error("mavlink: {} (trying again every {:.0f} s)", port.status().message(),
+                    kReopenS);
+    reopen_failing_ = true;
     next_reopen_s_ = now_s + kReopenS;
     return false;
   }
   port_ = std::move(*port);
-  spdlog::info("mavlink: {} open again", url_);
+  reopen_failing_ = false;
+  spdlog::info("mavlink: {} open", url_);
   return true;
 }
 

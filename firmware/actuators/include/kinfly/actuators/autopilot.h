@@ -112,7 +112,8 @@ struct AutopilotCounters {
 class Autopilot {
  public:
   // key: MAVLink 2 signing (the same key file rules as the uplink's); none: unsigned, with a
-  // warning at start (an autopilot set to require signing then ignores us).
+  // warning at start (an autopilot set to require signing then ignores us). Fails only on bad
+  // parameters or a malformed URL: a port that cannot be opened yet is opened by receive().
   static StatusOr<std::unique_ptr<Autopilot>> open(const AutopilotParams& params,
                                                    const std::string& url, int baud,
                                                    const std::optional<link::Key>& key);
@@ -142,9 +143,9 @@ class Autopilot {
 
  private:
   struct Mavlink;  // the generated headers' state, kept out of this header
-  Autopilot(const AutopilotParams& params, const std::string& url, int baud,
-            std::unique_ptr<MavlinkPort> port);
-  // Opens the port again after it failed, at most every second; false while it cannot.
+  Autopilot(const AutopilotParams& params, const std::string& url, int baud);
+  // Opens the port (at the start, or again after it failed), at most every second; false while
+  // it cannot.
   bool reopen(double now_s);
   void handle(double now_s, int64_t arrival_utime);
   void addImu(uint64_t remote_us, const Eigen::Vector3d& gyro_rad_s,
@@ -158,6 +159,7 @@ class Autopilot {
   int baud_;
   std::unique_ptr<MavlinkPort> port_;  // null after a failure, until reopen()
   double next_reopen_s_ = 0.0;
+  bool reopen_failing_ = false;  // the last attempt failed: logged once
   std::unique_ptr<Mavlink> mavlink_;
   AutopilotCounters counters_;
 

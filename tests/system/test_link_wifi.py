@@ -16,7 +16,7 @@ import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
-from netns import LinkShape
+from netns import LinkShape, link_counters
 
 from conftest import built, wait_for_line
 
@@ -49,9 +49,12 @@ def send_keyframes(prefix: list[str], sample_dir: Path, shape: LinkShape, repair
         except subprocess.TimeoutExpired:
             ground.kill()
             out, err = ground.communicate()
+            # The link's counters tell a loss model stuck in its bad state (every packet
+            # dropped) from a ground end that heard its packets and did not stop.
             raise AssertionError(f"the ground end did not stop after the drone's end "
                                  f"(drone: {drone.stdout.strip()}): stdout {out!r}, "
-                                 f"stderr {err!r}") from None
+                                 f"stderr {err!r}; link counters "
+                                 f"{link_counters(prefix)}") from None
     finally:
         ground.kill()
     return {"drone": json.loads(drone.stdout), "ground": json.loads(ground_out)}

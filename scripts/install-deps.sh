@@ -43,6 +43,12 @@ demo_packages=(
   python3 python3-venv python3-dev iproute2
 )
 
+# sim (make sim; in unit, since the simulator's unit tests build with the others): the ray
+# tracer that renders the simulated depth camera (sim/CMakeLists.txt)
+sim_packages=(
+  libembree-dev
+)
+
 # unit (make test-asan, and the unit tests of make test): GoogleTest (CMake's
 # KINFLY_BUILD_TESTS). No gmock: nothing uses it, and GTestConfig.cmake includes its targets only
 # if present. No Google Benchmark: the benchmarks (tests/bench) are Python over the programs.
@@ -96,12 +102,13 @@ bench_packages=(
   valgrind nftables
 )
 
-all_groups=(demo unit test fuzz aarch64 image bench)
+all_groups=(demo sim unit test fuzz aarch64 image bench)
 
 # The groups that GROUP includes.
 group_includes() {
   case "$1" in
-    demo | unit) echo cxx ;;
+    demo | sim) echo cxx ;;
+    unit) echo cxx sim ;;
     test) echo demo unit ;;
     fuzz) echo unit ;;
     image) echo aarch64 ;;
@@ -119,7 +126,8 @@ groups it uses:
 
   demo     make demo, make eval: the C++ build of the programs, Python with its headers, `ip`;
            .venv from requirements.txt with the ground package (ground/)
-  unit     make test-asan: the C++ build and GoogleTest
+  sim      make sim: the C++ build and Embree (kinfly-sim's depth camera)
+  unit     make test-asan: the C++ build, Embree and GoogleTest
            (every group that compiles, aarch64 too, makes .venv-build from
            requirements-build.txt: pymavlink's mavgen for the firmware's MAVLink headers)
   test     make test: demo + unit + what the integration tests use (nft for the

@@ -1,0 +1,56 @@
+// The simulated depth camera (docs/sim.md, "Depth camera"): each pixel's ray cast into the scene
+// by Embree, then what a structured-light sensor (Kinect v1, Xtion) does to the depth: axial noise
+// growing with the square of the range (the thesis's model, kinectNoiseSigmaM), disparity
+// quantisation (the sensor measures disparity in 1/8 pixel steps, so depth comes in steps that
+// grow with the square of the range too), no return at grazing incidence or outside the range.
+// Raw depth as the OpenNI source gives it: uint16 in depth_scale_m units, 0 for no return.
+#pragma once
+
+#include <cstdint>
+
+#include "kinfly/core/camera.h"
+#include "kinfly/core/image.h"
+#include "kinfly/core/se3.h"
+#include "kinfly/core/status.h"
+#include "kinfly/sim/random.h"
+#include "kinfly/sim/ray_scene.h"
+
+namespace kinfly::sim {
+
+struct DepthCameraParams {
+  // Kinect v1 at VGA, as its factory calibration is usually quoted (and ROS's openni driver):
+  // fx = fy = 525 px, principal point at the centre.
+  PinholeCamera camera{525.0f, 525.0f, 319.5f, 239.5f, 640, 480};
+  double rate_hz = 30.0;              // [Hz] (0, 120] frames per second
+  double latency_s = 0.03;            // [s] [0, 1] from capture to delivery
+  double min_range_m = 0.5;           // [m] (0, max) nearer: no return
+  double max_range_m = 4.5;           // [m] (min, 20] farther: no return
+  double max_incidence_deg = 80.0;    // [deg] (0, 90] more grazing than this: no return
+  bool noise = true;                  // false: exact depth (tests of the geometry alone)
+  double baseline_m = 0.075;          // [m] (0, 1] projector to IR camera (Kinect v1)
+  double disparity_focal_px = 580.0;  // [px] (0, 5000] the IR camera's focal length
+  double disparity_step_px = 0.125;   // [px] [0, 1] disparity resolution; 0: not quantised
+  double depth_scale_m = 0.001;       // [m] (0, 0.01] per raw unit (OpenNI: 1 mm)
+  uint64_t seed = 3;
+  Status validate() const;
+};
+
+class DepthCamera {
+ public:
+  // scene outlives the camera; params valid.
+  DepthCamera(const RayScene& scene, const DepthCameraParams& params);
+
+  const DepthCameraParams& params() const { return params_; }
+
+  // The frame seen from T_world_cam (optical frame: x right, y down, z forward) into raw, which
+  // has the camera's size.
+  void render(const Pose& T_world_cam, ImageView<uint16_t> raw);
+
+ private:
+  const RayScene& scene_;
+  DepthCameraParams params_;
+  NormalRandom random_;
+  float min_cos_incidence_;
+};
+
+}  // namespace kinfly::sim

@@ -1,0 +1,43 @@
+// The worlds the simulated drone flies in (docs/sim.md, "Scenes"): a triangle mesh in the
+// simulator's world (gravity-aligned, z down, metres), which the depth camera renders, the
+// collision check tests and the fused map is scored against; its floor, on which the drone
+// starts and lands; and where it starts.
+#pragma once
+
+#include <Eigen/Core>
+#include <string>
+#include <vector>
+
+#include "kinfly/core/status.h"
+#include "kinfly/mesh/mesh.h"
+
+namespace kinfly::sim {
+
+struct Scene {
+  std::string name;
+  // Everything the camera sees, the floor first: triangles [0, floor_triangles) are the floor,
+  // which carries the drone (Multirotor's floor) and which a landing must not count as a
+  // collision.
+  TriangleMesh mesh;
+  int floor_triangles = 0;
+  double floor_z_m = 0.0;                          // [m] world height of the floor (z down)
+  Eigen::Vector2d start_xy_m = Eigen::Vector2d::Zero();  // [m] where the drone stands at the start
+  double start_yaw_rad = 0.0;                      // [rad] its heading there
+};
+
+// A furnished room, 8 m x 6 m x 3 m (x in [-4, 4], y in [-3, 3], the ceiling at z = -3): boxes,
+// two pillars, a table, a flight of steps, so that ICP has structure to hold on to from anywhere
+// in it. The drone starts in the middle, heading +x.
+Scene furnishedRoom();
+
+// A corridor 30 m long, 2 m wide, 2.5 m high, featureless: its walls are planes along x, so ICP
+// cannot tell motion along the corridor (the hard case). The drone starts 1 m from the closed end
+// at x = -2, heading down the corridor; the far end is beyond the camera's range.
+Scene corridor();
+
+// The scenes by name: room, corridor. An error names the name and the known ones.
+StatusOr<Scene> makeScene(const std::string& name);
+// The names makeScene knows, for --help.
+const std::vector<std::string>& sceneNames();
+
+}  // namespace kinfly::sim

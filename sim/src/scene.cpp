@@ -1,0 +1,146 @@
+#include "kinfly/sim/scene.h"
+
+#include <Eigen/Geometry>
+#include <cmath>
+
+namespace kinfly::sim {
+
+namespace {
+
+// A quad with corners a, b, c, d in order around it, as two triangles with its own four
+// vertices (so the normals stay the face's), wound counter-clockwise seen from `facing`, the side
+// in free space.
+void addQuad(TriangleMesh* mesh, const Eigen::Vector3f& a, const Eigen::Vector3f& b,
+             const Eigen::Vector3f& c, const Eigen::Vector3f& d, const Eigen::Vector3f& facing) {
+  Eigen::Vector3f normal = (b - a).cross(c - a).normalized();
+  const bool flip = normal.dot(facing) < 0.0f;
+  if (flip) normal = -normal;
+  const int base = static_cast<int>(mesh->vertices.size());
+  for (const Eigen::Vector3f* v : {&a, &b, &c, &d}) {
+    mesh->vertices.push_back(*v);
+    mesh->normals.push_back(normal);
+  }
+  if (flip) {
+    mesh->triangles.emplace_back(base, base + 2, base + 1);
+    mesh->triangles.emplace_back(base, base + 3, base + 2);
+  } else {
+    mesh->triangles.emplace_back(base, base + 1, base + 2);
+    mesh->triangles.emplace_back(base, base + 2, base + 3);
+  }
+}
+
+// An axis-aligned box from lo to hi; inward: its faces look into it (a room), else out of it.
+void addBox(TriangleMesh* mesh, const Eigen::Vector3f& lo, const Eigen::Vector3f& hi,
+            bool inward = false) {
+  const auto corner = [&](int i) {
+    return Eigen::Vector3f((i & 1) ? hi.x() : lo.x(), (i & 2) ? hi.y() : lo.y(),
+                           (i & 4) ? hi.z() : lo.z());
+  };
+  // Each face's corners in order around it (bit 0: x, 1: y, 2: z at hi), and its outward axis.
+  struct Face {
+    int corners[4];
+    Eigen::Vector3f outward;
+  };
+  const Face faces[6] = {
+      {{0, 2, 6, 4}, -Eigen::Vector3f::UnitX()}, {{1, 3, 7, 5}, Eigen::Vector3f::UnitX()},
+      {{0, 1, 5, 4}, -Eigen::Vector3f::UnitY()}, {{2, 3, 7, 6}, Eigen::Vector3f::UnitY()},
+      {{0, 1, 3, 2}, -Eigen::Vector3f::UnitZ()}, {{4, 5, 7, 6}, Eigen::Vector3f::UnitZ()},
+  };
+  for (const Face& face : faces) {
+    addQuad(mesh, corner(face.corners[0]), corner(face.corners[1]), corner(face.corners[2]),
+            corner(face.corners[3]), inward ? Eigen::Vector3f(-face.outward) : face.outward);
+  }
+}
+
+// A vertical cylinder of radius r between heights z_top (z down: the smaller) and z_bottom, as a
+// prism of `sides` faces without caps (pillars stand from floor to ceiling).
+void addPillar(TriangleMesh* mesh, const Eigen::Vector2f& centre, float radius, float z_top,
+               float z_bottom, int sides = 16) {
+  for (int i = 0; i < sides; ++i) {
+    const float a0 = 2.0f * static_cast<float>(M_PI) * static_cast<float>(i) / static_cast<float>(sides);
+    const float a1 = 2.0f * static_cast<float>(M_PI) * static_cast<float>(i + 1) / static_cast<float>(sides);
+    const Eigen::Vector2f p0 = centre + radius * Eigen::Vector2f(std::cos(a0), std::sin(a0));
+    const Eigen::Vector2f p1 = centre + radius * Eigen::Vector2f(std::cos(a1), std::sin(a1));
+    const Eigen::Vector2f mid = 0.5f * (p0 + p1) - centre;
+    addQuad(mesh, {p0.x(), p0.y(), z_bottom}, {p1.x(), p1.y(), z_bottom}, {p1.x(), p1.y(), z_top},
+            {p0.x(), p0.y(), z_top}, {mid.x(), mid.y(), 0.0f});
+  }
+}
+
+void addFloor(Scene* scene, const Eigen::Vector2f& lo, const Eigen::Vector2f& hi) {
+  // Seen from above: -z, z down.
+  addQuad(&scene->mesh, {lo.x(), lo.y(), 0.0f}, {lo.x(), hi.y(), 0.0f}, {hi.x(), hi.y(), 0.0f},
+          {hi.x(), lo.y(), 0.0f}, -Eigen::Vector3f::UnitZ());
+  scene->floor_triangles = static_cast<int>(scene->mesh.triangles.size());
+  scene->floor_z_m = 0.0;
+}
+
+// The walls and ceiling of a box room over a floor already added (its floor face left out).
+void addRoomShell(TriangleMesh* mesh, const Eigen::Vector3f& lo, const Eigen::Vector3f& hi) {
+  TriangleMesh shell;
+  addBox(&shell, lo, hi, /*inward=*/true);
+  // addBox's last face is +z, the floor: the room's own floor is the Scene's.
+  const int kept_vertices = static_cast<int>(shell.vertices.size()) - 4;
+  const int base = static_cast<int>(mesh->vertices.size());
+  for (int i = 0; i < kept_vertices; ++i) {
+    mesh->vertices.push_back(shell.vertices[i]);
+    mesh->normals.push_back(shell.normals[i]);
+  }
+  for (size_t t = 0; t + 2 < shell.triangles.size(); ++t) {
+    mesh->triangles.push_back(shell.triangles[t] + Eigen::Vector3i::Constant(base));
+  }
+}
+
+}  // namespace
+
+Scene furnishedRoom() {
+  Scene scene;
+  scene.name = "room";
+  addFloor(&scene, {-4.0f, -3.0f}, {4.0f, 3.0f});
+  TriangleMesh& mesh = scene.mesh;
+  addRoomShell(&mesh, {-4.0f, -3.0f, -3.0f}, {4.0f, 3.0f, 0.0f});
+  // Boxes against and away from the walls, of different heights.
+  addBox(&mesh, {2.8f, -2.6f, -0.8f}, {3.6f, -1.6f, 0.0f});
+  addBox(&mesh, {2.9f, -1.4f, -0.5f}, {3.5f, -0.8f, 0.0f});
+  addBox(&mesh, {-3.6f, 1.6f, -1.2f}, {-2.6f, 2.6f, 0.0f});
+  addBox(&mesh, {-1.0f, 2.2f, -0.6f}, {0.2f, 2.8f, 0.0f});
+  // Two pillars, floor to ceiling.
+  addPillar(&mesh, {1.6f, 1.2f}, 0.2f, -3.0f, 0.0f);
+  addPillar(&mesh, {-1.8f, -1.4f}, 0.25f, -3.0f, 0.0f);
+  // A table: top 1.2 x 0.8 m at 0.75 m, four legs.
+  addBox(&mesh, {-3.4f, -2.6f, -0.78f}, {-2.2f, -1.8f, -0.74f});
+  for (const float x : {-3.35f, -2.29f}) {
+    for (const float y : {-2.55f, -1.89f}) addBox(&mesh, {x, y, -0.74f}, {x + 0.04f, y + 0.04f, 0.0f});
+  }
+  // Steps up to a platform along the +x wall, each 0.3 m deep and 0.2 m high.
+  for (int i = 0; i < 4; ++i) {
+    const float x0 = 1.6f + 0.3f * static_cast<float>(i);
+    addBox(&mesh, {x0, 1.8f, -0.2f * static_cast<float>(i + 1)}, {4.0f, 3.0f, 0.0f});
+  }
+  scene.start_xy_m = {0.0, 0.0};
+  scene.start_yaw_rad = 0.0;
+  return scene;
+}
+
+Scene corridor() {
+  Scene scene;
+  scene.name = "corridor";
+  addFloor(&scene, {-2.0f, -1.0f}, {28.0f, 1.0f});
+  addRoomShell(&scene.mesh, {-2.0f, -1.0f, -2.5f}, {28.0f, 1.0f, 0.0f});
+  scene.start_xy_m = {-1.0, 0.0};
+  scene.start_yaw_rad = 0.0;
+  return scene;
+}
+
+const std::vector<std::string>& sceneNames() {
+  static const std::vector<std::string> names = {"room", "corridor"};
+  return names;
+}
+
+StatusOr<Scene> makeScene(const std::string& name) {
+  if (name == "room") return furnishedRoom();
+  if (name == "corridor") return corridor();
+  return Status::error("scene '" + name + "' is unknown (known: room, corridor)");
+}
+
+}  // namespace kinfly::sim

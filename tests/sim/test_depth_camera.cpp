@@ -1,0 +1,199 @@
+// The rendered depth camera against ray-plane geometry: exact depth without noise, no return
+// beyond range or at grazing incidence, the Kinect model's spread and disparity steps with noise;
+// and the scenes: closed rooms whose faces look into the free space.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "kinfly/core/noise_model.h"
+#include "kinfly/sim/depth_camera.h"
+
+namespace kinfly::sim {
+namespace {
+
+// A square plane of side 40 m through `centre` with unit normal `normal` (toward the camera).
+Scene planeScene(const Eigen::Vector3f& centre, const Eigen::Vector3f& normal) {
+  const Eigen::Vector3f a = normal.unitOrthogonal();
+  const Eigen::Vector3f b = normal.cross(a);
+  Scene scene;
+  scene.name = "plane";
+  const float half = 20.0f;
+  for (const auto& [s, t] : {std::pair{-1, -1}, {1, -1}, {1, 1}, {-1, 1}}) {
+    scene.mesh.vertices.push_back(centre + half * (static_cast<float>(s) * a + static_cast<float>(t) * b));
+    scene.mesh.normals.push_back(normal);
+  }
+  scene.mesh.triangles = {{0, 1, 2}, {0, 2, 3}};
+  return scene;
+}
+
+DepthCameraParams exactCamera() {
+  DepthCameraParams params;
+  params.noise = false;
+  params.camera = params.camera.scaled(2);  // 320 x 240: quicker, the same geometry
+  return params;
+}
+
+Image<uint16_t> render(const Scene& scene, const DepthCameraParams& params, const Pose& T_world_cam) {
+  auto rays = RayScene::create(scene);
+  EXPECT_TRUE(rays.ok()) << rays.status().message();
+  DepthCamera camera(*rays.value(), params);
+  Image<uint16_t> raw(params.camera.width, params.camera.height);
+  camera.render(T_world_cam, raw);
+  return raw;
+}
+
+TEST(DepthCamera, AFrontoParallelPlaneReadsItsDistanceEverywhere) {
+  const DepthCameraParams params = exactCamera();
+  // The camera looks along +z of the world at a plane 2 m away.
+  const Image<uint16_t> raw = render(planeScene({0, 0, 2}, {0, 0, -1}), params, Pose::Identity());
+  for (int v = 0; v < raw.height(); ++v) {
+    for (int u = 0; u < raw.width(); ++u) ASSERT_EQ(raw(u, v), 2000) << u << ", " << v;
+  }
+}
+
+TEST(DepthCamera, ATiltedPlaneReadsTheRayPlaneIntersection) {
+  const DepthCameraParams params = exactCamera();
+  // A plane through (0, 0, 2.5) tilted 40 degrees about y, seen from a camera turned and moved.
+  const Eigen::Vector3f normal =
+      Eigen::AngleAxisf(0.7f, Eigen::Vector3f::UnitY()) * Eigen::Vector3f(0, 0, -1);
+  Pose T_world_cam = Pose::Identity();
+  T_world_cam.linear() = Eigen::AngleAxisd(0.1, Eigen::Vector3d::UnitX()).matrix();
+  T_world_cam.translation() = Eigen::Vector3d(0.2, -0.1, 0.0);
+  const Image<uint16_t> raw = render(planeScene({0, 0, 2.5f}, normal), params, T_world_cam);
+  const PinholeCamera& cam = params.camera;
+  const Eigen::Vector3d n = normal.cast<double>();
+  int checked = 0;
+  for (int v = 0; v < cam.height; v += 7) {
+    for (int u = 0; u < cam.width; u += 7) {
+      const Eigen::Vector3d ray_cam((u - static_cast<double>(cam.cx)) / cam.fx,
+                                    (v - static_cast<double>(cam.cy)) / cam.fy, 1.0);
+      const Eigen::Vector3d ray_world = T_world_cam.linear() * ray_cam;
+      // (o + z d - c) . n = 0
+      const double z = (Eigen::Vector3d(0, 0, 2.5) - T_world_cam.translation()).dot(n) / ray_world.dot(n);
+      const double cos_incidence = std::abs(ray_world.normalized().dot(n));
+      if (z > params.max_range_m || z < params.min_range_m ||
+          cos_incidence < std::cos(params.max_incidence_deg * M_PI / 180.0)) {
+        continue;
+      }
+      // Rounded to the millimetre unit, float rays: within one unit.
+      EXPECT_NEAR(raw(u, v) * params.depth_scale_m, z, 1.0e-3) << u << ", " << v;
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 1000);
+}
+
+TEST(DepthCamera, NoReturnOutsideTheRangeOrAtGrazingIncidence) {
+  DepthCameraParams params = exactCamera();
+  const auto centre_reading = [&](const Scene& scene) {
+    const Image<uint16_t> raw = render(scene, params, Pose::Identity());
+    return raw(raw.width() / 2, raw.height() / 2);
+  };
+  EXPECT_EQ(centre_reading(planeScene({0, 0, 5.0f}, {0, 0, -1})), 0);   // beyond 4.5 m
+  EXPECT_EQ(centre_reading(planeScene({0, 0, 0.3f}, {0, 0, -1})), 0);   // nearer than 0.5 m
+  const Eigen::Vector3f grazing =
+      Eigen::AngleAxisf(85.0f * static_cast<float>(M_PI) / 180.0f, Eigen::Vector3f::UnitY()) *
+      Eigen::Vector3f(0, 0, -1);
+  EXPECT_EQ(centre_reading(planeScene({0, 0, 2.0f}, grazing)), 0);      // 85 > 80 degrees
+  const Eigen::Vector3f oblique =
+      Eigen::AngleAxisf(70.0f * static_cast<float>(M_PI) / 180.0f, Eigen::Vector3f::UnitY()) *
+      Eigen::Vector3f(0, 0, -1);
+  EXPECT_NE(centre_reading(planeScene({0, 0, 2.0f}, oblique)), 0);      // 70 < 80 degrees
+}
+
+TEST(DepthCamera, NoiseHasTheKinectSpreadOnDisparitySteps) {
+  DepthCameraParams params = exactCamera();
+  params.noise = true;
+  const double z = 3.0;
+  const Image<uint16_t> raw = render(planeScene({0, 0, 3.0f}, {0, 0, -1}), params, Pose::Identity());
+  double sum = 0.0;
+  double sum_sq = 0.0;
+  const int n = raw.numPixels();
+  const double bf = params.baseline_m * params.disparity_focal_px;
+  for (int i = 0; i < n; ++i) {
+    const double depth = raw.data()[i] * params.depth_scale_m;
+    sum += depth;
+    sum_sq += depth * depth;
+    // Every reading is a disparity step's depth, rounded to the raw unit.
+    const double steps = bf / depth / params.disparity_step_px;
+    const double stepped = bf / (std::round(steps) * params.disparity_step_px);
+    ASSERT_NEAR(depth, stepped, 0.6 * params.depth_scale_m) << i;
+  }
+  const double mean = sum / n;
+  const double sigma = std::sqrt(sum_sq / n - mean * mean);
+  // Disparity steps at 3 m are bf/d^2 * 1/8 px = 2.6 cm apart; their rounding adds step^2/12.
+  const double step_m = z * z / bf * params.disparity_step_px;
+  const double model_sigma = kinectNoiseSigmaM(static_cast<float>(z));
+  const double expected = std::sqrt(model_sigma * model_sigma + step_m * step_m / 12.0);
+  // 76 800 pixels: the sigma's standard error is 0.3 %; the steps' rounding is not exactly
+  // uniform at this sigma: 10 %.
+  EXPECT_NEAR(sigma / expected, 1.0, 0.10);
+  EXPECT_NEAR(mean, z, 3.0e-3);  // unbiased within 3 mm (the standard error is 0.06 mm)
+}
+
+TEST(DepthCamera, TheSeedFixesTheNoise) {
+  DepthCameraParams params = exactCamera();
+  params.noise = true;
+  const Scene scene = planeScene({0, 0, 3.0f}, {0, 0, -1});
+  const Image<uint16_t> a = render(scene, params, Pose::Identity());
+  const Image<uint16_t> b = render(scene, params, Pose::Identity());
+  EXPECT_TRUE(std::equal(a.data(), a.data() + a.numPixels(), b.data()));
+  params.seed = 99;
+  const Image<uint16_t> c = render(scene, params, Pose::Identity());
+  EXPECT_FALSE(std::equal(a.data(), a.data() + a.numPixels(), c.data()));
+}
+
+TEST(DepthCamera, BadSettingsAreNamed) {
+  DepthCameraParams params;
+  params.min_range_m = 5.0;
+  EXPECT_EQ(params.validate().message().rfind("camera.min_range_m must be in (0, ", 0), 0u)
+      << params.validate().message();
+}
+
+// From inside, every ray meets a face that looks back at it: the scene is closed around the
+// start and its faces are wound toward the free space (what the map is scored against).
+void expectClosedAroundTheStart(const Scene& scene) {
+  auto rays = RayScene::create(scene);
+  ASSERT_TRUE(rays.ok());
+  const Eigen::Vector3f origin(static_cast<float>(scene.start_xy_m.x()),
+                               static_cast<float>(scene.start_xy_m.y()), -1.0f);
+  NormalRandom random(5);
+  int floor_hits = 0;
+  for (int i = 0; i < 2000; ++i) {
+    const Eigen::Vector3f direction = random.vector3().cast<float>().normalized();
+    const RayHit hit = rays.value()->cast(origin, direction, 100.0f);
+    ASSERT_TRUE(hit.hit) << scene.name << ": a ray leaves the scene";
+    const Eigen::Vector3f p = origin + hit.distance * direction;
+    // The mesh's own normal at the hit (its faces are flat: the first vertex's) looks back.
+    const Eigen::Vector3i& face = scene.mesh.triangles[static_cast<size_t>(hit.triangle)];
+    EXPECT_LT(scene.mesh.normals[face[0]].dot(direction), 0.0f) << scene.name;
+    floor_hits += hit.floor ? 1 : 0;
+    EXPECT_EQ(hit.floor, std::abs(p.z() - static_cast<float>(scene.floor_z_m)) < 1e-4f && direction.z() > 0)
+        << scene.name;
+  }
+  EXPECT_GT(floor_hits, 0);
+}
+
+TEST(Scenes, RoomAndCorridorAreClosedAroundTheStart) {
+  expectClosedAroundTheStart(furnishedRoom());
+  expectClosedAroundTheStart(corridor());
+}
+
+TEST(Scenes, FacesLookIntoTheFreeSpace) {
+  // Each vertex normal of the room agrees with its triangle's winding, and the floor looks up.
+  for (const Scene& scene : {furnishedRoom(), corridor()}) {
+    const TriangleMesh& mesh = scene.mesh;
+    for (const Eigen::Vector3i& t : mesh.triangles) {
+      const Eigen::Vector3f wound =
+          (mesh.vertices[t[1]] - mesh.vertices[t[0]]).cross(mesh.vertices[t[2]] - mesh.vertices[t[0]]);
+      ASSERT_GT(wound.dot(mesh.normals[t[0]]), 0.0f) << scene.name;
+    }
+    for (int i = 0; i < scene.floor_triangles; ++i) {
+      EXPECT_LT(mesh.normals[mesh.triangles[i][0]].z(), -0.99f);
+    }
+  }
+  EXPECT_EQ(makeScene("hall").status().message(), "scene 'hall' is unknown (known: room, corridor)");
+}
+
+}  // namespace
+}  // namespace kinfly::sim

@@ -16,4 +16,5 @@ set(KINFLY_LCM_TYPES
   pose3d_t
   pose_correction_t
   signed_t
+  sim_state_t
 )

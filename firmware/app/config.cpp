@@ -84,7 +84,8 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "signing key (kinfly-keygen), mode 0600")
       ->capture_default_str();
   SourceConfig& s = c->source;
-  app->add_option("--source.kind", s.kind, "log | dataset | openni | synthetic")
+  app->add_option("--source.kind", s.kind,
+                  "log | dataset | openni | synthetic | lcm (frames over LCM: kinfly-sim)")
       ->capture_default_str();
   addSharedOption<std::string>(app, "--source.path", {&s.log.path, &s.dataset.tum_dir, &s.openni.uri},
                                "LCM log (log), TUM folder (dataset), device URI or .oni file "
@@ -106,7 +107,7 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
       ->capture_default_str();
   addSharedOption<std::string>(app, "--source.intrinsics",
                                {&s.dataset.intrinsics, &s.openni.intrinsics,
-                                &s.synthetic.intrinsics},
+                                &s.synthetic.intrinsics, &s.lcm.intrinsics},
                                "fx,fy,cx,cy (empty: the source's own)");
   // Before its replacement, so that the new key wins when a file or command line has both.
   app->add_option_function<double>(
@@ -117,13 +118,18 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
          },
          "deprecated: raw depth units per metre; use source.depth_scale_m = 1 / this")
       ->group("Deprecated");
-  app->add_option("--source.depth_scale_m", s.dataset.depth_scale_m,
-                  "dataset: metres per raw depth unit (TUM 0.0002)")
+  addSharedOption<double>(app, "--source.depth_scale_m",
+                          {&s.dataset.depth_scale_m, &s.lcm.depth_scale_m},
+                          "dataset (TUM 0.0002), lcm (OpenNI 0.001): metres per raw depth unit");
+  app->add_option("--source.lcm_url", s.lcm.lcm_url,
+                  "lcm: where the frames come (empty: link.lcm_url's)")
       ->capture_default_str();
-  addSharedOption<int>(app, "--source.width", {&s.openni.width_px, &s.synthetic.width_px},
-                       "openni, synthetic: image width [px]");
-  addSharedOption<int>(app, "--source.height", {&s.openni.height_px, &s.synthetic.height_px},
-                       "openni, synthetic: image height [px]");
+  addSharedOption<int>(app, "--source.width",
+                       {&s.openni.width_px, &s.synthetic.width_px, &s.lcm.width_px},
+                       "openni, synthetic, lcm: image width [px]");
+  addSharedOption<int>(app, "--source.height",
+                       {&s.openni.height_px, &s.synthetic.height_px, &s.lcm.height_px},
+                       "openni, synthetic, lcm: image height [px]");
   app->add_option("--source.rate_hz", s.synthetic.rate_hz, "synthetic: frame rate [Hz]")
       ->capture_default_str();
   app->add_option("--source.seed", s.synthetic.seed, "synthetic: noise seed")
@@ -287,6 +293,10 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
       ->capture_default_str();
   app->add_option("--flight.attitude_law", f.attitude_law, "geometric | lqr")
       ->capture_default_str();
+  app->add_option("--flight.lockstep", f.lockstep,
+                  "the IMU's stamps are the only clock (a lockstep simulator): no ticks of the "
+                  "task's own while it is silent")
+      ->capture_default_str();
   app->add_option("--flight.mass_kg", st.vehicle.mass_kg, "vehicle mass [kg]")
       ->capture_default_str();
   app->add_option("--flight.arm_length_m", st.vehicle.arm_length_m,
@@ -316,8 +326,8 @@ Status VehicleConfig::validate() const {
 }
 
 Status SourceConfig::validate() const {
-  if (!oneOf(kind, {"log", "dataset", "openni", "synthetic"}))
-    return Status::error("source.kind must be log, dataset, openni or synthetic (got \"" + kind +
+  if (!oneOf(kind, {"log", "dataset", "openni", "synthetic", "lcm"}))
+    return Status::error("source.kind must be log, dataset, openni, synthetic or lcm (got \"" + kind +
                          "\")");
   if ((kind == "log" && log.path.empty()) || (kind == "dataset" && dataset.tum_dir.empty()))
     return Status::error("source.path is required for source.kind = " + kind);
@@ -330,7 +340,8 @@ Status SourceConfig::validate() const {
                             Bound::kOpen);
   return firstError(outOfRange("source.speed", speed, 0, 100, Bound::kOpen),
                       std::move(deprecated), log.validate(), dataset.validate(),
-                      synthetic.validate(), outOfRange("source.max_frames", max_frames, 0, 1e9),
+                      synthetic.validate(), lcm.validate(),
+                      outOfRange("source.max_frames", max_frames, 0, 1e9),
                       openni.validate(), watch.validate());
 }
 

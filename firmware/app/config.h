@@ -22,6 +22,7 @@
 #include "kinfly/link/peer.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/sources/dataset_source.h"
+#include "kinfly/sources/lcm_source.h"
 #include "kinfly/sources/log_source.h"
 #include "kinfly/sources/openni_source.h"
 #include "kinfly/sources/synthetic_source.h"
@@ -36,7 +37,7 @@ struct VehicleConfig {                           // [vehicle]
 };
 
 struct SourceConfig {                            // [source]
-  std::string kind = "log";                      // kind: log | dataset | openni | synthetic
+  std::string kind = "log";                      // kind: log | dataset | openni | synthetic | lcm
   bool realtime = true;          // realtime: replay at capture rate; false: as fast as possible
   double speed = 1.0;            // speed (0, 100]: replay rate factor when realtime
   // lockstep: only with realtime = false: after each keyframe, the next frame waits until the
@@ -51,6 +52,7 @@ struct SourceConfig {                            // [source]
   DatasetSourceParams dataset;
   OpenniSourceParams openni;
   SyntheticSourceParams synthetic;
+  LcmSourceParams lcm;
   SensorWatch::Params watch;     // stall_timeout_s
   // Given only by the deprecated key source.depth_units_per_m (raw units per metre), which sets
   // dataset.depth_scale_m to its inverse; main warns when it is there.
@@ -113,6 +115,11 @@ struct FlightConfig {                            // [flight] docs/flight.md, "Th
   int rt_priority = 0;           // rt_priority [0, 99]: SCHED_FIFO priority; 0: the default policy
   int cpu = -1;                  // cpu [-1, 1023]: pin the control thread to this core; -1: none
   std::string attitude_law = "geometric";  // attitude_law: geometric | lqr
+  // lockstep: the IMU's stamps are the only clock, as with a lockstep simulator (kinfly-sim,
+  // docs/sim.md) that pauses while it renders or waits: no ticks of the task's own while the IMU
+  // is silent after its first sample (so no IMU-lost failsafe either). false: a real IMU, whose
+  // silence is a failure the stack must see on the wall clock.
+  bool lockstep = false;
   // rate_hz (the IMU's sample rate: one tick per sample), position_rate_hz, the vehicle's mass_kg
   // and arm_length_m, max_speed_m_s, max_accel_m_s2, land_speed_m_s, vision_lost_s: the flight
   // stack's parameters; the rest keep the library's defaults.

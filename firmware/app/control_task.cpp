@@ -153,6 +153,8 @@ void ControlTask::run() {
     // The IMU gone quiet: the stack still ticks, on the IMU's clock carried on by the steady
     // clock, so that its IMU-lost failsafe acts (a stack ticked only by samples never would).
     if (last_imu_utime_ >= 0) {
+      // A lockstep simulator's pauses are not silence: its next sample carries its time on.
+      if (config_.flight.lockstep) continue;
       const double silent_s = secondsSince(last_imu_arrival_);
       if (silent_s > silent_after_s) {
         ++summary_.silent_ticks;

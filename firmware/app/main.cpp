@@ -33,6 +33,7 @@
 #include "kinfly/sources/dataset_source.h"
 #include "kinfly/sources/log_source.h"
 #include "kinfly/sources/openni_source.h"
+#include "kinfly/sources/lcm_source.h"
 #include "kinfly/sources/synthetic_source.h"
 
 namespace kinfly::fw {
@@ -79,6 +80,12 @@ StatusOr<std::unique_ptr<DepthSource>> openSource(const FirmwareConfig& config) 
     return openSyntheticSource(p);
   }
   if (source.kind == "openni") return openOpenniSource(source.openni);
+  if (source.kind == "lcm") {
+    LcmSourceParams p = source.lcm;
+    p.vehicle_id = config.vehicle.id;
+    if (p.lcm_url.empty()) p.lcm_url = config.link.effectiveLcmUrl();
+    return openLcmSource(p);
+  }
   LogSourceParams p = source.log;
   p.vehicle_id = config.vehicle.id;
   return openLogSource(p);

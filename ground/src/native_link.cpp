@@ -209,7 +209,8 @@ class Receiver {
       case link::Channel::kGroundStatus:
       case link::Channel::kChunkRequest:
       case link::Channel::kMotorCommand:
-      case link::Channel::kCommand: return nb::none();
+      case link::Channel::kCommand:
+      case link::Channel::kSimState: return nb::none();
     }
     return nb::none();
   }
@@ -526,7 +527,8 @@ void bindLink(nb::module_& m) {
       .value("CHUNK_REQUEST", link::Channel::kChunkRequest)
       .value("MOTOR_COMMAND", link::Channel::kMotorCommand)
       .value("COMMAND", link::Channel::kCommand)
-      .value("FLIGHT", link::Channel::kFlight);
+      .value("FLIGHT", link::Channel::kFlight)
+      .value("SIM_STATE", link::Channel::kSimState);
   m.attr("MAX_VEHICLE_ID") = link::kMaxVehicleId;
   m.def("channel_name",
         [](link::Channel channel, int vehicle_id) {

@@ -27,7 +27,8 @@ Status MultirotorParams::validate() const {
       outOfRange("vehicle.parasitic_drag_x", parasitic_drag_x, 0.0, 10.0),
       outOfRange("vehicle.parasitic_drag_y", parasitic_drag_y, 0.0, 10.0),
       outOfRange("vehicle.parasitic_drag_z", parasitic_drag_z, 0.0, 10.0),
-      outOfRange("vehicle.body_radius_m", body_radius_m, 0.0, 5.0, Bound::kOpen));
+      outOfRange("vehicle.body_radius_m", body_radius_m, 0.0, 5.0, Bound::kOpen),
+      outOfRange("vehicle.gear_height_m", gear_height_m, 0.0, 1.0));
   if (!status.ok()) return status;
   const double hover_rad_s = std::sqrt(mass_kg * kGravityMS2 / (4.0 * thrust_coeff_n_s2_rad2));
   if (hover_rad_s <= rotor_speed_min_rad_s || hover_rad_s >= rotor_speed_max_rad_s) {
@@ -46,7 +47,7 @@ StatusOr<RotorLayout> parseRotorLayout(const std::string& text) {
 Multirotor::Multirotor(const MultirotorParams& params)
     : params_(params),
       inertia_kg_m2_(params.inertia_xx_kg_m2, params.inertia_yy_kg_m2, params.inertia_zz_kg_m2),
-      floor_z_m_(std::nan("")) {
+      rest_z_m_(std::nan("")) {
   const double d = std::sqrt(0.5);
   const double xy_x[4][2] = {{d, d}, {-d, -d}, {d, -d}, {-d, d}};
   const double xy_plus[4][2] = {{0.0, 1.0}, {0.0, -1.0}, {1.0, 0.0}, {-1.0, 0.0}};
@@ -65,9 +66,9 @@ double Multirotor::hoverRotorSpeedRadS() const {
 void Multirotor::placeOnFloor(const Eigen::Vector2d& xy_world_m, double yaw_rad,
                               double floor_z_m) {
   state_ = MultirotorState{};
-  state_.p_world_m << xy_world_m, floor_z_m;
+  rest_z_m_ = floor_z_m - params_.gear_height_m;
+  state_.p_world_m << xy_world_m, rest_z_m_;
   state_.q_world_body = Eigen::AngleAxisd(yaw_rad, Eigen::Vector3d::UnitZ());
-  floor_z_m_ = floor_z_m;
   on_floor_ = true;
   specific_force_body_m_s2_ = Eigen::Vector3d(0.0, 0.0, -kGravityMS2);
 }
@@ -167,11 +168,11 @@ double Multirotor::touchFloor() {
   const bool was_on_floor = on_floor_;
   on_floor_ = false;
   // Lifting off, the step leaves the body above the floor.
-  if (std::isnan(floor_z_m_) || state_.p_world_m.z() < floor_z_m_) return 0.0;
+  if (std::isnan(rest_z_m_) || state_.p_world_m.z() < rest_z_m_) return 0.0;
   const double touchdown_m_s = was_on_floor ? 0.0 : state_.v_world_m_s.norm();
   // Inelastic and sticky, as on skids: stopped, level at its heading.
   const Eigen::Vector3d x_body_world = state_.q_world_body * Eigen::Vector3d::UnitX();
-  state_.p_world_m.z() = floor_z_m_;
+  state_.p_world_m.z() = rest_z_m_;
   state_.v_world_m_s.setZero();
   state_.omega_body_rad_s.setZero();
   state_.q_world_body = Eigen::AngleAxisd(std::atan2(x_body_world.y(), x_body_world.x()),

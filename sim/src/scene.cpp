@@ -96,26 +96,26 @@ void addRoomShell(TriangleMesh* mesh, const Eigen::Vector3f& lo, const Eigen::Ve
 Scene furnishedRoom() {
   Scene scene;
   scene.name = "room";
-  addFloor(&scene, {-4.0f, -3.0f}, {4.0f, 3.0f});
+  addFloor(&scene, {-3.0f, -2.5f}, {3.0f, 2.5f});
   TriangleMesh& mesh = scene.mesh;
-  addRoomShell(&mesh, {-4.0f, -3.0f, -3.0f}, {4.0f, 3.0f, 0.0f});
+  addRoomShell(&mesh, {-3.0f, -2.5f, -2.7f}, {3.0f, 2.5f, 0.0f});
   // Boxes against and away from the walls, of different heights.
-  addBox(&mesh, {2.8f, -2.6f, -0.8f}, {3.6f, -1.6f, 0.0f});
-  addBox(&mesh, {2.9f, -1.4f, -0.5f}, {3.5f, -0.8f, 0.0f});
-  addBox(&mesh, {-3.6f, 1.6f, -1.2f}, {-2.6f, 2.6f, 0.0f});
-  addBox(&mesh, {-1.0f, 2.2f, -0.6f}, {0.2f, 2.8f, 0.0f});
+  addBox(&mesh, {2.0f, -2.2f, -0.8f}, {2.8f, -1.4f, 0.0f});
+  addBox(&mesh, {2.1f, -1.2f, -0.5f}, {2.7f, -0.6f, 0.0f});
+  addBox(&mesh, {-2.8f, 1.4f, -1.2f}, {-1.9f, 2.3f, 0.0f});
+  addBox(&mesh, {-0.8f, 1.9f, -0.6f}, {0.4f, 2.4f, 0.0f});
   // Two pillars, floor to ceiling.
-  addPillar(&mesh, {1.6f, 1.2f}, 0.2f, -3.0f, 0.0f);
-  addPillar(&mesh, {-1.8f, -1.4f}, 0.25f, -3.0f, 0.0f);
+  addPillar(&mesh, {1.2f, 0.9f}, 0.2f, -2.7f, 0.0f);
+  addPillar(&mesh, {-1.4f, -1.1f}, 0.25f, -2.7f, 0.0f);
   // A table: top 1.2 x 0.8 m at 0.75 m, four legs.
-  addBox(&mesh, {-3.4f, -2.6f, -0.78f}, {-2.2f, -1.8f, -0.74f});
-  for (const float x : {-3.35f, -2.29f}) {
-    for (const float y : {-2.55f, -1.89f}) addBox(&mesh, {x, y, -0.74f}, {x + 0.04f, y + 0.04f, 0.0f});
+  addBox(&mesh, {-2.7f, -2.2f, -0.78f}, {-1.5f, -1.4f, -0.74f});
+  for (const float x : {-2.65f, -1.59f}) {
+    for (const float y : {-2.15f, -1.49f}) addBox(&mesh, {x, y, -0.74f}, {x + 0.04f, y + 0.04f, 0.0f});
   }
-  // Steps up to a platform along the +x wall, each 0.3 m deep and 0.2 m high.
+  // Steps up to a platform in the +x, +y corner, each 0.3 m deep and 0.2 m high.
   for (int i = 0; i < 4; ++i) {
-    const float x0 = 1.6f + 0.3f * static_cast<float>(i);
-    addBox(&mesh, {x0, 1.8f, -0.2f * static_cast<float>(i + 1)}, {4.0f, 3.0f, 0.0f});
+    const float x0 = 1.8f + 0.3f * static_cast<float>(i);
+    addBox(&mesh, {x0, 1.5f, -0.2f * static_cast<float>(i + 1)}, {3.0f, 2.5f, 0.0f});
   }
   scene.start_xy_m = {0.0, 0.0};
   scene.start_yaw_rad = 0.0;

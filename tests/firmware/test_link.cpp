@@ -91,7 +91,8 @@ TEST(Channels, NamesCarryTheVehicleAndParseBack) {
   for (Channel c : {Channel::kDepth, Channel::kKeyframe, Channel::kOdometry, Channel::kImu,
                     Channel::kStatus, Channel::kCorrection, Channel::kGroundStatus,
                     Channel::kGroundTruth, Channel::kKeyframeChunk, Channel::kChunkRequest,
-                    Channel::kMotorCommand, Channel::kCommand, Channel::kFlight}) {
+                    Channel::kMotorCommand, Channel::kCommand, Channel::kFlight,
+                    Channel::kSimState}) {
     for (int vehicle : {0, 7, kMaxVehicleId}) {
       const std::string name = channelName(c, vehicle);
       EXPECT_NE(name.find(std::to_string(vehicle)), std::string::npos) << name;

@@ -23,6 +23,7 @@ constexpr std::array<std::pair<Channel, const char*>, kChannelCount> kKinds{{
     {Channel::kMotorCommand, "MOTOR_COMMAND"},
     {Channel::kCommand, "COMMAND"},
     {Channel::kFlight, "FLIGHT"},
+    {Channel::kSimState, "SIM_STATE"},
 }};
 
 }  // namespace

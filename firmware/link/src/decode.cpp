@@ -6,7 +6,6 @@
 
 #include "kinfly/link/channels.h"
 #include "kinfly/link/chunking.h"
-#include "kinfly/motor_command_t.hpp"
 
 namespace kinfly::link {
 namespace {
@@ -110,6 +109,15 @@ std::string fieldProblem(const imu_t& m, const DecodeBounds&) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
   if (!finite(m.angular_velocity_rad_s, 3) || !finite(m.linear_acceleration_m_s2, 3))
     return "IMU sample is not finite";
+  return {};
+}
+
+std::string fieldProblem(const motor_command_t& m, const DecodeBounds&) {
+  if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
+  if (m.state < motor_command_t::STOPPED || m.state > motor_command_t::FLYING)
+    return "unknown state " + std::to_string(m.state);
+  for (const float speed : m.rotor_speed_rad_s)
+    if (!std::isfinite(speed) || speed < 0.0f) return "a rotor speed is negative or not finite";
   return {};
 }
 
@@ -277,6 +285,7 @@ KINFLY_INSTANTIATE_DECODE(keyframe_chunk_t)
 KINFLY_INSTANTIATE_DECODE(chunk_request_t)
 KINFLY_INSTANTIATE_DECODE(flight_command_t)
 KINFLY_INSTANTIATE_DECODE(flight_status_t)
+KINFLY_INSTANTIATE_DECODE(motor_command_t)
 #undef KINFLY_INSTANTIATE_DECODE
 
 }  // namespace kinfly::link

@@ -50,6 +50,8 @@ struct MultirotorParams {
   double parasitic_drag_y = 0.5e-2;
   double parasitic_drag_z = 1e-2;
   double body_radius_m = 0.27;               // [m] (0, 5] arm + rotor: the sphere that collides
+  double gear_height_m = 0.10;               // [m] [0, 1] the centre of mass above the floor when
+                                             // standing (landing gear)
 
   // Names the first wrong field (vehicle.<name>) and its range; also that the vehicle can hover
   // within its rotor speeds.
@@ -75,8 +77,8 @@ class Multirotor {
   double spinDirection(int i) const { return spin_direction_[i]; }
   double hoverRotorSpeedRadS() const;
 
-  // At rest on a floor at world height floor_z_m (z down), level, heading yaw_rad, rotors
-  // stopped.
+  // Standing on a floor at world height floor_z_m (z down) on its gear (the centre of mass
+  // gear_height_m above it), level, heading yaw_rad, rotors stopped.
   void placeOnFloor(const Eigen::Vector2d& xy_world_m, double yaw_rad, double floor_z_m);
   // At rest in the air, the rotors at hover speed (no floor unless one was placed before).
   void placeHovering(const Eigen::Vector3d& p_world_m, double yaw_rad);
@@ -117,7 +119,7 @@ class Multirotor {
   std::array<double, 4> efficiency_{1.0, 1.0, 1.0, 1.0};
   Eigen::Vector3d inertia_kg_m2_;
   MultirotorState state_;
-  double floor_z_m_;  // NaN: no floor
+  double rest_z_m_;  // the centre of mass's height standing on the floor; NaN: no floor
   bool on_floor_ = false;
   Eigen::Vector3d specific_force_body_m_s2_ = Eigen::Vector3d(0.0, 0.0, -kGravityMS2);
 };

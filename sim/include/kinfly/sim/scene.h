@@ -25,9 +25,10 @@ struct Scene {
   double start_yaw_rad = 0.0;                      // [rad] its heading there
 };
 
-// A furnished room, 8 m x 6 m x 3 m (x in [-4, 4], y in [-3, 3], the ceiling at z = -3): boxes,
-// two pillars, a table, a flight of steps, so that ICP has structure to hold on to from anywhere
-// in it. The drone starts in the middle, heading +x.
+// A furnished room, 6 m x 5 m x 2.7 m (x in [-3, 3], y in [-2.5, 2.5], the ceiling at
+// z = -2.7): boxes, two pillars, a table, a flight of steps, so that ICP has structure to hold on
+// to from anywhere in it, and every wall within the odometry's 4 m. The drone starts in the
+// middle, heading +x.
 Scene furnishedRoom();
 
 // A corridor 30 m long, 2 m wide, 2.5 m high, featureless: its walls are planes along x, so ICP

@@ -26,9 +26,10 @@ enum class Channel {
   kMotorCommand,  // motor_command_t, the control task's rotor speeds (drone -> simulator/ESCs)
   kCommand,       // signed_t around flight_command_t (ground -> drone)
   kFlight,        // flight_status_t, the flight stack's state (drone -> ground)
+  kSimState,      // sim_state_t, the simulated vehicle's true state (kinfly-sim -> ground, logs)
 };
 // Channels are numbered from 0 in the order above (arrays of per-channel names index by it).
-constexpr size_t kChannelCount = static_cast<size_t>(Channel::kFlight) + 1;
+constexpr size_t kChannelCount = static_cast<size_t>(Channel::kSimState) + 1;
 
 constexpr int kMaxVehicleId = 65535;  // ids are 0..kMaxVehicleId
 

@@ -18,6 +18,7 @@
 #include "kinfly/ground_truth_t.hpp"
 #include "kinfly/imu_t.hpp"
 #include "kinfly/keyframe_chunk_t.hpp"
+#include "kinfly/motor_command_t.hpp"
 #include "kinfly/odometry_t.hpp"
 #include "kinfly/pose_correction_t.hpp"
 #include "kinfly/signed_t.hpp"

@@ -1,0 +1,571 @@
+// kinfly-sim: the simulated world kinfly-fw flies in, over LCM, in lockstep (docs/sim.md).
+//
+// Simulation time is the only clock. Each IMU period the simulator steps the vehicle (RK4, one
+// step per IMU sample), publishes the sample, and waits for kinfly-fw's control task to answer it
+// with the rotor commands of that sample (motor_command_t, same utime) before it goes on. Depth
+// frames are rendered at capture time and published after the camera's latency; the simulator
+// then waits for the odometry's pose of that frame (odometry_t, same utime), so the control task
+// sees it at the same simulated instant on any machine. A built-in mission (arm, take off, hold,
+// land) is sent as signed commands, as the ground station's `kinfly-ground command` would.
+#include <CLI/CLI.hpp>
+#include <lcm/lcm-cpp.hpp>
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <map>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "kinfly/codec/depth_codec.h"
+#include "kinfly/core/range_check.h"
+#include "kinfly/core/se3.h"
+#include "kinfly/link/channels.h"
+#include "kinfly/link/conversions.h"
+#include "kinfly/link/decode.h"
+#include "kinfly/link/signing.h"
+#include "kinfly/sim/depth_camera.h"
+#include "kinfly/sim/imu_model.h"
+#include "kinfly/sim/multirotor.h"
+#include "kinfly/sim/ray_scene.h"
+#include "kinfly/sim/scene.h"
+#include "kinfly/sim/wind.h"
+#include "kinfly/sim_state_t.hpp"
+
+namespace kinfly::sim {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr int64_t kStartUtime = 1'000'000;  // [us] a start after 0 keeps every stamp positive
+constexpr int kStateEverySteps = 10;        // sim_state_t at a tenth of the IMU rate
+// Directions of the collision probe: the 26 of a cube's faces, edges and corners.
+constexpr int kProbeDirections = 26;
+
+struct Options {
+  std::string scene = "room";
+  uint64_t seed = 1;
+  int vehicle_id = 1;
+  std::string lcm_url;
+  std::string key_file;
+  bool realtime = false;
+  double max_seconds = 60.0;
+  double wait_s = 10.0;
+  double takeoff_height_m = 1.0;
+  double hover_s = 10.0;
+  double crash_speed_m_s = 1.5;
+  int camera_downsample = 1;
+  std::string summary;
+  // Errors of the simulated vehicle against the nominal one (what kinfly-fw's flight stack
+  // believes by default): fractions, +0.05 = 5 % more.
+  double mass_error = 0.0;
+  double inertia_error = 0.0;
+  double thrust_error = 0.0;
+  std::vector<double> wind_m_s{0.0, 0.0, 0.0};
+  double turbulence_w20_m_s = 0.0;
+  MultirotorParams vehicle;
+  ImuParams imu;
+  DepthCameraParams camera;
+};
+
+Status validate(const Options& o) {
+  if (o.wind_m_s.size() != 3) return Status::error("--wind needs three values: x y z [m/s]");
+  return firstError(
+      outOfRange("--max-seconds", o.max_seconds, 1.0, 86400.0),
+      outOfRange("--wait-s", o.wait_s, 0.1, 600.0),
+      outOfRange("--takeoff-height-m", o.takeoff_height_m, 0.2, 2.5),
+      outOfRange("--hover-s", o.hover_s, 0.0, 3600.0),
+      outOfRange("--crash-speed-m-s", o.crash_speed_m_s, 0.1, 20.0, Bound::kOpen),
+      outOfRange("--mass-error", o.mass_error, -0.5, 0.5),
+      outOfRange("--inertia-error", o.inertia_error, -0.5, 0.5),
+      outOfRange("--thrust-error", o.thrust_error, -0.5, 0.5),
+      outOfRange("--camera-downsample", o.camera_downsample, 1, 4));
+}
+
+// The simulated vehicle: the nominal one with the stated errors.
+MultirotorParams simulatedVehicle(const Options& o) {
+  MultirotorParams p = o.vehicle;
+  p.mass_kg *= 1.0 + o.mass_error;
+  p.inertia_xx_kg_m2 *= 1.0 + o.inertia_error;
+  p.inertia_yy_kg_m2 *= 1.0 + o.inertia_error;
+  p.inertia_zz_kg_m2 *= 1.0 + o.inertia_error;
+  p.thrust_coeff_n_s2_rad2 *= 1.0 + o.thrust_error;
+  return p;
+}
+
+// The camera on the body: at the centre of mass, looking ahead (optical x right = body y, y down
+// = body z, z ahead = body x), as kinfly-fw's estimator assumes by default.
+Pose bodyCam() {
+  Pose T = Pose::Identity();
+  T.linear() << 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0;
+  return T;
+}
+
+// What kinfly-fw sends back, as the LCM handlers see it.
+struct Answers {
+  int64_t motor_utime = -1;
+  motor_command_t motor;
+  bool motor_heard = false;
+  std::map<int64_t, bool> odometry;  // utimes of odometry poses heard (erased when taken)
+  int64_t rejected = 0;
+};
+
+class Link {
+ public:
+  Link(const Options& o, lcm::LCM* lcm) : o_(o), lcm_(lcm) {
+    lcm_->subscribeFunction(link::channelName(link::Channel::kMotorCommand, o.vehicle_id),
+                            &Link::onMotor, this);
+    lcm_->subscribeFunction(link::channelName(link::Channel::kOdometry, o.vehicle_id),
+                            &Link::onOdometry, this);
+  }
+  Answers& answers() { return answers_; }
+
+  // Handles messages until done() or wait_s of wall time; false on the timeout.
+  template <class Done>
+  bool waitFor(Done done) {
+    const Clock::time_point deadline =
+        Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                           std::chrono::duration<double>(o_.wait_s));
+    while (!done()) {
+      const auto left =
+          std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count();
+      if (left <= 0) return false;
+      lcm_->handleTimeout(static_cast<int>(std::min<int64_t>(left, 100)));
+    }
+    return true;
+  }
+
+ private:
+  static void onMotor(const lcm::ReceiveBuffer* buffer, const std::string&, Link* self) {
+    motor_command_t m;
+    if (!link::decodeMessage(buffer->data, buffer->data_size, link::DecodeBounds(), &m).ok() ||
+        m.vehicle_id != self->o_.vehicle_id) {
+      ++self->answers_.rejected;
+      return;
+    }
+    self->answers_.motor = m;
+    self->answers_.motor_utime = m.utime;
+    self->answers_.motor_heard = true;
+  }
+  static void onOdometry(const lcm::ReceiveBuffer* buffer, const std::string&, Link* self) {
+    odometry_t m;
+    if (!link::decodeMessage(buffer->data, buffer->data_size, link::DecodeBounds(), &m).ok() ||
+        m.vehicle_id != self->o_.vehicle_id) {
+      ++self->answers_.rejected;
+      return;
+    }
+    self->answers_.odometry[m.utime] = true;
+  }
+
+  const Options& o_;
+  lcm::LCM* lcm_;
+  Answers answers_;
+};
+
+// The built-in mission: its commands at their simulation times.
+struct MissionStep {
+  double at_s;
+  int8_t kind;
+  const char* name;
+};
+
+struct Flight {
+  int64_t steps = 0;
+  int64_t frames = 0;
+  int64_t odometry_missed = 0;
+  int64_t motor_missed = 0;
+  bool collided = false;
+  Eigen::Vector3d collision_world_m = Eigen::Vector3d::Zero();
+  double collision_speed_m_s = 0.0;
+  bool crashed_on_floor = false;
+  double last_touchdown_m_s = 0.0;
+  double max_height_m = 0.0;
+  double hover_sq_sum_m2 = 0.0;
+  int64_t hover_samples = 0;
+  bool landed = false;
+  double sim_s = 0.0;
+  double wall_s = 0.0;
+};
+
+int run(const Options& o) {
+  StatusOr<Scene> scene = makeScene(o.scene);
+  if (!scene.ok()) {
+    std::fprintf(stderr, "kinfly-sim: --scene: %s\n", scene.status().message().c_str());
+    return 2;
+  }
+  const MultirotorParams vehicle_params = simulatedVehicle(o);
+  DepthCameraParams camera_params = o.camera;
+  camera_params.camera = camera_params.camera.scaled(o.camera_downsample);
+  camera_params.seed = o.seed * 3 + 1;
+  ImuParams imu_params = o.imu;
+  imu_params.seed = o.seed * 3 + 2;
+  WindParams wind_params;
+  wind_params.mean_world_m_s = Eigen::Vector3d(o.wind_m_s[0], o.wind_m_s[1], o.wind_m_s[2]);
+  wind_params.turbulence_w20_m_s = o.turbulence_w20_m_s;
+  wind_params.seed = o.seed * 3 + 3;
+  for (const Status& status : {validate(o), vehicle_params.validate(), camera_params.validate(),
+                               imu_params.validate(), wind_params.validate()}) {
+    if (!status.ok()) {
+      std::fprintf(stderr, "kinfly-sim: %s\n", status.message().c_str());
+      return 2;
+    }
+  }
+  StatusOr<link::Key> key = link::loadKeyFile(o.key_file);
+  if (!key.ok()) {
+    std::fprintf(stderr, "kinfly-sim: --key-file: %s\n", key.status().message().c_str());
+    return 2;
+  }
+  StatusOr<std::unique_ptr<RayScene>> rays = RayScene::create(scene.value());
+  if (!rays.ok()) {
+    std::fprintf(stderr, "kinfly-sim: %s\n", rays.status().message().c_str());
+    return 1;
+  }
+  lcm::LCM lcm(o.lcm_url);
+  if (!lcm.good()) {
+    std::fprintf(stderr, "kinfly-sim: cannot start LCM on '%s'\n", o.lcm_url.c_str());
+    return 1;
+  }
+  Link link_io(o, &lcm);
+  Answers& answers = link_io.answers();
+
+  Multirotor drone(vehicle_params);
+  drone.placeOnFloor(scene.value().start_xy_m, scene.value().start_yaw_rad,
+                     scene.value().floor_z_m);
+  Wind wind(wind_params);
+  ImuModel imu(imu_params);
+  DepthCamera camera(*rays.value(), camera_params);
+  DepthCodec codec{DepthCodec::Params()};
+  const Pose T_body_cam = bodyCam();
+  link::Signer signer(key.value(), o.vehicle_id, link::wallClockUtime());
+
+  const std::string imu_channel = link::channelName(link::Channel::kImu, o.vehicle_id);
+  const std::string depth_channel = link::channelName(link::Channel::kDepth, o.vehicle_id);
+  const std::string truth_channel = link::channelName(link::Channel::kGroundTruth, o.vehicle_id);
+  const std::string state_channel = link::channelName(link::Channel::kSimState, o.vehicle_id);
+  const std::string command_channel = link::channelName(link::Channel::kCommand, o.vehicle_id);
+
+  std::printf("kinfly-sim: scene %s, seed %llu, IMU %.0f Hz, depth %dx%d at %.0f Hz "
+              "(latency %.0f ms); waiting for kinfly-fw's control task on %s\n",
+              o.scene.c_str(), static_cast<unsigned long long>(o.seed), imu_params.rate_hz,
+              camera_params.camera.width, camera_params.camera.height, camera_params.rate_hz,
+              camera_params.latency_s * 1e3,
+              link::channelName(link::Channel::kMotorCommand, o.vehicle_id).c_str());
+  std::fflush(stdout);
+  // Ready: the control task ticks on the wall clock until the first IMU sample, and answers.
+  if (!link_io.waitFor([&] { return answers.motor_heard; })) {
+    std::fprintf(stderr, "kinfly-sim: kinfly-fw's control task never answered within %.0f s "
+                         "(is it running with flight.backend = motors and this LCM URL?)\n",
+                 o.wait_s);
+    return 1;
+  }
+
+  // Armed after the estimator's still start (half a second of IMU at rest) and its first poses.
+  const double climb_s = 2.0 + 2.0 * o.takeoff_height_m;  // at ~0.5 m/s, with room
+  const double takeoff_s = 3.0;
+  const std::vector<MissionStep> mission = {
+      {2.0, flight_command_t::ARM, "arm"},
+      {takeoff_s, flight_command_t::TAKE_OFF, "take-off"},
+      {takeoff_s + climb_s + o.hover_s, flight_command_t::LAND, "land"},
+  };
+  const double hover_from_s = takeoff_s + climb_s;
+  const double hover_to_s = hover_from_s + o.hover_s;
+  size_t next_mission = 0;
+  int64_t command_id = 0;
+
+  const double dt_s = 1.0 / imu_params.rate_hz;
+  const int64_t period_us = static_cast<int64_t>(std::llround(1e6 / imu_params.rate_hz));
+  const int64_t frame_period_us = static_cast<int64_t>(std::llround(1e6 / camera_params.rate_hz));
+  const int64_t latency_us = static_cast<int64_t>(std::llround(camera_params.latency_s * 1e6));
+  struct Pending {
+    int64_t due_us;
+    depth_keyframe_t message;
+  };
+  std::vector<Pending> pending;
+  Image<uint16_t> raw(camera_params.camera.width, camera_params.camera.height);
+  int64_t next_frame_us = kStartUtime;
+  Vector4d command = Vector4d::Zero();
+  Flight flight;
+  // Heights are the body's above where it stood (as kinfly-fw's take-off counts them).
+  const double stand_z_m = scene.value().floor_z_m - vehicle_params.gear_height_m;
+  const Eigen::Vector3d hover_target(scene.value().start_xy_m.x(), scene.value().start_xy_m.y(),
+                                     stand_z_m - o.takeoff_height_m);
+  std::array<Eigen::Vector3f, kProbeDirections> probes;
+  {
+    int n = 0;
+    for (int x = -1; x <= 1; ++x)
+      for (int y = -1; y <= 1; ++y)
+        for (int z = -1; z <= 1; ++z)
+          if (x != 0 || y != 0 || z != 0)
+            probes[n++] = Eigen::Vector3f(static_cast<float>(x), static_cast<float>(y),
+                                          static_cast<float>(z)).normalized();
+  }
+  const Clock::time_point wall_start = Clock::now();
+  int64_t utime = kStartUtime;
+  bool airborne = false;
+  int64_t disarmed_on_floor_steps = 0;
+  const int64_t end_utime = kStartUtime + static_cast<int64_t>(o.max_seconds * 1e6);
+  sim_state_t state_msg{};
+  state_msg.vehicle_id = o.vehicle_id;
+  imu_t imu_msg{};
+  imu_msg.vehicle_id = o.vehicle_id;
+  imu_msg.temperature_c = NAN;
+  ground_truth_t truth_msg{};
+  truth_msg.vehicle_id = o.vehicle_id;
+  double next_progress_s = 5.0;
+
+  while (utime < end_utime) {
+    const double t_s = static_cast<double>(utime - kStartUtime) * 1e-6;
+    // The mission's commands, signed as the ground signs them.
+    while (next_mission < mission.size() && t_s >= mission[next_mission].at_s) {
+      const MissionStep& step = mission[next_mission++];
+      flight_command_t c{};
+      c.utime = link::wallClockUtime();
+      c.vehicle_id = o.vehicle_id;
+      c.command_id = ++command_id;
+      c.kind = step.kind;
+      c.height_m = o.takeoff_height_m;
+      c.waypoint_count = 0;
+      std::vector<uint8_t> inner(static_cast<size_t>(c.getEncodedSize()));
+      c.encode(inner.data(), 0, static_cast<int>(inner.size()));
+      signed_t envelope;
+      signer.sign(inner.data(), inner.size(), link::wallClockUtime(), &envelope);
+      lcm.publish(command_channel, &envelope);
+      std::printf("kinfly-sim: t=%.2f s: %s\n", t_s, step.name);
+      std::fflush(stdout);
+    }
+
+    // Depth frames captured now, delivered after the latency.
+    if (utime >= next_frame_us) {
+      const Pose T_world_body = [&] {
+        Pose T = Pose::Identity();
+        T.linear() = drone.state().q_world_body.toRotationMatrix();
+        T.translation() = drone.state().p_world_m;
+        return T;
+      }();
+      const Pose T_world_cam = T_world_body * T_body_cam;
+      camera.render(T_world_cam, raw);
+      Pending p{utime + latency_us, depth_keyframe_t{}};
+      link::KeyframeHeader header;
+      header.utime = utime;
+      header.frame_id = flight.frames;
+      header.keyframe_id = -1;
+      header.T_world_cam = Pose::Identity();  // a raw capture: no pose
+      link::fillKeyframe(header, &p.message);
+      p.message.vehicle_id = o.vehicle_id;
+      if (!link::encodeDepth(codec, raw, camera_params.camera, camera_params.depth_scale_m,
+                             &p.message).ok()) {
+        std::fprintf(stderr, "kinfly-sim: a rendered frame does not encode\n");
+        return 1;
+      }
+      pending.push_back(std::move(p));
+      link::fillGroundTruth(utime, T_world_cam, &truth_msg);
+      lcm.publish(truth_channel, &truth_msg);
+      ++flight.frames;
+      next_frame_us += frame_period_us;
+    }
+    while (!pending.empty() && pending.front().due_us <= utime) {
+      const int64_t captured = pending.front().message.utime;
+      lcm.publish(depth_channel, &pending.front().message);
+      pending.erase(pending.begin());
+      if (!link_io.waitFor([&] { return answers.odometry.count(captured) > 0; })) {
+        ++flight.odometry_missed;
+      }
+      answers.odometry.erase(answers.odometry.begin(), answers.odometry.upper_bound(captured));
+    }
+
+    // The physics over one IMU period with the last answer's commands.
+    const Eigen::Vector3d air = wind.step(t_s + dt_s, dt_s, scene.value().floor_z_m -
+                                          drone.state().p_world_m.z(), drone.state().v_world_m_s);
+    const double touchdown = drone.step(command, air, dt_s);
+    utime += period_us;
+    ++flight.steps;
+    const MultirotorState& s = drone.state();
+    flight.max_height_m = std::max(flight.max_height_m, stand_z_m - s.p_world_m.z());
+    if (touchdown > 0.0) {
+      flight.last_touchdown_m_s = touchdown;
+      if (touchdown > o.crash_speed_m_s) flight.crashed_on_floor = true;
+    }
+    if (!drone.onFloor()) airborne = true;
+    // The scene: a face within the body's radius, the floor aside, ends the flight.
+    for (const Eigen::Vector3f& direction : probes) {
+      const RayHit hit = rays.value()->cast(s.p_world_m.cast<float>(), direction,
+                                            static_cast<float>(vehicle_params.body_radius_m));
+      if (hit.hit && !hit.floor) {
+        flight.collided = true;
+        flight.collision_world_m = s.p_world_m;
+        flight.collision_speed_m_s = s.v_world_m_s.norm();
+        break;
+      }
+    }
+    const double now_s = t_s + dt_s;
+    if (now_s >= hover_from_s && now_s < hover_to_s) {
+      flight.hover_sq_sum_m2 += (s.p_world_m - hover_target).squaredNorm();
+      ++flight.hover_samples;
+    }
+
+    const ImuReading reading = imu.sample(s.omega_body_rad_s, drone.specificForceBodyMS2());
+    imu_msg.utime = utime;
+    for (int i = 0; i < 3; ++i) {
+      imu_msg.angular_velocity_rad_s[i] = reading.angular_velocity_rad_s[i];
+      imu_msg.linear_acceleration_m_s2[i] = reading.specific_force_m_s2[i];
+    }
+    if (flight.steps % kStateEverySteps == 0 || flight.collided) {
+      state_msg.utime = utime;
+      for (int i = 0; i < 3; ++i) {
+        state_msg.p_world_m[i] = s.p_world_m[i];
+        state_msg.v_world_m_s[i] = s.v_world_m_s[i];
+        state_msg.omega_body_rad_s[i] = s.omega_body_rad_s[i];
+        state_msg.wind_world_m_s[i] = static_cast<float>(air[i]);
+      }
+      const Eigen::Vector4d q = s.q_world_body.coeffs();
+      for (int i = 0; i < 4; ++i) {
+        state_msg.q_world_body[i] = q[i];
+        state_msg.rotor_speed_rad_s[i] = static_cast<float>(s.rotor_speed_rad_s[i]);
+      }
+      state_msg.on_floor = drone.onFloor();
+      state_msg.collided = flight.collided;
+      lcm.publish(state_channel, &state_msg);
+    }
+    if (flight.collided) break;
+    lcm.publish(imu_channel, &imu_msg);
+    if (!link_io.waitFor([&] { return answers.motor_utime == utime; })) {
+      ++flight.motor_missed;
+      std::fprintf(stderr, "kinfly-sim: t=%.3f s: no rotor command for this IMU sample within "
+                           "%.0f s: kinfly-fw is gone\n", now_s, o.wait_s);
+      break;
+    }
+    const motor_command_t& m = answers.motor;
+    for (int i = 0; i < 4; ++i) {
+      command[i] = m.state == motor_command_t::STOPPED ? 0.0 : m.rotor_speed_rad_s[i];
+    }
+    // Landed: back on the floor, rotors stopped, a second after the land command.
+    if (airborne && drone.onFloor() && m.state == motor_command_t::STOPPED) {
+      if (static_cast<double>(++disarmed_on_floor_steps) * dt_s >= 1.0) {
+        flight.landed = true;
+        break;
+      }
+    } else {
+      disarmed_on_floor_steps = 0;
+    }
+    if (o.realtime) {
+      std::this_thread::sleep_until(wall_start + std::chrono::microseconds(utime - kStartUtime));
+    }
+    if (now_s >= next_progress_s) {
+      std::printf("kinfly-sim: t=%.0f s, height %.2f m, %.1fx real time\n", now_s,
+                  stand_z_m - s.p_world_m.z(),
+                  now_s / std::chrono::duration<double>(Clock::now() - wall_start).count());
+      std::fflush(stdout);
+      next_progress_s += 5.0;
+    }
+  }
+  flight.sim_s = static_cast<double>(utime - kStartUtime) * 1e-6;
+  flight.wall_s = std::chrono::duration<double>(Clock::now() - wall_start).count();
+
+  const double hover_rms_m = flight.hover_samples > 0
+                                 ? std::sqrt(flight.hover_sq_sum_m2 /
+                                             static_cast<double>(flight.hover_samples))
+                                 : NAN;
+  const bool ok = flight.landed && !flight.collided && !flight.crashed_on_floor &&
+                  flight.motor_missed == 0;
+  char json[2048];
+  std::snprintf(
+      json, sizeof json,
+      "{\n  \"scene\": \"%s\",\n  \"seed\": %llu,\n  \"sim_s\": %.3f,\n  \"wall_s\": %.3f,\n"
+      "  \"real_time_factor\": %.3f,\n  \"imu_samples\": %lld,\n  \"depth_frames\": %lld,\n"
+      "  \"odometry_missed\": %lld,\n  \"motor_missed\": %lld,\n  \"max_height_m\": %.4f,\n"
+      "  \"hover_rms_m\": %.5f,\n  \"touchdown_m_s\": %.3f,\n  \"landed\": %s,\n"
+      "  \"collided\": %s,\n  \"collision_world_m\": [%.3f, %.3f, %.3f],\n"
+      "  \"collision_speed_m_s\": %.3f,\n  \"crashed_on_floor\": %s,\n  \"ok\": %s\n}\n",
+      o.scene.c_str(), static_cast<unsigned long long>(o.seed), flight.sim_s, flight.wall_s,
+      flight.sim_s / std::max(flight.wall_s, 1e-9), static_cast<long long>(flight.steps),
+      static_cast<long long>(flight.frames), static_cast<long long>(flight.odometry_missed),
+      static_cast<long long>(flight.motor_missed), flight.max_height_m, hover_rms_m,
+      flight.last_touchdown_m_s, flight.landed ? "true" : "false",
+      flight.collided ? "true" : "false", flight.collision_world_m.x(),
+      flight.collision_world_m.y(), flight.collision_world_m.z(), flight.collision_speed_m_s,
+      flight.crashed_on_floor ? "true" : "false", ok ? "true" : "false");
+  std::fputs(json, stdout);
+  if (!o.summary.empty()) {
+    std::ofstream out(o.summary);
+    out << json;
+    if (!out) {
+      std::fprintf(stderr, "kinfly-sim: cannot write --summary %s\n", o.summary.c_str());
+      return 1;
+    }
+  }
+  if (flight.collided) {
+    std::fprintf(stderr, "kinfly-sim: the drone hit the scene at (%.2f, %.2f, %.2f) m, %.2f m/s\n",
+                 flight.collision_world_m.x(), flight.collision_world_m.y(),
+                 flight.collision_world_m.z(), flight.collision_speed_m_s);
+  } else if (flight.crashed_on_floor) {
+    std::fprintf(stderr, "kinfly-sim: the drone hit the floor at %.2f m/s\n",
+                 flight.last_touchdown_m_s);
+  } else if (!flight.landed && flight.motor_missed == 0) {
+    std::fprintf(stderr, "kinfly-sim: the mission did not end landed within --max-seconds %.0f\n",
+                 o.max_seconds);
+  }
+  return ok ? 0 : 1;
+}
+
+}  // namespace
+}  // namespace kinfly::sim
+
+int main(int argc, char** argv) {
+  using kinfly::sim::Options;
+  Options o;
+  CLI::App app{
+      "kinfly-sim: the simulated world kinfly-fw flies in, over LCM, in lockstep (docs/sim.md). "
+      "Start kinfly-fw first with flight.backend = motors, flight.imu = lcm, flight.lockstep = "
+      "true, source.kind = lcm, source.realtime = false on the same LCM URL; kinfly-sim then "
+      "flies the built-in mission (arm, take off, hold, land) and prints a summary. Exit status: "
+      "0 landed, 1 the flight failed (a collision, a hard landing, kinfly-fw gone), 2 bad input."};
+  app.add_option("--scene", o.scene, "room | corridor")->capture_default_str();
+  app.add_option("--seed", o.seed, "seeds the IMU, the camera's noise and the wind")
+      ->capture_default_str();
+  app.add_option("--vehicle", o.vehicle_id, "vehicle id, in every channel name")
+      ->capture_default_str();
+  app.add_option("--lcm-url", o.lcm_url, "LCM URL (empty: LCM's default)")->capture_default_str();
+  app.add_option("--key-file", o.key_file, "the vehicle's key (kinfly-keygen): signs the mission")
+      ->required();
+  app.add_flag("--realtime", o.realtime, "pace simulation time to the wall clock, for watching");
+  app.add_option("--max-seconds", o.max_seconds, "simulated seconds at most [1, 86400]")
+      ->capture_default_str();
+  app.add_option("--wait-s", o.wait_s,
+                 "wall seconds to wait for kinfly-fw's answer before declaring it gone")
+      ->capture_default_str();
+  app.add_option("--takeoff-height-m", o.takeoff_height_m, "mission: take-off height [m]")
+      ->capture_default_str();
+  app.add_option("--hover-s", o.hover_s, "mission: seconds held at that height")
+      ->capture_default_str();
+  app.add_option("--crash-speed-m-s", o.crash_speed_m_s,
+                 "a touchdown faster than this is a crash [m/s]")
+      ->capture_default_str();
+  app.add_option("--camera-downsample", o.camera_downsample,
+                 "render at 1/N of the Kinect's 640x480 [1, 4]")
+      ->capture_default_str();
+  app.add_option("--camera-rate-hz", o.camera.rate_hz, "depth frames per second")
+      ->capture_default_str();
+  app.add_option("--camera-latency-s", o.camera.latency_s, "capture to delivery [s]")
+      ->capture_default_str();
+  app.add_option("--imu-rate-hz", o.imu.rate_hz, "IMU samples (and physics steps) per second")
+      ->capture_default_str();
+  app.add_option("--mass-error", o.mass_error, "the simulated mass against the nominal, +0.05: 5 % more")
+      ->capture_default_str();
+  app.add_option("--inertia-error", o.inertia_error, "the same for the inertia")
+      ->capture_default_str();
+  app.add_option("--thrust-error", o.thrust_error, "the same for the rotors' thrust coefficient")
+      ->capture_default_str();
+  app.add_option("--wind", o.wind_m_s, "mean wind x y z in the world (z down) [m/s]")
+      ->expected(3);
+  app.add_option("--turbulence-w20", o.turbulence_w20_m_s,
+                 "Dryden turbulence: the wind at 20 ft that sets its intensity [m/s]; 0: none")
+      ->capture_default_str();
+  app.add_option("--summary", o.summary, "also write the summary JSON here");
+  CLI11_PARSE(app, argc, argv);
+  return kinfly::sim::run(o);
+}

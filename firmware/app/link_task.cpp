@@ -498,6 +498,7 @@ void LinkTask::publishStatus(bool is_final) {
   h.rejects = rejects();
   h.corrections_accepted = accepted() - counters_->corrections_unknown;
   h.corrections_unknown_keyframe = counters_->corrections_unknown;
+  h.commands_passed = commands_passed_;
   link::fillDroneStatus(h, &status_);
   publisher_.publish(link::Channel::kStatus, status_);  // the publisher logs a network going down
   // The flight stack's newest state, with the status: the Wi-Fi carries it at 10 Hz (about

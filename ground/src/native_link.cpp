@@ -608,7 +608,7 @@ void bindLink(nb::module_& m) {
       KINFLY_FIELD(rejected_bad_mac) KINFLY_FIELD(rejected_stale) KINFLY_FIELD(rejected_replayed)
       KINFLY_FIELD(rejected_malformed) KINFLY_FIELD(rejected_unknown_channel)
       KINFLY_FIELD(rejected_wrong_vehicle) KINFLY_FIELD(corrections_accepted)
-      KINFLY_FIELD(corrections_unknown_keyframe)
+      KINFLY_FIELD(corrections_unknown_keyframe) KINFLY_FIELD(commands_passed)
 #undef KINFLY_FIELD
       .def_prop_ro("final", [](const drone_status_t& s) {
         return s.run_state == drone_status_t::RUN_FINAL;

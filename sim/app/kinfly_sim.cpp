@@ -112,6 +112,7 @@ struct Answers {
   motor_command_t motor;
   bool motor_heard = false;
   std::map<int64_t, bool> odometry;  // utimes of odometry poses heard (erased when taken)
+  int64_t commands_passed = 0;       // the drone's status: commands handed to its flight stack
   int64_t rejected = 0;
 };
 
@@ -122,6 +123,8 @@ class Link {
                             &Link::onMotor, this);
     lcm_->subscribeFunction(link::channelName(link::Channel::kOdometry, o.vehicle_id),
                             &Link::onOdometry, this);
+    lcm_->subscribeFunction(link::channelName(link::Channel::kStatus, o.vehicle_id),
+                            &Link::onStatus, this);
   }
   Answers& answers() { return answers_; }
 
@@ -151,6 +154,15 @@ class Link {
     self->answers_.motor = m;
     self->answers_.motor_utime = m.utime;
     self->answers_.motor_heard = true;
+  }
+  static void onStatus(const lcm::ReceiveBuffer* buffer, const std::string&, Link* self) {
+    drone_status_t m;
+    if (!link::decodeMessage(buffer->data, buffer->data_size, link::DecodeBounds(), &m).ok() ||
+        m.vehicle_id != self->o_.vehicle_id) {
+      ++self->answers_.rejected;
+      return;
+    }
+    self->answers_.commands_passed = std::max(self->answers_.commands_passed, m.commands_passed);
   }
   static void onOdometry(const lcm::ReceiveBuffer* buffer, const std::string&, Link* self) {
     odometry_t m;
@@ -337,6 +349,14 @@ int run(const Options& o) {
       lcm.publish(command_channel, &envelope);
       std::printf("kinfly-sim: t=%.2f s: %s\n", t_s, step.name);
       std::fflush(stdout);
+      // Held until the drone says the command is its flight stack's, so that the next sample's
+      // tick takes it, on any machine (the link hands it over on its own thread).
+      if (!link_io.waitFor([&] { return answers.commands_passed >= command_id; })) {
+        std::fprintf(stderr, "kinfly-sim: kinfly-fw did not take the %s command within %.0f s "
+                             "(its log says why: the key, the clock window)\n",
+                     step.name, o.wait_s);
+        return 1;
+      }
     }
 
     // Depth frames captured now, delivered after the latency.

@@ -28,7 +28,8 @@ Status MultirotorParams::validate() const {
       outOfRange("vehicle.parasitic_drag_y", parasitic_drag_y, 0.0, 10.0),
       outOfRange("vehicle.parasitic_drag_z", parasitic_drag_z, 0.0, 10.0),
       outOfRange("vehicle.body_radius_m", body_radius_m, 0.0, 5.0, Bound::kOpen),
-      outOfRange("vehicle.gear_height_m", gear_height_m, 0.0, 1.0));
+      outOfRange("vehicle.gear_height_m", gear_height_m, 0.0, 1.0),
+      outOfRange("vehicle.gear_sag_m", gear_sag_m, 0.0, 0.1, Bound::kOpen));
   if (!status.ok()) return status;
   const double hover_rad_s = std::sqrt(mass_kg * kGravityMS2 / (4.0 * thrust_coeff_n_s2_rad2));
   if (hover_rad_s <= rotor_speed_min_rad_s || hover_rad_s >= rotor_speed_max_rad_s) {
@@ -47,7 +48,7 @@ StatusOr<RotorLayout> parseRotorLayout(const std::string& text) {
 Multirotor::Multirotor(const MultirotorParams& params)
     : params_(params),
       inertia_kg_m2_(params.inertia_xx_kg_m2, params.inertia_yy_kg_m2, params.inertia_zz_kg_m2),
-      rest_z_m_(std::nan("")) {
+      contact_z_m_(std::nan("")) {
   const double d = std::sqrt(0.5);
   const double xy_x[4][2] = {{d, d}, {-d, -d}, {d, -d}, {-d, d}};
   const double xy_plus[4][2] = {{0.0, 1.0}, {0.0, -1.0}, {1.0, 0.0}, {-1.0, 0.0}};
@@ -66,8 +67,8 @@ double Multirotor::hoverRotorSpeedRadS() const {
 void Multirotor::placeOnFloor(const Eigen::Vector2d& xy_world_m, double yaw_rad,
                               double floor_z_m) {
   state_ = MultirotorState{};
-  rest_z_m_ = floor_z_m - params_.gear_height_m;
-  state_.p_world_m << xy_world_m, rest_z_m_;
+  contact_z_m_ = floor_z_m - params_.gear_height_m;
+  state_.p_world_m << xy_world_m, contact_z_m_ + params_.gear_sag_m;
   state_.q_world_body = Eigen::AngleAxisd(yaw_rad, Eigen::Vector3d::UnitZ());
   on_floor_ = true;
   specific_force_body_m_s2_ = Eigen::Vector3d(0.0, 0.0, -kGravityMS2);
@@ -109,9 +110,14 @@ Multirotor::Derivative Multirotor::derivative(const MultirotorState& s,
                                   params_.parasitic_drag_z);
   force_body_n -= v_air_body.norm() * parasitic.cwiseProduct(v_air_body);
 
+  Eigen::Vector3d floor_world_n = Eigen::Vector3d::Zero();
+  Eigen::Vector3d floor_moment_body_nm = Eigen::Vector3d::Zero();
+  floorWrench(s, &floor_world_n, &floor_moment_body_nm);
+  moment_body_nm += floor_moment_body_nm;
+
   Derivative d;
   d.p = s.v_world_m_s;
-  d.v = Eigen::Vector3d(0.0, 0.0, kGravityMS2) + q * force_body_n / params_.mass_kg;
+  d.v = Eigen::Vector3d(0.0, 0.0, kGravityMS2) + (q * force_body_n + floor_world_n) / params_.mass_kg;
   const Eigen::Quaterniond omega_quat(0.0, s.omega_body_rad_s.x(), s.omega_body_rad_s.y(),
                                       s.omega_body_rad_s.z());
   d.q = 0.5 * (q * omega_quat).coeffs();
@@ -133,10 +139,47 @@ MultirotorState Multirotor::advanced(const MultirotorState& s, const Derivative&
   return next;
 }
 
+void Multirotor::floorWrench(const MultirotorState& s, Eigen::Vector3d* force_world_n,
+                             Eigen::Vector3d* moment_body_nm) const {
+  const double penetration_m = s.p_world_m.z() - contact_z_m_;  // z down: > 0 when pressed in
+  if (std::isnan(contact_z_m_) || penetration_m <= 0.0) return;
+  // A critically damped spring that sags gear_sag_m under the weight; it pushes, never pulls.
+  const double stiffness_n_m = params_.mass_kg * kGravityMS2 / params_.gear_sag_m;
+  const double damping_n_s_m = 2.0 * std::sqrt(stiffness_n_m * params_.mass_kg);
+  const double push_n =
+      std::max(0.0, stiffness_n_m * penetration_m + damping_n_s_m * s.v_world_m_s.z());
+  // Friction along the floor, viscous (no stick-slip: a drone on skids barely slides anyway),
+  // as strong as the push: a sliding body stops within centimetres.
+  const double friction_n_s_m = damping_n_s_m;
+  force_world_n->x() = -friction_n_s_m * s.v_world_m_s.x();
+  force_world_n->y() = -friction_n_s_m * s.v_world_m_s.y();
+  force_world_n->z() = -push_n;
+  // The gear levels a tilted body (a spring on its tilt, critically damped about the smaller
+  // inertia) and resists turning on the floor, in proportion to how firmly it stands.
+  const double load = std::min(1.0, push_n / (params_.mass_kg * kGravityMS2));
+  const double inertia_xy = std::min(params_.inertia_xx_kg_m2, params_.inertia_yy_kg_m2);
+  const double tilt_stiffness_nm_rad = stiffness_n_m * params_.arm_length_m * params_.arm_length_m;
+  const double tilt_damping_nm_s_rad = 2.0 * std::sqrt(tilt_stiffness_nm_rad * inertia_xy);
+  // The rotation about a body axis that takes the body's up onto the world's, as axis * angle
+  // (horizontal in the body: both are ups).
+  const Eigen::Vector3d up_body(0.0, 0.0, -1.0);
+  const Eigen::Vector3d world_up_in_body = s.q_world_body.conjugate() * up_body;
+  const Eigen::Vector3d axis = up_body.cross(world_up_in_body);
+  const double sin_tilt = axis.norm();
+  const Eigen::Vector3d tilt_rad =
+      sin_tilt > 1e-12 ? Eigen::Vector3d(axis / sin_tilt *
+                                         std::atan2(sin_tilt, up_body.dot(world_up_in_body)))
+                       : Eigen::Vector3d::Zero();
+  const Eigen::Vector3d level_body_nm =
+      tilt_stiffness_nm_rad * tilt_rad - tilt_damping_nm_s_rad * s.omega_body_rad_s;
+  *moment_body_nm = load * level_body_nm;
+}
+
 double Multirotor::step(const Vector4d& rotor_speed_cmd_rad_s,
                         const Eigen::Vector3d& wind_world_m_s, double dt_s) {
   const Vector4d cmd = rotor_speed_cmd_rad_s.cwiseMax(params_.rotor_speed_min_rad_s)
                            .cwiseMin(params_.rotor_speed_max_rad_s);
+  const Eigen::Vector3d v_before_world_m_s = state_.v_world_m_s;
   const Derivative k1 = derivative(state_, cmd, wind_world_m_s);
   const Derivative k2 = derivative(advanced(state_, k1, 0.5 * dt_s), cmd, wind_world_m_s);
   const Derivative k3 = derivative(advanced(state_, k2, 0.5 * dt_s), cmd, wind_world_m_s);
@@ -151,34 +194,13 @@ double Multirotor::step(const Vector4d& rotor_speed_cmd_rad_s,
   // The rotors' lag keeps them within their limits, but a step longer than the lag overshoots.
   state_.rotor_speed_rad_s = state_.rotor_speed_rad_s.cwiseMax(0.0).cwiseMin(
       params_.rotor_speed_max_rad_s);
-
-  const Eigen::Vector3d v_free_world_m_s = state_.v_world_m_s;
-  const double touchdown_m_s = touchFloor();
-  // The accelerometer feels the end state's forces plus what the floor did over the step (the
-  // landing's jolt, and its push against gravity while the body rests on it).
-  const Eigen::Vector3d contact_world_m_s2 = (state_.v_world_m_s - v_free_world_m_s) / dt_s;
-  const Eigen::Vector3d a_world_m_s2 =
-      derivative(state_, cmd, wind_world_m_s).v + contact_world_m_s2;
+  // The accelerometer reads the step's mean acceleration less gravity: what RK4 integrated.
+  const Eigen::Vector3d a_world_m_s2 = (state_.v_world_m_s - v_before_world_m_s) / dt_s;
   specific_force_body_m_s2_ =
       state_.q_world_body.conjugate() * (a_world_m_s2 - Eigen::Vector3d(0.0, 0.0, kGravityMS2));
-  return touchdown_m_s;
-}
-
-double Multirotor::touchFloor() {
   const bool was_on_floor = on_floor_;
-  on_floor_ = false;
-  // Lifting off, the step leaves the body above the floor.
-  if (std::isnan(rest_z_m_) || state_.p_world_m.z() < rest_z_m_) return 0.0;
-  const double touchdown_m_s = was_on_floor ? 0.0 : state_.v_world_m_s.norm();
-  // Inelastic and sticky, as on skids: stopped, level at its heading.
-  const Eigen::Vector3d x_body_world = state_.q_world_body * Eigen::Vector3d::UnitX();
-  state_.p_world_m.z() = rest_z_m_;
-  state_.v_world_m_s.setZero();
-  state_.omega_body_rad_s.setZero();
-  state_.q_world_body = Eigen::AngleAxisd(std::atan2(x_body_world.y(), x_body_world.x()),
-                                          Eigen::Vector3d::UnitZ());
-  on_floor_ = true;
-  return touchdown_m_s;
+  on_floor_ = !std::isnan(contact_z_m_) && state_.p_world_m.z() >= contact_z_m_;
+  return on_floor_ && !was_on_floor ? v_before_world_m_s.norm() : 0.0;
 }
 
 }  // namespace kinfly::sim

@@ -2,6 +2,7 @@
 // lag, the moments of a speed difference, the rotors' drag in a wind, the floor.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 
 #include "kinfly/sim/multirotor.h"
@@ -122,31 +123,61 @@ TEST(Multirotor, RotorDragPushesTheHoveringBodyDownwind) {
   EXPECT_NEAR(drone.specificForceBodyMS2().x(), expected, 1e-3 * expected);
 }
 
-TEST(Multirotor, RestsOnTheFloorTakesOffAndReportsItsTouchdown) {
-  Multirotor drone(MultirotorParams{});
+TEST(Multirotor, StandsOnItsGearTakesOffAndLandsOnIt) {
+  const MultirotorParams params;
+  Multirotor drone(params);
   drone.placeOnFloor({0.5, -0.5}, 0.0, 0.0);
   for (int i = 0; i < 500; ++i) drone.step(Vector4d::Constant(100.0), Eigen::Vector3d::Zero(), kDt);
   EXPECT_TRUE(drone.onFloor());
-  EXPECT_EQ(drone.state().p_world_m.z(), -MultirotorParams().gear_height_m);  // on its gear
-  // On the floor the accelerometer reads the floor's push: -g along z. The floor acts on the
-  // step's mean, the rotors' inflow drag within the step on its speed: a millimetre per second
-  // squared apart, far below the IMU's own noise (0.06 m/s^2 at 1 kHz).
-  constexpr double kContactTolMS2 = 1e-2;
-  EXPECT_NEAR(drone.specificForceBodyMS2().z(), -kGravityMS2, kContactTolMS2);
+  // Standing, the gear carries the weight less the idle rotors' thrust: it sags that much less.
+  const double idle_thrust_n = 4.0 * params.thrust_coeff_n_s2_rad2 * 100.0 * 100.0;
+  const double weight_n = params.mass_kg * kGravityMS2;
+  const double sag_m = params.gear_sag_m * (weight_n - idle_thrust_n) / weight_n;
+  constexpr double kSettledTolM = 1e-5;  // 2.5 s of a critically damped 7 Hz gear
+  EXPECT_NEAR(drone.state().p_world_m.z(), -params.gear_height_m + sag_m, kSettledTolM);
+  // Standing still, the accelerometer reads the floor's and the rotors' push: -g along z.
+  constexpr double kStillTolMS2 = 1e-3;
+  EXPECT_NEAR(drone.specificForceBodyMS2().z(), -kGravityMS2, kStillTolMS2);
   const double climb = 1.2 * drone.hoverRotorSpeedRadS();
   for (int i = 0; i < 1000; ++i) drone.step(Vector4d::Constant(climb), Eigen::Vector3d::Zero(), kDt);
   EXPECT_FALSE(drone.onFloor());
   EXPECT_LT(drone.state().p_world_m.z(), -0.5);
   // Rotors cut: it falls back, and the touchdown speed is what it fell at.
   double touchdown = 0.0;
+  double peak_specific_force = 0.0;
   for (int i = 0; i < 3000 && touchdown == 0.0; ++i) {
     touchdown = drone.step(Vector4d::Zero(), Eigen::Vector3d::Zero(), kDt);
   }
   EXPECT_TRUE(drone.onFloor());
   EXPECT_GT(touchdown, 2.0);
-  EXPECT_EQ(drone.state().v_world_m_s.norm(), 0.0);
-  // Resting is no new touchdown.
+  // The gear spreads the impact: at most its damping times the speed, over the mass (a rigid
+  // floor would give speed / step: thousands of m/s^2).
+  const double damping = 2.0 * std::sqrt(weight_n / params.gear_sag_m * params.mass_kg);
+  for (int i = 0; i < 1000; ++i) {
+    drone.step(Vector4d::Zero(), Eigen::Vector3d::Zero(), kDt);
+    peak_specific_force = std::max(peak_specific_force, drone.specificForceBodyMS2().norm());
+  }
+  EXPECT_LT(peak_specific_force, 1.2 * damping * touchdown / params.mass_kg);
+  EXPECT_LT(drone.state().v_world_m_s.norm(), 1e-3);  // settled
+  EXPECT_TRUE(drone.onFloor());
+  // Standing is no new touchdown.
   EXPECT_EQ(drone.step(Vector4d::Zero(), Eigen::Vector3d::Zero(), kDt), 0.0);
+}
+
+TEST(Multirotor, TheGearLevelsATiltedBody) {
+  Multirotor drone(MultirotorParams{});
+  drone.placeOnFloor({0.0, 0.0}, 0.3, 0.0);
+  // Rotors on one side only tilt it while it stands; cut, the gear brings it back level.
+  Vector4d one_side = Vector4d::Zero();
+  one_side(0) = one_side(3) = 300.0;
+  for (int i = 0; i < 300; ++i) drone.step(one_side, Eigen::Vector3d::Zero(), kDt);
+  const auto tilt = [&] {
+    return std::acos(std::clamp((drone.state().q_world_body * Eigen::Vector3d::UnitZ()).z(), -1.0, 1.0));
+  };
+  EXPECT_GT(tilt(), 1e-3);
+  for (int i = 0; i < 2000; ++i) drone.step(Vector4d::Zero(), Eigen::Vector3d::Zero(), kDt);
+  EXPECT_LT(tilt(), 1e-4);
+  EXPECT_TRUE(drone.onFloor());
 }
 
 TEST(Multirotor, AWeakRotorLosesItsShareOfThrust) {

@@ -96,11 +96,16 @@ TickOutput FlightStack::tick(const TickInputs& in) {
     if (!flying_) {  // a take-off: nothing of the last flight's integral carries over
       position_.reset();
       attitude_.reset();
+      // The position loop's phase counts from the take-off, not from the ticks before it (on
+      // the ground, a simulator's start or the wall clock's ticks before the first IMU sample):
+      // a flight then runs the same for the same samples.
+      ticks_in_flight_ = 0;
     }
     setpoint_ = guide(out.modes, state, in.utime);
-    if (!flying_ || ticks_ % decimation_ == 0) {
+    if (ticks_in_flight_ % decimation_ == 0) {
       command_ = position_.update(setpoint_, state, decimation_ * dt_s);
     }
+    ++ticks_in_flight_;
     flying_ = true;
   } else {
     flying_ = false;
@@ -110,7 +115,6 @@ TickOutput FlightStack::tick(const TickInputs& in) {
     command_ = PositionOutput();
     command_.q_world_body_sp = state.q_world_body;
   }
-  ++ticks_;
 
   switch (mode) {
     case FlightMode::kHandedOver: out.rotors = RotorCommand::kNone; break;

@@ -121,6 +121,7 @@ void fillDroneStatus(const DroneHealth& h, drone_status_t* message) {
   h.rejects.writeTo(&s);
   s.corrections_accepted = h.corrections_accepted;
   s.corrections_unknown_keyframe = h.corrections_unknown_keyframe;
+  s.commands_passed = h.commands_passed;
 }
 
 CodecResult encodeDepth(DepthCodec& codec, ImageView<const uint16_t> raw,

@@ -4,7 +4,10 @@
 // wrench comes from each rotor's position and spin by cross products, each rotor's speed follows
 // its command with a first-order lag and its limits, each rotor drags linearly in the air speed
 // at the rotor and in its spin (RotorPy's rotor drag and induced inflow), the frame drags
-// quadratically, and a floor stops and carries it. The simulator's parameters may differ from
+// quadratically, and a floor carries it on a landing gear that gives like one: a critically
+// damped spring under the centre of mass, friction along the floor, and a spring-damper that
+// levels the body while it stands (so a landing's impact reaches the accelerometer as real ones
+// do, over tens of milliseconds, not as one step's jolt). The simulator's parameters may differ from
 // what the controller believes; that difference is the point of a simulated flight.
 //
 // Rotors are numbered as PX4's quad X / quad + (and motor_command_t):
@@ -50,8 +53,9 @@ struct MultirotorParams {
   double parasitic_drag_y = 0.5e-2;
   double parasitic_drag_z = 1e-2;
   double body_radius_m = 0.27;               // [m] (0, 5] arm + rotor: the sphere that collides
-  double gear_height_m = 0.10;               // [m] [0, 1] the centre of mass above the floor when
-                                             // standing (landing gear)
+  double gear_height_m = 0.10;               // [m] [0, 1] the centre of mass above the floor where
+                                             // the unloaded gear touches it
+  double gear_sag_m = 0.005;                 // [m] (0, 0.1] how far the gear gives under the weight
 
   // Names the first wrong field (vehicle.<name>) and its range; also that the vehicle can hover
   // within its rotor speeds.
@@ -77,8 +81,8 @@ class Multirotor {
   double spinDirection(int i) const { return spin_direction_[i]; }
   double hoverRotorSpeedRadS() const;
 
-  // Standing on a floor at world height floor_z_m (z down) on its gear (the centre of mass
-  // gear_height_m above it), level, heading yaw_rad, rotors stopped.
+  // Standing on a floor at world height floor_z_m (z down) on its gear, settled under its
+  // weight, level, heading yaw_rad, rotors stopped.
   void placeOnFloor(const Eigen::Vector2d& xy_world_m, double yaw_rad, double floor_z_m);
   // At rest in the air, the rotors at hover speed (no floor unless one was placed before).
   void placeHovering(const Eigen::Vector3d& p_world_m, double yaw_rad);
@@ -88,12 +92,13 @@ class Multirotor {
   void setRotorEfficiency(int i, double fraction) { efficiency_[i] = fraction; }
 
   // One RK4 step of dt_s: the commands (clamped to the rotor speed limits) held, the air moving
-  // at wind_world_m_s. Returns the speed [m/s] at which the body touched the floor in this step,
+  // at wind_world_m_s. Returns the speed [m/s] at which the gear touched the floor in this step,
   // 0 when it did not (a landing, or a crash: the caller judges).
   double step(const Vector4d& rotor_speed_cmd_rad_s, const Eigen::Vector3d& wind_world_m_s,
               double dt_s);
 
   const MultirotorState& state() const { return state_; }
+  // The gear touches the floor.
   bool onFloor() const { return on_floor_; }
   // What an accelerometer at the centre of mass reads after the last step: the specific force
   // (everything but gravity) in the body frame, the floor's push included.
@@ -110,8 +115,9 @@ class Multirotor {
   Derivative derivative(const MultirotorState& s, const Vector4d& rotor_speed_cmd_rad_s,
                         const Eigen::Vector3d& wind_world_m_s) const;
   static MultirotorState advanced(const MultirotorState& s, const Derivative& d, double dt_s);
-  // Returns the touchdown speed, 0 without a touchdown.
-  double touchFloor();
+  // The floor's force and moment on the body through the gear (zero when it does not touch).
+  void floorWrench(const MultirotorState& s, Eigen::Vector3d* force_world_n,
+                   Eigen::Vector3d* moment_body_nm) const;
 
   MultirotorParams params_;
   std::array<Eigen::Vector3d, 4> rotor_position_body_m_;
@@ -119,7 +125,7 @@ class Multirotor {
   std::array<double, 4> efficiency_{1.0, 1.0, 1.0, 1.0};
   Eigen::Vector3d inertia_kg_m2_;
   MultirotorState state_;
-  double rest_z_m_;  // the centre of mass's height standing on the floor; NaN: no floor
+  double contact_z_m_;  // the centre of mass's height where the gear touches; NaN: no floor
   bool on_floor_ = false;
   Eigen::Vector3d specific_force_body_m_s2_ = Eigen::Vector3d(0.0, 0.0, -kGravityMS2);
 };

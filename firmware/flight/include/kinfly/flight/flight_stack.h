@@ -106,7 +106,7 @@ class FlightStack {
   AttitudeController attitude_;
   Mixer mixer_;
   int decimation_ = 1;
-  int64_t ticks_ = 0;
+  int64_t ticks_in_flight_ = 0;  // since the take-off: the position loop's phase
   int64_t last_imu_utime_ = -1;
   int64_t last_vision_utime_ = -1;
 

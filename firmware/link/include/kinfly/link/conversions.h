@@ -91,6 +91,7 @@ struct DroneHealth {
   RejectCounters rejects;         // received messages dropped, by reason
   int64_t corrections_accepted = 0;
   int64_t corrections_unknown_keyframe = 0;
+  int64_t commands_passed = 0;    // signed flight commands handed to the flight stack
 };
 // vehicle_id is the caller's, set once.
 void fillDroneStatus(const DroneHealth& health, drone_status_t* message);

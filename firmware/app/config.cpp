@@ -118,9 +118,9 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
          },
          "deprecated: raw depth units per metre; use source.depth_scale_m = 1 / this")
       ->group("Deprecated");
-  addSharedOption<double>(app, "--source.depth_scale_m",
-                          {&s.dataset.depth_scale_m, &s.lcm.depth_scale_m},
-                          "dataset (TUM 0.0002), lcm (OpenNI 0.001): metres per raw depth unit");
+  app->add_option("--source.depth_scale_m", s.dataset.depth_scale_m,
+                  "dataset: metres per raw depth unit (TUM 0.0002)")
+      ->capture_default_str();
   app->add_option("--source.lcm_url", s.lcm.lcm_url,
                   "lcm: where the frames come (empty: link.lcm_url's)")
       ->capture_default_str();

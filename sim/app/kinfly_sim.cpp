@@ -212,7 +212,18 @@ int run(const Options& o) {
   }
   const MultirotorParams vehicle_params = simulatedVehicle(o);
   DepthCameraParams camera_params = o.camera;
-  camera_params.camera = camera_params.camera.scaled(o.camera_downsample);
+  {
+    // A Kinect at the smaller size: the focal length scaled, the principal point at the centre
+    // (what kinfly-fw's lcm source assumes without source.intrinsics).
+    PinholeCamera& c = camera_params.camera;
+    const float n = static_cast<float>(o.camera_downsample);
+    c.fx /= n;
+    c.fy /= n;
+    c.width /= o.camera_downsample;
+    c.height /= o.camera_downsample;
+    c.cx = 0.5f * static_cast<float>(c.width - 1);
+    c.cy = 0.5f * static_cast<float>(c.height - 1);
+  }
   camera_params.seed = o.seed * 3 + 1;
   ImuParams imu_params = o.imu;
   imu_params.seed = o.seed * 3 + 2;
@@ -261,10 +272,11 @@ int run(const Options& o) {
   const std::string state_channel = link::channelName(link::Channel::kSimState, o.vehicle_id);
   const std::string command_channel = link::channelName(link::Channel::kCommand, o.vehicle_id);
 
-  std::printf("kinfly-sim: scene %s, seed %llu, IMU %.0f Hz, depth %dx%d at %.0f Hz "
-              "(latency %.0f ms); waiting for kinfly-fw's control task on %s\n",
+  const PinholeCamera& cam = camera_params.camera;
+  std::printf("kinfly-sim: scene %s, seed %llu, IMU %.0f Hz, depth %dx%d (fx %g, fy %g, cx %g, "
+              "cy %g) at %.0f Hz (latency %.0f ms); waiting for kinfly-fw's control task on %s\n",
               o.scene.c_str(), static_cast<unsigned long long>(o.seed), imu_params.rate_hz,
-              camera_params.camera.width, camera_params.camera.height, camera_params.rate_hz,
+              cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, camera_params.rate_hz,
               camera_params.latency_s * 1e3,
               link::channelName(link::Channel::kMotorCommand, o.vehicle_id).c_str());
   std::fflush(stdout);
@@ -394,9 +406,15 @@ int run(const Options& o) {
       pending.erase(pending.begin());
       if (!link_io.waitFor([&] { return answers.odometry.count(captured) > 0; })) {
         ++flight.odometry_missed;
+        std::fprintf(stderr, "kinfly-sim: kinfly-fw's odometry did not answer the frame captured "
+                             "at t=%.3f s within %.0f s (its log says why: is source.kind = lcm, "
+                             "its camera this one?)\n",
+                     static_cast<double>(captured - kStartUtime) * 1e-6, o.wait_s);
+        break;
       }
       answers.odometry.erase(answers.odometry.begin(), answers.odometry.upper_bound(captured));
     }
+    if (flight.odometry_missed > 0) break;
 
     // The physics over one IMU period with the last answer's commands.
     const Eigen::Vector3d air = wind.step(t_s + dt_s, dt_s, scene.value().floor_z_m -
@@ -491,7 +509,7 @@ int run(const Options& o) {
                                              static_cast<double>(flight.hover_samples))
                                  : NAN;
   const bool ok = flight.landed && !flight.collided && !flight.crashed_on_floor &&
-                  flight.motor_missed == 0;
+                  flight.motor_missed == 0 && flight.odometry_missed == 0;
   char json[2048];
   std::snprintf(
       json, sizeof json,
@@ -525,7 +543,7 @@ int run(const Options& o) {
   } else if (flight.crashed_on_floor) {
     std::fprintf(stderr, "kinfly-sim: the drone hit the floor at %.2f m/s\n",
                  flight.last_touchdown_m_s);
-  } else if (!flight.landed && flight.motor_missed == 0) {
+  } else if (!flight.landed && flight.motor_missed == 0 && flight.odometry_missed == 0) {
     std::fprintf(stderr, "kinfly-sim: the mission did not end landed within --max-seconds %.0f\n",
                  o.max_seconds);
   }
@@ -566,7 +584,7 @@ int main(int argc, char** argv) {
                  "a touchdown faster than this is a crash [m/s]")
       ->capture_default_str();
   app.add_option("--camera-downsample", o.camera_downsample,
-                 "render at 1/N of the Kinect's 640x480 [1, 4]")
+                 "render a Kinect at 1/N of its 640x480, principal point at the centre [1, 4]")
       ->capture_default_str();
   app.add_option("--camera-rate-hz", o.camera.rate_hz, "depth frames per second")
       ->capture_default_str();

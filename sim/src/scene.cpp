@@ -29,6 +29,34 @@ void addQuad(TriangleMesh* mesh, const Eigen::Vector3f& a, const Eigen::Vector3f
   }
 }
 
+// A triangle wound counter-clockwise seen from `facing`.
+void addTriangle(TriangleMesh* mesh, const Eigen::Vector3f& a, const Eigen::Vector3f& b,
+                 const Eigen::Vector3f& c, const Eigen::Vector3f& facing) {
+  Eigen::Vector3f normal = (b - a).cross(c - a).normalized();
+  const bool flip = normal.dot(facing) < 0.0f;
+  if (flip) normal = -normal;
+  const int base = static_cast<int>(mesh->vertices.size());
+  for (const Eigen::Vector3f* v : {&a, &b, &c}) {
+    mesh->vertices.push_back(*v);
+    mesh->normals.push_back(normal);
+  }
+  mesh->triangles.emplace_back(base, flip ? base + 2 : base + 1, flip ? base + 1 : base + 2);
+}
+
+// A ramp on the floor rising from x = x0 (floor height) to x = x1 (height h above the floor),
+// across y0 < y1: a sloped face, a vertical back and two triangular sides. Sloped surfaces hold
+// the odometry's height where walls (vertical) and a floor seen edge-on (a landed drone's camera
+// is a hand's width above it) do not.
+void addRamp(TriangleMesh* mesh, float x0, float x1, float y0, float y1, float h) {
+  // The surface z = -h (x - x0) / (x1 - x0); its upward normal (z down).
+  const Eigen::Vector3f slope_normal = Eigen::Vector3f(-h / (x1 - x0), 0.0f, -1.0f).normalized();
+  addQuad(mesh, {x0, y0, 0.0f}, {x0, y1, 0.0f}, {x1, y1, -h}, {x1, y0, -h}, slope_normal);
+  addQuad(mesh, {x1, y0, 0.0f}, {x1, y1, 0.0f}, {x1, y1, -h}, {x1, y0, -h},
+          (x1 > x0 ? 1.0f : -1.0f) * Eigen::Vector3f::UnitX());
+  addTriangle(mesh, {x0, y0, 0.0f}, {x1, y0, 0.0f}, {x1, y0, -h}, -Eigen::Vector3f::UnitY());
+  addTriangle(mesh, {x0, y1, 0.0f}, {x1, y1, 0.0f}, {x1, y1, -h}, Eigen::Vector3f::UnitY());
+}
+
 // An axis-aligned box from lo to hi; inward: its faces look into it (a room), else out of it.
 void addBox(TriangleMesh* mesh, const Eigen::Vector3f& lo, const Eigen::Vector3f& hi,
             bool inward = false) {
@@ -112,6 +140,9 @@ Scene furnishedRoom() {
   for (const float x : {-2.65f, -1.59f}) {
     for (const float y : {-2.15f, -1.49f}) addBox(&mesh, {x, y, -0.74f}, {x + 0.04f, y + 0.04f, 0.0f});
   }
+  // Ramps ahead of the start and behind it, rising toward the walls.
+  addRamp(&mesh, 1.9f, 2.9f, -0.4f, 1.2f, 0.6f);
+  addRamp(&mesh, -2.0f, -2.9f, -1.0f, 0.8f, 0.5f);
   // Steps up to a platform in the +x, +y corner, each 0.3 m deep and 0.2 m high.
   for (int i = 0; i < 4; ++i) {
     const float x0 = 1.8f + 0.3f * static_cast<float>(i);

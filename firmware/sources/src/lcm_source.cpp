@@ -7,7 +7,6 @@
 #include <vector>
 
 #include "kinfly/codec/depth_codec.h"
-#include "kinfly/core/range_check.h"
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/decode.h"
@@ -31,7 +30,7 @@ class LcmSource : public DepthSource {
         channel_(link::channelName(link::Channel::kDepth, params.vehicle_id)),
         vehicle_id_(params.vehicle_id),
         camera_(camera),
-        depth_scale_m_(params.depth_scale_m),
+        depth_scale_m_(LcmSourceParams::kDepthScaleM),
         lcm_(params.lcm_url),
         codec_(DepthCodec::Params()) {}
 
@@ -99,8 +98,8 @@ class LcmSource : public DepthSource {
       *why = channel_ + ": a frame's camera (" + std::to_string(camera.width) + "x" +
              std::to_string(camera.height) + ", fx " + std::to_string(camera.fx) +
              ", depth scale " + std::to_string(message_.depth_scale_m) +
-             ") is not the configured one (source.width, source.height, source.intrinsics, "
-             "source.depth_scale_m)";
+             ") is not the configured one (source.width, source.height, source.intrinsics; "
+             "depth in mm)";
       return SourceStatus::kSkipped;
     }
     const CodecResult r = link::decodeDepth(codec_, message_, &out->depth);
@@ -130,8 +129,7 @@ class LcmSource : public DepthSource {
 }  // namespace
 
 Status LcmSourceParams::validate() const {
-  if (Status size = checkSourceSize(width_px, height_px); !size.ok()) return size;
-  return outOfRange("source.depth_scale_m", depth_scale_m, 0.0, 1.0, Bound::kOpen);
+  return checkSourceSize(width_px, height_px);
 }
 
 StatusOr<std::unique_ptr<DepthSource>> openLcmSource(const LcmSourceParams& params) {

@@ -26,8 +26,9 @@ struct Scene {
 };
 
 // A furnished room, 6 m x 5 m x 2.7 m (x in [-3, 3], y in [-2.5, 2.5], the ceiling at
-// z = -2.7): boxes, two pillars, a table, a flight of steps, so that ICP has structure to hold on
-// to from anywhere in it, and every wall within the odometry's 4 m. The drone starts in the
+// z = -2.7): boxes, two pillars, a table, two ramps, a flight of steps, so that ICP has structure
+// to hold on to from anywhere in it, the ground standing included, and every wall within the
+// odometry's 4 m. The drone starts in the
 // middle, heading +x.
 Scene furnishedRoom();
 

@@ -1,7 +1,8 @@
 // Depth frames that arrive over LCM as they are captured: KINFLY_<vid>_DEPTH depth_keyframe_t
 // messages from another process, such as kinfly-sim's depth camera (docs/sim.md) or a sensor
 // driver on another board. The camera is configured, as a sensor's would be, so the engine's
-// buffers are sized at start; a frame of another size, lens or depth scale is skipped and said.
+// buffers are sized at start, and depth comes in OpenNI's units (1 mm), as a sensor's does; a
+// frame of another size, lens or depth scale is skipped and said.
 #pragma once
 
 #include <memory>
@@ -13,12 +14,12 @@
 namespace kinfly::fw {
 
 struct LcmSourceParams {
+  static constexpr double kDepthScaleM = 0.001;  // [m] per raw unit: OpenNI's millimetres
   std::string lcm_url;          // source.lcm_url; empty: link.lcm_url's (set by kinfly-fw)
   int vehicle_id = 1;           // vehicle.id: whose KINFLY_<vid>_DEPTH
   std::string intrinsics;       // source.intrinsics "fx,fy,cx,cy"; empty: a Kinect's at this size
   int width_px = 640;           // source.width [px] [16, 4096]
   int height_px = 480;          // source.height [px] [16, 4096]
-  double depth_scale_m = 0.001;  // source.depth_scale_m (0, 1]: metres per raw unit (OpenNI: 1 mm)
   Status validate() const;      // an error names the key, its range and the value
 };
 

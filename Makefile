@@ -17,6 +17,9 @@
 #   make demo       deps demo; builds only kinfly-fw and kinfly-keygen; a recorded flight end to
 #                   end: kinfly-fw replays the shipped LCM log to kinfly-ground over LCM in a
 #                   network namespace; outputs in out/demo
+#   make sim        deps demo, sim; kinfly-sim flies the drone in the simulated room through the real
+#                   kinfly-fw and kinfly-ground in lockstep in a network namespace (take off,
+#                   hold, land); outputs in out/sim (docs/sim.md)
 #   make demo-runs  deps demo; make demo's flight DEMO_RUNS times (20) on the machine as it is,
 #                   then DEMO_BUSY_RUNS times (10) beside two busy loops; out/bench/demo_runs_*.json
 #   make test-runs  make test, then its tests TEST_RUNS times (3) beside two busy loops;
@@ -95,10 +98,10 @@ IMAGE ?= $(AARCH64_DIR)/kinfly-arm64.img
 .NOTPARALLEL:
 
 # Each target installs only the package groups it uses (scripts/install-deps.sh --help).
-DEPS_GROUPS := demo unit test fuzz aarch64 image bench
+DEPS_GROUPS := demo sim unit test fuzz aarch64 image bench
 DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
 
-.PHONY: deps $(DEPS_TARGETS) build test unit-test python-test test-asan fuzz fuzz-corpus demo \
+.PHONY: deps $(DEPS_TARGETS) build test unit-test python-test test-asan fuzz fuzz-corpus demo sim \
         demo-runs test-runs soak eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
@@ -172,6 +175,16 @@ fuzz-corpus: build
 demo: deps-demo
 	$(call build_programs,$(DEMO_PROGRAMS))
 	$(PY) $(REPO_ROOT)/scripts/demo.py --out $(DEMO_OUT)
+
+# The simulator, kinfly-fw and kinfly-ground in a network namespace (scripts/sim.py); the tree is
+# configured with the simulator whatever it had (KINFLY_BUILD_SIM), and without the unit tests if
+# new, as for the demo.
+SIM_OUT := $(REPO_ROOT)/out/sim
+sim: deps-demo deps-sim
+	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release -DKINFLY_BUILD_SIM=ON \
+	  $(if $(wildcard $(BUILD_DIR)/CMakeCache.txt),,-DKINFLY_BUILD_TESTS=OFF)
+	cmake --build $(BUILD_DIR) -j $(JOBS) --target kinfly-fw kinfly-keygen kinfly-sim
+	$(PY) $(REPO_ROOT)/scripts/sim.py --out $(SIM_OUT)
 
 # How often the demo's flight holds: every keyframe fused, every output written, an ATE; on a
 # machine as it is, then with both cores of a 2-core machine busy with other work.

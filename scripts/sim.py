@@ -1,0 +1,133 @@
+"""`make sim`: the drone flown in the simulated room through the real programs.
+
+kinfly-sim (the world: dynamics, wind, IMU, the depth camera rendered by Embree) drives the native
+kinfly-fw (depth over LCM, the motors backend, the IMU as its only clock) in lockstep, and
+kinfly-ground maps the keyframes and sends its corrections, each keyframe's before the drone's
+next frame (source.lockstep), so that a seed flies the same flight on any machine. lcm-logger
+records the flight. They talk LCM over UDP multicast in a private network namespace, as `make
+demo` does. The simulator flies its mission (arm, take off, hold, land) and the run succeeds only
+when the drone landed without a collision or a failsafe and the ground mapped what it was sent.
+Nothing waits a fixed time: each program's readiness and end are what the next step waits for.
+
+Run with the project's .venv python (the Makefile does). Needs root or passwordless sudo for the
+namespace (docs/sim.md)."""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, GROUND_READY_TIMEOUT_S,  # noqa: E402
+                  LCM_URL, VEHICLE_ID, Watched, check_flight, ground_command, make_key)
+from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DRONE_EXIT_TIMEOUT_S = 60.0  # kinfly-fw's last corrections and its summary after SIGINT
+# What lcm-logger records: everything but the raw depth frames (30 a second at VGA; the keyframes
+# that reached the ground are in their chunks).
+RECORDED = (f"KINFLY_{VEHICLE_ID}_(IMU|MOTOR_COMMAND|SIM_STATE|ODOMETRY|KEYFRAME_CHUNK|STATUS|"
+            "FLIGHT|GROUND_STATUS|CORRECTION|COMMAND|CHUNK_REQUEST|GROUND_TRUTH)")
+OUTPUTS = {
+    "sim_summary.json": "the simulator's figures: hover against truth, touchdown, collisions",
+    "summary.json": "the ground station's: keyframes, corrections, ATE, memory",
+    "session.rrd": "the rerun recording (open it with rerun)",
+    "mesh.ply": "the ground's map of the room (binary PLY)",
+    "trajectory_onboard.tum": "each keyframe's pose as the drone sent it",
+    "trajectory_corrected.tum": "each keyframe's pose as the ground refined it",
+    "trajectory_ground_truth.tum": "the simulator's true camera poses",
+    "flight.lcmlog": "the flight on LCM but the raw depth (kinfly-ground replay reads it)",
+    "drone_trajectory.tum": "every pose the drone's odometry published",
+    "vehicle.key": "the signing key made for this flight",
+}
+
+
+def drone_command(key: Path, out: Path) -> list[str]:
+    return [str(BUILD / "kinfly-fw"), "--config", str(FW_CONFIG), "--vehicle.id", str(VEHICLE_ID),
+            "--vehicle.key_file", str(key), "--link.lcm_url", LCM_URL, "--source.kind", "lcm",
+            "--source.realtime", "false", "--source.lockstep", "true", "--flight.backend", "motors",
+            "--flight.imu", "lcm", "--flight.lockstep", "true",
+            "--output.trajectory", str(out / "drone_trajectory.tum")]
+
+
+def sim_command(key: Path, out: Path, args: argparse.Namespace) -> list[str]:
+    return [str(BUILD / "kinfly-sim"), "--key-file", str(key), "--vehicle", str(VEHICLE_ID),
+            "--lcm-url", LCM_URL, "--scene", args.scene, "--seed", str(args.seed),
+            "--hover-s", str(args.hover_s), "--summary", str(out / "sim_summary.json")]
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "sim")
+    p.add_argument("--scene", default="room", help="room | corridor (default room)")
+    p.add_argument("--seed", type=int, default=1, help="the simulator's seed (default 1)")
+    p.add_argument("--hover-s", type=float, default=20.0,
+                   help="seconds the drone holds at 1 m before it lands (default 20)")
+    args = p.parse_args()
+    out = args.out
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    key = make_key(out / "vehicle.key")
+    started = time.monotonic()
+    problems: list[str] = []
+    try:
+        with network_namespace("sim") as netns:
+            logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", LCM_URL,
+                                       "--channel", RECORDED, str(out / "flight.lcmlog")],
+                                      stdout=subprocess.DEVNULL, start_new_session=True)
+            ground = Watched([*netns, *ground_command(out, key=key)], "[ground] ", quiet=False)
+            drone = None
+            try:
+                if not ground.wait_for("listening on", 1, GROUND_READY_TIMEOUT_S):
+                    raise RuntimeError("the ground station did not start listening:\n"
+                                       + ground.output())
+                drone = Watched([*netns, *drone_command(key, out)], "[drone]  ", quiet=False)
+                sim = Watched([*netns, *sim_command(key, out, args)], "[sim]    ", quiet=False)
+                sim_rc = sim.finish(None)
+                if sim_rc != 0:
+                    problems.append(f"kinfly-sim exited {sim_rc}: the flight failed (above)")
+            finally:
+                if drone is not None:
+                    send_signal(drone.process, signal.SIGINT)
+                    drone_rc = drone.finish(DRONE_EXIT_TIMEOUT_S)
+                    if drone_rc != 0:
+                        problems.append(f"kinfly-fw exited {drone_rc}")
+                send_signal(ground.process, signal.SIGTERM)
+                if ground.finish(GROUND_EXIT_TIMEOUT_S) != 0:
+                    problems.append("kinfly-ground failed (above)")
+                send_signal(logger, signal.SIGINT)
+                logger.wait(10)
+    except NetnsUnavailable as error:
+        print(f"sim: {error}", file=sys.stderr)
+        return 1
+    if drone is not None and "control: failsafe:" in drone.output():
+        problems.append("a failsafe acted in flight (the drone's log above says which)")
+    problems += check_flight(out, max_missing=0)
+    print(f"\nsim: {time.monotonic() - started:.0f} s; files in {out}:")
+    for name, what in OUTPUTS.items():
+        path = out / name
+        if path.is_file():
+            print(f"  {name:<28} {path.stat().st_size / 1e3:9.1f} KB  {what}")
+        else:
+            problems.append(f"{name} was not written")
+    summary = out / "sim_summary.json"
+    if summary.is_file():
+        figures = json.loads(summary.read_text())
+        print(f"sim: hover RMS against truth {figures['hover_rms_m'] * 100:.1f} cm, touchdown "
+              f"{figures['touchdown_m_s']:.2f} m/s, {figures['real_time_factor']:.2f}x real time")
+    if problems:
+        print("sim: FAILED:\n" + "\n".join(f"  - {problem}" for problem in problems),
+              file=sys.stderr)
+        return 1
+    print(f"sim: look at it with `{Path(sys.executable).parent / 'rerun'} {out / 'session.rrd'}`")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

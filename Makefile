@@ -41,8 +41,8 @@
 #                   cost per 1 kHz tick, CPU time and callgrind instructions with the Cortex-A72
 #                   share (out/bench/flight_cost.json); the figure eight beside RotorPy's SE3
 #                   controller flying the same reference (out/bench/flight_oracle.json);
-#                   kinfly-fuse vs Open3D dense SLAM (own .venv-bench); prints, never fails on
-#                   timings
+#                   kinfly-fuse vs Open3D dense SLAM (own .venv-bench); the simulator's own speed
+#                   at 320x240 and 640x480 (out/bench/sim.json); prints, never fails on timings
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
 #   make test-aarch64  deps demo, unit, image; the above + the image; unit tests and a replay
@@ -222,8 +222,11 @@ eval: deps-demo
 # link benches need root (or sudo) for their network namespaces, nft for the lossy links and tc
 # for the caps; bench_fw_link fails only if kinfly-fw or kinfly-ground does.
 bench: deps-bench
-	$(call build_programs,$(BENCH_PROGRAMS))
+	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release -DKINFLY_BUILD_SIM=ON \
+	  $(if $(wildcard $(BUILD_DIR)/CMakeCache.txt),,-DKINFLY_BUILD_TESTS=OFF)
+	cmake --build $(BUILD_DIR) -j $(JOBS) --target $(BENCH_PROGRAMS) kinfly-sim-bench
 	mkdir -p $(REPO_ROOT)/out/bench
+	$(BUILD_DIR)/bin/kinfly-sim-bench | tee $(REPO_ROOT)/out/bench/sim.json
 	$(CODEC_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/codec.json
 	$(MESH_BENCH) --tum $(TUM_SEQUENCE) | tee $(REPO_ROOT)/out/bench/mesh.json
 	$(BUILD_DIR)/bin/kinfly-flight-bench | tee $(REPO_ROOT)/out/bench/flight.json

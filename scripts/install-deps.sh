@@ -112,7 +112,7 @@ group_includes() {
     test) echo demo unit ;;
     fuzz) echo unit ;;
     image) echo aarch64 ;;
-    bench) echo demo ;;
+    bench) echo demo sim ;;
   esac
 }
 
@@ -136,7 +136,7 @@ groups it uses:
   aarch64  make firmware-aarch64, make package-aarch64: cross compiler, qemu-user, mmdebstrap
   image    make image: aarch64 + qemu-user-static, binfmt-support and the disk image tools
            (make test-aarch64 installs demo, unit and image)
-  bench    make bench: demo + valgrind, nft; .venv-bench from requirements-bench.txt
+  bench    make bench: demo + sim + valgrind, nft; .venv-bench from requirements-bench.txt
            (Open3D)
   all      every group above (make deps)
 

@@ -71,7 +71,7 @@ def test_dataset_replay_matches_the_log_replay(sample_log: Path, sample_dir: Pat
     (["--vehicle.id", "70000"], "vehicle.id must be in [0, 65535]"),
     (["--odometry.downsample", "3"], "odometry.downsample must be 1, 2 or 4"),
     (["--keyframe.min_interval_s", "5"], "keyframe.min_interval_s"),
-    (["--source.kind", "camera"], "source.kind must be log, dataset, openni or synthetic"),
+    (["--source.kind", "camera"], "source.kind must be log, dataset, openni, synthetic or lcm"),
     (["--link.status_rate_hz", "0"], "link.status_rate_hz"),
     (["--output.log_level", "loud"], "output.log_level"),
     (["--source.speed", "0"], "source.speed must be in (0, 100]"),

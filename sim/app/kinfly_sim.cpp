@@ -5,8 +5,9 @@
 // with the rotor commands of that sample (motor_command_t, same utime) before it goes on. Depth
 // frames are rendered at capture time and published after the camera's latency; the simulator
 // then waits for the odometry's pose of that frame (odometry_t, same utime), so the control task
-// sees it at the same simulated instant on any machine. A built-in mission (arm, take off, hold,
-// land) is sent as signed commands, as the ground station's `kinfly-ground command` would.
+// sees it at the same simulated instant on any machine. The mission (a TOML file, or the built-in
+// take off, hold, land) is sent as signed commands, as `kinfly-ground command` would, and its
+// scripted faults act on the world at their times.
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
 
@@ -16,6 +17,8 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <iomanip>
+#include <sstream>
 #include <map>
 #include <optional>
 #include <string>
@@ -31,10 +34,12 @@
 #include "kinfly/link/signing.h"
 #include "kinfly/sim/depth_camera.h"
 #include "kinfly/sim/imu_model.h"
+#include "kinfly/sim/mission.h"
 #include "kinfly/sim/multirotor.h"
 #include "kinfly/sim/ray_scene.h"
 #include "kinfly/sim/scene.h"
 #include "kinfly/sim/wind.h"
+#include "kinfly/flight_status_t.hpp"
 #include "kinfly/sim_state_t.hpp"
 
 namespace kinfly::sim {
@@ -53,8 +58,9 @@ struct Options {
   int vehicle_id = 1;
   std::string lcm_url;
   std::string key_file;
+  std::string mission_file;
   bool realtime = false;
-  double max_seconds = 60.0;
+  double max_seconds = 0.0;
   double wait_s = 10.0;
   double takeoff_height_m = 1.0;
   double hover_s = 10.0;
@@ -76,7 +82,7 @@ struct Options {
 Status validate(const Options& o) {
   if (o.wind_m_s.size() != 3) return Status::error("--wind needs three values: x y z [m/s]");
   return firstError(
-      outOfRange("--max-seconds", o.max_seconds, 1.0, 86400.0),
+      outOfRange("--max-seconds", o.max_seconds, 0.0, 86400.0),
       outOfRange("--wait-s", o.wait_s, 0.1, 600.0),
       outOfRange("--takeoff-height-m", o.takeoff_height_m, 0.2, 2.5),
       outOfRange("--hover-s", o.hover_s, 0.0, 3600.0),
@@ -179,12 +185,45 @@ class Link {
   Answers answers_;
 };
 
-// The built-in mission: its commands at their simulation times.
-struct MissionStep {
-  double at_s;
-  int8_t kind;
-  const char* name;
-};
+// The command a mission's step sends.
+flight_command_t commandOf(const MissionCommand& step, int vehicle_id, int64_t command_id) {
+  flight_command_t c{};
+  c.utime = link::wallClockUtime();
+  c.vehicle_id = vehicle_id;
+  c.command_id = command_id;
+  c.height_m = step.height_m;
+  for (int i = 0; i < 3; ++i) c.target_world_m[i] = step.target_world_m[i];
+  c.max_speed_m_s = step.max_speed_m_s;
+  c.waypoint_count = 0;
+  switch (step.kind) {
+    case MissionCommand::Kind::kArm: c.kind = flight_command_t::ARM; break;
+    case MissionCommand::Kind::kDisarm: c.kind = flight_command_t::DISARM; break;
+    case MissionCommand::Kind::kTakeOff: c.kind = flight_command_t::TAKE_OFF; break;
+    case MissionCommand::Kind::kHold: c.kind = flight_command_t::HOLD; break;
+    case MissionCommand::Kind::kGoTo: c.kind = flight_command_t::GO_TO; break;
+    case MissionCommand::Kind::kLand: c.kind = flight_command_t::LAND; break;
+    case MissionCommand::Kind::kWaypoints:
+      c.kind = flight_command_t::MISSION;
+      c.waypoint_count = static_cast<int32_t>(step.waypoints_world_m.size());
+      for (const Eigen::Vector3d& w : step.waypoints_world_m) {
+        c.waypoints_world_m.push_back({w.x(), w.y(), w.z()});
+      }
+      break;
+  }
+  return c;
+}
+
+// flight_status_t's names of the flight modes motor_command_t carries.
+const char* modeName(int mode) {
+  static const char* const names[] = {"disarmed", "armed", "take_off", "hold", "go_to",
+                                      "mission", "land", "descend", "motors_cut", "handed_over"};
+  return mode >= 0 && mode < 10 ? names[mode] : "unknown";
+}
+
+bool failsafeMode(int mode) {
+  return mode == flight_status_t::MODE_DESCEND || mode == flight_status_t::MODE_MOTORS_CUT ||
+         mode == flight_status_t::MODE_HANDED_OVER;
+}
 
 struct Flight {
   int64_t steps = 0;
@@ -200,6 +239,9 @@ struct Flight {
   double hover_sq_sum_m2 = 0.0;
   int64_t hover_samples = 0;
   bool landed = false;
+  std::vector<std::pair<double, int>> modes;   // (time, mode) at each change
+  int failsafes = 0;                           // changes into a failsafe mode
+  std::vector<std::pair<double, std::string>> events;  // the faults applied
   double sim_s = 0.0;
   double wall_s = 0.0;
 };
@@ -238,6 +280,14 @@ int run(const Options& o) {
       return 2;
     }
   }
+  StatusOr<Mission> loaded = o.mission_file.empty()
+                                ? StatusOr<Mission>(defaultMission(o.takeoff_height_m, o.hover_s))
+                                : loadMission(o.mission_file);
+  if (!loaded.ok()) {
+    std::fprintf(stderr, "kinfly-sim: --mission: %s\n", loaded.status().message().c_str());
+    return 2;
+  }
+  const Mission& mission = loaded.value();
   StatusOr<link::Key> key = link::loadKeyFile(o.key_file);
   if (!key.ok()) {
     std::fprintf(stderr, "kinfly-sim: --key-file: %s\n", key.status().message().c_str());
@@ -288,18 +338,10 @@ int run(const Options& o) {
     return 1;
   }
 
-  // Armed after the estimator's still start (half a second of IMU at rest) and its first poses.
-  const double climb_s = 2.0 + 2.0 * o.takeoff_height_m;  // at ~0.5 m/s, with room
-  const double takeoff_s = 3.0;
-  const std::vector<MissionStep> mission = {
-      {2.0, flight_command_t::ARM, "arm"},
-      {takeoff_s, flight_command_t::TAKE_OFF, "take-off"},
-      {takeoff_s + climb_s + o.hover_s, flight_command_t::LAND, "land"},
-  };
-  const double hover_from_s = takeoff_s + climb_s;
-  const double hover_to_s = hover_from_s + o.hover_s;
-  size_t next_mission = 0;
+  size_t next_command = 0;
+  size_t next_event = 0;
   int64_t command_id = 0;
+  double dropout_until_s = -1.0;  // a vision dropout: no frames captured before then
 
   const double dt_s = 1.0 / imu_params.rate_hz;
   const int64_t period_us = static_cast<int64_t>(std::llround(1e6 / imu_params.rate_hz));
@@ -316,8 +358,11 @@ int run(const Options& o) {
   Flight flight;
   // Heights are the body's above where it stood (as kinfly-fw's take-off counts them).
   const double stand_z_m = scene.value().floor_z_m - vehicle_params.gear_height_m;
-  const Eigen::Vector3d hover_target(scene.value().start_xy_m.x(), scene.value().start_xy_m.y(),
-                                     stand_z_m - o.takeoff_height_m);
+  // Holding after a take-off: from the climb's end (at ~0.5 m/s, with room) to the next command.
+  bool holding_after_take_off = false;
+  double hover_from_s = 0.0;
+  double hover_to_s = 0.0;
+  Eigen::Vector3d hover_target = Eigen::Vector3d::Zero();
   std::array<Eigen::Vector3f, kProbeDirections> probes;
   {
     int n = 0;
@@ -332,7 +377,8 @@ int run(const Options& o) {
   int64_t utime = kStartUtime;
   bool airborne = false;
   int64_t disarmed_on_floor_steps = 0;
-  const int64_t end_utime = kStartUtime + static_cast<int64_t>(o.max_seconds * 1e6);
+  const double max_s = o.max_seconds > 0.0 ? o.max_seconds : mission.max_s;
+  const int64_t end_utime = kStartUtime + static_cast<int64_t>(max_s * 1e6);
   sim_state_t state_msg{};
   state_msg.vehicle_id = o.vehicle_id;
   imu_t imu_msg{};
@@ -345,34 +391,52 @@ int run(const Options& o) {
   while (utime < end_utime) {
     const double t_s = static_cast<double>(utime - kStartUtime) * 1e-6;
     // The mission's commands, signed as the ground signs them.
-    while (next_mission < mission.size() && t_s >= mission[next_mission].at_s) {
-      const MissionStep& step = mission[next_mission++];
-      flight_command_t c{};
-      c.utime = link::wallClockUtime();
-      c.vehicle_id = o.vehicle_id;
-      c.command_id = ++command_id;
-      c.kind = step.kind;
-      c.height_m = o.takeoff_height_m;
-      c.waypoint_count = 0;
+    while (next_command < mission.commands.size() && t_s >= mission.commands[next_command].at_s) {
+      const MissionCommand& step = mission.commands[next_command++];
+      const flight_command_t c = commandOf(step, o.vehicle_id, ++command_id);
       std::vector<uint8_t> inner(static_cast<size_t>(c.getEncodedSize()));
       c.encode(inner.data(), 0, static_cast<int>(inner.size()));
       signed_t envelope;
       signer.sign(inner.data(), inner.size(), link::wallClockUtime(), &envelope);
       lcm.publish(command_channel, &envelope);
-      std::printf("kinfly-sim: t=%.2f s: %s\n", t_s, step.name);
+      std::printf("kinfly-sim: t=%.2f s: %s\n", t_s, step.name.c_str());
       std::fflush(stdout);
       // Held until the drone says the command is its flight stack's, so that the next sample's
       // tick takes it, on any machine (the link hands it over on its own thread).
       if (!link_io.waitFor([&] { return answers.commands_passed >= command_id; })) {
         std::fprintf(stderr, "kinfly-sim: kinfly-fw did not take the %s command within %.0f s "
-                             "(its log says why: the key, the clock window)\n",
-                     step.name, o.wait_s);
+                             "(its log says why: the key, the clock window, a mission it cannot "
+                             "fly)\n",
+                     step.name.c_str(), o.wait_s);
         return 1;
       }
+      holding_after_take_off = step.kind == MissionCommand::Kind::kTakeOff;
+      if (holding_after_take_off) {
+        hover_from_s = step.at_s + 2.0 + 2.0 * step.height_m;
+        hover_to_s = next_command < mission.commands.size() ? mission.commands[next_command].at_s
+                                                             : max_s;
+        hover_target << scene.value().start_xy_m, stand_z_m - step.height_m;
+      }
+    }
+    // The faults, on the world.
+    while (next_event < mission.events.size() && t_s >= mission.events[next_event].at_s) {
+      const MissionEvent& e = mission.events[next_event++];
+      switch (e.kind) {
+        case MissionEvent::Kind::kWindStep: wind.setMean(e.vector); break;
+        case MissionEvent::Kind::kGust: wind.addGust({e.at_s, e.duration_s, e.vector}); break;
+        case MissionEvent::Kind::kVisionDropout: dropout_until_s = e.at_s + e.duration_s; break;
+        case MissionEvent::Kind::kImuBiasStep: imu.stepBias(e.vector, e.accel_m_s2); break;
+        case MissionEvent::Kind::kMotorLoss: drone.setRotorEfficiency(e.rotor - 1, e.fraction); break;
+      }
+      flight.events.emplace_back(t_s, e.name);
+      std::printf("kinfly-sim: t=%.2f s: %s\n", t_s, e.name.c_str());
+      std::fflush(stdout);
     }
 
     // Depth frames captured now, delivered after the latency.
-    if (utime >= next_frame_us) {
+    if (utime >= next_frame_us && t_s < dropout_until_s) {
+      next_frame_us += frame_period_us;  // the camera covered: nothing captured
+    } else if (utime >= next_frame_us) {
       const Pose T_world_body = [&] {
         Pose T = Pose::Identity();
         T.linear() = drone.state().q_world_body.toRotationMatrix();
@@ -441,7 +505,7 @@ int run(const Options& o) {
       }
     }
     const double now_s = t_s + dt_s;
-    if (now_s >= hover_from_s && now_s < hover_to_s) {
+    if (holding_after_take_off && now_s >= hover_from_s && now_s < hover_to_s) {
       flight.hover_sq_sum_m2 += (s.p_world_m - hover_target).squaredNorm();
       ++flight.hover_samples;
     }
@@ -478,6 +542,10 @@ int run(const Options& o) {
       break;
     }
     const motor_command_t& m = answers.motor;
+    if (flight.modes.empty() || flight.modes.back().second != m.flight_mode) {
+      flight.modes.emplace_back(now_s, m.flight_mode);
+      if (failsafeMode(m.flight_mode)) ++flight.failsafes;
+    }
     for (int i = 0; i < 4; ++i) {
       command[i] = m.state == motor_command_t::STOPPED ? 0.0 : m.rotor_speed_rad_s[i];
     }
@@ -510,27 +578,43 @@ int run(const Options& o) {
                                  : NAN;
   const bool ok = flight.landed && !flight.collided && !flight.crashed_on_floor &&
                   flight.motor_missed == 0 && flight.odometry_missed == 0;
-  char json[2048];
-  std::snprintf(
-      json, sizeof json,
-      "{\n  \"scene\": \"%s\",\n  \"seed\": %llu,\n  \"sim_s\": %.3f,\n  \"wall_s\": %.3f,\n"
-      "  \"real_time_factor\": %.3f,\n  \"imu_samples\": %lld,\n  \"depth_frames\": %lld,\n"
-      "  \"odometry_missed\": %lld,\n  \"motor_missed\": %lld,\n  \"max_height_m\": %.4f,\n"
-      "  \"hover_rms_m\": %.5f,\n  \"touchdown_m_s\": %.3f,\n  \"landed\": %s,\n"
-      "  \"collided\": %s,\n  \"collision_world_m\": [%.3f, %.3f, %.3f],\n"
-      "  \"collision_speed_m_s\": %.3f,\n  \"crashed_on_floor\": %s,\n  \"ok\": %s\n}\n",
-      o.scene.c_str(), static_cast<unsigned long long>(o.seed), flight.sim_s, flight.wall_s,
-      flight.sim_s / std::max(flight.wall_s, 1e-9), static_cast<long long>(flight.steps),
-      static_cast<long long>(flight.frames), static_cast<long long>(flight.odometry_missed),
-      static_cast<long long>(flight.motor_missed), flight.max_height_m, hover_rms_m,
-      flight.last_touchdown_m_s, flight.landed ? "true" : "false",
-      flight.collided ? "true" : "false", flight.collision_world_m.x(),
-      flight.collision_world_m.y(), flight.collision_world_m.z(), flight.collision_speed_m_s,
-      flight.crashed_on_floor ? "true" : "false", ok ? "true" : "false");
-  std::fputs(json, stdout);
+  std::ostringstream json;
+  json << std::fixed << std::setprecision(4);
+  json << "{\n  \"scene\": \"" << o.scene << "\",\n  \"mission\": \"" << mission.name
+       << "\",\n  \"seed\": " << o.seed << ",\n  \"sim_s\": " << flight.sim_s
+       << ",\n  \"wall_s\": " << flight.wall_s
+       << ",\n  \"real_time_factor\": " << flight.sim_s / std::max(flight.wall_s, 1e-9)
+       << ",\n  \"imu_samples\": " << flight.steps << ",\n  \"depth_frames\": " << flight.frames
+       << ",\n  \"odometry_missed\": " << flight.odometry_missed
+       << ",\n  \"motor_missed\": " << flight.motor_missed
+       << ",\n  \"max_height_m\": " << flight.max_height_m << ",\n  \"hover_rms_m\": ";
+  if (std::isfinite(hover_rms_m)) {
+    json << std::setprecision(5) << hover_rms_m << std::setprecision(4);
+  } else {
+    json << "null";
+  }
+  json << ",\n  \"touchdown_m_s\": " << flight.last_touchdown_m_s
+       << ",\n  \"landed\": " << (flight.landed ? "true" : "false")
+       << ",\n  \"collided\": " << (flight.collided ? "true" : "false")
+       << ",\n  \"collision_world_m\": [" << flight.collision_world_m.x() << ", "
+       << flight.collision_world_m.y() << ", " << flight.collision_world_m.z() << "]"
+       << ",\n  \"collision_speed_m_s\": " << flight.collision_speed_m_s
+       << ",\n  \"crashed_on_floor\": " << (flight.crashed_on_floor ? "true" : "false")
+       << ",\n  \"failsafes\": " << flight.failsafes << ",\n  \"modes\": [";
+  for (size_t i = 0; i < flight.modes.size(); ++i) {
+    json << (i ? ", " : "") << "[" << std::setprecision(3) << flight.modes[i].first << ", \""
+         << modeName(flight.modes[i].second) << "\"]";
+  }
+  json << "],\n  \"events\": [";
+  for (size_t i = 0; i < flight.events.size(); ++i) {
+    json << (i ? ", " : "") << "[" << std::setprecision(3) << flight.events[i].first << ", \""
+         << flight.events[i].second << "\"]";
+  }
+  json << "],\n  \"ok\": " << (ok ? "true" : "false") << "\n}\n";
+  std::fputs(json.str().c_str(), stdout);
   if (!o.summary.empty()) {
     std::ofstream out(o.summary);
-    out << json;
+    out << json.str();
     if (!out) {
       std::fprintf(stderr, "kinfly-sim: cannot write --summary %s\n", o.summary.c_str());
       return 1;
@@ -544,8 +628,7 @@ int run(const Options& o) {
     std::fprintf(stderr, "kinfly-sim: the drone hit the floor at %.2f m/s\n",
                  flight.last_touchdown_m_s);
   } else if (!flight.landed && flight.motor_missed == 0 && flight.odometry_missed == 0) {
-    std::fprintf(stderr, "kinfly-sim: the mission did not end landed within --max-seconds %.0f\n",
-                 o.max_seconds);
+    std::fprintf(stderr, "kinfly-sim: the mission did not end landed within %.0f s\n", max_s);
   }
   return ok ? 0 : 1;
 }
@@ -560,7 +643,8 @@ int main(int argc, char** argv) {
       "kinfly-sim: the simulated world kinfly-fw flies in, over LCM, in lockstep (docs/sim.md). "
       "Start kinfly-fw first with flight.backend = motors, flight.imu = lcm, flight.lockstep = "
       "true, source.kind = lcm, source.realtime = false on the same LCM URL; kinfly-sim then "
-      "flies the built-in mission (arm, take off, hold, land) and prints a summary. Exit status: "
+      "flies the mission (--mission, or the built-in take off, hold, land) and prints a summary "
+      "(docs/sim.md). Exit status: "
       "0 landed, 1 the flight failed (a collision, a hard landing, kinfly-fw gone), 2 bad input."};
   app.add_option("--scene", o.scene, "room | corridor")->capture_default_str();
   app.add_option("--seed", o.seed, "seeds the IMU, the camera's noise and the wind")
@@ -570,15 +654,19 @@ int main(int argc, char** argv) {
   app.add_option("--lcm-url", o.lcm_url, "LCM URL (empty: LCM's default)")->capture_default_str();
   app.add_option("--key-file", o.key_file, "the vehicle's key (kinfly-keygen): signs the mission")
       ->required();
+  app.add_option("--mission", o.mission_file,
+                 "a mission file (TOML: commands and scripted faults, docs/sim.md); empty: take "
+                 "off, hold --hover-s, land");
   app.add_flag("--realtime", o.realtime, "pace simulation time to the wall clock, for watching");
-  app.add_option("--max-seconds", o.max_seconds, "simulated seconds at most [1, 86400]")
+  app.add_option("--max-seconds", o.max_seconds,
+                 "simulated seconds at most [0, 86400]; 0: the mission's max_s")
       ->capture_default_str();
   app.add_option("--wait-s", o.wait_s,
                  "wall seconds to wait for kinfly-fw's answer before declaring it gone")
       ->capture_default_str();
-  app.add_option("--takeoff-height-m", o.takeoff_height_m, "mission: take-off height [m]")
+  app.add_option("--takeoff-height-m", o.takeoff_height_m, "built-in mission: take-off height [m]")
       ->capture_default_str();
-  app.add_option("--hover-s", o.hover_s, "mission: seconds held at that height")
+  app.add_option("--hover-s", o.hover_s, "built-in mission: seconds held at that height")
       ->capture_default_str();
   app.add_option("--crash-speed-m-s", o.crash_speed_m_s,
                  "a touchdown faster than this is a crash [m/s]")

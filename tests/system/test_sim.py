@@ -112,3 +112,26 @@ def test_refuses_a_key_it_cannot_use(tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=60)
     assert sim.returncode == 2
     assert "--key-file:" in sim.stderr and "absent.key" in sim.stderr, sim.stderr
+
+
+def test_a_malformed_mission_is_refused_naming_its_line(tmp_path: Path) -> None:
+    key = keygen(tmp_path)
+    mission = tmp_path / "tour.toml"
+    mission.write_text('[[command]]\nat_s = 1\nkind = "arm"\n\n[[command]]\nat_s = 2\n'
+                       'kind = "take_off"\nheight = 1.0\n')
+    sim = subprocess.run([built("bin/kinfly-sim"), "--key-file", key, "--mission", mission],
+                         capture_output=True, text=True, timeout=60)
+    assert sim.returncode == 2
+    assert f"--mission: {mission}:8: unknown key 'height' in take_off" in sim.stderr, sim.stderr
+
+
+def test_the_shipped_missions_parse(tmp_path: Path) -> None:
+    """Every mission in sim/missions is one kinfly-sim reads: it gets as far as waiting for
+    kinfly-fw (no namespace here: no one answers)."""
+    key = keygen(tmp_path)
+    for mission in sorted((Path(__file__).resolve().parents[2] / "sim" / "missions").glob("*.toml")):
+        sim = subprocess.run([built("bin/kinfly-sim"), "--key-file", key, "--mission", mission,
+                              "--lcm-url", "memq://", "--wait-s", "0.1"],
+                             capture_output=True, text=True, timeout=60)
+        assert sim.returncode == 1, (mission, sim.stderr)
+        assert "control task never answered" in sim.stderr, (mission, sim.stderr)

@@ -229,10 +229,10 @@ def check_flight(out: Path, max_missing: int) -> list[str]:
     return problems
 
 
-def list_outputs(out: Path) -> str:
-    """The files that are in OUT, each with its size and what it is."""
+def list_outputs(out: Path, outputs: dict[str, str] = OUTPUTS) -> str:
+    """The files of OUTPUTS that are in OUT, each with its size and what it is."""
     rows = []
-    for name, what in OUTPUTS.items():
+    for name, what in outputs.items():
         path = out / name
         if path.is_file():
             rows.append(f"  {name:<28} {path.stat().st_size / 1e3:9.1f} KB  {what}")
@@ -272,11 +272,17 @@ def main() -> int:
     print(f"demo: {time.monotonic() - started:.0f} s; the drone applied "
           f"{applied.group(1) if applied else 'none'} of the ground's corrections.")
     print(f"demo: files in {out}:\n{list_outputs(out)}")
+    return report("demo", out, problems)
+
+
+def report(tool: str, out: Path, problems: list[str]) -> int:
+    """The run's verdict: its PROBLEMS and exit status 1, or how to look at it and 0."""
     if problems:
-        print("demo: FAILED:\n" + "\n".join(f"  - {problem}" for problem in problems),
+        print(f"{tool}: FAILED:\n" + "\n".join(f"  - {problem}" for problem in problems),
               file=sys.stderr)
         return 1
-    print(f"demo: look at it with `{Path(sys.executable).parent / 'rerun'} {out / 'session.rrd'}`")
+    print(f"{tool}: look at it with `{Path(sys.executable).parent / 'rerun'} "
+          f"{out / 'session.rrd'}`")
     return 0
 
 

@@ -24,7 +24,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, GROUND_READY_TIMEOUT_S,  # noqa: E402
-                  LCM_URL, VEHICLE_ID, Watched, check_flight, ground_command, make_key)
+                  LCM_URL, VEHICLE_ID, Watched, check_flight, ground_command, list_outputs,
+                  make_key, report)
 from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -109,24 +110,18 @@ def main() -> int:
     if drone is not None and "control: failsafe:" in drone.output():
         problems.append("a failsafe acted in flight (the drone's log above says which)")
     problems += check_flight(out, max_missing=0)
-    print(f"\nsim: {time.monotonic() - started:.0f} s; files in {out}:")
-    for name, what in OUTPUTS.items():
-        path = out / name
-        if path.is_file():
-            print(f"  {name:<28} {path.stat().st_size / 1e3:9.1f} KB  {what}")
-        else:
-            problems.append(f"{name} was not written")
+    print(f"\nsim: {time.monotonic() - started:.0f} s; files in {out}:\n"
+          f"{list_outputs(out, OUTPUTS)}")
+    problems += [f"{name} was not written" for name in OUTPUTS if not (out / name).is_file()]
     summary = out / "sim_summary.json"
     if summary.is_file():
         figures = json.loads(summary.read_text())
-        print(f"sim: hover RMS against truth {figures['hover_rms_m'] * 100:.1f} cm, touchdown "
-              f"{figures['touchdown_m_s']:.2f} m/s, {figures['real_time_factor']:.2f}x real time")
-    if problems:
-        print("sim: FAILED:\n" + "\n".join(f"  - {problem}" for problem in problems),
-              file=sys.stderr)
-        return 1
-    print(f"sim: look at it with `{Path(sys.executable).parent / 'rerun'} {out / 'session.rrd'}`")
-    return 0
+        hover = figures["hover_rms_m"]
+        print(f"sim: hover RMS against truth "
+              f"{'-' if hover is None else f'{hover * 100:.1f} cm'}, touchdown "
+              f"{figures['touchdown_m_s']:.2f} m/s, {figures['failsafes']} failsafes, "
+              f"{figures['real_time_factor']:.2f}x real time")
+    return report("sim", out, problems)
 
 
 if __name__ == "__main__":

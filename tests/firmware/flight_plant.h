@@ -1,5 +1,7 @@
 // A test plant for the flight stack's closed-loop tests and its benchmark, not part of the
-// library (the simulator proper is sim/'s): a 6-DoF rigid body in the flight stack's world
+// library. The simulator proper (sim/, kinfly::sim::Multirotor) has a richer model of the same
+// body, but it is built natively only (Embree), and these tests also run cross-built under qemu;
+// this plant keeps them free of it: a 6-DoF rigid body in the flight stack's world
 // (z down, gravity +z), the rotors' thrust and drag quadratic in their speed, each rotor
 // following its command with a first-order lag, integrated by RK4 with the command held over the
 // step. The wrench comes from the rotor positions and spins by cross products, not from the

@@ -49,14 +49,16 @@ class LcmSource : public DepthSource {
       *why = "no depth frame on " + describe() + " yet";
       return SourceStatus::kWaiting;
     }
-    std::vector<uint8_t>& bytes = held_[first_];
-    first_ = (first_ + 1) % kHeld;
-    --count_;
+    // Frames the sender overwrote are reported first, as skipped; the held ones stay for the
+    // next calls.
     if (overwritten_ > 0) {
       *why = std::to_string(overwritten_) + " frame(s) arrived faster than they were taken";
       overwritten_ = 0;
       return SourceStatus::kSkipped;
     }
+    std::vector<uint8_t>& bytes = held_[first_];
+    first_ = (first_ + 1) % kHeld;
+    --count_;
     return decode(bytes, out, why);
   }
 

@@ -19,8 +19,8 @@
 #include <fstream>
 #include <iomanip>
 #include <sstream>
-#include <map>
 #include <optional>
+#include <set>
 #include <string>
 #include <thread>
 #include <vector>
@@ -104,20 +104,12 @@ MultirotorParams simulatedVehicle(const Options& o) {
   return p;
 }
 
-// The camera on the body: at the centre of mass, looking ahead (optical x right = body y, y down
-// = body z, z ahead = body x), as kinfly-fw's estimator assumes by default.
-Pose bodyCam() {
-  Pose T = Pose::Identity();
-  T.linear() << 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0;
-  return T;
-}
-
 // What kinfly-fw sends back, as the LCM handlers see it.
 struct Answers {
   int64_t motor_utime = -1;
   motor_command_t motor;
   bool motor_heard = false;
-  std::map<int64_t, bool> odometry;  // utimes of odometry poses heard (erased when taken)
+  std::set<int64_t> odometry;        // utimes of odometry poses heard (erased when taken)
   int64_t commands_passed = 0;       // the drone's status: commands handed to its flight stack
   int64_t rejected = 0;
 };
@@ -150,34 +142,31 @@ class Link {
   }
 
  private:
+  // Decodes what LCM delivered within bounds, for this vehicle only; else counts it rejected.
+  template <class Message>
+  bool accept(const lcm::ReceiveBuffer* buffer, Message* m) {
+    if (link::decodeMessage(buffer->data, buffer->data_size, link::DecodeBounds(), m).ok() &&
+        m->vehicle_id == o_.vehicle_id) {
+      return true;
+    }
+    ++answers_.rejected;
+    return false;
+  }
   static void onMotor(const lcm::ReceiveBuffer* buffer, const std::string&, Link* self) {
     motor_command_t m;
-    if (!link::decodeMessage(buffer->data, buffer->data_size, link::DecodeBounds(), &m).ok() ||
-        m.vehicle_id != self->o_.vehicle_id) {
-      ++self->answers_.rejected;
-      return;
-    }
+    if (!self->accept(buffer, &m)) return;
     self->answers_.motor = m;
     self->answers_.motor_utime = m.utime;
     self->answers_.motor_heard = true;
   }
   static void onStatus(const lcm::ReceiveBuffer* buffer, const std::string&, Link* self) {
     drone_status_t m;
-    if (!link::decodeMessage(buffer->data, buffer->data_size, link::DecodeBounds(), &m).ok() ||
-        m.vehicle_id != self->o_.vehicle_id) {
-      ++self->answers_.rejected;
-      return;
-    }
+    if (!self->accept(buffer, &m)) return;
     self->answers_.commands_passed = std::max(self->answers_.commands_passed, m.commands_passed);
   }
   static void onOdometry(const lcm::ReceiveBuffer* buffer, const std::string&, Link* self) {
     odometry_t m;
-    if (!link::decodeMessage(buffer->data, buffer->data_size, link::DecodeBounds(), &m).ok() ||
-        m.vehicle_id != self->o_.vehicle_id) {
-      ++self->answers_.rejected;
-      return;
-    }
-    self->answers_.odometry[m.utime] = true;
+    if (self->accept(buffer, &m)) self->answers_.odometry.insert(m.utime);
   }
 
   const Options& o_;
@@ -313,7 +302,7 @@ int run(const Options& o) {
   ImuModel imu(imu_params);
   DepthCamera camera(*rays.value(), camera_params);
   DepthCodec codec{DepthCodec::Params()};
-  const Pose T_body_cam = bodyCam();
+  const Pose T_body_cam = forwardBodyCam();
   link::Signer signer(key.value(), o.vehicle_id, link::wallClockUtime());
 
   const std::string imu_channel = link::channelName(link::Channel::kImu, o.vehicle_id);

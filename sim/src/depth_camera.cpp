@@ -24,6 +24,12 @@ Status DepthCameraParams::validate() const {
       outOfRange("camera.depth_scale_m", depth_scale_m, 0.0, 0.01, Bound::kOpen));
 }
 
+Pose forwardBodyCam() {
+  Pose T = Pose::Identity();
+  T.linear() << 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0;
+  return T;
+}
+
 DepthCamera::DepthCamera(const RayScene& scene, const DepthCameraParams& params)
     : scene_(scene),
       params_(params),

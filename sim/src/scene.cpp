@@ -2,45 +2,39 @@
 
 #include <Eigen/Geometry>
 #include <cmath>
+#include <initializer_list>
 
 namespace kinfly::sim {
 
 namespace {
 
-// A quad with corners a, b, c, d in order around it, as two triangles with its own four
-// vertices (so the normals stay the face's), wound counter-clockwise seen from `facing`, the side
-// in free space.
-void addQuad(TriangleMesh* mesh, const Eigen::Vector3f& a, const Eigen::Vector3f& b,
-             const Eigen::Vector3f& c, const Eigen::Vector3f& d, const Eigen::Vector3f& facing) {
-  Eigen::Vector3f normal = (b - a).cross(c - a).normalized();
+// A flat face with its corners in order around it, as a fan of triangles over its own vertices
+// (so the normals stay the face's), wound counter-clockwise seen from `facing`, the side in free
+// space.
+void addFace(TriangleMesh* mesh, std::initializer_list<Eigen::Vector3f> corners,
+             const Eigen::Vector3f& facing) {
+  const Eigen::Vector3f* c = corners.begin();
+  Eigen::Vector3f normal = (c[1] - c[0]).cross(c[2] - c[0]).normalized();
   const bool flip = normal.dot(facing) < 0.0f;
   if (flip) normal = -normal;
   const int base = static_cast<int>(mesh->vertices.size());
-  for (const Eigen::Vector3f* v : {&a, &b, &c, &d}) {
-    mesh->vertices.push_back(*v);
+  for (const Eigen::Vector3f& v : corners) {
+    mesh->vertices.push_back(v);
     mesh->normals.push_back(normal);
   }
-  if (flip) {
-    mesh->triangles.emplace_back(base, base + 2, base + 1);
-    mesh->triangles.emplace_back(base, base + 3, base + 2);
-  } else {
-    mesh->triangles.emplace_back(base, base + 1, base + 2);
-    mesh->triangles.emplace_back(base, base + 2, base + 3);
+  for (int i = 1; i + 1 < static_cast<int>(corners.size()); ++i) {
+    mesh->triangles.emplace_back(base, base + (flip ? i + 1 : i), base + (flip ? i : i + 1));
   }
 }
 
-// A triangle wound counter-clockwise seen from `facing`.
+void addQuad(TriangleMesh* mesh, const Eigen::Vector3f& a, const Eigen::Vector3f& b,
+             const Eigen::Vector3f& c, const Eigen::Vector3f& d, const Eigen::Vector3f& facing) {
+  addFace(mesh, {a, b, c, d}, facing);
+}
+
 void addTriangle(TriangleMesh* mesh, const Eigen::Vector3f& a, const Eigen::Vector3f& b,
                  const Eigen::Vector3f& c, const Eigen::Vector3f& facing) {
-  Eigen::Vector3f normal = (b - a).cross(c - a).normalized();
-  const bool flip = normal.dot(facing) < 0.0f;
-  if (flip) normal = -normal;
-  const int base = static_cast<int>(mesh->vertices.size());
-  for (const Eigen::Vector3f* v : {&a, &b, &c}) {
-    mesh->vertices.push_back(*v);
-    mesh->normals.push_back(normal);
-  }
-  mesh->triangles.emplace_back(base, flip ? base + 2 : base + 1, flip ? base + 1 : base + 2);
+  addFace(mesh, {a, b, c}, facing);
 }
 
 // A ramp on the floor rising from x = x0 (floor height) to x = x1 (height h above the floor),

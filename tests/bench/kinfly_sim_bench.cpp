@@ -62,12 +62,10 @@ Figures fly(const RayScene& rays, int downsample) {
     if (i % steps_per_frame != 0) continue;
     // The camera on the circle, looking along it (optical z along the body's x).
     const double angle = 2.0 * M_PI * t_s / kCirclePeriodS;
-    Pose T_world_cam = Pose::Identity();
-    Eigen::Matrix3d R_body_cam;
-    R_body_cam << 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0;
-    T_world_cam.linear() =
-        Eigen::AngleAxisd(angle + M_PI / 2.0, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
-        R_body_cam;
+    Pose T_world_body = Pose::Identity();
+    T_world_body.linear() =
+        Eigen::AngleAxisd(angle + M_PI / 2.0, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    Pose T_world_cam = T_world_body * forwardBodyCam();
     T_world_cam.translation() =
         Eigen::Vector3d(kCircleRadiusM * std::cos(angle), kCircleRadiusM * std::sin(angle), -1.0);
     const Clock::time_point render_start = Clock::now();

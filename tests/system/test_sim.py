@@ -14,7 +14,7 @@ import pytest
 from netns import send_signal
 
 from conftest import built
-from demo import Watched
+from demo import Watched, make_key
 from firmware_run import firmware
 
 VEHICLE = 5
@@ -33,9 +33,7 @@ WALL_CLOCK_FIELDS = {"wall_s", "real_time_factor"}
 
 
 def keygen(tmp_path: Path) -> Path:
-    key = tmp_path / "vehicle.key"
-    subprocess.run([built("bin/kinfly-keygen"), "--out", key], check=True, capture_output=True)
-    return key
+    return make_key(tmp_path / "vehicle.key")
 
 
 def fly(netns: list[str], key: Path, summary: Path, seed: int = 1) -> tuple[dict, str, str]:

@@ -35,6 +35,10 @@ struct DepthCameraParams {
   Status validate() const;
 };
 
+// The camera on the body: at the centre of mass, looking ahead (optical x right = body y, y down
+// = body z, z ahead = body x), as kinfly-fw's estimator assumes by default.
+Pose forwardBodyCam();
+
 class DepthCamera {
  public:
   // scene outlives the camera; params valid.

@@ -72,6 +72,15 @@ def make_key(path: Path) -> Path:
     return path
 
 
+def fresh_output(out: Path) -> Path:
+    """Empties OUT (a run's outputs never mix with an earlier run's) and makes the flight's key
+    in it."""
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    return make_key(out / "vehicle.key")
+
+
 def ground_command(out: Path, *, key: Path | None, vehicle: int | None = VEHICLE_ID) -> list[str]:
     command = [str(Path(sys.executable).parent / "kinfly-ground"), "run", "--lcm-url", LCM_URL,
                "--out", str(out)]
@@ -250,10 +259,7 @@ def main() -> int:
     args = p.parse_args()
 
     out = args.out
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-    key = make_key(out / "vehicle.key")
+    key = fresh_output(out)
     started = time.monotonic()
     try:
         with network_namespace("demo") as netns:

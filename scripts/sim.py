@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import signal
 import subprocess
 import sys
@@ -24,8 +23,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, GROUND_READY_TIMEOUT_S,  # noqa: E402
-                  LCM_URL, VEHICLE_ID, Watched, check_flight, ground_command, list_outputs,
-                  make_key, report)
+                  LCM_URL, VEHICLE_ID, Watched, check_flight, fresh_output, ground_command,
+                  list_outputs, report)
 from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -71,10 +70,7 @@ def main() -> int:
                    help="seconds the drone holds at 1 m before it lands (default 20)")
     args = p.parse_args()
     out = args.out
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-    key = make_key(out / "vehicle.key")
+    key = fresh_output(out)
     started = time.monotonic()
     problems: list[str] = []
     try:

@@ -79,6 +79,7 @@ def samples() -> dict[type, object]:
      st.rejected_replayed, st.rejected_malformed, st.rejected_unknown_channel,
      st.rejected_wrong_vehicle) = range(1, 9)
     st.corrections_accepted, st.corrections_unknown_keyframe = 1400, 9
+    st.commands_passed = 3
 
     gs = ground_status_t()
     gs.utime, gs.vehicle_id = 1_700_000_000_450_000, 7

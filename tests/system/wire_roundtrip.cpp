@@ -126,6 +126,7 @@ drone_status_t sampleDroneStatus() {
   m.rejected_wrong_vehicle = 8;
   m.corrections_accepted = 1400;
   m.corrections_unknown_keyframe = 9;
+  m.commands_passed = 3;
   return m;
 }
 

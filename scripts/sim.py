@@ -58,7 +58,9 @@ def drone_command(key: Path, out: Path) -> list[str]:
 def sim_command(key: Path, out: Path, args: argparse.Namespace) -> list[str]:
     return [str(BUILD / "kinfly-sim"), "--key-file", str(key), "--vehicle", str(VEHICLE_ID),
             "--lcm-url", LCM_URL, "--scene", args.scene, "--seed", str(args.seed),
-            "--hover-s", str(args.hover_s), "--summary", str(out / "sim_summary.json")]
+            "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
+            "--summary", str(out / "sim_summary.json"),
+            *(["--mission", str(args.mission)] if args.mission else [])]
 
 
 def main() -> int:
@@ -67,7 +69,13 @@ def main() -> int:
     p.add_argument("--scene", default="room", help="room | corridor (default room)")
     p.add_argument("--seed", type=int, default=1, help="the simulator's seed (default 1)")
     p.add_argument("--hover-s", type=float, default=20.0,
-                   help="seconds the drone holds at 1 m before it lands (default 20)")
+                   help="seconds the drone holds at 1 m before it lands (default 20); "
+                   "the built-in mission's, when there is no --mission")
+    p.add_argument("--mission", type=Path, default=None,
+                   help="a mission file (sim/missions/, docs/sim.md); default: take off, hold, "
+                   "land")
+    p.add_argument("--camera-downsample", type=int, default=1,
+                   help="the simulated Kinect at 1/N of 640x480 (default 1)")
     args = p.parse_args()
     out = args.out
     key = fresh_output(out)

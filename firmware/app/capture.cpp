@@ -32,6 +32,10 @@ void runCapture(const SourceConfig& config, DepthSource* source,
                    counters->frames_captured.load());
       break;
     }
+    if (status == SourceStatus::kPaused) {
+      start.reset();
+      continue;
+    }
     if (status == SourceStatus::kWaiting) {
       if (!waiting || why != last_waiting_why) spdlog::warn("capture: {}", why);
       waiting = true;

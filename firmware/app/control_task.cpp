@@ -236,6 +236,11 @@ void ControlTask::tick(int64_t utime) {
     const flight::VisionOutcome outcome = stack_->addVision(vision.vision);
     if (outcome == flight::VisionOutcome::kFused) {
       ++summary_.poses_fused;
+    } else if (outcome == flight::VisionOutcome::kResetToPose) {
+      ++summary_.pose_resets;
+      spdlog::warn("control: the odometry and the IMU disagreed for {} poses in a row: estimator "
+                   "reset to the odometry's pose (reset {})",
+                   stack_->params().estimator.vision_reset_rejections, summary_.pose_resets);
     } else {
       ++summary_.poses_rejected;
     }

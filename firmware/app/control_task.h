@@ -34,6 +34,7 @@ struct ControlSummary {
   int64_t commands_unsent = 0;  // not: the control task's LCM was down
   int64_t poses_fused = 0;
   int64_t poses_rejected = 0;  // gated, too old, out of order, or before the estimator started
+  int64_t pose_resets = 0;     // gated too often in a row: the estimator reset to the pose
   int64_t resets = 0;           // the ground's anchor jumped: the estimator reset
   int64_t resets_rejected = 0;  // ... before the estimator started (the next pose anchors it)
   bool estimator_started = false;

@@ -291,13 +291,14 @@ int run(int argc, char** argv) {
     const flight::FlightCounters& f = c.modes;
     std::printf(
         "kinfly-fw: control: %lld IMU samples (%lld rejected), %lld ticks (%lld without a new "
-        "sample); %lld poses fused, %lld rejected, %lld resets (%lld before the start); "
+        "sample); %lld poses fused, %lld rejected, %lld resets to a pose, %lld resets (%lld "
+        "before the start); "
         "estimator %s; mode %s, %lld mode changes, %lld commands accepted, %lld refused; "
         "failsafes: %lld vision lost, %lld estimator diverged, %lld attitude limit, %lld IMU "
         "lost, %lld geofence; %lld rotor commands sent, %lld not; %lld signed commands passed "
         "by the link, %lld dropped\n",
         n(c.imu_samples), n(c.imu_rejected), n(c.ticks), n(c.silent_ticks), n(c.poses_fused),
-        n(c.poses_rejected), n(c.resets), n(c.resets_rejected),
+        n(c.poses_rejected), n(c.pose_resets), n(c.resets), n(c.resets_rejected),
         c.estimator_started ? "started" : "not started",
         flight::toString(c.mode), n(f.mode_changes), n(f.commands_accepted),
         n(f.commands_refused), n(f.vision_lost), n(f.estimator_diverged), n(f.attitude_limit),

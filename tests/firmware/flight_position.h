@@ -163,7 +163,7 @@ class SensorFeed {
     imu.utime = utime;
     imu.gyro_rad_s = plant.gyroBodyRadS();
     imu.accel_m_s2 = plant.accelBodyMS2();
-    if (utime >= next_capture_utime_) {
+    if (utime >= next_capture_utime_ && camera_on_) {
       in_flight_.push_back(odometryPose(utime, poseOf(plant.state()), T_odom_world_,
                                         EstimatorParams{}, gaussian_));
       next_capture_utime_ += kVisionPeriodUs;
@@ -181,9 +181,12 @@ class SensorFeed {
       log->poses_end.push_back(log->poses.size());
     }
   }
+  // The camera covered: no pose is captured from now on (those in flight still arrive).
+  void coverCamera() { camera_on_ = false; }
 
  private:
   Pose T_odom_world_;
+  bool camera_on_ = true;
   Gaussian gaussian_;
   int64_t next_capture_utime_;
   std::deque<Delivery> in_flight_;

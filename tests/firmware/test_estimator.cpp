@@ -90,6 +90,10 @@ struct Scenario {
   uint32_t seed = 1;
   // Poses captured in [begin, end) never arrive.
   double vision_gap_begin_s = -1.0, vision_gap_end_s = -1.0;
+  // The IMU's biases jump by these at this time (a knock, a temperature step).
+  double bias_step_s = -1.0;
+  Vector3d gyro_bias_step_rad_s = Vector3d::Zero();
+  Vector3d accel_bias_step_m_s2 = Vector3d::Zero();
 };
 
 // Everything the estimator will be fed and the truth at every IMU sample, computed up front so
@@ -136,6 +140,11 @@ Recording record(const Scenario& scenario) {
     rec.gyro_bias_rad_s.push_back(gyro_bias);
     rec.accel_bias_m_s2.push_back(accel_bias);
     if (k == 0) continue;
+    if (scenario.bias_step_s >= 0.0 && secondsOf(utime - kImuPeriodUs) < scenario.bias_step_s &&
+        secondsOf(utime) >= scenario.bias_step_s) {
+      gyro_bias += scenario.gyro_bias_step_rad_s;
+      accel_bias += scenario.accel_bias_step_m_s2;
+    }
     // An IMU's sample is its mean over the period: the mid-period value to second order.
     const Truth mid = truthAt(secondsOf(utime) - 0.5 * dt_s);
     ImuSample sample;
@@ -413,24 +422,101 @@ TEST(Estimator, GateRejectsAnOutlierPose) {
   EXPECT_LT(estimator.health().vision_test_ratio, 1.0);
 }
 
-TEST(Estimator, PosesGatedOutInARowFlagDivergence) {
+// Feeds IMU samples from *k for one vision period, then the pose captured 30 ms before the last,
+// moved by the offset; returns what the estimator made of the pose.
+VisionOutcome nextOffsetPose(const Recording& rec, const EstimatorParams& params,
+                             Estimator& estimator, size_t* k, const Vector3d& offset_odom_m) {
+  for (int j = 0; j < kVisionPeriodUs / kImuPeriodUs; ++j) estimator.addImu(rec.imu[(*k)++]);
+  const size_t captured = *k - kVisionDelayUs / kImuPeriodUs;
+  return estimator.addVision(
+      truePose(rec, params, captured, rec.imu[captured - 1].utime, offset_odom_m));
+}
+
+TEST(Estimator, AnOdometryJumpIsGatedThenTheFilterResetsToItAndFollows) {
   Scenario scenario;
   const Recording rec = record(scenario);
   Estimator estimator(scenario.params);
   estimator.initialise(rec.init);
   size_t k = 0;
   flyFor(rec, estimator, 3.0, &k);
-  // The odometry jumped 0.5 m with no correction to say so: every pose from now on is gated.
-  for (int i = 0; i < scenario.params.diverged_rejections; ++i) {
+  // The odometry jumped 0.5 m with no correction to say so: gated until the run is long enough.
+  const Vector3d jump_odom_m(0.5, 0.0, 0.0);
+  const int gated = scenario.params.vision_reset_rejections - 1;
+  for (int i = 0; i < gated; ++i) {
+    EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m),
+              VisionOutcome::kRejectedGate);
+  }
+  EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m),
+            VisionOutcome::kResetToPose);
+  // From there on the jumped odometry is fused: the estimate follows it (the ground's next
+  // correction is what takes such a jump out).
+  const Vector3d jump_world_m = rec.T_world_odom.linear() * jump_odom_m;
+  Rms after_m;
+  for (int i = 0; i < 60; ++i) {
+    EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m),
+              VisionOutcome::kFused);
+    if (i >= 30) {  // 1 s after the reset: velocity and biases settled again
+      after_m.add((estimator.state().p_world_body_m - rec.truth[k].p_world_body_m -
+                   jump_world_m).norm());
+    }
+  }
+  std::printf("[estimator] after a 0.5 m odometry jump: reset to the pose after %d gated, then "
+              "position RMS against the jumped truth %.2f mm\n",
+              gated, after_m.value() * 1e3);
+  EXPECT_LE(after_m.value(), kPosRmsM);
+  const EstimatorHealth health = estimator.health();
+  EXPECT_EQ(health.pose_resets, 1);
+  EXPECT_FALSE(health.diverged);
+  EXPECT_TRUE(health.vision_fused);
+}
+
+TEST(Estimator, AnImuBiasStepIsLearnedAgainWithoutDivergence) {
+  Scenario scenario;
+  scenario.duration_s = 16.0;
+  // The simulator's faults.toml step: ten times the start biases' 1σ on the gyro, twice on the
+  // accelerometer.
+  scenario.bias_step_s = 5.0;
+  scenario.gyro_bias_step_rad_s = Vector3d(0.01, -0.01, 0.01) / std::sqrt(3.0);
+  scenario.accel_bias_step_m_s2 = Vector3d(0.1, 0.1, -0.1) / std::sqrt(3.0);
+  const Recording rec = record(scenario);
+  Estimator estimator(scenario.params);
+  estimator.initialise(rec.init);
+  // As long as from the start to the settled figures, plus the seconds the gyro bias needs.
+  constexpr double kRelearnS = 4.0;
+  const Figures after =
+      measure(rec, estimator, scenario.bias_step_s + kRelearnS, scenario.duration_s);
+  const EstimatorHealth health = estimator.health();
+  std::printf("[estimator] IMU bias step (0.01 rad/s, 0.1 m/s²): %lld resets to a pose, from %.0f "
+              "s after it position RMS %.2f mm, velocity RMS %.2f mm/s, tilt RMS %.4f°\n",
+              static_cast<long long>(health.pose_resets), kRelearnS, after.pos_m.value() * 1e3,
+              after.vel_m_s.value() * 1e3, after.tilt_rad.value() * 180.0 / kPi);
+  EXPECT_LE(after.pos_m.value(), kPosRmsM);
+  EXPECT_LE(after.vel_m_s.value(), kVelRmsMS);
+  EXPECT_LE(after.tilt_rad.value(), kTiltRmsRad);
+  EXPECT_FALSE(health.diverged);
+  EXPECT_TRUE(health.vision_fused);
+}
+
+TEST(Estimator, ResetsToPosesThatKeepRepeatingFlagDivergence) {
+  Scenario scenario;
+  const Recording rec = record(scenario);
+  Estimator estimator(scenario.params);
+  estimator.initialise(rec.init);
+  size_t k = 0;
+  flyFor(rec, estimator, 3.0, &k);
+  // Odometry that keeps jumping: each run of gated poses ends in a reset, and the
+  // diverged_resets-th within the window flags divergence.
+  for (int reset = 1; reset <= scenario.params.diverged_resets; ++reset) {
     EXPECT_FALSE(estimator.health().diverged);
-    const size_t captured = k - kVisionDelayUs / kImuPeriodUs;
-    const VisionPose pose = truePose(rec, scenario.params, captured,
-                                     rec.imu[captured - 1].utime, Vector3d(0.5, 0, 0));
-    EXPECT_EQ(estimator.addVision(pose), VisionOutcome::kRejectedGate);
-    for (int j = 0; j < kVisionPeriodUs / kImuPeriodUs; ++j) estimator.addImu(rec.imu[k++]);
+    const Vector3d jump_odom_m(0.5 * reset, 0.0, 0.0);
+    VisionOutcome outcome = VisionOutcome::kRejectedGate;
+    for (int i = 0; i < scenario.params.vision_reset_rejections; ++i) {
+      outcome = nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m);
+    }
+    EXPECT_EQ(outcome, VisionOutcome::kResetToPose);
+    EXPECT_EQ(estimator.health().pose_resets, reset);
   }
   EXPECT_TRUE(estimator.health().diverged);
-  EXPECT_FALSE(estimator.health().vision_fused);
 }
 
 TEST(Estimator, PosesOlderThanTheHistoryOrOutOfOrderAreRejected) {

@@ -9,6 +9,8 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <memory>
+#include <optional>
 #include <vector>
 
 #include "count_allocations.h"
@@ -502,6 +504,146 @@ TEST(FlightStack, TakesOffFromTheFloorLandsAndDisarms) {
                            params.modes.landed_time_s + 1.0);
   // It came down where it went up: hold and land keep x and y.
   EXPECT_LT((plant.state().p_world_m.head<2>() - Eigen::Vector2d(0.3, -0.2)).norm(), 0.1);
+}
+
+// Flies the stack from the floor: each tick, `command` may give the ground's command for the
+// mode the stack is in and see the output; stops when it returns false or after max_s.
+template <class Script>
+void flyFromTheFloor(FlightStack& stack, test::FlightPlant& plant, test::SensorFeed& sensors,
+                     double max_s, Script&& script) {
+  int64_t utime = test::kFlightStartUs;
+  while (utime < test::kFlightStartUs + static_cast<int64_t>(max_s * 1e6)) {
+    TickInputs in;
+    in.utime = utime;
+    in.command = script.command(utime, stack.modes().mode());
+    const TickOutput out = stack.tick(in);
+    if (!script.seen(utime, out)) return;
+    plant.step(out.mixer.rotor_speed_rad_s, test::kControlDtS);
+    utime += test::kControlUs;
+    sensors.feed(plant, utime, stack, nullptr);
+  }
+}
+
+// From the floor to the take-off's hold, as the ground commands it.
+std::optional<FlightCommand> armAndTakeOff(FlightMode mode) {
+  if (mode == FlightMode::kDisarmed) return FlightCommand{CommandKind::kArm};
+  if (mode == FlightMode::kArmed) {
+    return FlightCommand{CommandKind::kTakeOff, test::kTakeOffHeightM};
+  }
+  return std::nullopt;
+}
+
+struct FloorFlight {
+  Vehicle vehicle;  // before the plant, which keeps a reference
+  test::FlightPlant plant;
+  EstimatorInit init;
+  std::unique_ptr<FlightStack> stack;
+  test::SensorFeed sensors;
+
+  explicit FloorFlight(const FlightStackParams& params)
+      : vehicle(params.vehicle),
+        plant(vehicle, test::kGyroNoiseDensity, kSeed, test::kAccelNoiseDensity),
+        init(start(plant)),
+        stack(std::move(*FlightStack::create(params))),
+        sensors(init, kSeed) {
+    stack->initialise(init);
+  }
+  static EstimatorInit start(test::FlightPlant& plant) {
+    plant.startOnGround(Vector3d::Zero());
+    return test::initAt(plant.state());
+  }
+};
+
+// A go-to ends in hold when the estimate is within target_reached_m of the target, still moving:
+// the hold goes on along the go-to's line, which ends at rest at the target. A new line from
+// there would start from rest: a step in the velocity setpoint, which in the simulator kicked
+// the drone into swings of 15° per frame that the odometry could not follow.
+TEST(FlightStack, AReachedGoToHoldsAlongItsLineWithoutAStep) {
+  FloorFlight flight{FlightStackParams{}};
+  const Vector3d target_world_m(1.0, -0.6, -test::kTakeOffHeightM);
+  struct Script {
+    bool went = false, reached = false;
+    int64_t hold_since_utime = -1;
+    Vector3d last_v_sp = Vector3d::Zero();
+    double step_at_reach_m_s = -1.0;
+    Vector3d target;
+    std::optional<FlightCommand> command(int64_t utime, FlightMode mode) {
+      if (mode == FlightMode::kHold && !went) {
+        if (hold_since_utime < 0) hold_since_utime = utime;
+        if (utime - hold_since_utime >= 1000000) {
+          went = true;
+          FlightCommand go{CommandKind::kGoTo};
+          go.target_world_m = target;
+          return go;
+        }
+      }
+      return armAndTakeOff(mode);
+    }
+    bool seen(int64_t, const TickOutput& out) {
+      const Vector3d v_sp = out.setpoint.v_world_m_s;
+      if (went && !reached && out.modes.mode == FlightMode::kHold) {
+        reached = true;
+        step_at_reach_m_s = (v_sp - last_v_sp).norm();
+      }
+      last_v_sp = v_sp;
+      return !reached;
+    }
+  } script;
+  script.target = target_world_m;
+  flyFromTheFloor(*flight.stack, flight.plant, flight.sensors, 20.0, script);
+  ASSERT_TRUE(script.reached) << "the go-to never reached its target";
+  std::printf("[flight] go-to reached: velocity setpoint step %.4f m/s at the switch to hold\n",
+              script.step_at_reach_m_s);
+  // One tick's change along a line flown at max_accel_m_s2: what a continuous setpoint moves by.
+  const double one_tick_m_s = FlightStackParams{}.trajectory.max_accel_m_s2 * test::kControlDtS;
+  EXPECT_LE(script.step_at_reach_m_s, one_tick_m_s);
+}
+
+// Vision lost in the air: the descent on the IMU alone cannot see its speed (the velocity drifts
+// without poses), so the floor is found by the lift the accelerometer feels beyond the thrust;
+// the thrust then ramps down and the landed detector disarms.
+TEST(FlightStack, ADescentWithoutVisionFindsTheFloorAndDisarms) {
+  FlightStackParams params;
+  FloorFlight flight{params};
+  struct Script {
+    test::SensorFeed* sensors;
+    int64_t hold_since_utime = -1, covered_utime = -1, disarmed_utime = -1;
+    std::optional<FlightCommand> command(int64_t utime, FlightMode mode) {
+      if (mode == FlightMode::kHold && covered_utime < 0) {
+        if (hold_since_utime < 0) hold_since_utime = utime;
+        if (utime - hold_since_utime >= 2000000) {
+          sensors->coverCamera();
+          covered_utime = utime;
+        }
+      }
+      // Landed after the cover, the flight is over: seen() stops it before a new arming.
+      return armAndTakeOff(mode);
+    }
+    bool seen(int64_t utime, const TickOutput& out) {
+      if (covered_utime >= 0 && out.modes.mode == FlightMode::kDisarmed) {
+        disarmed_utime = utime;
+        return false;
+      }
+      return true;
+    }
+  } script{&flight.sensors};
+  // Take-off and hold (4 s), 1 s to call vision lost, 1 m down at the descent's speed, then the
+  // ramp from the thrust at contact down to the landed ratio and the landed time; 5 s of slack.
+  const FlightModeParams& m = params.modes;
+  const double ramp_s = (1.0 - m.landed_thrust_ratio) / m.ground_thrust_ramp_per_s;
+  const double bound_s = m.vision_lost_s + test::kTakeOffHeightM / m.vision_lost_descent_m_s +
+                         m.ground_contact_s + ramp_s + m.landed_time_s + 5.0;
+  flyFromTheFloor(*flight.stack, flight.plant, flight.sensors, 4.0 + bound_s, script);
+  const FlightCounters& counters = flight.stack->modes().counters();
+  ASSERT_GE(script.covered_utime, 0) << "never held long enough to cover the camera";
+  ASSERT_GE(script.disarmed_utime, 0) << "still " << toString(flight.stack->modes().mode())
+                                      << " " << bound_s << " s after the camera was covered";
+  const double landing_s = 1e-6 * static_cast<double>(script.disarmed_utime - script.covered_utime);
+  std::printf("[flight] camera covered at 1 m: disarmed on the floor %.2f s later\n", landing_s);
+  EXPECT_EQ(counters.vision_lost, 1);
+  EXPECT_EQ(counters.landed_disarms, 1);
+  EXPECT_TRUE(flight.plant.onGround());
+  EXPECT_LT(landing_s, bound_s);
 }
 
 // The whole stack's tick as the control task runs it (FlightStack: estimator predict and late

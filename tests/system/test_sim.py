@@ -36,9 +36,11 @@ def keygen(tmp_path: Path) -> Path:
     return make_key(tmp_path / "vehicle.key")
 
 
-def fly(netns: list[str], key: Path, summary: Path, seed: int = 1) -> tuple[dict, str, str]:
-    """kinfly-fw (lcm depth, motors backend, lockstep) and kinfly-sim's mission at 320x240:
-    the simulator's summary, its output, and kinfly-fw's."""
+def fly(netns: list[str], key: Path, summary: Path, seed: int = 1,
+        mission: Path | None = None) -> tuple[dict, str, str]:
+    """kinfly-fw (lcm depth, motors backend, lockstep) and kinfly-sim's mission (the built-in
+    take-off, hold and land unless given) at 320x240: the simulator's summary, its output, and
+    kinfly-fw's."""
     drone = Watched([*netns, *firmware(
         "--vehicle.id", VEHICLE, "--source.kind", "lcm", "--source.realtime", "false",
         "--source.width", 320, "--source.height", 240, "--odometry.downsample", 1,
@@ -49,7 +51,8 @@ def fly(netns: list[str], key: Path, summary: Path, seed: int = 1) -> tuple[dict
             [*netns, built("bin/kinfly-sim"), "--key-file", key, "--vehicle", str(VEHICLE),
              "--lcm-url", LCM_URL, "--camera-downsample", "2", "--hover-s", str(HOVER_S),
              "--takeoff-height-m", str(TAKEOFF_HEIGHT_M), "--seed", str(seed),
-             "--max-seconds", "40", "--summary", summary],
+             "--max-seconds", "40", "--summary", summary,
+             *(["--mission", mission] if mission else [])],
             capture_output=True, text=True, timeout=FLIGHT_TIMEOUT_S)
     finally:
         send_signal(drone.process, signal.SIGINT)
@@ -70,6 +73,51 @@ def test_takes_off_holds_and_lands_in_the_room(netns: list[str], tmp_path: Path)
     # The drone took every command and no failsafe acted.
     assert "3 commands accepted, 0 refused" in drone_output, drone_output[-2000:]
     assert "control: failsafe:" not in drone_output, drone_output[-2000:]
+
+
+# An IMU bias step (the faults mission's), then the camera covered for good: the estimator resets
+# to the odometry's pose and learns the new biases again instead of diverging, and the vision-lost
+# descent finds the floor by ground contact and disarms (docs/flight.md).
+FAULTS_MISSION = """
+[mission]
+name = "bias step, then blind"
+max_s = 40
+
+[[command]]
+at_s = 2.0
+kind = "arm"
+
+[[command]]
+at_s = 3.0
+kind = "take_off"
+height_m = 1.0
+
+[[event]]
+at_s = 8.0
+kind = "imu_bias_step"
+gyro_rad_s = [0.01, -0.01, 0.0]
+accel_m_s2 = [0.1, 0.0, 0.0]
+
+[[event]]
+at_s = 14.0
+kind = "vision_dropout"
+duration_s = 30.0
+"""
+
+
+def test_faults_end_in_the_failsafes_table_never_in_a_crash(netns: list[str],
+                                                            tmp_path: Path) -> None:
+    key = keygen(tmp_path)
+    mission = tmp_path / "faults.toml"
+    mission.write_text(FAULTS_MISSION)
+    figures, _, drone_output = fly(netns, key, tmp_path / "summary.json", mission=mission)
+    assert figures["landed"], figures
+    assert not figures["collided"] and not figures["crashed_on_floor"], figures
+    modes = [mode for _, mode in figures["modes"]]
+    assert modes[-2:] == ["descend", "disarmed"], figures["modes"]
+    assert figures["failsafes"] == 1, figures
+    assert "failsafe: vision lost: hold -> descend" in drone_output, drone_output[-3000:]
+    assert "0 estimator diverged" in drone_output, drone_output[-3000:]
 
 
 def test_one_seed_flies_one_flight(netns: list[str], tmp_path: Path) -> None:

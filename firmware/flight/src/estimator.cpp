@@ -3,6 +3,7 @@
 #include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "kinfly/core/range_check.h"
 
@@ -115,7 +116,10 @@ Status EstimatorParams::validate() const {
       outOfRange("estimator.history_s", history_s, 0.3, 2),
       outOfRange("estimator.imu_rate_max_hz", imu_rate_max_hz, 50, 4000),
       outOfRange("estimator.diverged_pos_std_m", diverged_pos_std_m, 0, 1000, Bound::kOpen),
-      outOfRange("estimator.diverged_rejections", diverged_rejections, 1, 1000));
+      outOfRange("estimator.vision_reset_rejections", vision_reset_rejections, 1, 1000),
+      outOfRange("estimator.diverged_resets", diverged_resets, 1, kMaxDivergedResets),
+      outOfRange("estimator.diverged_reset_window_s", diverged_reset_window_s, 0, 3600,
+                 Bound::kOpen));
 }
 
 Estimator::Estimator(const EstimatorParams& params)
@@ -152,15 +156,21 @@ void Estimator::start(int64_t utime, const Nominal& x) {
   first.imu = ImuSample();
   first.imu.utime = utime;
   first.x = x;
-  first.P.setZero();
-  first.P.diagonal().segment<3>(kP).setConstant(std::pow(params_.init_pos_std_m, 2));
-  first.P.diagonal().segment<3>(kV).setConstant(std::pow(params_.init_vel_std_m_s, 2));
-  first.P.diagonal().segment<3>(kTheta).setConstant(std::pow(params_.init_att_std_rad, 2));
-  first.P.diagonal().segment<3>(kBg).setConstant(std::pow(params_.init_gyro_bias_std_rad_s, 2));
-  first.P.diagonal().segment<3>(kBa).setConstant(std::pow(params_.init_accel_bias_std_m_s2, 2));
+  first.P = initialCovariance();
   barrier_utime_ = utime;
   reset_utime_ = utime;
   last_vision_utime_ = -1;
+  pose_reset_utimes_.fill(std::numeric_limits<int64_t>::min());
+}
+
+Covariance Estimator::initialCovariance() const {
+  Covariance P = Covariance::Zero();
+  P.diagonal().segment<3>(kP).setConstant(std::pow(params_.init_pos_std_m, 2));
+  P.diagonal().segment<3>(kV).setConstant(std::pow(params_.init_vel_std_m_s, 2));
+  P.diagonal().segment<3>(kTheta).setConstant(std::pow(params_.init_att_std_rad, 2));
+  P.diagonal().segment<3>(kBg).setConstant(std::pow(params_.init_gyro_bias_std_rad_s, 2));
+  P.diagonal().segment<3>(kBa).setConstant(std::pow(params_.init_accel_bias_std_m_s2, 2));
+  return P;
 }
 
 void Estimator::push(const ImuSample& sample, double dt_s) {
@@ -348,23 +358,39 @@ VisionOutcome Estimator::addVision(const VisionPose& pose) {
     predict(x, P, at(k + 1).imu,
             static_cast<double>(pose.utime - at(k).imu.utime) * kUsToS);
   }
-  if (!fuse(x, P, T_world_odom_ * pose.T_odom_cam)) {
+  const Pose T_world_cam = T_world_odom_ * pose.T_odom_cam;
+  VisionOutcome outcome = VisionOutcome::kFused;
+  if (!fuse(x, P, T_world_cam)) {
     ++health_.vision_rejected_gate;
     ++health_.consecutive_gate_rejections;
-    updateDivergence();
-    return VisionOutcome::kRejectedGate;
+    if (health_.consecutive_gate_rejections < params_.vision_reset_rejections) {
+      updateDivergence();
+      return VisionOutcome::kRejectedGate;
+    }
+    resetToPose(x, P, T_world_cam);
+    pose_reset_utimes_[health_.pose_resets % params_.diverged_resets] = pose.utime;
+    ++health_.pose_resets;
+    outcome = VisionOutcome::kResetToPose;
   }
+  replayFrom(k, split, pose, x, P);
+  last_vision_utime_ = pose.utime;
+  ++health_.vision_fused_count;
+  health_.consecutive_gate_rejections = 0;
+  updateDivergence();
+  return outcome;
+}
 
-  // Store the fused state and integrate the stored samples again up to now.
+void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nominal& x,
+                           const Covariance& P) {
   int first_replayed = k + 1;
+  Entry& fused = at(split ? k + 1 : k);
+  fused.x = x;
+  fused.P = P;
   if (split) {
-    predict(x, P, at(k + 1).imu,
+    predict(fused.x, fused.P, at(k + 1).imu,
             static_cast<double>(at(k + 1).imu.utime - pose.utime) * kUsToS);
     first_replayed = k + 2;
   }
-  Entry& fused = at(first_replayed - 1);
-  fused.x = x;
-  fused.P = P;
   barrier_utime_ = fused.imu.utime;
   for (int j = first_replayed; j < count_; ++j) {
     Entry& entry = at(j);
@@ -374,12 +400,18 @@ VisionOutcome Estimator::addVision(const VisionPose& pose) {
     predict(entry.x, entry.P, entry.imu,
             static_cast<double>(entry.imu.utime - previous.imu.utime) * kUsToS);
   }
+}
 
-  last_vision_utime_ = pose.utime;
-  ++health_.vision_fused_count;
-  health_.consecutive_gate_rejections = 0;
-  updateDivergence();
-  return VisionOutcome::kFused;
+void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam) const {
+  // Position and attitude from the pose; the velocity stays (vision has none to give) but its
+  // uncertainty, and the biases', go back to the start's so that the next poses can correct them:
+  // a bias that stepped is what a drift the gate could not follow most often means.
+  const Matrix3d R_world_body = T_world_cam.linear() * params_.T_body_cam.linear().transpose();
+  x.q_world_body = Quaterniond(R_world_body).normalized();
+  x.p_world_body_m = T_world_cam.translation() - R_world_body * params_.T_body_cam.translation();
+  P = initialCovariance();
+  P.diagonal().segment<3>(kP).setConstant(std::pow(params_.vision_pos_std_m, 2));
+  P.diagonal().segment<3>(kTheta).setConstant(std::pow(params_.vision_att_std_rad, 2));
 }
 
 bool Estimator::applyReset(const OdomReset& reset) {
@@ -436,11 +468,18 @@ bool Estimator::applyReset(const OdomReset& reset) {
 void Estimator::updateDivergence() {
   const Entry& now = newest();
   const double pos_var_max = now.P.diagonal().segment<3>(kP).maxCoeff();
+  // The ring holds the last diverged_resets resets: the slot written next is the oldest of them.
+  const int n = params_.diverged_resets;
+  const bool resets_repeat =
+      health_.pose_resets >= n &&
+      static_cast<double>(pose_reset_utimes_[(health_.pose_resets - 1) % n] -
+                          pose_reset_utimes_[health_.pose_resets % n]) *
+              kUsToS <=
+          params_.diverged_reset_window_s;
   // Sticky: a failsafe acts once and a fresh initialise() clears it.
   health_.diverged = health_.diverged ||
                      !isFiniteState(now.P, now.x.p_world_body_m, now.x.v_world_body_m_s) ||
-                     !(pos_var_max <= std::pow(params_.diverged_pos_std_m, 2)) ||
-                     health_.consecutive_gate_rejections >= params_.diverged_rejections;
+                     !(pos_var_max <= std::pow(params_.diverged_pos_std_m, 2)) || resets_repeat;
 }
 
 EstimatorState Estimator::state() const {
@@ -474,6 +513,7 @@ const char* toString(VisionOutcome outcome) {
     case VisionOutcome::kFused: return "fused";
     case VisionOutcome::kNotInitialised: return "not initialised";
     case VisionOutcome::kRejectedGate: return "rejected by the gate";
+    case VisionOutcome::kResetToPose: return "gated too often: the filter reset to it";
     case VisionOutcome::kRejectedTooOld: return "rejected: older than the history";
     case VisionOutcome::kRejectedOutOfOrder: return "rejected: out of order";
     case VisionOutcome::kRejectedInvalid: return "rejected: not finite";

@@ -75,6 +75,11 @@ Status FlightModeParams::validate() const {
       outOfRange("modes.landed_speed_m_s", landed_speed_m_s, 0, 5, Bound::kOpen),
       outOfRange("modes.landed_thrust_ratio", landed_thrust_ratio, 0, 1, Bound::kOpen),
       outOfRange("modes.landed_time_s", landed_time_s, 0, 10),
+      outOfRange("modes.ground_contact_accel_m_s2", ground_contact_accel_m_s2, 0, 9.81,
+                 Bound::kOpen),
+      outOfRange("modes.ground_contact_s", ground_contact_s, 0, 10),
+      outOfRange("modes.ground_thrust_ramp_per_s", ground_thrust_ramp_per_s, 0, 10,
+                 Bound::kOpen),
       outOfRange("modes.vision_lost_descent_m_s", vision_lost_descent_m_s, 0, 5, Bound::kOpen),
       outOfRange("modes.ground_lost_s", ground_lost_s, 0, 60, Bound::kOpen),
       outOfRange("modes.max_tilt_rad", max_tilt_rad, 0, M_PI, Bound::kOpen),
@@ -201,13 +206,14 @@ void FlightModes::watchAutopilot(const FlightInputs& in, FlightOutput& out) {
 }
 
 void FlightModes::detectLanded(const FlightInputs& in) {
-  // Without vision the height is dead-reckoned from the IMU alone: the descent trusts the thrust
-  // and the stillness.
+  // Without vision the height and the velocity are dead-reckoned from the IMU alone: the descent
+  // trusts the thrust and the ground's contact.
   const bool near_ground = mode_ == FlightMode::kDescend ||
                            in.height_above_ground_m <= params_.landed_height_m;
-  const bool resting = near_ground &&
-                       in.state.v_world_body_m_s.norm() <= params_.landed_speed_m_s &&
-                       in.thrust_ratio <= params_.landed_thrust_ratio;
+  const bool still =
+      in.ground_contact || in.state.v_world_body_m_s.norm() <= params_.landed_speed_m_s;
+  const bool resting =
+      near_ground && still && in.thrust_ratio <= params_.landed_thrust_ratio;
   if (!resting) {
     landed_since_utime_ = -1;
     landed_ = false;

@@ -9,10 +9,24 @@ namespace {
 
 constexpr double kUsPerS = 1e6;
 
-bool sameSetpoint(const ModeSetpoint& a, const ModeSetpoint& b) {
-  return a.kind == b.kind && a.point_world_m == b.point_world_m && a.yaw_rad == b.yaw_rad &&
-         a.descent_speed_m_s == b.descent_speed_m_s;
+// Whether `next` goes on flying the profile made for `current`: the same setpoint, or the hold at
+// the point a take-off or go-to was flying to, which its line already ends at, at rest. The modes
+// call a point reached within target_reached_m, still moving: a new line from there would
+// restart from rest, a step in the velocity setpoint that the sim found kicking the drone into
+// 15° per frame swings, more than the odometry can track.
+bool continuesProfile(const ModeSetpoint& next, const ModeSetpoint& current) {
+  const bool same_target = next.point_world_m == current.point_world_m &&
+                           next.yaw_rad == current.yaw_rad &&
+                           next.descent_speed_m_s == current.descent_speed_m_s;
+  const bool arrives = next.kind == SetpointKind::kHold &&
+                       (current.kind == SetpointKind::kGoTo ||
+                        current.kind == SetpointKind::kTakeOff);
+  return same_target && (next.kind == current.kind || arrives);
 }
+
+// The lift's low-pass: long against a frame's vibration, short against the second the landed
+// detector waits.
+constexpr double kLiftTimeConstantS = 0.1;
 
 }  // namespace
 
@@ -49,9 +63,33 @@ FlightStack::FlightStack(const FlightStackParams& params, AttitudeController att
       decimation_(static_cast<int>(std::lround(params.rate_hz / params.position.rate_hz))) {}
 
 bool FlightStack::addImu(const ImuSample& sample) {
+  const int64_t previous_utime = last_imu_utime_;
   if (!estimator_.addImu(sample)) return false;
   last_imu_utime_ = sample.utime;
+  // A first-order low-pass; the first sample (and one after a long gap) starts it.
+  const double lift_m_s2 = -sample.accel_m_s2.z();
+  const double dt_s = static_cast<double>(sample.utime - previous_utime) / kUsPerS;
+  const double weight = previous_utime < 0 ? 1.0 : std::min(1.0, dt_s / kLiftTimeConstantS);
+  lift_m_s2_ += weight * (lift_m_s2 - lift_m_s2_);
   return true;
+}
+
+void FlightStack::detectGroundContact(int64_t utime) {
+  const FlightModeParams& p = params_.modes;
+  const FlightMode mode = modes_.mode();
+  const bool landing = flying_ && (mode == FlightMode::kLand || mode == FlightMode::kDescend);
+  const double carried_m_s2 = lift_m_s2_ - command_.thrust_n / params_.vehicle.mass_kg;
+  if (!landing || !(carried_m_s2 >= p.ground_contact_accel_m_s2)) {
+    pressed_since_utime_ = -1;
+    ground_contact_ = false;
+    return;
+  }
+  if (pressed_since_utime_ < 0) pressed_since_utime_ = utime;
+  const bool held = static_cast<double>(utime - pressed_since_utime_) / kUsPerS >=
+                    p.ground_contact_s;
+  // The ramp starts from the thrust the contact was found at.
+  if (held && !ground_contact_) ground_thrust_cap_n_ = command_.thrust_n;
+  ground_contact_ = held;
 }
 
 VisionOutcome FlightStack::addVision(const VisionPose& pose) {
@@ -83,6 +121,8 @@ TickOutput FlightStack::tick(const TickInputs& in) {
   inputs.height_above_ground_m =
       std::isnan(in.height_above_ground_m) ? -state.p_world_body_m.z() : in.height_above_ground_m;
   inputs.thrust_ratio = flying_ ? command_.thrust_n / vehicle_.weightN() : 0.0;
+  detectGroundContact(in.utime);
+  inputs.ground_contact = ground_contact_;
   inputs.mission_loaded = mission_.has_value();
   inputs.mission_finished = mission_finished_;
   inputs.mission_end_world_m = mission_end_world_m_;
@@ -104,6 +144,14 @@ TickOutput FlightStack::tick(const TickInputs& in) {
     setpoint_ = guide(out.modes, state, in.utime);
     if (ticks_in_flight_ % decimation_ == 0) {
       command_ = position_.update(setpoint_, state, decimation_ * dt_s);
+    }
+    if (ground_contact_) {
+      const double ramp_n_s = params_.modes.ground_thrust_ramp_per_s * vehicle_.weightN();
+      ground_thrust_cap_n_ = std::max(0.0, ground_thrust_cap_n_ - ramp_n_s * dt_s);
+      if (command_.thrust_n > ground_thrust_cap_n_) {
+        command_.thrust_n = ground_thrust_cap_n_;
+        command_.thrust_limited = true;
+      }
     }
     ++ticks_in_flight_;
     flying_ = true;
@@ -152,7 +200,7 @@ PositionSetpoint FlightStack::guide(const FlightOutput& out, const EstimatorStat
   // A profile starts from where the last one left the setpoint, so the setpoint never jumps; on
   // a take-off from where the body is.
   const Eigen::Vector3d from_world_m = flying_ ? setpoint_.p_world_m : state.p_world_body_m;
-  if (!flying_ || !sameSetpoint(sp, mode_setpoint_)) {
+  if (!flying_ || !continuesProfile(sp, mode_setpoint_)) {
     mode_setpoint_ = sp;
     profile_start_utime_ = utime;
     switch (sp.kind) {

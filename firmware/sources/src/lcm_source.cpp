@@ -3,7 +3,9 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include <array>
+#include <chrono>
 #include <cmath>
+#include <optional>
 #include <vector>
 
 #include "kinfly/codec/depth_codec.h"
@@ -14,8 +16,12 @@
 namespace kinfly::fw {
 namespace {
 
-// What one next() waits for a message before it says kWaiting (the interface's ~100 ms).
+// What one next() waits for a message before it says kPaused or kWaiting (the interface's
+// ~100 ms).
 constexpr int kWaitMs = 100;
+// A sender quiet for less than this has paused (kinfly-sim waits on the ground at every
+// keyframe, and renders slower than real time): only a longer silence is reported.
+constexpr auto kPause = std::chrono::seconds(1);
 // Messages held between next() calls: LCM hands them over as they come, the odometry takes them
 // one by one; a sender far ahead loses its oldest (counted as skipped).
 constexpr size_t kHeld = 8;
@@ -46,7 +52,10 @@ class LcmSource : public DepthSource {
   SourceStatus next(DepthCapture* out, std::string* why) override {
     if (count_ == 0) lcm_.handleTimeout(kWaitMs);
     if (count_ == 0) {
-      *why = "no depth frame on " + describe() + " yet";
+      if (last_heard_ && std::chrono::steady_clock::now() - *last_heard_ < kPause) {
+        return SourceStatus::kPaused;
+      }
+      *why = "no depth frame on " + describe() + (last_heard_ ? " for over 1 s" : " yet");
       return SourceStatus::kWaiting;
     }
     // Frames the sender overwrote are reported first, as skipped; the held ones stay for the
@@ -77,6 +86,7 @@ class LcmSource : public DepthSource {
     const auto* data = static_cast<const uint8_t*>(buffer->data);
     slot.assign(data, data + buffer->data_size);  // keeps its capacity: no allocation once warm
     ++count_;
+    last_heard_ = std::chrono::steady_clock::now();
   }
 
   SourceStatus decode(const std::vector<uint8_t>& bytes, DepthCapture* out, std::string* why) {
@@ -126,6 +136,7 @@ class LcmSource : public DepthSource {
   size_t first_ = 0;
   size_t count_ = 0;
   int64_t overwritten_ = 0;
+  std::optional<std::chrono::steady_clock::time_point> last_heard_;  // the last frame's arrival
 };
 
 }  // namespace

@@ -15,6 +15,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <array>
 #include <cstdint>
 #include <vector>
 
@@ -24,6 +25,7 @@
 namespace kinfly::flight {
 
 constexpr int kErrorStates = 15;
+constexpr int kMaxDivergedResets = 16;
 using Covariance = Eigen::Matrix<double, kErrorStates, kErrorStates>;
 
 struct EstimatorParams {
@@ -60,9 +62,15 @@ struct EstimatorParams {
   double history_s = 0.4;                          // [s] [0.3, 2]
   double imu_rate_max_hz = 1000.0;                 // [Hz] [50, 4000]
 
-  // Diverged: the position's 1σ beyond this, or this many poses in a row outside the gate.
+  // This many poses in a row outside the gate reset the filter to the pose (PX4's EKF2 resets to
+  // its external vision the same way): either the IMU's biases stepped and the state drifted off,
+  // or the odometry jumped, which the ground's next correction takes back out.
+  int vision_reset_rejections = 5;                 // [-] [1, 1000]
+  // Diverged: the position's 1σ beyond this, or this many resets to a pose within the window
+  // (vision and the IMU keep disagreeing: neither can be trusted).
   double diverged_pos_std_m = 2.0;                 // [m] (0, 1000]
-  int diverged_rejections = 15;                    // [-] [1, 1000]
+  int diverged_resets = 3;                         // [-] [1, kMaxDivergedResets]
+  double diverged_reset_window_s = 10.0;           // [s] (0, 3600]
 
   Status validate() const;
   static Pose defaultBodyCam();
@@ -114,6 +122,7 @@ enum class VisionOutcome {
   kFused,
   kNotInitialised,  // before the start; the pose may start the filter (see addVision)
   kRejectedGate,    // innovation outside the chi-square gate
+  kResetToPose,     // the last of vision_reset_rejections gated poses: the filter starts from it
   kRejectedTooOld,  // older than the history, or captured before the last reset
   kRejectedOutOfOrder,  // captured before the last fused pose
   kRejectedInvalid,     // non-finite pose
@@ -138,6 +147,7 @@ struct EstimatorHealth {
   int64_t vision_rejected_out_of_order = 0;
   int64_t vision_rejected_invalid = 0;
   int consecutive_gate_rejections = 0;
+  int64_t pose_resets = 0;  // kResetToPose outcomes
   int32_t reset_counter = 0;  // the last applied reset's
   int64_t resets = 0;
   int64_t resets_rejected = 0;
@@ -183,6 +193,8 @@ class Estimator {
   };
 
   void start(int64_t utime, const Nominal& x);
+  // The covariance of a fresh start: no cross-correlation, each block at its init_*_std.
+  Covariance initialCovariance() const;
   VisionOutcome startFromStill(const VisionPose& pose);
   void predict(Nominal& x, Covariance& P, const ImuSample& imu, double dt_s) const;
   // Fuses the pose into (x, P); false when gated out.
@@ -195,6 +207,11 @@ class Estimator {
   // Predicts the newest state over the sample into the next slot, dropping the oldest when full.
   void push(const ImuSample& sample, double dt_s);
   void updateDivergence();
+  // Stores (x, P) as the state at the pose's capture, the stored sample k + 1 split there when
+  // `split`, and integrates the later samples again up to now.
+  void replayFrom(int k, bool split, const VisionPose& pose, const Nominal& x,
+                  const Covariance& P);
+  void resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam) const;
 
   EstimatorParams params_;
   Covariance Q_density_;  // diagonal, per second: times dt gives the step's process noise
@@ -212,6 +229,8 @@ class Estimator {
   int64_t still_samples_ = 0;
   int64_t still_first_utime_ = -1;
   int64_t last_imu_utime_ = -1;
+  // Capture times of the last resets to a pose, a ring of diverged_resets.
+  std::array<int64_t, kMaxDivergedResets> pose_reset_utimes_{};
   EstimatorHealth health_;
 };
 

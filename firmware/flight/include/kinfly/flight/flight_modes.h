@@ -53,6 +53,16 @@ struct FlightModeParams {
   double landed_speed_m_s = 0.2;       // [m/s] (0, 5]
   double landed_thrust_ratio = 0.3;    // [-] (0, 1]
   double landed_time_s = 1.0;          // [s] [0, 10]
+  // Ground contact while landing or descending (FlightStack): the accelerometer's lift (low-passed)
+  // exceeds the thrust commanded over the mass by this much for ground_contact_s: the floor
+  // carries part of the weight. Then the thrust ramps down by this share of the weight per
+  // second until the landed detector disarms; it is given back the moment the floor stops
+  // carrying (a false contact in the air lets the drone sink, which ends it). This works without
+  // vision or a velocity estimate: an IMU-only velocity drifts, and the descent that vision
+  // loss or a diverged estimator starts could otherwise never tell it had landed.
+  double ground_contact_accel_m_s2 = 1.5;  // [m/s²] (0, 9.81]
+  double ground_contact_s = 0.3;           // [s] [0, 10]
+  double ground_thrust_ramp_per_s = 0.5;   // [1/s] (0, 10]
 
   // Failsafes (each acts once when its condition starts; docs/flight.md's table).
   // No pose fused for this long: level attitude and a slow descent until landed.
@@ -204,6 +214,9 @@ struct FlightInputs {
   // commands none (handed over, motors cut), or a drone the autopilot landed could never disarm.
   double height_above_ground_m = 0.0;  // [m]
   double thrust_ratio = 0.0;           // [-]
+  // The floor carries the drone (ground_contact_accel_m_s2): stands in for a small velocity,
+  // which without vision is not known.
+  bool ground_contact = false;
   AutopilotInputs autopilot;
 };
 

@@ -97,6 +97,9 @@ class FlightStack {
   FlightStack(const FlightStackParams& params, AttitudeController attitude);
   // The setpoint for this tick from the mode's, starting a new profile when the mode's changed.
   PositionSetpoint guide(const FlightOutput& out, const EstimatorState& state, int64_t utime);
+  // Whether the floor carries the drone while it lands or descends (FlightModeParams'
+  // ground_contact_*), from the lift the accelerometer feels against the thrust last commanded.
+  void detectGroundContact(int64_t utime);
 
   FlightStackParams params_;
   Vehicle vehicle_;  // before the mixer, which keeps a reference
@@ -109,6 +112,14 @@ class FlightStack {
   int64_t ticks_in_flight_ = 0;  // since the take-off: the position loop's phase
   int64_t last_imu_utime_ = -1;
   int64_t last_vision_utime_ = -1;
+
+  // Ground contact: the specific force along body up, low-passed (the rotors' vibration on a
+  // real frame is metres per second squared per sample), and the thrust cap that ramps down
+  // while the floor carries the drone.
+  double lift_m_s2_ = 0.0;
+  int64_t pressed_since_utime_ = -1;
+  bool ground_contact_ = false;
+  double ground_thrust_cap_n_ = 0.0;
 
   // Guidance: the profile the mode's setpoint started, and when.
   ModeSetpoint mode_setpoint_;

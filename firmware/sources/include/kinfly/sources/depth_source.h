@@ -32,6 +32,8 @@ enum class SourceStatus {
   kSkipped,  // a frame was unreadable; *why says why; the next call goes on with the next one
   kWaiting,  // no frame for now (no device, reconnecting, or none within the source's read
              // timeout); *why says why; call again
+  kPaused,   // no frame within the read timeout from a sender that pauses between frames (a
+             // simulator in lockstep, waiting on the ground): no news; call again
   kEnd,      // no more frames (end of a log, dataset or recording)
 };
 

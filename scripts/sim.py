@@ -26,6 +26,7 @@ from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, GROUND_READY_TIMEOUT_
                   LCM_URL, VEHICLE_ID, Watched, check_flight, fresh_output, ground_command,
                   list_outputs, report)
 from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
+from sim_plots import write as write_plots  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DRONE_EXIT_TIMEOUT_S = 60.0  # kinfly-fw's last corrections and its summary after SIGINT
@@ -42,6 +43,9 @@ OUTPUTS = {
     "trajectory_corrected.tum": "each keyframe's pose as the ground refined it",
     "trajectory_ground_truth.tum": "the simulator's true camera poses",
     "flight.lcmlog": "the flight on LCM but the raw depth (kinfly-ground replay reads it)",
+    "tracking.png": "position and attitude: truth, the drone's estimate, its setpoint",
+    "errors.png": "the estimate's and the tracking's errors against truth",
+    "flight_errors.json": "their RMS while airborne",
     "drone_trajectory.tum": "every pose the drone's odometry published",
     "vehicle.key": "the signing key made for this flight",
 }
@@ -114,6 +118,12 @@ def main() -> int:
     if drone is not None and "control: failsafe:" in drone.output():
         problems.append("a failsafe acted in flight (the drone's log above says which)")
     problems += check_flight(out, max_missing=0)
+    errors = None
+    if (out / "flight.lcmlog").is_file():
+        try:
+            errors = write_plots(out, VEHICLE_ID)
+        except ValueError as error:
+            problems.append(f"no plots: {error}")
     print(f"\nsim: {time.monotonic() - started:.0f} s; files in {out}:\n"
           f"{list_outputs(out, OUTPUTS)}")
     problems += [f"{name} was not written" for name in OUTPUTS if not (out / name).is_file()]
@@ -125,6 +135,12 @@ def main() -> int:
               f"{'-' if hover is None else f'{hover * 100:.1f} cm'}, touchdown "
               f"{figures['touchdown_m_s']:.2f} m/s, {figures['failsafes']} failsafes, "
               f"{figures['real_time_factor']:.2f}x real time")
+    if errors and errors["samples"]:
+        print(f"sim: airborne {errors['airborne_s']:.0f} s: estimate against truth "
+              f"{errors['estimator_position_rms_m'] * 100:.1f} cm, "
+              f"{errors['estimator_velocity_rms_m_s'] * 100:.1f} cm/s, "
+              f"{errors['estimator_tilt_rms_deg']:.2f}° RMS; setpoint against truth "
+              f"{errors['tracking_rms_m'] * 100:.1f} cm RMS")
     return report("sim", out, problems)
 
 

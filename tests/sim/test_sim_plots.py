@@ -1,0 +1,88 @@
+"""scripts/sim_plots.py on a made flight log whose errors are known: the truth moved into the
+flight stack's world by the simulator's first state, the estimate's offsets, the tilt error and
+the tracking error measured while airborne only, the plots written, and a log without the
+simulator's states refused naming the channel."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import lcm
+import numpy as np
+import pytest
+from kinfly.flight_status_t import flight_status_t
+from kinfly.sim_state_t import sim_state_t
+from scipy.spatial.transform import Rotation
+
+import sim_plots
+
+VEHICLE = 3
+START_US = 1_000_000
+# The scene's start: the drone stands at (2, -1) on its gear, facing 90° left of the scene's x.
+START_SCENE_M = np.array([2.0, -1.0, -0.1])
+START_YAW_RAD = math.pi / 2
+# What the made estimate gets wrong, and the setpoint.
+POSITION_OFFSET_M = np.array([0.01, 0.0, 0.0])
+VELOCITY_OFFSET_M_S = np.array([0.0, 0.02, 0.0])
+TILT_ERROR_DEG = 0.5
+SETPOINT_OFFSET_M = np.array([0.0, 0.0, 0.03])
+AIRBORNE_FROM_S, AIRBORNE_TO_S, END_S = 2.0, 8.0, 10.0
+TOL = 1e-6
+
+
+def flight_in_the_stack_world(t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The truth's position and velocity in the flight stack's world: up to 1 m while airborne,
+    moving along its x."""
+    airborne = AIRBORNE_FROM_S <= t_s < AIRBORNE_TO_S
+    return (np.array([0.1 * t_s, 0.0, -1.0 if airborne else 0.0]),
+            np.array([0.1, 0.0, 0.0]))
+
+
+def make_log(path: Path, with_truth: bool = True) -> None:
+    log = lcm.EventLog(str(path), "w", overwrite=True)
+    R_scene_flight = Rotation.from_euler("Z", START_YAW_RAD)
+    q_flight_body = Rotation.identity()
+    for k in range(int(END_S * 100) + 1):  # the simulator's states at 100 Hz
+        t_s = k / 100
+        utime = START_US + k * 10_000
+        p, v = flight_in_the_stack_world(t_s)
+        if with_truth:
+            state = sim_state_t()
+            state.utime, state.vehicle_id = utime, VEHICLE
+            state.p_world_m = list(R_scene_flight.apply(p) + START_SCENE_M)
+            state.v_world_m_s = list(R_scene_flight.apply(v))
+            state.q_world_body = list((R_scene_flight * q_flight_body).as_quat())
+            state.on_floor = not (AIRBORNE_FROM_S <= t_s < AIRBORNE_TO_S)
+            log.write_event(utime, f"KINFLY_{VEHICLE}_SIM_STATE", state.encode())
+        if k % 10 == 0:  # the drone's status at 10 Hz, each sent twice as the link may
+            status = flight_status_t()
+            status.utime, status.vehicle_id = utime, VEHICLE
+            status.mode = (flight_status_t.MODE_HOLD if AIRBORNE_FROM_S <= t_s < AIRBORNE_TO_S
+                           else flight_status_t.MODE_DISARMED)
+            status.p_world_m = list(p + POSITION_OFFSET_M)
+            status.v_world_m_s = list(v + VELOCITY_OFFSET_M_S)
+            status.q_world_body_xyzw = list(
+                (q_flight_body * Rotation.from_euler("X", TILT_ERROR_DEG, degrees=True)).as_quat())
+            status.setpoint_world_m = list(p + SETPOINT_OFFSET_M)
+            for _ in range(2):
+                log.write_event(utime, f"KINFLY_{VEHICLE}_FLIGHT", status.encode())
+    log.close()
+
+
+def test_known_errors_are_measured_while_airborne(tmp_path: Path) -> None:
+    make_log(tmp_path / "flight.lcmlog")
+    figures = sim_plots.write(tmp_path, VEHICLE)
+    assert figures["airborne_s"] == pytest.approx(AIRBORNE_TO_S - AIRBORNE_FROM_S, abs=0.11)
+    assert figures["samples"] == 60  # duplicates counted once
+    assert figures["estimator_position_rms_m"] == pytest.approx(0.01, abs=TOL)
+    assert figures["estimator_velocity_rms_m_s"] == pytest.approx(0.02, abs=TOL)
+    assert figures["estimator_tilt_rms_deg"] == pytest.approx(TILT_ERROR_DEG, abs=1e-4)
+    assert figures["tracking_rms_m"] == pytest.approx(0.03, abs=TOL)
+    for name in ("tracking.png", "errors.png", "flight_errors.json"):
+        assert (tmp_path / name).stat().st_size > 0, name
+
+
+def test_a_log_without_the_simulators_states_is_refused(tmp_path: Path) -> None:
+    make_log(tmp_path / "flight.lcmlog", with_truth=False)
+    with pytest.raises(ValueError, match=f"no simulator states on KINFLY_{VEHICLE}_SIM_STATE"):
+        sim_plots.write(tmp_path, VEHICLE)

@@ -26,7 +26,7 @@ from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, GROUND_READY_TIMEOUT_
                   LCM_URL, VEHICLE_ID, Watched, check_flight, fresh_output, ground_command,
                   list_outputs, report)
 from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
-from sim_plots import write as write_plots  # noqa: E402
+from sim_plots import kinfly_eval, write as write_plots  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DRONE_EXIT_TIMEOUT_S = 60.0  # kinfly-fw's last corrections and its summary after SIGINT
@@ -46,6 +46,8 @@ OUTPUTS = {
     "tracking.png": "position and attitude: truth, the drone's estimate, its setpoint",
     "errors.png": "the estimate's and the tracking's errors against truth",
     "flight_errors.json": "their RMS while airborne",
+    "scene.ply": "the scene's mesh, the truth the map is scored against",
+    "map_accuracy.json": "the map's vertices' distances to the scene's surface",
     "drone_trajectory.tum": "every pose the drone's odometry published",
     "vehicle.key": "the signing key made for this flight",
 }
@@ -63,7 +65,7 @@ def sim_command(key: Path, out: Path, args: argparse.Namespace) -> list[str]:
     return [str(BUILD / "kinfly-sim"), "--key-file", str(key), "--vehicle", str(VEHICLE_ID),
             "--lcm-url", LCM_URL, "--scene", args.scene, "--seed", str(args.seed),
             "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
-            "--summary", str(out / "sim_summary.json"),
+            "--summary", str(out / "sim_summary.json"), "--scene-mesh", str(out / "scene.ply"),
             *(["--mission", str(args.mission)] if args.mission else [])]
 
 
@@ -141,6 +143,10 @@ def main() -> int:
               f"{errors['estimator_velocity_rms_m_s'] * 100:.1f} cm/s, "
               f"{errors['estimator_tilt_rms_deg']:.2f}° RMS; setpoint against truth "
               f"{errors['tracking_rms_m'] * 100:.1f} cm RMS")
+    if errors and "map" in errors:
+        print(f"sim: the map against the scene: mean {errors['map']['mean_m'] * 1000:.1f} mm, "
+              f"{errors['map']['outlier_fraction'] * 100:.1f} % of its vertices beyond "
+              f"{kinfly_eval.MESH_INLIER_M * 100:.0f} cm")
     return report("sim", out, problems)
 
 

@@ -1,4 +1,4 @@
-"""A simulated flight's estimate and setpoint against the truth, from its LCM log (docs/sim.md).
+"""A simulated flight's estimate, setpoint and map against the truth (docs/sim.md).
 
 Reads `flight_status_t` (the drone's estimate and position setpoint, 10 Hz, on the IMU's clock)
 and `sim_state_t` (the simulator's truth, 100 Hz, same clock) from `flight.lcmlog`, interpolates
@@ -8,7 +8,11 @@ the truth at each status, and writes:
 - `errors.png`: the estimator's position, velocity and tilt errors against truth, and the
   tracking error (setpoint - truth);
 - `flight_errors.json`: their RMS while airborne (armed and off the floor), the figures issue 16
-  asks of the estimator (<= 1 cm, 3 cm/s, 0.3 deg) and of tracking.
+  asks of the estimator (<= 1 cm, 3 cm/s, 0.3 deg) and of tracking;
+- `map_accuracy.json`: the ground's map (`mesh.ply`) against the scene's mesh (`scene.ply`,
+  kinfly-sim --scene-mesh): the exact distance from every map vertex to the scene's surface
+  (make eval's measure), the map placed in the scene by the true pose of the camera whose first
+  frame defined the map's frame.
 
 The truth's world is the scene's; the flight stack's is where the drone stood at the start,
 facing its heading then (docs/sim.md, "Missions"): the truth is moved into it by the simulator's
@@ -30,6 +34,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from kinfly.flight_status_t import flight_status_t  # noqa: E402
 from kinfly.sim_state_t import sim_state_t  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "eval"))
+import kinfly_eval  # noqa: E402  (make eval's mesh accuracy)
 
 MODE_NAMES = {flight_status_t.MODE_DISARMED: "disarmed", flight_status_t.MODE_ARMED: "armed",
               flight_status_t.MODE_TAKE_OFF: "take-off", flight_status_t.MODE_HOLD: "hold",
@@ -183,12 +190,40 @@ def _mark_modes(axes: np.ndarray, flight: Flight) -> None:
                          va="top", ha="right", color="0.4")
 
 
+def pose_matrix(row: np.ndarray) -> np.ndarray:
+    """A TUM line's (t, tx, ty, tz, qx, qy, qz, qw) pose as a 4x4 matrix."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(row[4:8]).as_matrix()
+    T[:3, 3] = row[1:4]
+    return T
+
+
+def map_accuracy(out: Path) -> dict:
+    """The map's vertices against the scene's surface. The map's frame is the odometry's first
+    camera (drone_trajectory.tum's first pose); its true pose in the scene is
+    trajectory_ground_truth.tum's at that time."""
+    odometry = np.loadtxt(out / "drone_trajectory.tum", comments="#", ndmin=2)
+    truth = np.loadtxt(out / "trajectory_ground_truth.tum", comments="#", ndmin=2)
+    first = np.flatnonzero(np.isclose(truth[:, 0], odometry[0, 0], atol=5e-4))
+    if not first.size:
+        raise ValueError(f"{out}: no true pose at the odometry's first frame "
+                         f"(t = {odometry[0, 0]:.3f} s)")
+    T_scene_map = pose_matrix(truth[first[0]]) @ np.linalg.inv(pose_matrix(odometry[0]))
+    ours = kinfly_eval._load_mesh(out / "mesh.ply")
+    scene = kinfly_eval._load_mesh(out / "scene.ply")
+    vertices = np.asarray(ours.vertices) @ T_scene_map[:3, :3].T + T_scene_map[:3, 3]
+    return kinfly_eval.distance_stats(kinfly_eval.point_to_surface_distances(vertices, scene))
+
+
 def write(out: Path, vehicle: int) -> dict:
     flight = read(out / "flight.lcmlog", vehicle)
     plot_tracking(flight, out / "tracking.png")
     plot_errors(flight, out / "errors.png")
     result = figures(flight)
     (out / "flight_errors.json").write_text(json.dumps(result, indent=2) + "\n")
+    if (out / "mesh.ply").is_file() and (out / "scene.ply").is_file():
+        result["map"] = map_accuracy(out)
+        (out / "map_accuracy.json").write_text(json.dumps(result["map"], indent=2) + "\n")
     return result
 
 

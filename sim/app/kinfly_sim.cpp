@@ -32,6 +32,7 @@
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/decode.h"
 #include "kinfly/link/signing.h"
+#include "kinfly/mesh/mesh.h"
 #include "kinfly/sim/depth_camera.h"
 #include "kinfly/sim/imu_model.h"
 #include "kinfly/sim/mission.h"
@@ -67,6 +68,7 @@ struct Options {
   double crash_speed_m_s = 1.5;
   int camera_downsample = 1;
   std::string summary;
+  std::string scene_mesh;
   // Errors of the simulated vehicle against the nominal one (what kinfly-fw's flight stack
   // believes by default): fractions, +0.05 = 5 % more.
   double mass_error = 0.0;
@@ -240,6 +242,12 @@ int run(const Options& o) {
   if (!scene.ok()) {
     std::fprintf(stderr, "kinfly-sim: --scene: %s\n", scene.status().message().c_str());
     return 2;
+  }
+  if (!o.scene_mesh.empty()) {
+    if (Status written = writePly(scene->mesh, o.scene_mesh); !written.ok()) {
+      std::fprintf(stderr, "kinfly-sim: --scene-mesh: %s\n", written.message().c_str());
+      return 2;
+    }
   }
   const MultirotorParams vehicle_params = simulatedVehicle(o);
   DepthCameraParams camera_params = o.camera;
@@ -681,6 +689,9 @@ int main(int argc, char** argv) {
                  "Dryden turbulence: the wind at 20 ft that sets its intensity [m/s]; 0: none")
       ->capture_default_str();
   app.add_option("--summary", o.summary, "also write the summary JSON here");
+  app.add_option("--scene-mesh", o.scene_mesh,
+                 "also write the scene's triangle mesh here (binary PLY, the world frame): the "
+                 "ground truth a map is scored against");
   CLI11_PARSE(app, argc, argv);
   return kinfly::sim::run(o);
 }

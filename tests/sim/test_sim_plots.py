@@ -86,3 +86,31 @@ def test_a_log_without_the_simulators_states_is_refused(tmp_path: Path) -> None:
     make_log(tmp_path / "flight.lcmlog", with_truth=False)
     with pytest.raises(ValueError, match=f"no simulator states on KINFLY_{VEHICLE}_SIM_STATE"):
         sim_plots.write(tmp_path, VEHICLE)
+
+
+def test_the_map_is_placed_by_the_first_cameras_true_pose_and_scored(tmp_path: Path) -> None:
+    """A floor 4 m square as the scene; the map holds points 3 mm above it, written in the
+    frame of a first camera that stood 1.5 m up, tilted and turned: the score is 3 mm only if
+    the map is placed in the scene by that camera's true pose."""
+    import trimesh
+
+    floor = trimesh.Trimesh(vertices=[[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]],
+                            faces=[[0, 1, 2], [0, 2, 3]], process=False)
+    floor.export(tmp_path / "scene.ply")
+    T_scene_cam0 = np.eye(4)
+    T_scene_cam0[:3, :3] = Rotation.from_euler("ZYX", [30, 10, -100], degrees=True).as_matrix()
+    T_scene_cam0[:3, 3] = [0.2, -0.3, -1.5]
+    axis = np.linspace(-1, 1, 21)
+    grid = np.array([[x, y, -0.003] for x in axis for y in axis])
+    in_map = (grid - T_scene_cam0[:3, 3]) @ T_scene_cam0[:3, :3]
+    points = trimesh.Trimesh(vertices=in_map, faces=[[0, 1, 2]], process=False)
+    points.export(tmp_path / "mesh.ply")
+    q = Rotation.from_matrix(T_scene_cam0[:3, :3]).as_quat()
+    (tmp_path / "trajectory_ground_truth.tum").write_text(
+        "0.966 0 0 0 0 0 0 1\n1.000 " + " ".join(f"{v:.9f}" for v in [*T_scene_cam0[:3, 3], *q])
+        + "\n")
+    (tmp_path / "drone_trajectory.tum").write_text("# odometry\n1.000 0 0 0 0 0 0 1\n")
+    stats = sim_plots.map_accuracy(tmp_path)
+    assert stats["points"] == len(grid)
+    assert stats["mean_m"] == pytest.approx(0.003, abs=1e-6)
+    assert stats["outlier_fraction"] == 0.0

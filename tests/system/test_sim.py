@@ -144,6 +144,8 @@ def test_says_when_kinfly_fw_is_not_there(netns: list[str], tmp_path: Path) -> N
     (["--takeoff-height-m", "3"], "--takeoff-height-m must be in [0.2, 2.5] (got 3)"),
     (["--imu-rate-hz", "10"], "imu.rate_hz must be in [50, 8000] (got 10)"),
     (["--wind", "1", "2"], "--wind"),
+    (["--scene-mesh", "/nonexistent/scene.ply"],
+     "--scene-mesh: cannot write /nonexistent/scene.ply: No such file or directory"),
 ])
 def test_bad_input_is_refused_naming_it(tmp_path: Path, args: list[str], message: str) -> None:
     key = keygen(tmp_path)

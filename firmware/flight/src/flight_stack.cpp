@@ -27,6 +27,11 @@ bool continuesProfile(const ModeSetpoint& next, const ModeSetpoint& current) {
 // The lift's low-pass: long against a frame's vibration, short against the second the landed
 // detector waits.
 constexpr double kLiftTimeConstantS = 0.1;
+// The thrust scale's: long against manoeuvres (drag, the rotors' lag), a few seconds of hover
+// after take-off are enough.
+constexpr double kThrustScaleTimeConstantS = 2.0;
+// Below this share of the weight the ratio says little (and a take-off's first ticks are there).
+constexpr double kMinLearningThrustRatio = 0.5;
 
 }  // namespace
 
@@ -78,7 +83,8 @@ void FlightStack::detectGroundContact(int64_t utime) {
   const FlightModeParams& p = params_.modes;
   const FlightMode mode = modes_.mode();
   const bool landing = flying_ && (mode == FlightMode::kLand || mode == FlightMode::kDescend);
-  const double carried_m_s2 = lift_m_s2_ - command_.thrust_n / params_.vehicle.mass_kg;
+  const double carried_m_s2 =
+      lift_m_s2_ - thrust_scale_ * command_.thrust_n / params_.vehicle.mass_kg;
   if (!landing || !(carried_m_s2 >= p.ground_contact_accel_m_s2)) {
     pressed_since_utime_ = -1;
     ground_contact_ = false;
@@ -92,9 +98,21 @@ void FlightStack::detectGroundContact(int64_t utime) {
   ground_contact_ = held;
 }
 
+void FlightStack::learnThrustScale(FlightMode mode, double height_above_ground_m, double dt_s) {
+  const bool free_flight = flying_ && mode != FlightMode::kLand && mode != FlightMode::kDescend &&
+                           height_above_ground_m > params_.modes.landed_height_m &&
+                           command_.thrust_n > kMinLearningThrustRatio * vehicle_.weightN();
+  if (!free_flight) return;
+  const double scale = lift_m_s2_ * params_.vehicle.mass_kg / command_.thrust_n;
+  thrust_scale_ += std::min(1.0, dt_s / kThrustScaleTimeConstantS) * (scale - thrust_scale_);
+}
+
 VisionOutcome FlightStack::addVision(const VisionPose& pose) {
   const VisionOutcome outcome = estimator_.addVision(pose);
-  if (outcome == VisionOutcome::kFused) last_vision_utime_ = pose.utime;
+  // A reset to the pose used it as much as a fusion did.
+  if (outcome == VisionOutcome::kFused || outcome == VisionOutcome::kResetToPose) {
+    last_vision_utime_ = pose.utime;
+  }
   return outcome;
 }
 
@@ -121,6 +139,8 @@ TickOutput FlightStack::tick(const TickInputs& in) {
   inputs.height_above_ground_m =
       std::isnan(in.height_above_ground_m) ? -state.p_world_body_m.z() : in.height_above_ground_m;
   inputs.thrust_ratio = flying_ ? command_.thrust_n / vehicle_.weightN() : 0.0;
+  const double dt_s = 1.0 / params_.rate_hz;
+  learnThrustScale(modes_.mode(), inputs.height_above_ground_m, dt_s);
   detectGroundContact(in.utime);
   inputs.ground_contact = ground_contact_;
   inputs.mission_loaded = mission_.has_value();
@@ -131,7 +151,6 @@ TickOutput FlightStack::tick(const TickInputs& in) {
   TickOutput out;
   out.modes = modes_.update(inputs, in.command);
   const FlightMode mode = out.modes.mode;
-  const double dt_s = 1.0 / params_.rate_hz;
   if (inFlight(mode)) {
     if (!flying_) {  // a take-off: nothing of the last flight's integral carries over
       position_.reset();

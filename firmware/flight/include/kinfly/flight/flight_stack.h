@@ -100,6 +100,8 @@ class FlightStack {
   // Whether the floor carries the drone while it lands or descends (FlightModeParams'
   // ground_contact_*), from the lift the accelerometer feels against the thrust last commanded.
   void detectGroundContact(int64_t utime);
+  // Learns, in free flight, the lift the commanded thrust really gives (thrust_scale_).
+  void learnThrustScale(FlightMode mode, double height_above_ground_m, double dt_s);
 
   FlightStackParams params_;
   Vehicle vehicle_;  // before the mixer, which keeps a reference
@@ -117,6 +119,10 @@ class FlightStack {
   // real frame is metres per second squared per sample), and the thrust cap that ramps down
   // while the floor carries the drone.
   double lift_m_s2_ = 0.0;
+  // The lift over the commanded thrust over the mass, learnt in free flight: a vehicle heavier or
+  // with weaker rotors than the parameters say would otherwise seem carried by the floor in the
+  // air (20 % more thrust than believed is 1.6 m/s² of it in a hover).
+  double thrust_scale_ = 1.0;
   int64_t pressed_since_utime_ = -1;
   bool ground_contact_ = false;
   double ground_thrust_cap_n_ = 0.0;

@@ -124,8 +124,8 @@ def main() -> int:
     if (out / "flight.lcmlog").is_file():
         try:
             errors = write_plots(out, VEHICLE_ID)
-        except ValueError as error:
-            problems.append(f"no plots: {error}")
+        except (OSError, ValueError, ImportError) as error:
+            problems.append(f"no plots or map score: {error}")
     print(f"\nsim: {time.monotonic() - started:.0f} s; files in {out}:\n"
           f"{list_outputs(out, OUTPUTS)}")
     problems += [f"{name} was not written" for name in OUTPUTS if not (out / name).is_file()]

@@ -4,10 +4,10 @@ Reads `flight_status_t` (the drone's estimate and position setpoint, 10 Hz, on t
 and `sim_state_t` (the simulator's truth, 100 Hz, same clock) from `flight.lcmlog`, interpolates
 the truth at each status, and writes:
 - `tracking.png`: position (x, y, z) and attitude (roll, pitch, yaw) against time, truth,
-  estimate and setpoint, the flight modes shaded;
+  estimate and setpoint, a line at each change of flight mode;
 - `errors.png`: the estimator's position, velocity and tilt errors against truth, and the
   tracking error (setpoint - truth);
-- `flight_errors.json`: their RMS while airborne (armed and off the floor), the figures issue 16
+- `flight_errors.json`: their RMS while airborne (a flying mode and off the floor), the figures issue 16
   asks of the estimator (<= 1 cm, 3 cm/s, 0.3 deg) and of tracking;
 - `map_accuracy.json`: the ground's map (`mesh.ply`) against the scene's mesh (`scene.ply`,
   kinfly-sim --scene-mesh): the exact distance from every map vertex to the scene's surface
@@ -84,18 +84,21 @@ def read(log_path: Path, vehicle: int) -> Flight:
                          "simulated flight")
     t_us = np.array([s.utime for s in status], dtype=np.int64)
 
+    def at_status_times(values: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(t_us, truth_us, values[:, i])
+                                for i in range(values.shape[1])])
+
     p_scene = np.array([s.p_world_m for s in truth])
     v_scene = np.array([s.v_world_m_s for s in truth])
     q_scene = Rotation.from_quat([s.q_world_body for s in truth])
     # The flight stack's world: the body's start position and heading.
     yaw0 = q_scene[0].as_euler("ZYX")[0]
     R_flight_scene = Rotation.from_euler("Z", -yaw0)
-    p_true = R_flight_scene.apply(
-        np.column_stack([np.interp(t_us, truth_us, p_scene[:, i]) for i in range(3)]) - p_scene[0])
-    v_true = R_flight_scene.apply(
-        np.column_stack([np.interp(t_us, truth_us, v_scene[:, i]) for i in range(3)]))
+    p_true = R_flight_scene.apply(at_status_times(p_scene) - p_scene[0])
+    v_true = R_flight_scene.apply(at_status_times(v_scene))
     q_true = R_flight_scene * Slerp(truth_us, q_scene)(t_us)
-    on_floor = np.array([truth[min(np.searchsorted(truth_us, u), len(truth) - 1)].on_floor
+    # The last state at or before each status.
+    on_floor = np.array([truth[np.searchsorted(truth_us, u, side="right") - 1].on_floor
                          for u in t_us])
     mode = np.array([s.mode for s in status])
     return Flight(
@@ -209,8 +212,8 @@ def map_accuracy(out: Path) -> dict:
         raise ValueError(f"{out}: no true pose at the odometry's first frame "
                          f"(t = {odometry[0, 0]:.3f} s)")
     T_scene_map = pose_matrix(truth[first[0]]) @ np.linalg.inv(pose_matrix(odometry[0]))
-    ours = kinfly_eval._load_mesh(out / "mesh.ply")
-    scene = kinfly_eval._load_mesh(out / "scene.ply")
+    ours = kinfly_eval.load_mesh(out / "mesh.ply")
+    scene = kinfly_eval.load_mesh(out / "scene.ply")
     vertices = np.asarray(ours.vertices) @ T_scene_map[:3, :3].T + T_scene_map[:3, 3]
     return kinfly_eval.distance_stats(kinfly_eval.point_to_surface_distances(vertices, scene))
 

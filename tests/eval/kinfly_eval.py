@@ -129,7 +129,7 @@ def replica_to_tum(replica_dir: str | Path, out_dir: str | Path,
 
 
 # --- Mesh accuracy -------------------------------------------------------------------------------
-def _load_mesh(path: str | Path):
+def load_mesh(path: str | Path):
     import trimesh
 
     # process=False: keep the vertices exactly as written (no merging), they are what we measure.
@@ -167,7 +167,7 @@ def distance_stats(dist: np.ndarray) -> dict[str, float | int]:
 def mesh_accuracy(mesh_ply: str | Path, gt_ply: str | Path) -> dict[str, float | int]:
     """Accuracy of our mesh: distances from every one of its vertices to the ground-truth surface
     (not to GT vertices, whose spacing on the decimated Replica mesh is centimetres)."""
-    ours, gt = _load_mesh(mesh_ply), _load_mesh(gt_ply)
+    ours, gt = load_mesh(mesh_ply), load_mesh(gt_ply)
     stats = distance_stats(point_to_surface_distances(np.asarray(ours.vertices), gt))
     stats["faces"] = int(len(ours.faces))
     return stats

@@ -493,6 +493,9 @@ TEST(Estimator, AnImuBiasStepIsLearnedAgainWithoutDivergence) {
   EXPECT_LE(after.pos_m.value(), kPosRmsM);
   EXPECT_LE(after.vel_m_s.value(), kVelRmsMS);
   EXPECT_LE(after.tilt_rad.value(), kTiltRmsRad);
+  // The gyro bias step is 150 of the bias walk's 1σ over the flight: the filter cannot follow it
+  // without the reset, which is what this test is about.
+  EXPECT_GE(health.pose_resets, 1);
   EXPECT_FALSE(health.diverged);
   EXPECT_TRUE(health.vision_fused);
 }
@@ -517,6 +520,30 @@ TEST(Estimator, ResetsToPosesThatKeepRepeatingFlagDivergence) {
     EXPECT_EQ(estimator.health().pose_resets, reset);
   }
   EXPECT_TRUE(estimator.health().diverged);
+}
+
+TEST(Estimator, ResetsFartherApartThanTheWindowDoNotFlagDivergence) {
+  Scenario scenario;
+  // Each run of gated poses below is followed by 1 s of consistent ones: resets 1.2 s apart.
+  scenario.params.diverged_reset_window_s = 1.0;
+  const Recording rec = record(scenario);
+  Estimator estimator(scenario.params);
+  estimator.initialise(rec.init);
+  size_t k = 0;
+  flyFor(rec, estimator, 3.0, &k);
+  constexpr int kConsistentPoses = 30;
+  for (int reset = 1; reset <= scenario.params.diverged_resets + 1; ++reset) {
+    const Vector3d jump_odom_m(0.5 * reset, 0.0, 0.0);
+    for (int i = 0; i < scenario.params.vision_reset_rejections; ++i) {
+      nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m);
+    }
+    for (int i = 0; i < kConsistentPoses; ++i) {
+      EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m),
+                VisionOutcome::kFused);
+    }
+  }
+  EXPECT_EQ(estimator.health().pose_resets, scenario.params.diverged_resets + 1);
+  EXPECT_FALSE(estimator.health().diverged);
 }
 
 TEST(Estimator, PosesOlderThanTheHistoryOrOutOfOrderAreRejected) {

@@ -524,6 +524,11 @@ void flyFromTheFloor(FlightStack& stack, test::FlightPlant& plant, test::SensorF
   }
 }
 
+// How long the flights below hold after the take-off before the go-to, and before the camera is
+// covered: the thrust scale's time constant (2 s), so that the hover has taught it.
+constexpr int64_t kHoldBeforeUs = 1'000'000;
+constexpr int64_t kHoldBeforeCoverUs = 2'000'000;
+
 // From the floor to the take-off's hold, as the ground commands it.
 std::optional<FlightCommand> armAndTakeOff(FlightMode mode) {
   if (mode == FlightMode::kDisarmed) return FlightCommand{CommandKind::kArm};
@@ -565,7 +570,7 @@ TEST(FlightStack, AReachedGoToHoldsAlongItsLineWithoutAStep) {
   FloorFlight flight{FlightStackParams{}};
   const Vector3d target_world_m(1.0, -0.6, -test::kTakeOffHeightM);
   struct Script {
-    bool went = false, reached = false;
+    bool went = false, flew = false, reached = false;
     int64_t hold_since_utime = -1;
     Vector3d last_v_sp = Vector3d::Zero();
     double step_at_reach_m_s = -1.0;
@@ -573,7 +578,7 @@ TEST(FlightStack, AReachedGoToHoldsAlongItsLineWithoutAStep) {
     std::optional<FlightCommand> command(int64_t utime, FlightMode mode) {
       if (mode == FlightMode::kHold && !went) {
         if (hold_since_utime < 0) hold_since_utime = utime;
-        if (utime - hold_since_utime >= 1000000) {
+        if (utime - hold_since_utime >= kHoldBeforeUs) {
           went = true;
           FlightCommand go{CommandKind::kGoTo};
           go.target_world_m = target;
@@ -584,6 +589,7 @@ TEST(FlightStack, AReachedGoToHoldsAlongItsLineWithoutAStep) {
     }
     bool seen(int64_t, const TickOutput& out) {
       const Vector3d v_sp = out.setpoint.v_world_m_s;
+      flew = flew || out.modes.mode == FlightMode::kGoTo;
       if (went && !reached && out.modes.mode == FlightMode::kHold) {
         reached = true;
         step_at_reach_m_s = (v_sp - last_v_sp).norm();
@@ -593,7 +599,9 @@ TEST(FlightStack, AReachedGoToHoldsAlongItsLineWithoutAStep) {
     }
   } script;
   script.target = target_world_m;
-  flyFromTheFloor(*flight.stack, flight.plant, flight.sensors, 20.0, script);
+  constexpr double kMaxFlightS = 20.0;  // take-off 2 s, the hold, 1.2 m at 1 m/s: 5 s
+  flyFromTheFloor(*flight.stack, flight.plant, flight.sensors, kMaxFlightS, script);
+  ASSERT_TRUE(script.flew) << "the go-to was never flown";
   ASSERT_TRUE(script.reached) << "the go-to never reached its target";
   std::printf("[flight] go-to reached: velocity setpoint step %.4f m/s at the switch to hold\n",
               script.step_at_reach_m_s);
@@ -623,7 +631,7 @@ TEST_P(FlightStackThrustError, ADescentWithoutVisionFindsTheFloorAndDisarms) {
     std::optional<FlightCommand> command(int64_t utime, FlightMode mode) {
       if (mode == FlightMode::kHold && covered_utime < 0) {
         if (hold_since_utime < 0) hold_since_utime = utime;
-        if (utime - hold_since_utime >= 2000000) {
+        if (utime - hold_since_utime >= kHoldBeforeCoverUs) {
           sensors->coverCamera();
           covered_utime = utime;
         }
@@ -642,13 +650,16 @@ TEST_P(FlightStackThrustError, ADescentWithoutVisionFindsTheFloorAndDisarms) {
       return true;
     }
   } script{&flight.sensors, &flight.plant};
-  // Take-off and hold (4 s), 1 s to call vision lost, 1 m down at the descent's speed, then the
-  // ramp from the thrust at contact down to the landed ratio and the landed time; 5 s of slack.
+  // After the cover: vision_lost_s to call vision lost, 1 m down at the descent's speed, the
+  // contact held, the ramp from the weight down to the landed ratio and the landed time, with a
+  // slack for the loop to settle on the descent's speed and on the floor.
   const FlightModeParams& m = params.modes;
   const double ramp_s = (1.0 - m.landed_thrust_ratio) / m.ground_thrust_ramp_per_s;
+  constexpr double kSlackS = 5.0;
   const double bound_s = m.vision_lost_s + test::kTakeOffHeightM / m.vision_lost_descent_m_s +
-                         m.ground_contact_s + ramp_s + m.landed_time_s + 5.0;
-  flyFromTheFloor(*flight.stack, flight.plant, flight.sensors, 4.0 + bound_s, script);
+                         m.ground_contact_s + ramp_s + m.landed_time_s + kSlackS;
+  constexpr double kUpToTheCoverS = 6.0;  // take-off about 2 s, the hold
+  flyFromTheFloor(*flight.stack, flight.plant, flight.sensors, kUpToTheCoverS + bound_s, script);
   const FlightCounters& counters = flight.stack->modes().counters();
   ASSERT_GE(script.covered_utime, 0) << "never held long enough to cover the camera";
   ASSERT_GE(script.disarmed_utime, 0) << "still " << toString(flight.stack->modes().mode())

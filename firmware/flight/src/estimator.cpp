@@ -3,7 +3,6 @@
 #include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
-#include <limits>
 
 #include "kinfly/core/range_check.h"
 
@@ -160,7 +159,6 @@ void Estimator::start(int64_t utime, const Nominal& x) {
   barrier_utime_ = utime;
   reset_utime_ = utime;
   last_vision_utime_ = -1;
-  pose_reset_utimes_.fill(std::numeric_limits<int64_t>::min());
 }
 
 Covariance Estimator::initialCovariance() const {

@@ -1,5 +1,6 @@
 #include "kinfly/flight/flight_stack.h"
 
+#include <algorithm>
 #include <utility>
 
 #include "kinfly/core/range_check.h"
@@ -32,6 +33,12 @@ constexpr double kLiftTimeConstantS = 0.1;
 constexpr double kThrustScaleTimeConstantS = 2.0;
 // Below this share of the weight the ratio says little (and a take-off's first ticks are there).
 constexpr double kMinLearningThrustRatio = 0.5;
+// What a sane vehicle's parameters can be off by: beyond, they are wrong, not the thrust.
+constexpr double kThrustScaleMin = 0.7, kThrustScaleMax = 1.4;
+// [m/s²] how far from gravity's share the lift of a body held still may be: the accelerometer's
+// noise after the low-pass and the floor's give, with room; a body sinking with its thrust cut
+// by a tenth of the weight is beyond it.
+constexpr double kStillLiftToleranceMS2 = 0.8;
 
 }  // namespace
 
@@ -74,18 +81,25 @@ bool FlightStack::addImu(const ImuSample& sample) {
   // A first-order low-pass; the first sample (and one after a long gap) starts it.
   const double lift_m_s2 = -sample.accel_m_s2.z();
   const double dt_s = static_cast<double>(sample.utime - previous_utime) / kUsPerS;
-  const double weight = previous_utime < 0 ? 1.0 : std::min(1.0, dt_s / kLiftTimeConstantS);
+  const double weight =
+      previous_utime < 0 || !(dt_s > 0.0) ? 1.0 : std::min(1.0, dt_s / kLiftTimeConstantS);
   lift_m_s2_ += weight * (lift_m_s2 - lift_m_s2_);
   return true;
 }
 
-void FlightStack::detectGroundContact(int64_t utime) {
+void FlightStack::detectGroundContact(int64_t utime, const Eigen::Quaterniond& q_world_body) {
   const FlightModeParams& p = params_.modes;
   const FlightMode mode = modes_.mode();
   const bool landing = flying_ && (mode == FlightMode::kLand || mode == FlightMode::kDescend);
   const double carried_m_s2 =
       lift_m_s2_ - thrust_scale_ * command_.thrust_n / params_.vehicle.mass_kg;
-  if (!landing || !(carried_m_s2 >= p.ground_contact_accel_m_s2)) {
+  // Held still: the lift is gravity's share along body up. A body in the air whose thrust is cut
+  // is not (it sinks faster and faster), so a false contact (an excess that does not shrink with
+  // the thrust: an accelerometer offset, ground effect) ends as soon as the drone starts to sink.
+  const double gravity_up_m_s2 =
+      (q_world_body.conjugate() * Eigen::Vector3d(0.0, 0.0, kGravityMS2)).z();
+  const bool still = std::abs(lift_m_s2_ - gravity_up_m_s2) <= kStillLiftToleranceMS2;
+  if (!landing || !still || !(carried_m_s2 >= p.ground_contact_accel_m_s2)) {
     pressed_since_utime_ = -1;
     ground_contact_ = false;
     return;
@@ -99,11 +113,14 @@ void FlightStack::detectGroundContact(int64_t utime) {
 }
 
 void FlightStack::learnThrustScale(FlightMode mode, double height_above_ground_m, double dt_s) {
+  // Not while the loops are limited: the thrust given is then not the thrust commanded.
   const bool free_flight = flying_ && mode != FlightMode::kLand && mode != FlightMode::kDescend &&
                            height_above_ground_m > params_.modes.landed_height_m &&
-                           command_.thrust_n > kMinLearningThrustRatio * vehicle_.weightN();
+                           command_.thrust_n > kMinLearningThrustRatio * vehicle_.weightN() &&
+                           !command_.thrust_limited && !saturation_.any();
   if (!free_flight) return;
-  const double scale = lift_m_s2_ * params_.vehicle.mass_kg / command_.thrust_n;
+  const double scale = std::clamp(lift_m_s2_ * params_.vehicle.mass_kg / command_.thrust_n,
+                                  kThrustScaleMin, kThrustScaleMax);
   thrust_scale_ += std::min(1.0, dt_s / kThrustScaleTimeConstantS) * (scale - thrust_scale_);
 }
 
@@ -141,7 +158,7 @@ TickOutput FlightStack::tick(const TickInputs& in) {
   inputs.thrust_ratio = flying_ ? command_.thrust_n / vehicle_.weightN() : 0.0;
   const double dt_s = 1.0 / params_.rate_hz;
   learnThrustScale(modes_.mode(), inputs.height_above_ground_m, dt_s);
-  detectGroundContact(in.utime);
+  detectGroundContact(in.utime, state.q_world_body);
   inputs.ground_contact = ground_contact_;
   inputs.mission_loaded = mission_.has_value();
   inputs.mission_finished = mission_finished_;
@@ -164,7 +181,7 @@ TickOutput FlightStack::tick(const TickInputs& in) {
     if (ticks_in_flight_ % decimation_ == 0) {
       command_ = position_.update(setpoint_, state, decimation_ * dt_s);
     }
-    if (ground_contact_) {
+    if (ground_contact_ && (mode == FlightMode::kLand || mode == FlightMode::kDescend)) {
       const double ramp_n_s = params_.modes.ground_thrust_ramp_per_s * vehicle_.weightN();
       ground_thrust_cap_n_ = std::max(0.0, ground_thrust_cap_n_ - ramp_n_s * dt_s);
       if (command_.thrust_n > ground_thrust_cap_n_) {

@@ -55,7 +55,8 @@ class LcmSource : public DepthSource {
       if (last_heard_ && std::chrono::steady_clock::now() - *last_heard_ < kPause) {
         return SourceStatus::kPaused;
       }
-      *why = "no depth frame on " + describe() + (last_heard_ ? " for over 1 s" : " yet");
+      *why = "no depth frame on " + describe() +
+             (last_heard_ ? " for over " + std::to_string(kPause.count()) + " s" : " yet");
       return SourceStatus::kWaiting;
     }
     // Frames the sender overwrote are reported first, as skipped; the held ones stay for the

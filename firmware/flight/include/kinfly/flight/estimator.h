@@ -229,7 +229,8 @@ class Estimator {
   int64_t still_samples_ = 0;
   int64_t still_first_utime_ = -1;
   int64_t last_imu_utime_ = -1;
-  // Capture times of the last resets to a pose, a ring of diverged_resets.
+  // Capture times of the last resets to a pose, a ring of diverged_resets (read only once it
+  // holds that many).
   std::array<int64_t, kMaxDivergedResets> pose_reset_utimes_{};
   EstimatorHealth health_;
 };

@@ -8,6 +8,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <cmath>
 #include <cstdint>
 #include <memory>
@@ -99,7 +100,7 @@ class FlightStack {
   PositionSetpoint guide(const FlightOutput& out, const EstimatorState& state, int64_t utime);
   // Whether the floor carries the drone while it lands or descends (FlightModeParams'
   // ground_contact_*), from the lift the accelerometer feels against the thrust last commanded.
-  void detectGroundContact(int64_t utime);
+  void detectGroundContact(int64_t utime, const Eigen::Quaterniond& q_world_body);
   // Learns, in free flight, the lift the commanded thrust really gives (thrust_scale_).
   void learnThrustScale(FlightMode mode, double height_above_ground_m, double dt_s);
 
@@ -119,9 +120,11 @@ class FlightStack {
   // real frame is metres per second squared per sample), and the thrust cap that ramps down
   // while the floor carries the drone.
   double lift_m_s2_ = 0.0;
-  // The lift over the commanded thrust over the mass, learnt in free flight: a vehicle heavier or
-  // with weaker rotors than the parameters say would otherwise seem carried by the floor in the
-  // air (20 % more thrust than believed is 1.6 m/s² of it in a hover).
+  // The lift over the commanded thrust over the mass, learnt in free flight and kept for the
+  // program's life (the vehicle does not change between flights; a payload is learnt again in
+  // seconds of hover): a vehicle lighter or with stronger rotors than the parameters say would
+  // otherwise seem carried by the floor in the air (20 % more thrust than believed is 1.6 m/s²
+  // of it in a hover).
   double thrust_scale_ = 1.0;
   int64_t pressed_since_utime_ = -1;
   bool ground_contact_ = false;

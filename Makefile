@@ -18,8 +18,8 @@
 #                   end: kinfly-fw replays the shipped LCM log to kinfly-ground over LCM in a
 #                   network namespace; outputs in out/demo
 #   make sim        deps demo, sim; kinfly-sim flies the drone in the simulated room through the real
-#                   kinfly-fw and kinfly-ground in lockstep in a network namespace (take off,
-#                   hold, land); outputs in out/sim (docs/sim.md)
+#                   kinfly-fw and kinfly-ground in lockstep in a network namespace (the room
+#                   tour: sim/missions/room_tour.toml); outputs in out/sim (docs/sim.md)
 #   make demo-runs  deps demo; make demo's flight DEMO_RUNS times (20) on the machine as it is,
 #                   then DEMO_BUSY_RUNS times (10) beside two busy loops; out/bench/demo_runs_*.json
 #   make test-runs  make test, then its tests TEST_RUNS times (3) beside two busy loops;

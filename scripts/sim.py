@@ -5,7 +5,8 @@ kinfly-fw (depth over LCM, the motors backend, the IMU as its only clock) in loc
 kinfly-ground maps the keyframes and sends its corrections, each keyframe's before the drone's
 next frame (source.lockstep), so that a seed flies the same flight on any machine. lcm-logger
 records the flight. They talk LCM over UDP multicast in a private network namespace, as `make
-demo` does. The simulator flies its mission (arm, take off, hold, land) and the run succeeds only
+demo` does. The simulator flies its mission (the room tour unless told otherwise: take off, three
+go-tos, a figure eight, land) and the run succeeds only
 when the drone landed without a collision or a failsafe and the ground mapped what it was sent.
 Nothing waits a fixed time: each program's readiness and end are what the next step waits for.
 
@@ -30,6 +31,8 @@ from sim_plots import kinfly_eval, write as write_plots  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DRONE_EXIT_TIMEOUT_S = 60.0  # kinfly-fw's last corrections and its summary after SIGINT
+ROOM_TOUR = REPO_ROOT / "sim" / "missions" / "room_tour.toml"
+HOVER = "hover"  # --mission: kinfly-sim's built-in take off, hold, land
 # What lcm-logger records: everything but the raw depth frames (30 a second at VGA; the keyframes
 # that reached the ground are in their chunks).
 RECORDED = (f"KINFLY_{VEHICLE_ID}_(IMU|MOTOR_COMMAND|SIM_STATE|ODOMETRY|KEYFRAME_CHUNK|STATUS|"
@@ -66,7 +69,7 @@ def sim_command(key: Path, out: Path, args: argparse.Namespace) -> list[str]:
             "--lcm-url", LCM_URL, "--scene", args.scene, "--seed", str(args.seed),
             "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
             "--summary", str(out / "sim_summary.json"), "--scene-mesh", str(out / "scene.ply"),
-            *(["--mission", str(args.mission)] if args.mission else [])]
+            *([] if args.mission == HOVER else ["--mission", str(args.mission)])]
 
 
 def main() -> int:
@@ -75,11 +78,12 @@ def main() -> int:
     p.add_argument("--scene", default="room", help="room | corridor (default room)")
     p.add_argument("--seed", type=int, default=1, help="the simulator's seed (default 1)")
     p.add_argument("--hover-s", type=float, default=20.0,
-                   help="seconds the drone holds at 1 m before it lands (default 20); "
-                   "the built-in mission's, when there is no --mission")
-    p.add_argument("--mission", type=Path, default=None,
-                   help="a mission file (sim/missions/, docs/sim.md); default: take off, hold, "
-                   "land")
+                   help=f"seconds the drone holds at 1 m before it lands (default 20); "
+                   f"--mission {HOVER} only")
+    p.add_argument("--mission", default=str(ROOM_TOUR),
+                   help=f"a mission file (sim/missions/, docs/sim.md), or {HOVER!r} for "
+                   f"kinfly-sim's built-in take off, hold --hover-s, land (default: the room "
+                   f"tour, {ROOM_TOUR.relative_to(REPO_ROOT)})")
     p.add_argument("--camera-downsample", type=int, default=1,
                    help="the simulated Kinect at 1/N of 640x480 (default 1)")
     args = p.parse_args()

@@ -77,7 +77,8 @@ int8_t rotorState(flight::RotorCommand rotors) {
 ControlTask::ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
                          std::optional<link::Key> mavlink_key, LatestValue<OdometryPose>* poses,
                          LatestValue<CommandMail>* commands,
-                         LatestValue<flight_status_t>* flight_status, const StopToken* stop)
+                         LatestValue<flight_status_t>* flight_status,
+                         SharedPoseHistory* pose_history, const StopToken* stop)
     : config_(config),
       stack_(std::move(stack)),
       mavlink_(config.flight.backend == "mavlink"),
@@ -85,6 +86,7 @@ ControlTask::ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::F
       poses_(poses),
       commands_(commands),
       flight_status_(flight_status),
+      pose_history_(pose_history),
       stop_(stop) {
   command_.vehicle_id = config.vehicle.id;
 }
@@ -213,6 +215,25 @@ void ControlTask::takeImu(const flight::ImuSample& sample) {
   if (last_imu_utime_ < 0) last_tick_utime_ = -1;
   last_imu_utime_ = sample.utime;
   last_imu_arrival_ = Clock::now();
+  // Before the tick, whose rotor command a lockstep simulator waits for before it sends the next
+  // depth frame: the odometry then finds this sample's pose for the frame's prior.
+  const flight::Estimator& estimator = stack_->estimator();
+  if (pose_history_ != nullptr && estimator.initialised()) {
+    const flight::EstimatorState state = estimator.state();
+    const flight::EstimatorHealth health = estimator.health();
+    Pose T_world_body = Pose::Identity();
+    T_world_body.linear() = state.q_world_body.toRotationMatrix();
+    T_world_body.translation() = state.p_world_body_m;
+    // Never waits for the odometry, which holds the lock for a lookup: a sample it meets held
+    // is left out (the history interpolates across it). Both kinds of reset jump the estimate:
+    // the odometry takes no motion across one.
+    std::unique_lock<std::mutex> lock(pose_history_->mutex, std::try_to_lock);
+    if (lock.owns_lock()) {
+      pose_history_->history.add(state.utime,
+                                 T_world_body * stack_->params().estimator.T_body_cam,
+                                 health.pose_resets + health.resets);
+    }
+  }
   tick(sample.utime);
 }
 

@@ -1,6 +1,7 @@
 // The control task: kinfly::flight::FlightStack driven by an IMU source, one tick per IMU sample
 // (as PX4's rate controller runs on each gyro sample), the odometry's newest pose handed over
-// through a LatestValue (never a lock the vision thread could hold), the output to the actuator
+// through a LatestValue (never a lock the vision thread could hold; the estimate's poses go back
+// to it in a history this thread only tries the lock of), the output to the actuator
 // backend: rotor speeds over its own LCM (motors), or body rates and thrust to an autopilot over
 // MAVLink (mavlink), which is then the IMU source too. Its own thread: neither the odometry nor
 // the keyframe link can hold it up. docs/flight.md, "The control task".
@@ -50,11 +51,12 @@ class ControlTask {
   // stack: made from config.flight.stackParams(). poses: written by the odometry thread.
   // commands: written by the link thread (authenticated commands from the ground).
   // mavlink_key: the mavlink backend's signing key, if any. flight_status: read by the link
-  // thread, which sends it with the drone's status.
+  // thread, which sends it with the drone's status. pose_history: the estimate's camera poses,
+  // for the odometry's motion prior.
   ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::FlightStack> stack,
               std::optional<link::Key> mavlink_key, LatestValue<OdometryPose>* poses,
               LatestValue<CommandMail>* commands, LatestValue<flight_status_t>* flight_status,
-              const StopToken* stop);
+              SharedPoseHistory* pose_history, const StopToken* stop);
 
   // Until a stop is requested. Sets the thread's real-time priority and core first, where the
   // configuration asks and the system allows (a warning where it does not).
@@ -82,6 +84,7 @@ class ControlTask {
   LatestValue<OdometryPose>* poses_;
   LatestValue<CommandMail>* commands_;
   LatestValue<flight_status_t>* flight_status_;
+  SharedPoseHistory* pose_history_;
   const StopToken* stop_;
   // Made by run() after the thread's priority is set: LCM's receive thread, which empties the
   // IMU's socket, is started from it and inherits the priority.

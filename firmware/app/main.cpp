@@ -229,12 +229,14 @@ int run(int argc, char** argv) {
   LatestValue<OdometryPose> poses;
   LatestValue<CommandMail> commands;
   LatestValue<flight_status_t> flight_status;
+  SharedPoseHistory pose_history;
   OdometryTask odometry(config, camera, volume_params, pipeline_params, &anchor, &counters,
-                        &capture_queue, &keyframe_queue, stack ? &poses : nullptr, &stop);
+                        &capture_queue, &keyframe_queue, stack ? &poses : nullptr,
+                        stack ? &pose_history : nullptr, &stop);
   std::optional<ControlTask> control;
   if (stack) {
     control.emplace(config, std::move(stack), mavlink_key, &poses, &commands, &flight_status,
-                    &stop);
+                    &pose_history, &stop);
   }
   LinkTask link(config, key, &anchor, &counters, &keyframe_queue, &capture_queue, camera,
                 source->depthScaleM(), control ? &commands : nullptr,
@@ -277,11 +279,13 @@ int run(int argc, char** argv) {
   const link::RejectCounters rejects = link.rejects();
   const auto n = [](int64_t v) { return static_cast<long long>(v); };
   std::printf(
-      "kinfly-fw: %s: %lld frames captured, %lld processed (%lld lost), %lld dropped by the "
+      "kinfly-fw: %s: %lld frames captured, %lld processed (%lld lost, %lld in degenerate "
+      "geometry), %lld dropped by the "
       "queue, %lld skipped; sensor opened %lld times, stalled %lld times; %lld keyframes sent, "
       "%lld dropped; %lld corrections applied, %lld rejected, %lld for unknown keyframes\n",
       interrupted ? "stopped" : "source ended", n(counters.frames_captured),
-      n(counters.frames_processed), n(counters.frames_lost), n(capture_queue.dropped()),
+      n(counters.frames_processed), n(counters.frames_lost), n(counters.frames_weak),
+      n(capture_queue.dropped()),
       n(counters.frames_skipped), n(counters.sensor_connects), n(link.sensorStalls()),
       n(counters.keyframes_sent), n(counters.keyframes_failed + keyframe_queue.dropped()),
       n(link.accepted() - counters.corrections_unknown), n(rejects.total()),

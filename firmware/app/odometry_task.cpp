@@ -3,6 +3,7 @@
 #include <omp.h>
 #include <spdlog/spdlog.h>
 
+#include <optional>
 #include <thread>
 
 #include "kinfly/link/conversions.h"
@@ -31,13 +32,15 @@ OdometryTask::OdometryTask(const FirmwareConfig& config, const PinholeCamera& ca
                            Counters* counters,
                            BoundedQueue<DepthCapture>* frames,
                            BoundedQueue<KeyframeJob>* keyframes,
-                           LatestValue<OdometryPose>* poses, const StopToken* stop)
+                           LatestValue<OdometryPose>* poses, SharedPoseHistory* history,
+                           const StopToken* stop)
     : config_(config), volume_(volume), pipeline_(camera, pipeline, &volume_),
       selector_(config.keyframe),
       publisher_("odometry", config.link.effectiveLcmUrl(), config.vehicle.id, {},
                  unicastPeers(config.link, /*listen_port=*/0, {})),
       anchor_(anchor), counters_(counters),
-      frames_(frames), keyframes_(keyframes), poses_(poses), stop_(stop), job_(withDepthImage<KeyframeJob>(camera)) {
+      frames_(frames), keyframes_(keyframes), poses_(poses), history_(history), stop_(stop),
+      job_(withDepthImage<KeyframeJob>(camera)) {
   publisher_.chargeTo(&counters->priority_bytes);
   odometry_.vehicle_id = config.vehicle.id;
   truth_.vehicle_id = config.vehicle.id;
@@ -58,9 +61,27 @@ void OdometryTask::run() {
 }
 
 void OdometryTask::process(const DepthCapture& capture) {
-  const FrameResult r = pipeline_.processFrame(capture.depth.view(), capture.utime);
+  std::optional<Pose> prior;
+  if (history_ != nullptr && pose_utime_ >= 0) {
+    std::lock_guard<std::mutex> lock(history_->mutex);
+    if (const std::optional<Pose> motion = history_->history.motion(pose_utime_, capture.utime))
+      prior = pipeline_.pose() * *motion;
+  }
+  const FrameResult r = pipeline_.processFrame(capture.depth.view(), capture.utime,
+                                               prior ? &*prior : nullptr);
   ++counters_->frames_processed;
   counters_->tracking.store(r.status);
+  if (r.status != TrackingStatus::kLost) pose_utime_ = r.utime;
+  if (r.weak.count > 0) {
+    ++counters_->frames_weak;
+    if (weak_log_.allow(secondsSince(began_)))
+      spdlog::warn("odometry: frame {}: the scene constrains {} of the six directions of motion "
+                   "only (the weakest {:.4f}); {} along the rest ({} more such frames since the "
+                   "last report)",
+                   capture.frame_id, 6 - r.weak.count, r.weakest_fraction,
+                   prior ? "the IMU's motion carries the pose" : "ICP's weak answer stands",
+                   weak_log_.suppressed());
+  }
   if (r.status == TrackingStatus::kLost) {
     ++counters_->frames_lost;
     if (lost_log_.allow(secondsSince(began_)))
@@ -78,7 +99,7 @@ void OdometryTask::process(const DepthCapture& capture) {
   }
   const Pose T_world_cam = T_world_odom * r.T_world_cam;
   if (poses_ != nullptr && r.status != TrackingStatus::kLost) {
-    poses_->back() = OdometryPose{r.utime, r.T_world_cam, T_world_odom, reset_counter};
+    poses_->back() = OdometryPose{r.utime, r.T_world_cam, T_world_odom, reset_counter, r.weak};
     poses_->publish();
   }
   link::fillOdometry(r, capture.frame_id, T_world_cam, reset_counter, &odometry_);

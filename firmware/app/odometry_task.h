@@ -1,5 +1,7 @@
 // The odometry thread: the engine at QVGA in a dense volume that follows the drone, one pose
-// published per frame, keyframe selection, keyframes handed to the link. It never waits for the
+// published per frame, keyframe selection, keyframes handed to the link. With a flight stack,
+// ICP starts from the motion the estimator saw since the last tracked frame, and keeps it where
+// the scene leaves a direction weak. It never waits for the
 // link: a full keyframe queue drops its oldest keyframe. Only a lockstep replay
 // (source.lockstep) waits, after each keyframe, for the ground station's answer.
 #pragma once
@@ -37,7 +39,8 @@ class OdometryTask {
                const DenseVolume::Params& volume, const FusionPipeline::Params& pipeline,
                SharedAnchor* anchor, Counters* counters,
                BoundedQueue<DepthCapture>* frames, BoundedQueue<KeyframeJob>* keyframes,
-               LatestValue<OdometryPose>* poses, const StopToken* stop);
+               LatestValue<OdometryPose>* poses, SharedPoseHistory* history,
+               const StopToken* stop);
 
   // Until a stop is requested, or the frame queue is closed and empty.
   void run();
@@ -62,13 +65,16 @@ class OdometryTask {
   BoundedQueue<DepthCapture>* frames_;
   BoundedQueue<KeyframeJob>* keyframes_;
   LatestValue<OdometryPose>* poses_;  // to the control task; nullptr without one
+  SharedPoseHistory* history_;        // from the control task; nullptr without one
+  // [µs] capture of the pipeline's pose (its last tracked frame), -1 before one
+  int64_t pose_utime_ = -1;
   const StopToken* stop_;
   odometry_t odometry_{};
   ground_truth_t truth_{};
   KeyframeJob job_;
   int64_t next_keyframe_id_ = 0;
   Clock::time_point began_ = Clock::now();
-  LogThrottle lost_log_, keyframe_drop_log_, lockstep_log_;
+  LogThrottle lost_log_, keyframe_drop_log_, lockstep_log_, weak_log_;
   std::vector<StampedPose> trajectory_, ground_truth_;
 };
 

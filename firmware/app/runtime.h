@@ -16,6 +16,7 @@
 #include "kinfly/core/se3.h"
 #include "kinfly/flight/anchored_vision.h"
 #include "kinfly/flight/flight_modes.h"
+#include "kinfly/flight/pose_history.h"
 #include "kinfly/flight/trajectory.h"
 
 namespace kinfly::fw {
@@ -48,6 +49,7 @@ struct Counters {
   std::atomic<int64_t> last_frame_ns{-1};  // [ns] Clock time of the last frame, -1 before one
   // odometry thread
   std::atomic<int64_t> frames_processed{0}, frames_lost{0};
+  std::atomic<int64_t> frames_weak{0};  // tracked with weak directions (degenerate geometry)
   AtomicTracking tracking;
   // link thread
   std::atomic<int64_t> keyframes_sent{0}, keyframes_failed{0}, corrections_unknown{0};
@@ -70,6 +72,14 @@ struct CommandMail {
   int64_t command_id = -1;
   flight::FlightCommand command;
   std::optional<flight::Trajectory> mission;
+};
+
+// The estimator's camera poses, written by the control task at every IMU sample (when the lock is
+// free: it never waits), read by the odometry for its motion prior (flight::PoseHistory): a
+// second of a 1 kHz IMU.
+struct SharedPoseHistory {
+  std::mutex mutex;
+  flight::PoseHistory history{1024};
 };
 
 struct KeyframeJob {

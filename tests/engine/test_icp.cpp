@@ -1,10 +1,12 @@
-// IcpTracker: recovers known 6-DoF offsets on a well-constrained synthetic scene, reports
-// degenerate and empty input as lost without touching the pose, its serial and threaded system
+// IcpTracker: recovers known 6-DoF offsets on a well-constrained synthetic scene; in degenerate
+// scenes (a plane, a corridor) names the weak directions and keeps the guess along them; reports
+// empty input as lost without touching the pose; its serial and threaded system
 // builders agree, and the vectorised builder matches a per-pixel reference.
 #include <gtest/gtest.h>
 
 #include <algorithm>
 #include <cmath>
+#include <utility>
 #include <vector>
 
 #include "kinfly/preprocessing/depth_preprocessor.h"
@@ -115,8 +117,28 @@ TEST_F(IcpFixture, StartsFromTheGuess) {
             kRotationTolDeg);
 }
 
-TEST_F(IcpFixture, SinglePlaneIsDegenerateAndKeepsGuess) {
-  // One plane leaves two translations and the rotation about its normal unconstrained.
+// The weak directions of an exactly degenerate model (noise-free) lie in the null space to
+// rounding of sums over ~1e5 points: far below anything the scene constrains (~1e-2).
+constexpr double kNullSpaceTol = 1e-6;
+// A weak direction along an axis: its cosine with it. Noise in the current frame tilts it by
+// a few degrees at most (cos 8 degrees = 0.99).
+constexpr double kAlongAxisCos = 0.99;
+
+// Along a weak direction the pose must stay at the guess to rounding: the update has no part
+// along it, and the composition of updates moves it only at second order (a 1 degree tilt times
+// a centimetre, 2e-4).
+constexpr double kWeakDriftTol = 2e-4;  // [m] and [rad]
+
+// The rotation-vector and translation parts of T * guess^-1: what the updates added.
+std::pair<Eigen::Vector3d, Eigen::Vector3d> updateSince(const Pose& T, const Pose& guess) {
+  const Pose D = T * guess.inverse();
+  const Eigen::AngleAxisd aa(D.linear());
+  return {aa.angle() * aa.axis(), D.translation()};
+}
+
+TEST_F(IcpFixture, SinglePlaneIsWeakInThreeDirectionsAndKeepsTheGuessAlongThem) {
+  // One plane fixes the distance to it and the two tilts; it leaves the translations within it
+  // and the rotation about its normal to the guess.
   SyntheticScene scene;
   const Eigen::Vector3f n = Eigen::Vector3f(0.2f, -0.1f, -1.f).normalized();
   scene.addPlane(n, n.dot(Eigen::Vector3f(0.f, 0.f, 1.5f)));
@@ -127,10 +149,70 @@ TEST_F(IcpFixture, SinglePlaneIsDegenerateAndKeepsGuess) {
   const IcpTracker tracker{IcpTracker::Params()};
   const Pose guess =
       test::makePose(Eigen::Vector3d(0.0, 0.005, 0.0), Eigen::Vector3d(0.004, 0.0, 0.002));
-  const IcpResult result = tracker.track(current, model, guess);
+  // From a guess that is not a prior, the three directions cannot be solved at all: lost.
+  const IcpResult unsolvable = tracker.track(current, model, guess);
+  EXPECT_EQ(unsolvable.status, TrackingStatus::kLost);
+  EXPECT_NE(unsolvable.reason.find("singular"), std::string::npos) << unsolvable.reason;
+  EXPECT_TRUE(unsolvable.T_ref_cur.matrix() == guess.matrix());
+  const IcpResult result = tracker.track(current, model, guess, /*prior=*/true);
+  ASSERT_EQ(result.status, TrackingStatus::kOk) << result.reason;
+  ASSERT_EQ(result.weak_directions, 3);
+  const Eigen::Vector3d nd = n.cast<double>();
+  for (int i = 0; i < 3; ++i) {
+    // Each weak twist turns about the normal and moves within the plane.
+    const Eigen::Vector3d w = result.weak[i].head<3>(), t = result.weak[i].tail<3>();
+    EXPECT_NEAR(result.weak[i].norm(), 1.0, kNullSpaceTol);
+    EXPECT_LT(w.cross(nd).norm(), kNullSpaceTol) << "weak " << i << ": "
+                                                 << result.weak[i].transpose();
+    EXPECT_LT(std::abs(t.dot(nd)), kNullSpaceTol) << "weak " << i << ": "
+                                                  << result.weak[i].transpose();
+  }
+  const auto [w_update, t_update] = updateSince(result.T_ref_cur, guess);
+  EXPECT_LT(std::abs(w_update.dot(nd)), kWeakDriftTol);
+  EXPECT_LT((t_update - t_update.dot(nd) * nd).norm(), kWeakDriftTol);
+  // The strong directions come from the scene: the distance to the plane and the tilts.
+  const auto [w_error, t_error] = updateSince(result.T_ref_cur, T_ref_cur_true);
+  EXPECT_LT(std::abs(t_error.dot(nd)), kTranslationTolM);
+  EXPECT_LT(test::radToDeg((w_error - w_error.dot(nd) * nd).norm()), kRotationTolDeg);
+}
+
+TEST_F(IcpFixture, CorridorIsWeakAlongItsAxisOnly) {
+  // Floor, ceiling and two walls along z: nothing fixes the motion along the corridor. The
+  // pose follows the guess (an IMU's prediction, say) there and the scene everywhere else.
+  const SyntheticScene scene = SyntheticScene::corridor();
+  buildModel(scene);
+  const Pose T_ref_cur_true =
+      test::makePose(Eigen::Vector3d(0.01, -0.01, 0.005), Eigen::Vector3d(0.01, -0.01, 0.05));
+  buildCurrent(scene, T_ref_cur_true, 9);
+  const IcpTracker tracker{IcpTracker::Params()};
+  const Pose guess = test::makePose(Eigen::Vector3d::Zero(), Eigen::Vector3d(0.0, 0.0, 0.03));
+  const IcpResult result = tracker.track(current, model, guess, /*prior=*/true);
+  ASSERT_EQ(result.status, TrackingStatus::kOk) << result.reason;
+  ASSERT_EQ(result.weak_directions, 1);
+  const Eigen::Vector3d axis = Eigen::Vector3d::UnitZ();
+  EXPECT_GT(std::abs(result.weak[0].tail<3>().dot(axis)), kAlongAxisCos)
+      << result.weak[0].transpose();
+  const auto [w_update, t_update] = updateSince(result.T_ref_cur, guess);
+  EXPECT_LT(std::abs(t_update.dot(axis)), kWeakDriftTol);
+  const auto [w_error, t_error] = updateSince(result.T_ref_cur, T_ref_cur_true);
+  EXPECT_LT((t_error - t_error.dot(axis) * axis).norm(), kTranslationTolM);
+  EXPECT_LT(test::radToDeg(w_error.norm()), kRotationTolDeg);
+}
+
+TEST_F(IcpFixture, TooManyWeakDirectionsIsLostAndKeepsTheGuess) {
+  SyntheticScene scene;
+  const Eigen::Vector3f n = Eigen::Vector3f(0.2f, -0.1f, -1.f).normalized();
+  scene.addPlane(n, n.dot(Eigen::Vector3f(0.f, 0.f, 1.5f)));
+  buildModel(scene);
+  buildCurrent(scene, Pose::Identity(), 8);
+  IcpTracker::Params params;
+  params.max_weak_directions = 2;
+  const IcpTracker tracker{params};
+  const Pose guess =
+      test::makePose(Eigen::Vector3d(0.0, 0.005, 0.0), Eigen::Vector3d(0.004, 0.0, 0.002));
+  const IcpResult result = tracker.track(current, model, guess, /*prior=*/true);
   EXPECT_EQ(result.status, TrackingStatus::kLost);
-  EXPECT_FALSE(result.reason.empty());
-  EXPECT_TRUE(isFinite(result.T_ref_cur));
+  EXPECT_NE(result.reason.find("weak"), std::string::npos) << result.reason;
   EXPECT_TRUE(result.T_ref_cur.matrix() == guess.matrix()) << result.T_ref_cur.matrix();
 }
 

@@ -166,6 +166,7 @@ class SensorFeed {
     if (utime >= next_capture_utime_ && camera_on_) {
       in_flight_.push_back(odometryPose(utime, poseOf(plant.state()), T_odom_world_,
                                         EstimatorParams{}, gaussian_));
+      in_flight_.back().pose.weak = weak_;
       next_capture_utime_ += kVisionPeriodUs;
     }
     arrived_.clear();
@@ -183,10 +184,16 @@ class SensorFeed {
   }
   // The camera covered: no pose is captured from now on (those in flight still arrive).
   void coverCamera() { camera_on_ = false; }
+  // A corridor along `axis_odom`: the poses captured from now on name it their weak direction.
+  void weakenAlong(const Eigen::Vector3d& axis_odom) {
+    weak_.count = 1;
+    weak_.d[0] << axis_odom.normalized(), Eigen::Vector3d::Zero();
+  }
 
  private:
   Pose T_odom_world_;
   bool camera_on_ = true;
+  WeakDirections weak_;
   Gaussian gaussian_;
   int64_t next_capture_utime_;
   std::deque<Delivery> in_flight_;

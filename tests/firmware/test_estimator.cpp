@@ -370,8 +370,10 @@ TEST(Estimator, NeesOverSeededRunsIsWithinTheChiSquareBounds) {
 
 // ---- Gating, delays and resets -----------------------------------------------------------------
 
-// Feeds the recording up to `seconds`; *truth_index is then the truth at the last fed sample.
+// Starts the filter at the recording's start and feeds the recording up to `seconds`;
+// *truth_index is then the truth at the last fed sample.
 void flyFor(const Recording& rec, Estimator& estimator, double seconds, size_t* truth_index) {
+  estimator.initialise(rec.init);
   size_t next_pose = 0;
   size_t k = 0;
   for (; k < rec.imu.size() && secondsOf(rec.imu[k].utime) <= seconds; ++k) {
@@ -401,7 +403,6 @@ TEST(Estimator, GateRejectsAnOutlierPose) {
   Scenario scenario;
   const Recording rec = record(scenario);
   Estimator estimator(scenario.params);
-  estimator.initialise(rec.init);
   size_t k = 0;
   flyFor(rec, estimator, 5.0, &k);
   const EstimatorState before = estimator.state();
@@ -425,18 +426,128 @@ TEST(Estimator, GateRejectsAnOutlierPose) {
 // Feeds IMU samples from *k for one vision period, then the pose captured 30 ms before the last,
 // moved by the offset; returns what the estimator made of the pose.
 VisionOutcome nextOffsetPose(const Recording& rec, const EstimatorParams& params,
-                             Estimator& estimator, size_t* k, const Vector3d& offset_odom_m) {
+                             Estimator& estimator, size_t* k, const Vector3d& offset_odom_m,
+                             const WeakDirections& weak = {}) {
   for (int j = 0; j < kVisionPeriodUs / kImuPeriodUs; ++j) estimator.addImu(rec.imu[(*k)++]);
   const size_t captured = *k - kVisionDelayUs / kImuPeriodUs;
-  return estimator.addVision(
-      truePose(rec, params, captured, rec.imu[captured - 1].utime, offset_odom_m));
+  VisionPose pose = truePose(rec, params, captured, rec.imu[captured - 1].utime, offset_odom_m);
+  pose.weak = weak;
+  return estimator.addVision(pose);
+}
+
+TEST(Estimator, APoseWeakAlongADirectionSaysNothingThere) {
+  // Degenerate geometry: the odometry drifted 0.3 m along odom's x, which it reports weak, as
+  // in a corridor. The poses are fused, not gated; the IMU carries x, vision the rest.
+  Scenario scenario;
+  const Recording rec = record(scenario);
+  Estimator estimator(scenario.params);
+  size_t k = 0;
+  flyFor(rec, estimator, 4.0, &k);
+  const Vector3d drift_odom_m(0.3, 0.0, 0.0);
+  WeakDirections weak;
+  weak.count = 1;
+  weak.d[0] << 1.0, 0.0, 0.0, 0.0, 0.0, 0.0;
+  const Vector3d axis_world = rec.T_world_odom.linear() * Vector3d::UnitX();
+  const double var_along_before = axis_world.dot(
+      estimator.covariance().block<3, 3>(0, 0) * axis_world);
+  double worst_along_m = 0.0, worst_across_m = 0.0;
+  for (int i = 0; i < 30; ++i) {  // a second
+    EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, drift_odom_m, weak),
+              VisionOutcome::kFused) << "pose " << i;
+    const Vector3d error = estimator.state().p_world_body_m - rec.truth[k].p_world_body_m;
+    worst_along_m = std::max(worst_along_m, std::abs(error.dot(axis_world)));
+    worst_across_m = std::max(worst_across_m, (error - error.dot(axis_world) * axis_world).norm());
+  }
+  const double var_along = axis_world.dot(estimator.covariance().block<3, 3>(0, 0) * axis_world);
+  std::printf("[estimator] a second of poses 0.3 m off along their weak direction: error along "
+              "it at most %.1f mm, across %.1f mm; its sigma %.1f -> %.1f mm\n",
+              worst_along_m * 1e3, worst_across_m * 1e3, std::sqrt(var_along_before) * 1e3,
+              std::sqrt(var_along) * 1e3);
+  // Along the weak direction the IMU alone: its drift over the second, within the filter's own
+  // 3 sigma (it knows it is guessing there), and nowhere near the offset the pose would have
+  // pulled it by. Across it, vision as before.
+  constexpr double kSigmas = 3.0;
+  constexpr double kFollowedFraction = 0.1;
+  EXPECT_LT(worst_along_m, kSigmas * std::sqrt(var_along));
+  EXPECT_LT(worst_along_m, kFollowedFraction * drift_odom_m.norm());
+  EXPECT_LT(worst_across_m, kPosRmsM);
+  EXPECT_GT(var_along, var_along_before);  // nothing measured it: its uncertainty grew
+  EXPECT_EQ(estimator.health().pose_resets, 0);
+  // The same poses without the weak direction are gated: the test's offset is one the filter
+  // sees.
+  EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, drift_odom_m),
+            VisionOutcome::kRejectedGate);
+}
+
+TEST(Estimator, APoseTurnedAboutItsWeakRotationDoesNotTurnTheEstimate) {
+  // The odometry turned 3 degrees about the camera's optical axis, which it reports weak. In the
+  // body that axis is x (roll): the pose's weak direction must reach the filter through the
+  // camera's mounting, or the turn would be gated as a roll it is not allowed to doubt.
+  Scenario scenario;
+  const Recording rec = record(scenario);
+  Estimator estimator(scenario.params);
+  size_t k = 0;
+  flyFor(rec, estimator, 4.0, &k);
+  const Eigen::Matrix3d turn =
+      Eigen::AngleAxisd(3.0 * kPi / 180.0, Vector3d::UnitZ()).toRotationMatrix();
+  WeakDirections weak;
+  weak.count = 1;
+  weak.d[0] << 0.0, 0.0, 0.0, 0.0, 0.0, 1.0;
+  const auto turnedPose = [&](bool reported) {
+    for (int j = 0; j < kVisionPeriodUs / kImuPeriodUs; ++j) estimator.addImu(rec.imu[k++]);
+    const size_t captured = k - kVisionDelayUs / kImuPeriodUs;
+    VisionPose pose = truePose(rec, scenario.params, captured, rec.imu[captured - 1].utime,
+                               Vector3d::Zero());
+    pose.T_odom_cam.linear() = pose.T_odom_cam.linear() * turn;
+    if (reported) pose.weak = weak;
+    return estimator.addVision(pose);
+  };
+  double worst_rad = 0.0;
+  for (int i = 0; i < 30; ++i) {  // a second
+    EXPECT_EQ(turnedPose(true), VisionOutcome::kFused) << "pose " << i;
+    worst_rad = std::max(worst_rad, rotationVector(estimator.state().q_world_body.conjugate() *
+                                                   rec.truth[k].q_world_body).norm());
+  }
+  std::printf("[estimator] a second of poses turned 3 degrees about their weak axis: attitude "
+              "error at most %.3f degrees\n", worst_rad * 180.0 / kPi);
+  // The gyro's second, not the pose's 3 degrees.
+  EXPECT_LT(worst_rad, kTiltRmsRad);
+  EXPECT_EQ(turnedPose(false), VisionOutcome::kRejectedGate);
+}
+
+TEST(Estimator, AResetToAPoseKnowsNothingAlongItsWeakDirections) {
+  // Poses 0.5 m off across their weak direction are gated, then reset to; along the weak
+  // direction the reset is no measurement either: its uncertainty there stays the pose's.
+  Scenario scenario;
+  const Recording rec = record(scenario);
+  Estimator estimator(scenario.params);
+  size_t k = 0;
+  flyFor(rec, estimator, 3.0, &k);
+  WeakDirections weak;
+  weak.count = 1;
+  weak.d[0] << 1.0, 0.0, 0.0, 0.0, 0.0, 0.0;
+  const Vector3d jump_odom_m(0.0, 0.5, 0.0);
+  for (int i = 0; i < scenario.params.vision_reset_rejections - 1; ++i) {
+    EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m, weak),
+              VisionOutcome::kRejectedGate);
+  }
+  EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m, weak),
+            VisionOutcome::kResetToPose);
+  const Eigen::Matrix3d P_pos = estimator.covariance().block<3, 3>(0, 0);
+  const Vector3d along = rec.T_world_odom.linear() * Vector3d::UnitX();
+  const Vector3d across = rec.T_world_odom.linear() * Vector3d::UnitY();
+  // Along: the weak sigma, of which the replay's few milliseconds of IMU take nothing like half.
+  // Across: the reset's own vision_pos_std_m, grown a little by the replay.
+  constexpr double kWeakKept = 0.5, kAcrossGrowth = 2.0;
+  EXPECT_GT(std::sqrt(along.dot(P_pos * along)), kWeakKept * scenario.params.vision_weak_std);
+  EXPECT_LT(std::sqrt(across.dot(P_pos * across)),
+            kAcrossGrowth * scenario.params.vision_pos_std_m);
 }
 
 TEST(Estimator, AnOdometryJumpIsGatedThenTheFilterResetsToItAndFollows) {
   Scenario scenario;
   const Recording rec = record(scenario);
   Estimator estimator(scenario.params);
-  estimator.initialise(rec.init);
   size_t k = 0;
   flyFor(rec, estimator, 3.0, &k);
   // The odometry jumped 0.5 m with no correction to say so: gated until the run is long enough.
@@ -504,7 +615,6 @@ TEST(Estimator, ResetsToPosesThatKeepRepeatingFlagDivergence) {
   Scenario scenario;
   const Recording rec = record(scenario);
   Estimator estimator(scenario.params);
-  estimator.initialise(rec.init);
   size_t k = 0;
   flyFor(rec, estimator, 3.0, &k);
   // Odometry that keeps jumping: each run of gated poses ends in a reset, and the
@@ -528,7 +638,6 @@ TEST(Estimator, ResetsFartherApartThanTheWindowDoNotFlagDivergence) {
   scenario.params.diverged_reset_window_s = 1.0;
   const Recording rec = record(scenario);
   Estimator estimator(scenario.params);
-  estimator.initialise(rec.init);
   size_t k = 0;
   flyFor(rec, estimator, 3.0, &k);
   constexpr int kConsistentPoses = 30;
@@ -544,6 +653,20 @@ TEST(Estimator, ResetsFartherApartThanTheWindowDoNotFlagDivergence) {
   }
   EXPECT_EQ(estimator.health().pose_resets, scenario.params.diverged_resets + 1);
   EXPECT_FALSE(estimator.health().diverged);
+}
+
+TEST(AnchoredVision, WeakDirectionsTurnWithTheAnchor) {
+  AnchoredPose pose;
+  pose.T_map_odom.linear() = Eigen::AngleAxisd(0.5 * kPi, Vector3d::UnitZ()).toRotationMatrix();
+  pose.T_map_odom.translation() = Vector3d(1.0, 2.0, 3.0);
+  pose.weak.count = 1;
+  pose.weak.d[0] << 1.0, 0.0, 0.0, 0.0, 0.0, 0.0;
+  AnchoredVision anchored;
+  const VisionPose vision = anchored.take(pose).vision;
+  ASSERT_EQ(vision.weak.count, 1);
+  // odom's x is the map's y; the rotation part, in the camera frame, stays.
+  EXPECT_LT((vision.weak.d[0].head<3>() - Vector3d::UnitY()).norm(), 1e-12);
+  EXPECT_EQ(vision.weak.d[0].tail<3>(), Vector3d::Zero());
 }
 
 TEST(Estimator, PosesOlderThanTheHistoryOrOutOfOrderAreRejected) {
@@ -578,7 +701,6 @@ void checkReset(const Pose& D_world) {
   Scenario scenario;
   const Recording rec = record(scenario);
   Estimator estimator(scenario.params);
-  estimator.initialise(rec.init);
   size_t k = 0;
   flyFor(rec, estimator, 5.0, &k);
   const EstimatorState before = estimator.state();

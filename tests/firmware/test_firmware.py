@@ -41,7 +41,7 @@ def test_log_replay_matches_the_offline_engine(sample_log: Path, sample_dir: Pat
                                   "--output.trajectory", trajectory),
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
-    assert "60 frames captured, 60 processed (0 lost)" in run.stdout, run.stdout
+    assert "60 frames captured, 60 processed (0 lost," in run.stdout, run.stdout
     subprocess.run([built("bin/kinfly-fuse"), "--tum", sample_dir, "--out", tmp_path / "fuse",
                     "--downsample", "2", "--volume", "dense", "--threads", "1"],
                    check=True, capture_output=True, timeout=120)

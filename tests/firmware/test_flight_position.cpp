@@ -6,6 +6,8 @@
 // whole stack's tick allocates nothing.
 #include <gtest/gtest.h>
 
+#include <Eigen/Eigenvalues>
+
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -678,6 +680,61 @@ TEST_P(FlightStackThrustError, ADescentWithoutVisionFindsTheFloorAndDisarms) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Thrust, FlightStackThrustError, ::testing::Values(1.0, 1.2, 0.85));
+
+// Into a corridor: the poses go on, fused, but say nothing along it, and the estimate's position
+// there comes from the IMU alone. Once its 1σ passes vision_max_pos_std_m the poses stop
+// counting as vision, and after vision_lost_s the vision-lost failsafe descends to the floor:
+// holding a position nothing measures would drift (in the simulated corridor, into its end wall).
+TEST(FlightStack, PosesThatLeaveThePositionUnknownAreVisionLost) {
+  FlightStackParams params;
+  FloorFlight flight{params};
+  struct Script {
+    test::SensorFeed* sensors;
+    FlightStack* stack;
+    int64_t hold_since_utime = -1, weak_utime = -1, descend_utime = -1, disarmed_utime = -1;
+    double std_at_descend_m = 0.0;
+    std::optional<FlightCommand> command(int64_t utime, FlightMode mode) {
+      if (mode == FlightMode::kHold && weak_utime < 0) {
+        if (hold_since_utime < 0) hold_since_utime = utime;
+        if (utime - hold_since_utime >= kHoldBeforeCoverUs) {
+          sensors->weakenAlong(Vector3d::UnitZ());  // odom's z: the camera's first view, ahead
+          weak_utime = utime;
+        }
+      }
+      return armAndTakeOff(mode);
+    }
+    bool seen(int64_t utime, const TickOutput& out) {
+      if (weak_utime >= 0 && descend_utime < 0 && out.modes.mode == FlightMode::kDescend) {
+        descend_utime = utime;
+        const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> position(
+            stack->estimator().covariance().topLeftCorner<3, 3>(), Eigen::EigenvaluesOnly);
+        std_at_descend_m = std::sqrt(position.eigenvalues()(2));
+      }
+      if (weak_utime >= 0 && out.modes.mode == FlightMode::kDisarmed) {
+        disarmed_utime = utime;
+        return false;
+      }
+      return true;
+    }
+  } script{&flight.sensors, flight.stack.get()};
+  constexpr double kMaxFlightS = 40.0;
+  flyFromTheFloor(*flight.stack, flight.plant, flight.sensors, kMaxFlightS, script);
+  ASSERT_GE(script.weak_utime, 0) << "never held long enough to enter the corridor";
+  ASSERT_GE(script.descend_utime, 0) << "never descended";
+  ASSERT_GE(script.disarmed_utime, 0) << "never disarmed";
+  const double to_descend_s = 1e-6 * static_cast<double>(script.descend_utime - script.weak_utime);
+  std::printf("[flight] poses weak along the view from the hold on: vision lost %.2f s later "
+              "(position 1σ %.2f m), disarmed on the floor %.2f s after that\n",
+              to_descend_s, script.std_at_descend_m,
+              1e-6 * static_cast<double>(script.disarmed_utime - script.descend_utime));
+  const FlightCounters& counters = flight.stack->modes().counters();
+  EXPECT_EQ(counters.vision_lost, 1);
+  EXPECT_EQ(counters.landed_disarms, 1);
+  EXPECT_TRUE(flight.plant.onGround());
+  // Not at once: vision held the position until the IMU's uncertainty along the corridor grew.
+  EXPECT_GT(to_descend_s, params.modes.vision_lost_s);
+  EXPECT_GT(script.std_at_descend_m, params.modes.vision_max_pos_std_m);
+}
 
 // The whole stack's tick as the control task runs it (FlightStack: estimator predict and late
 // poses fused, flight modes, the position loop on the mission's trajectory, attitude, rate,

@@ -14,7 +14,8 @@ BINARY = REPO_ROOT / "build" / "bin" / "kinfly-fw"
 
 _SUMMARY = re.compile(
     r"kinfly-fw: (?P<how>stopped|source ended): (?P<captured>\d+) frames captured, "
-    r"(?P<processed>\d+) processed \((?P<lost>\d+) lost\), (?P<queue_drops>\d+) dropped by the "
+    r"(?P<processed>\d+) processed \((?P<lost>\d+) lost, (?P<weak>\d+) in degenerate geometry\), "
+    r"(?P<queue_drops>\d+) dropped by the "
     r"queue, (?P<skipped>\d+) skipped; sensor opened (?P<connects>\d+) times, stalled "
     r"(?P<stalls>\d+) times; (?P<keyframes_sent>\d+) keyframes sent, (?P<keyframes_dropped>\d+) "
     r"dropped; (?P<applied>\d+) corrections applied, (?P<rejected>\d+) rejected, "
@@ -37,6 +38,7 @@ class Summary:
     captured: int
     processed: int
     lost: int
+    weak: int  # tracked with weak directions
     queue_drops: int
     skipped: int
     connects: int

@@ -16,7 +16,9 @@ AnchoredVision::Inputs AnchoredVision::take(const AnchoredPose& pose) {
   seen_ = true;
   reset_counter_ = pose.reset_counter;
   T_map_odom_ = pose.T_map_odom;
-  in.vision = {pose.utime, pose.T_map_odom * pose.T_odom_cam};
+  in.vision = {pose.utime, pose.T_map_odom * pose.T_odom_cam, pose.weak};
+  for (int i = 0; i < pose.weak.count; ++i)
+    in.vision.weak.d[i].head<3>() = pose.T_map_odom.linear() * pose.weak.d[i].head<3>();
   return in;
 }
 

@@ -110,6 +110,7 @@ Status EstimatorParams::validate() const {
                  0, 1),
       outOfRange("estimator.vision_pos_std_m", vision_pos_std_m, 0, 10, Bound::kOpen),
       outOfRange("estimator.vision_att_std_rad", vision_att_std_rad, 0, 1, Bound::kOpen),
+      outOfRange("estimator.vision_weak_std", vision_weak_std, 0, 1000, Bound::kOpen),
       outOfRange("estimator.vision_gate_chi2", vision_gate_chi2, 1, 1000),
       outOfRange("estimator.vision_timeout_s", vision_timeout_s, 0, 10, Bound::kOpen),
       outOfRange("estimator.history_s", history_s, 0.3, 2),
@@ -211,7 +212,8 @@ void Estimator::predict(Nominal& x, Covariance& P, const ImuSample& imu, double 
   symmetrise(P);
 }
 
-bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_world_cam) {
+bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_world_cam,
+                     const WeakDirections& weak) {
   const Matrix3d R_world_body = x.q_world_body.toRotationMatrix();
   const Vector3d t_body_cam_m = params_.T_body_cam.translation();
   const Matrix3d R_body_cam = params_.T_body_cam.linear();
@@ -234,6 +236,7 @@ bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_world_cam) {
   Matrix6d R_noise = Matrix6d::Zero();
   R_noise.diagonal().head<3>().setConstant(std::pow(params_.vision_pos_std_m, 2));
   R_noise.diagonal().tail<3>().setConstant(std::pow(params_.vision_att_std_rad, 2));
+  addWeak(weak, &R_noise);
 
   const Eigen::Matrix<double, 6, kErrorStates> HP = H * P;
   const Matrix6d S = HP * H.transpose() + R_noise;
@@ -358,14 +361,14 @@ VisionOutcome Estimator::addVision(const VisionPose& pose) {
   }
   const Pose T_world_cam = T_world_odom_ * pose.T_odom_cam;
   VisionOutcome outcome = VisionOutcome::kFused;
-  if (!fuse(x, P, T_world_cam)) {
+  if (!fuse(x, P, T_world_cam, pose.weak)) {
     ++health_.vision_rejected_gate;
     ++health_.consecutive_gate_rejections;
     if (health_.consecutive_gate_rejections < params_.vision_reset_rejections) {
       updateDivergence();
       return VisionOutcome::kRejectedGate;
     }
-    resetToPose(x, P, T_world_cam);
+    resetToPose(x, P, T_world_cam, pose.weak);
     pose_reset_utimes_[health_.pose_resets % params_.diverged_resets] = pose.utime;
     ++health_.pose_resets;
     outcome = VisionOutcome::kResetToPose;
@@ -400,7 +403,20 @@ void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nomi
   }
 }
 
-void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam) const {
+void Estimator::addWeak(const WeakDirections& weak, Matrix6d* cov) const {
+  // A weak direction moves the camera's position in odom and turns it in its own frame: in the
+  // innovation's terms (and the error state's), the position in world and the body's attitude.
+  const Matrix3d R_world_odom = T_world_odom_.linear();
+  const Matrix3d R_body_cam = params_.T_body_cam.linear();
+  for (int i = 0; i < weak.count; ++i) {
+    Vector6d m;
+    m << R_world_odom * weak.d[i].head<3>(), R_body_cam * weak.d[i].tail<3>();
+    *cov += std::pow(params_.vision_weak_std, 2) * m * m.transpose();
+  }
+}
+
+void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam,
+                            const WeakDirections& weak) const {
   // Position and attitude from the pose; the velocity stays (vision has none to give) but its
   // uncertainty, and the biases', go back to the start's so that the next poses can correct them:
   // a bias that stepped is what a drift the gate could not follow most often means.
@@ -410,6 +426,13 @@ void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam) 
   P = initialCovariance();
   P.diagonal().segment<3>(kP).setConstant(std::pow(params_.vision_pos_std_m, 2));
   P.diagonal().segment<3>(kTheta).setConstant(std::pow(params_.vision_att_std_rad, 2));
+  // The pose said nothing along its weak directions: the reset knows nothing there either.
+  Matrix6d pose_cov = Matrix6d::Zero();
+  addWeak(weak, &pose_cov);
+  P.block<3, 3>(kP, kP) += pose_cov.topLeftCorner<3, 3>();
+  P.block<3, 3>(kP, kTheta) += pose_cov.topRightCorner<3, 3>();
+  P.block<3, 3>(kTheta, kP) += pose_cov.bottomLeftCorner<3, 3>();
+  P.block<3, 3>(kTheta, kTheta) += pose_cov.bottomRightCorner<3, 3>();
 }
 
 bool Estimator::applyReset(const OdomReset& reset) {

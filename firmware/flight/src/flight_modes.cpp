@@ -81,6 +81,7 @@ Status FlightModeParams::validate() const {
       outOfRange("modes.ground_thrust_ramp_per_s", ground_thrust_ramp_per_s, 0, 10,
                  Bound::kOpen),
       outOfRange("modes.vision_lost_descent_m_s", vision_lost_descent_m_s, 0, 5, Bound::kOpen),
+      outOfRange("modes.vision_max_pos_std_m", vision_max_pos_std_m, 0, 10, Bound::kOpen),
       outOfRange("modes.ground_lost_s", ground_lost_s, 0, 60, Bound::kOpen),
       outOfRange("modes.max_tilt_rad", max_tilt_rad, 0, M_PI, Bound::kOpen),
       outOfRange("modes.max_rate_rad_s", max_rate_rad_s, 0, 100, Bound::kOpen),

@@ -1,5 +1,6 @@
 #include "kinfly/flight/flight_stack.h"
 
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <utility>
 
@@ -126,8 +127,13 @@ void FlightStack::learnThrustScale(FlightMode mode, double height_above_ground_m
 
 VisionOutcome FlightStack::addVision(const VisionPose& pose) {
   const VisionOutcome outcome = estimator_.addVision(pose);
-  // A reset to the pose used it as much as a fusion did.
-  if (outcome == VisionOutcome::kFused || outcome == VisionOutcome::kResetToPose) {
+  // A reset to the pose used it as much as a fusion did; either counts while the position is
+  // known (FlightModeParams::vision_max_pos_std_m).
+  if (outcome != VisionOutcome::kFused && outcome != VisionOutcome::kResetToPose) return outcome;
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> position(
+      estimator_.covariance().topLeftCorner<3, 3>(), Eigen::EigenvaluesOnly);
+  if (position.eigenvalues()(2) <= params_.modes.vision_max_pos_std_m *
+                                       params_.modes.vision_max_pos_std_m) {
     last_vision_utime_ = pose.utime;
   }
   return outcome;

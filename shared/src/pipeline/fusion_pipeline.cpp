@@ -49,7 +49,8 @@ bool FusionPipeline::preprocess(ImageView<const uint16_t> raw_depth, int64_t uti
   return false;
 }
 
-FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, int64_t utime) {
+FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, int64_t utime,
+                                         const Pose* T_world_cam_prior) {
   FrameResult result;
   if (!preprocess(raw_depth, utime, T_world_cam_, &result)) return result;
   if (!has_model_) {
@@ -57,8 +58,12 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
     return fuse(result, /*predict_from_pose=*/true);
   }
   if (!model_at_pose_) predict(T_world_cam_, &result);
-  // The model was raycast from the last pose, so the guess relative to it is the identity.
-  return trackAndFuse(result, T_world_cam_, /*predict_from_pose=*/true);
+  // The model was raycast from the last pose, so without a prior the guess relative to it is
+  // the identity.
+  const Pose guess = T_world_cam_prior != nullptr ? T_world_cam_.inverse() * *T_world_cam_prior
+                                                  : Pose::Identity();
+  return trackAndFuse(result, T_world_cam_, guess, /*prior=*/T_world_cam_prior != nullptr,
+                      /*predict_from_pose=*/true);
 }
 
 FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_depth,
@@ -75,7 +80,8 @@ FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_
   }
   model_at_pose_ = false;
   predict(T_world_cam_guess, &result);
-  return trackAndFuse(result, T_world_cam_guess, /*predict_from_pose=*/false);
+  return trackAndFuse(result, T_world_cam_guess, Pose::Identity(), /*prior=*/false,
+                      /*predict_from_pose=*/false);
 }
 
 void FusionPipeline::predict(const Pose& T_world_cam, FrameResult* result) {
@@ -87,9 +93,10 @@ void FusionPipeline::predict(const Pose& T_world_cam, FrameResult* result) {
 }
 
 FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world_ref,
+                                         const Pose& T_ref_cur_guess, bool prior,
                                          bool predict_from_pose) {
   const auto t0 = std::chrono::steady_clock::now();
-  const IcpResult icp = tracker_.track(frame_, model_, Pose::Identity());
+  const IcpResult icp = tracker_.track(frame_, model_, T_ref_cur_guess, prior);
   result.ms.track = msSince(t0);
   result.status = icp.status;
   result.inlier_fraction = icp.inlier_fraction;
@@ -103,6 +110,17 @@ FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world
     return result;
   }
   result.T_world_cam = orthonormalized(T_world_ref * icp.T_ref_cur);
+  // A twist [w; t] of T_ref_cur moves the camera's position in the reference frame by
+  // w x p + t and turns the camera by R_ref_cur^T w in its own frame.
+  const Eigen::Matrix3d R_ref_cur = icp.T_ref_cur.linear();
+  const Eigen::Vector3d p_ref_cur = icp.T_ref_cur.translation();
+  result.weakest_fraction = icp.weakest_fraction;
+  result.weak.count = icp.weak_directions;
+  for (int i = 0; i < icp.weak_directions; ++i) {
+    const Eigen::Vector3d w = icp.weak[i].head<3>(), t = icp.weak[i].tail<3>();
+    result.weak.d[i] << T_world_ref.linear() * (w.cross(p_ref_cur) + t), R_ref_cur.transpose() * w;
+    result.weak.d[i].normalize();
+  }
   return fuse(result, predict_from_pose);
 }
 

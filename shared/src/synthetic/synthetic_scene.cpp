@@ -72,6 +72,15 @@ SyntheticScene SyntheticScene::cornerRoom() {
   return scene;
 }
 
+SyntheticScene SyntheticScene::corridor() {
+  SyntheticScene scene;
+  scene.addPlane(Eigen::Vector3f(0.f, -1.f, 0.f), -0.5f);  // floor y = 0.5
+  scene.addPlane(Eigen::Vector3f(0.f, 1.f, 0.f), -0.6f);   // ceiling y = -0.6
+  scene.addPlane(Eigen::Vector3f(1.f, 0.f, 0.f), -0.6f);   // left wall x = -0.6
+  scene.addPlane(Eigen::Vector3f(-1.f, 0.f, 0.f), -0.7f);  // right wall x = 0.7
+  return scene;
+}
+
 Pose lookAtPose(const Eigen::Vector3d& eye, const Eigen::Vector3d& target) {
   const Eigen::Vector3d z = (target - eye).normalized();
   const Eigen::Vector3d x = Eigen::Vector3d::UnitY().cross(z).normalized();

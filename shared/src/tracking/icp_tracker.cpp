@@ -30,7 +30,10 @@ Status IcpTracker::Params::validate() const {
     why << "normal_angle_gate_rad must be in (0, pi/2]; ";
   if (!(min_inlier_fraction > 0.f && min_inlier_fraction <= 1.f)) why << "min_inlier_fraction must be in (0, 1]; ";
   if (min_inliers < 6) why << "min_inliers must be >= 6; ";
-  if (!(min_eigenvalue_ratio > 0.0 && min_eigenvalue_ratio < 1.0)) why << "min_eigenvalue_ratio must be in (0, 1); ";
+  if (!(weak_direction_fraction >= 0.0 && weak_direction_fraction < 1.0 / 6.0))
+    why << "weak_direction_fraction must be in [0, 1/6); ";
+  if (max_weak_directions < 0 || max_weak_directions > 5)
+    why << "max_weak_directions must be in [0, 5]; ";
   if (!(max_translation_m > 0.f)) why << "max_translation_m must be > 0; ";
   if (!(max_rotation_rad > 0.f)) why << "max_rotation_rad must be > 0; ";
   if (!(max_rmse_m > 0.f)) why << "max_rmse_m must be > 0; ";
@@ -261,8 +264,62 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
   return total;
 }
 
+namespace {
+
+// Below this (weak_direction_fraction's units) a direction is numerically singular: rounding,
+// not the scene.
+constexpr double kSingularFraction = 1e-9;
+
+// Lists the weak directions in *result and solves A xi = b: by Cholesky, or, where some are weak
+// and `keep_weak`, in the directions the system constrains only, leaving xi zero along the weak
+// ones. False when the system is empty, not finite or not positive definite.
+bool solve(const Eigen::Matrix<double, 6, 6>& A, const Eigen::Matrix<double, 6, 1>& b,
+           double weak_fraction, bool keep_weak, Eigen::Matrix<double, 6, 1>* xi,
+           IcpResult* result) {
+  result->weak_directions = 0;
+  const double weight = A.bottomRightCorner<3, 3>().trace();  // sum of w |n|^2 = sum of w
+  const double rotation = A.topLeftCorner<3, 3>().trace();    // sum of w |p x n|^2
+  if (!(weight > 0.0) || !(rotation > 0.0) || !A.allFinite() || !b.allFinite()) {
+    result->weak_directions = 6;
+    return false;
+  }
+  // In units of y = S^-1 xi (rotations times the lever arm), the system is S A S y = S b.
+  const double lever_m = std::sqrt(rotation / weight);
+  Eigen::Matrix<double, 6, 1> s;
+  s << 1.0 / lever_m, 1.0 / lever_m, 1.0 / lever_m, 1.0, 1.0, 1.0;
+  const Eigen::Matrix<double, 6, 6> As = s.asDiagonal() * A * s.asDiagonal() / weight;
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eig(As);
+  if (eig.info() != Eigen::Success) return false;
+  result->weakest_fraction = eig.eigenvalues()(0);
+  for (int i = 0; i < 6 && eig.eigenvalues()(i) < weak_fraction; ++i) {  // ascending
+    result->weak[result->weak_directions++] =
+        s.cwiseProduct(eig.eigenvectors().col(i)).normalized();
+  }
+  // A direction with no information at all cannot be solved, unless a prior is kept along it.
+  const bool kept = keep_weak && result->weak_directions > 0;
+  if (eig.eigenvalues()(0) < kSingularFraction && !kept) return false;
+  if (!kept) {
+    const Eigen::LLT<Eigen::Matrix<double, 6, 6>> llt(A);
+    if (llt.info() != Eigen::Success) return false;
+    *xi = llt.solve(b);
+    return true;
+  }
+  if (result->weak_directions == 6) return false;
+  // Zhang et al.'s solution remapping: the update within the span of the strong directions.
+  const Eigen::Matrix<double, 6, 1> sb = s.cwiseProduct(b) / weight;
+  Eigen::Matrix<double, 6, 1> y = Eigen::Matrix<double, 6, 1>::Zero();
+  for (int i = result->weak_directions; i < 6; ++i) {
+    const Eigen::Matrix<double, 6, 1> v = eig.eigenvectors().col(i);
+    y += v * (v.dot(sb) / eig.eigenvalues()(i));
+  }
+  *xi = s.cwiseProduct(y);
+  return true;
+}
+
+}  // namespace
+
 IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
-                            const Pose& T_ref_cur_guess) const {
+                            const Pose& T_ref_cur_guess, bool prior) const {
   IcpResult result;
   result.T_ref_cur = T_ref_cur_guess;
   const SystemParams system = systemParams();
@@ -293,13 +350,17 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
       for (int i = 0; i < 6; ++i)
         for (int j = i; j < 6; ++j) A(i, j) = A(j, i) = last.ata[k++];
       const Eigen::Matrix<double, 6, 1> b(last.atb.data());
-      const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eig(A, Eigen::EigenvaluesOnly);
-      const double max_ev = eig.eigenvalues()(5), min_ev = eig.eigenvalues()(0);
-      if (!(max_ev > 0.0) || !(min_ev / max_ev >= params_.min_eigenvalue_ratio))
-        return fail("degenerate geometry (the scene does not constrain all six degrees of freedom)");
-      const Eigen::LLT<Eigen::Matrix<double, 6, 6>> llt(A);
-      if (llt.info() != Eigen::Success) return fail("Cholesky factorisation failed");
-      const Eigen::Matrix<double, 6, 1> xi = llt.solve(b);
+      Eigen::Matrix<double, 6, 1> xi;
+      if (!solve(A, b, params_.weak_direction_fraction, prior, &xi, &result))
+        return fail("degenerate geometry: the ICP system is singular");
+      // Coarse levels see fewer pixels and often more weak directions: the finest one decides.
+      if (level == 0 && result.weak_directions > params_.max_weak_directions) {
+        std::ostringstream why;
+        why << "degenerate geometry: " << result.weak_directions
+            << " of the six directions of motion are weak (max_weak_directions "
+            << params_.max_weak_directions << ")";
+        return fail(why.str());
+      }
       if (!xi.allFinite()) return fail("non-finite ICP update");
       T = orthonormalized(expTwist(xi) * T);
       if (xi.norm() < params_.convergence_epsilon) break;

@@ -29,4 +29,13 @@ double rotationAngleRad(const Pose& T);
 
 bool isFinite(const Pose& T);
 
+// Degenerate geometry (a corridor, a lone wall): the directions of a camera pose that the scene
+// did not pin down, as unit perturbations [the camera's position in the pose's frame (m); a
+// rotation in the camera frame (rad)], which is how a filter fusing the pose writes its error.
+// Where the pose was tracked from a prior (the IMU's motion), it keeps the prior along them.
+struct WeakDirections {
+  int count = 0;  // the first `count` of d are set
+  std::array<Eigen::Matrix<double, 6, 1>, 6> d{};
+};
+
 }  // namespace kinfly

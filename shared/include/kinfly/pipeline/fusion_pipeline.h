@@ -36,6 +36,10 @@ struct FrameResult {
   // Why the status is kLost (empty otherwise): a per-frame outcome for logs and counts, not an
   // error (kinfly/core/status.h); the pipeline goes on with the next frame.
   std::string lost_reason;
+  // The directions of T_world_cam the scene did not pin down (IcpResult::weak, in world); the
+  // pose keeps the prior along them where processFrame had one.
+  WeakDirections weak;
+  double weakest_fraction = 0.0;  // IcpResult's: how close the frame came to degenerate
   StageTimesMs ms;
 };
 
@@ -54,8 +58,11 @@ class FusionPipeline {
   // `input_camera` describes the raw depth images; `volume` must outlive the pipeline.
   FusionPipeline(const PinholeCamera& input_camera, const Params& params, TsdfVolume* volume);
 
-  // Tracks the frame against the model, then fuses it.
-  FrameResult processFrame(ImageView<const uint16_t> raw_depth, int64_t utime);
+  // Tracks the frame against the model, then fuses it. ICP starts from the last pose, or from
+  // `T_world_cam_prior` where the caller predicts the motion (the drone's IMU): where the scene
+  // leaves a direction weak, the pose follows the prior along it.
+  FrameResult processFrame(ImageView<const uint16_t> raw_depth, int64_t utime,
+                           const Pose* T_world_cam_prior = nullptr);
   // Tracks the frame against the model as seen from a pose guess, then fuses it: the ground
   // station refines a keyframe starting from the drone's onboard pose. Keyframes are far apart,
   // so the model is raycast from the guess rather than from the last fused pose, which would
@@ -86,8 +93,10 @@ class FusionPipeline {
                   FrameResult* result);
   // Raycasts model_ from a pose, masked by the current frame's depth.
   void predict(const Pose& T_world_cam, FrameResult* result);
-  // ICP against model_, which was raycast from T_world_ref; fuses on success.
-  FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref, bool predict_from_pose);
+  // ICP against model_, which was raycast from T_world_ref, from a guess of the pose relative to
+  // it (a prior: IcpTracker::track); fuses on success.
+  FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref,
+                           const Pose& T_ref_cur_guess, bool prior, bool predict_from_pose);
   // Integrates at result.T_world_cam; with predict_from_pose, raycasts model_ from there for
   // the next frame to track against.
   FrameResult fuse(FrameResult result, bool predict_from_pose);

@@ -20,6 +20,10 @@ class SyntheticScene {
   // and left wall, with a box standing on the floor and a sphere in front. Three non-parallel
   // planes fix translation; box and sphere add structure for rotation.
   static SyntheticScene cornerRoom();
+  // A narrow corridor along +z, without end: floor, ceiling and two walls. Nothing fixes the
+  // motion along it (ICP's degenerate case); it is narrow so that a 45 degree vertical field of
+  // view sees floor and ceiling from close by, which fixes everything else.
+  static SyntheticScene corridor();
 
   // Plane {p : n.p = offset}; the side n points to is free space.
   void addPlane(const Eigen::Vector3f& normal, float offset_m);

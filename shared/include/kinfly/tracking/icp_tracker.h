@@ -1,6 +1,7 @@
 // Stage 5: frame-to-model tracking. Projective data association against the raycast model maps,
 // point-to-plane error linearised with small angles (Low 2004), 6x6 normal equations summed in
-// parallel and solved by Cholesky, coarse to fine.
+// parallel and solved by Cholesky, coarse to fine; in degenerate geometry, from a prior, only
+// along the directions the scene constrains.
 #pragma once
 
 #include <Eigen/Core>
@@ -21,6 +22,16 @@ struct IcpResult {
   float inlier_fraction = 0.f;  // finest level: inliers / valid current pixels
   float rmse_m = 0.f;           // finest level point-to-plane RMS over inliers
   int iterations = 0;           // total over all levels
+  // Degenerate geometry (a corridor, a single wall): the directions of motion the scene does not
+  // pin down (Params::weak_direction_fraction), as unit twists [w; t] of T_ref_cur
+  // (T' = exp([w; t]) * T, the reference camera's axes), the rotation in rad and the translation
+  // in metres. From a prior the pose keeps it along them (track); the first `weak_directions`
+  // are set.
+  int weak_directions = 0;
+  std::array<Eigen::Matrix<double, 6, 1>, 6> weak{};
+  // The least constrained direction's share (Params::weak_direction_fraction's units) in the
+  // last system solved: how close the frame came to degenerate.
+  double weakest_fraction = 0.0;
   // Why the status is kLost (empty otherwise): data for FrameResult::lost_reason, not a Status.
   std::string reason;
 };
@@ -45,9 +56,18 @@ class IcpTracker {
     float normal_angle_gate_rad = 0.349066f;  // [rad] (0, pi/2]: 20 degrees
     float min_inlier_fraction = 0.10f;    // (0, 1]: fewer inliers at the finest level -> lost
     int min_inliers = 100;                // >= 6: absolute floor per level, guards tiny images
-    // A system whose smallest/largest eigenvalue ratio falls below this is degenerate
-    // (e.g. a single plane leaves three directions unconstrained) -> lost.
-    double min_eigenvalue_ratio = 1e-6;   // (0, 1)
+    // Degeneracy (Zhang, Kaess and Singh, ICRA 2016): an eigen-direction of the 6x6 system,
+    // with rotations scaled by the system's lever arm (so that both are metres of motion at the
+    // surface) and divided by its weight, gets 1 where every residual's normal lies along it.
+    // Below this share it is weak: a wall seen with the floor and nothing beside leaves the
+    // sideways motion to a few edge pixels. The result names the weak directions; from a prior
+    // (the IMU's motion) the update leaves the prior along them. In the simulated room the weak
+    // direction fell to 0.001 where the odometry drifted 1.5 cm a frame, while healthy frames
+    // stayed above 0.002 (docs/engine.md, departure 8).
+    double weak_direction_fraction = 0.002;  // [0, 1/6)
+    // More weak directions than this at the finest level and the frame is lost; a lone plane
+    // leaves three, the most it allows.
+    int max_weak_directions = 3;             // [0, 5]
     float max_translation_m = 0.20f;      // [m] per frame: a larger jump is a divergence -> lost
     float max_rotation_rad = 0.35f;       // [rad] per frame (20 degrees)
     float max_rmse_m = 0.02f;             // [m] finest-level residual above this -> lost
@@ -81,9 +101,11 @@ class IcpTracker {
   SystemParams systemParams() const;
 
   // Estimates the pose of `current` relative to the reference camera of `model`, starting from
-  // `T_ref_cur_guess`. On failure the result keeps the guess and says why.
-  IcpResult track(const DepthFrame& current, const ModelMaps& model,
-                  const Pose& T_ref_cur_guess) const;
+  // `T_ref_cur_guess`. On failure the result keeps the guess and says why. A guess that is a
+  // `prior` (a motion measured otherwise, the IMU's) is kept along the weak directions; any
+  // other guess (the last pose) is not, since there the scene's weak answer is still the best.
+  IcpResult track(const DepthFrame& current, const ModelMaps& model, const Pose& T_ref_cur_guess,
+                  bool prior = false) const;
 
   // Builds one level's system; serial and threaded loops use the same per-pixel kernel.
   static IcpSystem buildSystem(const DepthFrame& current, const ModelMaps& model, int level,

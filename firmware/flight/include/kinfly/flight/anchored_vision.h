@@ -23,6 +23,7 @@ struct AnchoredPose {
   Pose T_odom_cam = Pose::Identity();  // the odometry's own pose
   Pose T_map_odom = Pose::Identity();  // the ground's anchor when the pose was made
   int32_t reset_counter = 0;           // the ground's, of the anchor's last jump
+  WeakDirections weak;                 // the odometry's, the position parts in odom
 };
 
 class AnchoredVision {

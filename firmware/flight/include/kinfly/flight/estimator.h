@@ -53,6 +53,9 @@ struct EstimatorParams {
   // Odometry pose noise, 1σ per axis: position in `odom`, rotation in the camera frame.
   double vision_pos_std_m = 0.01;                  // [m] (0, 10]
   double vision_att_std_rad = 0.01;                // [rad] (0, 1]
+  // 1σ along a direction the odometry reports weak (VisionPose::weak): so large that the pose
+  // says nothing there and the IMU carries the state along it.
+  double vision_weak_std = 10.0;                   // [m or rad] (0, 1000]
   // Chi-square gate on the 6-DoF pose innovation; 22.46 is the 99.9 % quantile for 6 dof.
   double vision_gate_chi2 = 22.46;                 // [-] [1, 1000]
   // Vision counts as fused while its last fused pose is at most this old.
@@ -86,6 +89,7 @@ struct ImuSample {
 struct VisionPose {
   int64_t utime = 0;  // [µs] capture of the depth frame
   Pose T_odom_cam = Pose::Identity();
+  WeakDirections weak;  // the position parts in odom
 };
 
 // The ground's correction: the odometry's frame jumped (new odom coordinates = T_new_old * old).
@@ -197,8 +201,9 @@ class Estimator {
   Covariance initialCovariance() const;
   VisionOutcome startFromStill(const VisionPose& pose);
   void predict(Nominal& x, Covariance& P, const ImuSample& imu, double dt_s) const;
-  // Fuses the pose into (x, P); false when gated out.
-  bool fuse(Nominal& x, Covariance& P, const Pose& T_world_cam);
+  // Fuses the pose, in world, into (x, P), with no information along its weak directions; false
+  // when gated out.
+  bool fuse(Nominal& x, Covariance& P, const Pose& T_world_cam, const WeakDirections& weak);
   // Index 0 is the oldest stored state.
   Entry& at(int index) { return ring_[(head_ + index) % ring_.size()]; }
   const Entry& at(int index) const { return ring_[(head_ + index) % ring_.size()]; }
@@ -211,7 +216,11 @@ class Estimator {
   // `split`, and integrates the later samples again up to now.
   void replayFrom(int k, bool split, const VisionPose& pose, const Nominal& x,
                   const Covariance& P);
-  void resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam) const;
+  void resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam,
+                   const WeakDirections& weak) const;
+  // Adds vision_weak_std² along each weak direction, in the innovation's (and the error state's)
+  // position and attitude terms, to a pose's 6x6 covariance.
+  void addWeak(const WeakDirections& weak, Eigen::Matrix<double, 6, 6>* cov) const;
 
   EstimatorParams params_;
   Covariance Q_density_;  // diagonal, per second: times dt gives the step's process noise

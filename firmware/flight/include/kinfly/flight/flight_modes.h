@@ -68,6 +68,11 @@ struct FlightModeParams {
   // No pose fused for this long: level attitude and a slow descent until landed.
   double vision_lost_s = 1.0;            // [s] (0, 10]
   double vision_lost_descent_m_s = 0.3;  // [m/s] (0, 5] down
+  // A fused pose counts as vision only while the estimate's position stays known this well (its
+  // largest 1σ after the pose, FlightStack::addVision): poses weak along a direction (a corridor)
+  // say nothing there, and the drone would drift along it on the IMU alone. Without such poses
+  // for vision_lost_s, the vision-lost failsafe acts.
+  double vision_max_pos_std_m = 0.3;     // [m] (0, 10]
   // No ground status for this long: only flagged, the onboard odometry flies on.
   double ground_lost_s = 2.0;            // [s] (0, 60]
   // Tilt or body-rate magnitude beyond these for attitude_limit_s: the loops have lost the

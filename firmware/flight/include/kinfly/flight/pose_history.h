@@ -1,0 +1,42 @@
+// The estimator's camera poses over the last moments, for the odometry's motion prior: the
+// camera's motion between two frames' capture times as the IMU saw it, so that ICP starts there
+// and keeps it along the directions the scene leaves weak (docs/flight.md, "Weak directions and
+// the odometry's prior"). A ring allocated at construction; not thread-safe (the firmware guards
+// it).
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <vector>
+
+#include "kinfly/core/se3.h"
+
+namespace kinfly::flight {
+
+class PoseHistory {
+ public:
+  explicit PoseHistory(int capacity);  // > 1
+
+  // Times must increase (others are ignored). `epoch` changes where the estimate jumped (a reset
+  // to a pose, the ground's correction): no motion is taken across a jump.
+  void add(int64_t utime, const Pose& T_world_cam, int64_t epoch);
+  // T_world_cam(from)^-1 * T_world_cam(to), each interpolated between the stored poses around
+  // it; nullopt where either time lies outside the history or a jump lies between them.
+  std::optional<Pose> motion(int64_t from_utime, int64_t to_utime) const;
+
+ private:
+  struct Entry {
+    int64_t utime = 0;
+    Pose T_world_cam = Pose::Identity();
+    int64_t epoch = 0;
+  };
+  const Entry& at(int index) const { return ring_[(head_ + index) % ring_.size()]; }
+  // The pose at utime and its epoch; nullopt outside the history or across a jump.
+  std::optional<Entry> poseAt(int64_t utime) const;
+
+  std::vector<Entry> ring_;  // oldest at head_, count_ entries
+  int head_ = 0;
+  int count_ = 0;
+};
+
+}  // namespace kinfly::flight

@@ -1,0 +1,62 @@
+// PoseHistory: the camera's motion between two times, interpolated between stored poses, and
+// none across a jump of the estimate or outside what is stored.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "kinfly/flight/pose_history.h"
+
+namespace kinfly::flight {
+namespace {
+
+constexpr double kTol = 1e-9;  // [m] and [rad]: interpolation is exact for these motions
+
+// A camera turning about z at 1 rad/s and moving along x at 1 m/s, from t = 0.
+Pose cameraAt(int64_t utime) {
+  const double t = static_cast<double>(utime) * 1e-6;
+  Pose T = Pose::Identity();
+  T.linear() = Eigen::AngleAxisd(t, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(t, 0.0, 0.0);
+  return T;
+}
+
+double poseError(const Pose& a, const Pose& b) {
+  const Pose d = a.inverse() * b;
+  return d.translation().norm() + Eigen::AngleAxisd(d.linear()).angle();
+}
+
+TEST(PoseHistory, MotionBetweenTwoTimesIsInterpolatedBetweenSamples) {
+  PoseHistory history(100);
+  for (int64_t u = 0; u <= 50000; u += 5000) history.add(u, cameraAt(u), 0);
+  // Between samples (12.5 ms and 37.5 ms): slerp and a straight line are exact for a constant
+  // rate and speed.
+  const std::optional<Pose> motion = history.motion(12500, 37500);
+  ASSERT_TRUE(motion.has_value());
+  EXPECT_LT(poseError(*motion, cameraAt(12500).inverse() * cameraAt(37500)), kTol);
+  // Between stored times, and from a time to itself: no motion.
+  ASSERT_TRUE(history.motion(5000, 50000).has_value());
+  EXPECT_LT(poseError(*history.motion(5000, 50000), cameraAt(5000).inverse() * cameraAt(50000)),
+            kTol);
+  ASSERT_TRUE(history.motion(20000, 20000).has_value());
+  EXPECT_LT(poseError(*history.motion(20000, 20000), Pose::Identity()), kTol);
+}
+
+TEST(PoseHistory, NoMotionOutsideTheHistoryOrAcrossAJump) {
+  PoseHistory history(4);
+  for (int64_t u = 0; u <= 50000; u += 5000) history.add(u, cameraAt(u), u < 45000 ? 0 : 1);
+  // The ring kept the last four: 35, 40, 45 and 50 ms.
+  EXPECT_FALSE(history.motion(30000, 40000).has_value());  // forgotten
+  EXPECT_FALSE(history.motion(40000, 55000).has_value());  // not yet seen
+  EXPECT_TRUE(history.motion(35000, 40000).has_value());
+  EXPECT_FALSE(history.motion(40000, 45000).has_value());  // the estimate jumped between
+  EXPECT_FALSE(history.motion(42000, 48000).has_value());  // interpolated across the jump
+  EXPECT_TRUE(history.motion(45000, 50000).has_value());
+  // A time that does not increase is ignored.
+  history.add(50000, Pose::Identity(), 1);
+  ASSERT_TRUE(history.motion(45000, 50000).has_value());
+  EXPECT_LT(poseError(*history.motion(45000, 50000), cameraAt(45000).inverse() * cameraAt(50000)),
+            kTol);
+}
+
+}  // namespace
+}  // namespace kinfly::flight

@@ -424,13 +424,16 @@ TEST(Estimator, GateRejectsAnOutlierPose) {
 }
 
 // Feeds IMU samples from *k for one vision period, then the pose captured 30 ms before the last,
-// moved by the offset; returns what the estimator made of the pose.
+// moved by the offset and turned by `turn_cam` in the camera frame, with the weak directions the
+// odometry reported; returns what the estimator made of the pose.
 VisionOutcome nextOffsetPose(const Recording& rec, const EstimatorParams& params,
                              Estimator& estimator, size_t* k, const Vector3d& offset_odom_m,
-                             const WeakDirections& weak = {}) {
+                             const WeakDirections& weak = {},
+                             const Eigen::Matrix3d& turn_cam = Eigen::Matrix3d::Identity()) {
   for (int j = 0; j < kVisionPeriodUs / kImuPeriodUs; ++j) estimator.addImu(rec.imu[(*k)++]);
   const size_t captured = *k - kVisionDelayUs / kImuPeriodUs;
   VisionPose pose = truePose(rec, params, captured, rec.imu[captured - 1].utime, offset_odom_m);
+  pose.T_odom_cam.linear() = pose.T_odom_cam.linear() * turn_cam;
   pose.weak = weak;
   return estimator.addVision(pose);
 }
@@ -494,13 +497,8 @@ TEST(Estimator, APoseTurnedAboutItsWeakRotationDoesNotTurnTheEstimate) {
   weak.count = 1;
   weak.d[0] << 0.0, 0.0, 0.0, 0.0, 0.0, 1.0;
   const auto turnedPose = [&](bool reported) {
-    for (int j = 0; j < kVisionPeriodUs / kImuPeriodUs; ++j) estimator.addImu(rec.imu[k++]);
-    const size_t captured = k - kVisionDelayUs / kImuPeriodUs;
-    VisionPose pose = truePose(rec, scenario.params, captured, rec.imu[captured - 1].utime,
-                               Vector3d::Zero());
-    pose.T_odom_cam.linear() = pose.T_odom_cam.linear() * turn;
-    if (reported) pose.weak = weak;
-    return estimator.addVision(pose);
+    return nextOffsetPose(rec, scenario.params, estimator, &k, Vector3d::Zero(),
+                          reported ? weak : WeakDirections{}, turn);
   };
   double worst_rad = 0.0;
   for (int i = 0; i < 30; ++i) {  // a second

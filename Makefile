@@ -20,6 +20,11 @@
 #   make sim        deps demo, sim; kinfly-sim flies the drone in the simulated room through the real
 #                   kinfly-fw and kinfly-ground in lockstep in a network namespace (the room
 #                   tour: sim/missions/room_tour.toml); outputs in out/sim (docs/sim.md)
+#   make bench-sim  deps demo, sim; the closed-loop flight figures over seeds 1-3, each flown as
+#                   make sim flies (at 320x240): hover calm and in wind and gusts, the figure
+#                   eight at 1 and 2 m/s, a 2 m/s wind step, the room tour; ~25 min; medians
+#                   printed, out/bench/sim_flights.json; fails only if a flight does not fly
+#                   through
 #   make demo-runs  deps demo; make demo's flight DEMO_RUNS times (20) on the machine as it is,
 #                   then DEMO_BUSY_RUNS times (10) beside two busy loops; out/bench/demo_runs_*.json
 #   make test-runs  make test, then its tests TEST_RUNS times (3) beside two busy loops;
@@ -102,6 +107,7 @@ DEPS_GROUPS := demo sim unit test fuzz aarch64 image bench
 DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
 
 .PHONY: deps $(DEPS_TARGETS) build test unit-test python-test test-asan fuzz fuzz-corpus demo sim \
+        sim-programs bench-sim \
         demo-runs test-runs soak eval bench clean distclean firmware-aarch64 test-aarch64 package-aarch64 image flash deploy
 
 deps:
@@ -180,11 +186,16 @@ demo: deps-demo
 # configured with the simulator whatever it had (KINFLY_BUILD_SIM), and without the unit tests if
 # new, as for the demo.
 SIM_OUT := $(REPO_ROOT)/out/sim
-sim: deps-demo deps-sim
+sim: sim-programs
+	$(PY) $(REPO_ROOT)/scripts/sim.py --out $(SIM_OUT)
+
+sim-programs: deps-demo deps-sim
 	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release -DKINFLY_BUILD_SIM=ON \
 	  $(if $(wildcard $(BUILD_DIR)/CMakeCache.txt),,-DKINFLY_BUILD_TESTS=OFF)
 	cmake --build $(BUILD_DIR) -j $(JOBS) --target kinfly-fw kinfly-keygen kinfly-sim
-	$(PY) $(REPO_ROOT)/scripts/sim.py --out $(SIM_OUT)
+
+bench-sim: sim-programs
+	$(PY) $(REPO_ROOT)/tests/bench/bench_sim_flights.py --out $(REPO_ROOT)/out/bench
 
 # How often the demo's flight holds: every keyframe fused, every output written, an ATE; on a
 # machine as it is, then with both cores of a 2-core machine busy with other work.

@@ -122,9 +122,12 @@ class Watched:
     started it can wait for what it says instead of for a time. Started in a session of its
     own (netns.send_signal)."""
 
-    def __init__(self, command: Sequence[str], prefix: str = "", quiet: bool = True) -> None:
+    def __init__(self, command: Sequence[str], prefix: str = "", quiet: bool = True,
+                 answered: bool = False) -> None:
+        """ANSWERED: its standard input is a pipe, for `answer`."""
         self.process = subprocess.Popen(command, stdout=subprocess.PIPE,
                                         stderr=subprocess.STDOUT, text=True,
+                                        stdin=subprocess.PIPE if answered else None,
                                         start_new_session=True)
         self.lines: list[str] = []
         self._events = threading.Condition()
@@ -143,6 +146,13 @@ class Watched:
                     return False
                 self._events.wait(min(left, 0.5))
         return True
+
+    def answer(self) -> None:
+        """Writes a line to its standard input (started ANSWERED): what a program that waits for
+        it takes as "done"."""
+        assert self.process.stdin is not None
+        self.process.stdin.write("\n")
+        self.process.stdin.flush()
 
     def output(self) -> str:
         with self._events:

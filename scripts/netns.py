@@ -246,6 +246,18 @@ def send_signal(process: subprocess.Popen, sig: int) -> None:
                     str(process.pid)], capture_output=True)
 
 
+def kill_group(process: subprocess.Popen) -> None:
+    """SIGKILLs the process group of a program started with the namespace's prefix and
+    `start_new_session=True`, as a crash ends it: sudo cannot pass SIGKILL on, so the whole
+    session's group is killed."""
+    sudo = _privileged()
+    if not sudo:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
+        return
+    subprocess.run([*sudo, "kill", "-KILL", "--", f"-{process.pid}"], capture_output=True)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(
         description="Runs COMMAND (default: $SHELL) in a private network namespace whose lo is "

@@ -9,6 +9,9 @@ demo` does. The simulator flies its mission (the room tour unless told otherwise
 go-tos, a figure eight, land) and the run succeeds only
 when the drone landed without a collision or a failsafe and the ground mapped what it was sent.
 Nothing waits a fixed time: each program's readiness and end are what the next step waits for.
+A mission's ground_restart is this script's to act on: kinfly-sim (--orchestrated) stops its clock
+at the kill and at the restart until told that it was done, so the ground is away for exactly the
+mission's simulated time.
 
 Run with the project's .venv python (the Makefile does). Needs root or passwordless sudo for the
 namespace (docs/sim.md)."""
@@ -16,23 +19,27 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, GROUND_READY_TIMEOUT_S,  # noqa: E402
                   LCM_URL, VEHICLE_ID, Watched, check_flight, fresh_output, ground_command,
                   list_outputs, report)
-from netns import NetnsUnavailable, network_namespace, send_signal  # noqa: E402
+from netns import NetnsUnavailable, kill_group, network_namespace, send_signal  # noqa: E402
 from sim_plots import kinfly_eval, write as write_plots  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DRONE_EXIT_TIMEOUT_S = 60.0  # kinfly-fw's last corrections and its summary after SIGINT
 ROOM_TOUR = REPO_ROOT / "sim" / "missions" / "room_tour.toml"
 HOVER = "hover"  # --mission: kinfly-sim's built-in take off, hold, land
+# kinfly-sim's words after an event it waits on this script for (kAwaitingOrchestrator).
+AWAITING = ": waiting for the orchestrator"
 # What lcm-logger records: everything but the raw depth frames (30 a second at VGA; the keyframes
 # that reached the ground are in their chunks).
 RECORDED = (f"KINFLY_{VEHICLE_ID}_(IMU|MOTOR_COMMAND|SIM_STATE|ODOMETRY|KEYFRAME_CHUNK|STATUS|"
@@ -54,10 +61,83 @@ OUTPUTS = {
     "drone_trajectory.tum": "every pose the drone's odometry published",
     "vehicle.key": "the signing key made for this flight",
 }
+# What a killed ground station's recording becomes (its N-th kill); the restarted one records
+# session.rrd anew.
+KILLED_RECORDING = "session_until_kill_{}.rrd"
+# The recording a station writes until it closes it (kinfly_ground.viewer.Viewer).
+PARTIAL_RECORDING = "session.rrd.partial"
 
 
-def drone_command(key: Path, out: Path) -> list[str]:
+class Ground:
+    """kinfly-ground in the namespace, killed and restarted as the mission says."""
+
+    def __init__(self, netns: list[str], out: Path, key: Path) -> None:
+        self.command = [*netns, *ground_command(out, key=key)]
+        self.out = out
+        self.kills = 0
+        self.current: Watched | None = None  # None while it is down
+        self.start()
+
+    def start(self) -> None:
+        if self.current is not None:
+            raise RuntimeError("kinfly-sim asked for a second ground station beside the first")
+        ground = Watched(self.command, "[ground] ", quiet=False)
+        if not ground.wait_for("listening on", 1, GROUND_READY_TIMEOUT_S):
+            kill_group(ground.process)
+            ground.finish(GROUND_EXIT_TIMEOUT_S)
+            raise RuntimeError("the ground station did not start listening:\n" + ground.output())
+        self.current = ground
+
+    def kill(self) -> None:
+        """As a crash ends it: SIGKILL, no outputs but the recording so far, which is kept and
+        made whole (rerun's footer) as KILLED_RECORDING."""
+        if self.current is None:
+            raise RuntimeError("kinfly-sim asked to kill a ground station that is down")
+        kill_group(self.current.process)
+        self.current.finish(GROUND_EXIT_TIMEOUT_S)
+        self.current = None
+        self.kills += 1
+        partial = self.out / PARTIAL_RECORDING
+        if not partial.is_file():
+            return
+        kept = self.out / KILLED_RECORDING.format(self.kills)
+        with kept.open("wb") as whole:
+            made = subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "optimize",
+                                   str(partial)], stdout=whole, stderr=subprocess.PIPE, text=True)
+        if made.returncode != 0:
+            kept.unlink()
+            partial.rename(kept.with_name(kept.name + ".partial"))
+            raise RuntimeError(f"the killed ground station's recording could not be made whole "
+                               f"(kept as {kept.name}.partial): {made.stderr.strip()}")
+        partial.unlink()
+
+    def act(self, line: str) -> None:
+        """What kinfly-sim's LINE asks for."""
+        if ": ground_killed" in line:
+            self.kill()
+        elif ": ground_restarted" in line:
+            self.start()
+        else:
+            raise RuntimeError(f"kinfly-sim waits for what sim.py cannot do: {line.strip()}")
+
+    def stop(self) -> list[str]:
+        """SIGTERM, as Ctrl-C: it writes its outputs. What went wrong, if anything."""
+        if self.current is None:
+            return [f"the flight ended with the ground station down (killed {self.kills} "
+                    "time(s); its restart never came): it wrote no outputs"]
+        send_signal(self.current.process, signal.SIGTERM)
+        if self.current.finish(GROUND_EXIT_TIMEOUT_S) != 0:
+            return ["kinfly-ground failed (above)"]
+        return []
+
+
+def drone_command(key: Path, out: Path, camera_downsample: int) -> list[str]:
+    """kinfly-fw for the simulated Kinect at 1/CAMERA_DOWNSAMPLE of 640x480: its odometry at
+    320x240 (the configuration's downsample of VGA), or at the camera's size when smaller."""
+    width, height = 640 // camera_downsample, 480 // camera_downsample
     return [str(BUILD / "kinfly-fw"), "--config", str(FW_CONFIG), "--vehicle.id", str(VEHICLE_ID),
+            "--source.width", str(width), "--source.height", str(height),
+            "--odometry.downsample", str(max(1, 2 // camera_downsample)),
             "--vehicle.key_file", str(key), "--link.lcm_url", LCM_URL, "--source.kind", "lcm",
             "--source.realtime", "false", "--source.lockstep", "true", "--flight.backend", "motors",
             "--flight.imu", "lcm", "--flight.lockstep", "true",
@@ -69,10 +149,58 @@ def sim_command(key: Path, out: Path, args: argparse.Namespace) -> list[str]:
             "--lcm-url", LCM_URL, "--scene", args.scene, "--seed", str(args.seed),
             "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
             "--summary", str(out / "sim_summary.json"), "--scene-mesh", str(out / "scene.ply"),
-            *([] if args.mission == HOVER else ["--mission", str(args.mission)])]
+            "--orchestrated", *([] if args.mission == HOVER else ["--mission", str(args.mission)])]
+
+
+def stop_all(sim: Watched | None, drone: Watched | None, ground: Ground | None,
+             logger: subprocess.Popen) -> list[str]:
+    """Ends every program, each whatever happened to the others (a simulator still running is
+    stopped by a failure here): what went wrong."""
+    def stop_sim() -> list[str]:
+        if sim is not None and sim.process.poll() is None:
+            kill_group(sim.process)
+            sim.finish(DRONE_EXIT_TIMEOUT_S)
+        return []
+
+    def stop_drone() -> list[str]:
+        if drone is None:
+            return []
+        send_signal(drone.process, signal.SIGINT)
+        rc = drone.finish(DRONE_EXIT_TIMEOUT_S)
+        return [f"kinfly-fw exited {rc}"] if rc != 0 else []
+
+    def stop_logger() -> list[str]:
+        send_signal(logger, signal.SIGINT)
+        logger.wait(10)
+        return []
+
+    steps: list[tuple[str, Callable[[], list[str]]]] = [
+        ("kinfly-sim", stop_sim), ("kinfly-fw", stop_drone),
+        ("kinfly-ground", ground.stop if ground is not None else lambda: []),
+        ("lcm-logger", stop_logger)]
+    problems = []
+    for name, step in steps:
+        try:
+            problems += step()
+        except (OSError, subprocess.TimeoutExpired) as error:
+            problems.append(f"stopping {name}: {error}")
+    return problems
+
+
+def missed_while_away(out: Path, ground: Ground | None) -> int:
+    """Keyframes the ground station may have missed: none, unless it was restarted; then those
+    before the first one the restarted station heard (the killed one's map died with it)."""
+    summary = out / "summary.json"
+    if ground is None or not ground.kills or not summary.is_file():
+        return 0
+    vehicle = json.loads(summary.read_text())["vehicles"].get(str(VEHICLE_ID), {})
+    return vehicle.get("first_keyframe_id") or 0
 
 
 def main() -> int:
+    # SIGTERM (a test's or a bench's timeout) unwinds as an error would: every program is stopped
+    # and the namespace deleted.
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "sim")
     p.add_argument("--scene", default="room", help="room | corridor (default room)")
@@ -84,7 +212,7 @@ def main() -> int:
                    help=f"a mission file (sim/missions/, docs/sim.md), or {HOVER!r} for "
                    f"kinfly-sim's built-in take off, hold --hover-s, land (default: the room "
                    f"tour, {ROOM_TOUR.relative_to(REPO_ROOT)})")
-    p.add_argument("--camera-downsample", type=int, default=1,
+    p.add_argument("--camera-downsample", type=int, default=1, choices=range(1, 5),
                    help="the simulated Kinect at 1/N of 640x480 (default 1)")
     args = p.parse_args()
     out = args.out
@@ -96,42 +224,48 @@ def main() -> int:
             logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", LCM_URL,
                                        "--channel", RECORDED, str(out / "flight.lcmlog")],
                                       stdout=subprocess.DEVNULL, start_new_session=True)
-            ground = Watched([*netns, *ground_command(out, key=key)], "[ground] ", quiet=False)
-            drone = None
+            ground = drone = sim = None
             try:
-                if not ground.wait_for("listening on", 1, GROUND_READY_TIMEOUT_S):
-                    raise RuntimeError("the ground station did not start listening:\n"
-                                       + ground.output())
-                drone = Watched([*netns, *drone_command(key, out)], "[drone]  ", quiet=False)
-                sim = Watched([*netns, *sim_command(key, out, args)], "[sim]    ", quiet=False)
+                ground = Ground(netns, out, key)
+                drone = Watched([*netns, *drone_command(key, out, args.camera_downsample)],
+                                "[drone]  ", quiet=False)
+                sim = Watched([*netns, *sim_command(key, out, args)], "[sim]    ", quiet=False,
+                              answered=True)
+                acted = 0
+                while sim.wait_for(AWAITING, acted + 1, math.inf):
+                    asked = [line for line in sim.output().splitlines() if AWAITING in line]
+                    ground.act(asked[acted])
+                    sim.answer()
+                    acted += 1
                 sim_rc = sim.finish(None)
                 if sim_rc != 0:
                     problems.append(f"kinfly-sim exited {sim_rc}: the flight failed (above)")
+            except (RuntimeError, OSError, subprocess.TimeoutExpired) as error:
+                problems.append(f"{type(error).__name__}: {error}")
             finally:
-                if drone is not None:
-                    send_signal(drone.process, signal.SIGINT)
-                    drone_rc = drone.finish(DRONE_EXIT_TIMEOUT_S)
-                    if drone_rc != 0:
-                        problems.append(f"kinfly-fw exited {drone_rc}")
-                send_signal(ground.process, signal.SIGTERM)
-                if ground.finish(GROUND_EXIT_TIMEOUT_S) != 0:
-                    problems.append("kinfly-ground failed (above)")
-                send_signal(logger, signal.SIGINT)
-                logger.wait(10)
+                problems += stop_all(sim, drone, ground, logger)
     except NetnsUnavailable as error:
         print(f"sim: {error}", file=sys.stderr)
         return 1
     if drone is not None and "control: failsafe:" in drone.output():
         problems.append("a failsafe acted in flight (the drone's log above says which)")
-    problems += check_flight(out, max_missing=0)
+    missed = missed_while_away(out, ground)
+    problems += check_flight(out, max_missing=missed)
     errors = None
     if (out / "flight.lcmlog").is_file():
         try:
             errors = write_plots(out, VEHICLE_ID)
         except (OSError, ValueError, ImportError) as error:
             problems.append(f"no plots or map score: {error}")
+    kills = 0 if ground is None else ground.kills
+    killed = {KILLED_RECORDING.format(n): f"the recording of the ground station up to kill {n}"
+              for n in range(1, kills + 1)}
     print(f"\nsim: {time.monotonic() - started:.0f} s; files in {out}:\n"
-          f"{list_outputs(out, OUTPUTS)}")
+          f"{list_outputs(out, {**OUTPUTS, **killed})}")
+    if kills and ground is not None and ground.current is not None:
+        print(f"sim: the ground station was killed and restarted {kills} time(s); the last one "
+              f"heard the drone from keyframe {missed} on, and its "
+              f"outputs cover only that")
     problems += [f"{name} was not written" for name in OUTPUTS if not (out / name).is_file()]
     summary = out / "sim_summary.json"
     if summary.is_file():

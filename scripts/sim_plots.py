@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation, Slerp
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from kinfly.flight_status_t import flight_status_t  # noqa: E402
+from kinfly.ground_truth_t import ground_truth_t  # noqa: E402
 from kinfly.sim_state_t import sim_state_t  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "eval"))
@@ -193,6 +194,10 @@ def _mark_modes(axes: np.ndarray, flight: Flight) -> None:
                          va="top", ha="right", color="0.4")
 
 
+# [µs] the TUM file's stamps are written to 1 µs; a frame's stamps are 33 ms apart.
+FIRST_FRAME_MATCH_US = 500
+
+
 def pose_matrix(row: np.ndarray) -> np.ndarray:
     """A TUM line's (t, tx, ty, tz, qx, qy, qz, qw) pose as a 4x4 matrix."""
     T = np.eye(4)
@@ -201,17 +206,30 @@ def pose_matrix(row: np.ndarray) -> np.ndarray:
     return T
 
 
-def map_accuracy(out: Path) -> dict:
+def map_accuracy(out: Path, vehicle: int) -> dict:
     """The map's vertices against the scene's surface. The map's frame is the odometry's first
-    camera (drone_trajectory.tum's first pose); its true pose in the scene is
-    trajectory_ground_truth.tum's at that time."""
+    camera (drone_trajectory.tum's first pose); its true pose in the scene is the simulator's
+    ground_truth_t for that frame in flight.lcmlog (the ground's trajectory_ground_truth.tum
+    holds only what it heard: nothing before a restart)."""
     odometry = np.loadtxt(out / "drone_trajectory.tum", comments="#", ndmin=2)
-    truth = np.loadtxt(out / "trajectory_ground_truth.tum", comments="#", ndmin=2)
-    first = np.flatnonzero(np.isclose(truth[:, 0], odometry[0, 0], atol=5e-4))
-    if not first.size:
-        raise ValueError(f"{out}: no true pose at the odometry's first frame "
-                         f"(t = {odometry[0, 0]:.3f} s)")
-    T_scene_map = pose_matrix(truth[first[0]]) @ np.linalg.inv(pose_matrix(odometry[0]))
+    first_us = round(odometry[0, 0] * 1e6)
+    first = None
+    log = lcm.EventLog(str(out / "flight.lcmlog"), "r")
+    try:
+        for event in log:
+            if event.channel == f"KINFLY_{vehicle}_GROUND_TRUTH":
+                truth = ground_truth_t.decode(event.data)
+                if abs(truth.utime - first_us) <= FIRST_FRAME_MATCH_US:
+                    first = truth
+                    break
+    finally:
+        log.close()
+    if first is None:
+        raise ValueError(f"{out / 'flight.lcmlog'}: no true pose on KINFLY_{vehicle}_GROUND_TRUTH "
+                         f"at the odometry's first frame (t = {odometry[0, 0]:.3f} s)")
+    pose = first.T_world_cam
+    T_scene_map = pose_matrix(np.array([0.0, *pose.position_m, *pose.orientation_xyzw])) \
+        @ np.linalg.inv(pose_matrix(odometry[0]))
     ours = kinfly_eval.load_mesh(out / "mesh.ply")
     scene = kinfly_eval.load_mesh(out / "scene.ply")
     vertices = np.asarray(ours.vertices) @ T_scene_map[:3, :3].T + T_scene_map[:3, 3]
@@ -225,7 +243,7 @@ def write(out: Path, vehicle: int) -> dict:
     result = figures(flight)
     (out / "flight_errors.json").write_text(json.dumps(result, indent=2) + "\n")
     if (out / "mesh.ply").is_file() and (out / "scene.ply").is_file():
-        result["map"] = map_accuracy(out)
+        result["map"] = map_accuracy(out, vehicle)
         (out / "map_accuracy.json").write_text(json.dumps(result["map"], indent=2) + "\n")
     return result
 

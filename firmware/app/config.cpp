@@ -308,6 +308,10 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--flight.max_accel_m_s2", st.trajectory.max_accel_m_s2,
                   "peak acceleration of the same [m/s^2]")
       ->capture_default_str();
+  app->add_option("--flight.max_jerk_m_s3", st.trajectory.max_jerk_m_s3,
+                  "peak jerk of the same: how fast the tilt asked for turns, about jerk / g "
+                  "[m/s^3]")
+      ->capture_default_str();
   app->add_option("--flight.land_speed_m_s", st.modes.land_speed_m_s, "landing descent [m/s]")
       ->capture_default_str();
   app->add_option("--flight.vision_lost_s", st.modes.vision_lost_s,
@@ -422,6 +426,7 @@ Status FlightConfig::validate() const {
                                 {"vehicle.arm_length_m", "flight.arm_length_m"},
                                 {"trajectory.max_speed_m_s", "flight.max_speed_m_s"},
                                 {"trajectory.max_accel_m_s2", "flight.max_accel_m_s2"},
+                                {"trajectory.max_jerk_m_s3", "flight.max_jerk_m_s3"},
                                 {"modes.land_speed_m_s", "flight.land_speed_m_s"},
                                 {"modes.vision_lost_s", "flight.vision_lost_s"}}));
 }

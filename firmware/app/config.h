@@ -121,7 +121,8 @@ struct FlightConfig {                            // [flight] docs/flight.md, "Th
   // silence is a failure the stack must see on the wall clock.
   bool lockstep = false;
   // rate_hz (the IMU's sample rate: one tick per sample), position_rate_hz, the vehicle's mass_kg
-  // and arm_length_m, max_speed_m_s, max_accel_m_s2, land_speed_m_s, vision_lost_s: the flight
+  // and arm_length_m, max_speed_m_s, max_accel_m_s2, max_jerk_m_s3, land_speed_m_s,
+  // vision_lost_s: the flight
   // stack's parameters; the rest keep the library's defaults.
   flight::FlightStackParams stack;
   // The mavlink backend: mavlink_url (udpin:HOST:PORT, udpout:HOST:PORT or a /dev/ serial port),

@@ -271,7 +271,10 @@ void LinkTask::onGroundStatus(const lcm_recv_buf_t* rbuf) {
       link::decodeMessage(rbuf->data, rbuf->data_size, link::DecodeBounds(), &ground_status_);
   ground_status_heard_ = r.ok() && ground_status_.vehicle_id == config_.vehicle.id;
   // Handled after the correction the ground sent before this status: it is applied by now.
-  if (ground_status_heard_) counters_->ground_done_keyframe = ground_status_.last_keyframe_id;
+  if (ground_status_heard_) {
+    counters_->ground_done_keyframe = ground_status_.last_keyframe_id;
+    ++counters_->ground_statuses;
+  }
   if (!r.ok())
     ++rejects_.malformed;
   else if (ground_status_.vehicle_id != config_.vehicle.id)

@@ -131,14 +131,22 @@ void OdometryTask::process(const DepthCapture& capture) {
 
 void OdometryTask::awaitGround(int64_t keyframe_id) {
   using namespace std::chrono_literals;
+  if (unanswered_since_status_) {
+    if (counters_->ground_statuses == *unanswered_since_status_) return;
+    spdlog::info("odometry: lockstep: the ground station is heard again; waiting for its "
+                 "answers from keyframe {} on", keyframe_id);
+    unanswered_since_status_.reset();
+  }
   const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                            std::chrono::duration<double>(config_.link.final_wait_s));
   while (counters_->ground_done_keyframe < keyframe_id && !stop_->stopRequested()) {
     if (Clock::now() >= deadline) {
-      if (lockstep_log_.allow(secondsSince(began_)))
-        spdlog::warn("odometry: lockstep: no answer from the ground station to keyframe {} "
-                     "within {:.1f} s, going on ({} more since the last report)",
-                     keyframe_id, config_.link.final_wait_s, lockstep_log_.suppressed());
+      const int64_t statuses = counters_->ground_statuses;
+      if (counters_->ground_done_keyframe >= keyframe_id) return;  // answered at the deadline
+      spdlog::warn("odometry: lockstep: no answer from the ground station to keyframe {} within "
+                   "{:.1f} s; going on without waiting until it is heard again",
+                   keyframe_id, config_.link.final_wait_s);
+      unanswered_since_status_ = statuses;
       return;
     }
     std::this_thread::sleep_for(1ms);

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -52,7 +53,10 @@ class OdometryTask {
  private:
   void process(const DepthCapture& capture);
   // source.lockstep: until the ground station reports keyframe `keyframe_id` done (its
-  // correction is applied by then), link.final_wait_s at most, or a stop.
+  // correction is applied by then), link.final_wait_s at most, or a stop. After a wait that
+  // ran out, none until a ground status is heard again: a ground station that is gone (killed,
+  // out of range) would otherwise cost every keyframe the whole wait, and a restarted one is
+  // waited for from its first keyframe on.
   void awaitGround(int64_t keyframe_id);
 
   const FirmwareConfig& config_;
@@ -73,8 +77,10 @@ class OdometryTask {
   ground_truth_t truth_{};
   KeyframeJob job_;
   int64_t next_keyframe_id_ = 0;
+  // Counters::ground_statuses when a lockstep wait ran out; none while the ground answers.
+  std::optional<int64_t> unanswered_since_status_;
   Clock::time_point began_ = Clock::now();
-  LogThrottle lost_log_, keyframe_drop_log_, lockstep_log_, weak_log_;
+  LogThrottle lost_log_, keyframe_drop_log_, weak_log_;
   std::vector<StampedPose> trajectory_, ground_truth_;
 };
 

@@ -1,11 +1,33 @@
 #include "publisher.h"
 
 #include <poll.h>
+#include <pthread.h>
 #include <spdlog/spdlog.h>
 
 #include <cstring>
 
 namespace kinfly::fw {
+namespace {
+
+// LCM's receive thread takes the name of the thread that started it. Under the owner's name, a
+// per-thread count (the control task's allocations, tests/firmware/test_control_task.py) would
+// charge LCM's receive buffers to the owner; so it starts under a name of its own.
+class ThreadNamedWhileLcmStarts {
+ public:
+  explicit ThreadNamedWhileLcmStarts(const std::string& owner) {
+    pthread_getname_np(pthread_self(), saved_, sizeof(saved_));
+    const std::string name = ("lcm-" + owner).substr(0, 15);  // the kernel's limit
+    pthread_setname_np(pthread_self(), name.c_str());
+  }
+  ~ThreadNamedWhileLcmStarts() { pthread_setname_np(pthread_self(), saved_); }
+  ThreadNamedWhileLcmStarts(const ThreadNamedWhileLcmStarts&) = delete;
+  ThreadNamedWhileLcmStarts& operator=(const ThreadNamedWhileLcmStarts&) = delete;
+
+ private:
+  char saved_[16] = {};
+};
+
+}  // namespace
 
 Publisher::Publisher(std::string name, const std::string& url, int vehicle_id,
                      std::function<void(lcm::LCM&)> on_start, UnicastPeers peers)
@@ -57,10 +79,16 @@ void Publisher::maintain() {
     const Status route = target_ ? link::checkMulticastRoute(*target_) : Status();
     problem = route.ok() ? std::string() : route.message();
     if (route.ok()) {
+      ThreadNamedWhileLcmStarts naming(name_);
       auto lcm = std::make_unique<lcm::LCM>(url_);
       if (lcm->good()) {
         lcm_ = std::move(lcm);
-        if (on_start_) on_start_(*lcm_);
+        if (on_start_) {
+          on_start_(*lcm_);
+          // udpm starts its receive thread at the first subscription or this, whichever comes
+          // first: here, under the name above. A publisher that only sends has none.
+          lcm_->getFileno();
+        }
       } else {
         problem = "LCM cannot start on \"" + url_ + "\" (link.lcm_url)";
       }

@@ -56,6 +56,9 @@ struct Counters {
   // The last keyframe id the ground station reported done (ground_status_t.last_keyframe_id,
   // sent after that keyframe's correction), -1 before one: source.lockstep waits for it.
   std::atomic<int64_t> ground_done_keyframe{-1};
+  // Ground statuses heard for this vehicle: a lockstep wait that ran out waits again from the
+  // next one (a station back, or a new one).
+  std::atomic<int64_t> ground_statuses{0};
   // any thread that sends: bytes of everything but keyframe chunks put on the link since the link
   // thread last took them; they went first, and the keyframes' budget pays for them
   std::atomic<int64_t> priority_bytes{0};

@@ -75,6 +75,9 @@ def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
         "latency_ms": stats(state.latencies_ms),
         "refine_ms": stats(state.refine_ms),
         "reset_counter": state.reset_counter,
+        # This session's first: a station started after the drone (restarted) never saw those
+        # before it.
+        "first_keyframe_id": min(state.session_keyframe_ids, default=None),
     }
     summary.update(_export_segment(segment, out, truth))
     # Earlier odometry frames (before a drone restart), each complete on its own.

@@ -18,6 +18,7 @@
 #include <cstdio>
 #include <fstream>
 #include <iomanip>
+#include <iostream>
 #include <sstream>
 #include <optional>
 #include <set>
@@ -52,6 +53,9 @@ constexpr int64_t kStartUtime = 1'000'000;  // [us] a start after 0 keeps every 
 constexpr int kStateEverySteps = 10;        // sim_state_t at a tenth of the IMU rate
 // Directions of the collision probe: the 26 of a cube's faces, edges and corners.
 constexpr int kProbeDirections = 26;
+// After an orchestrated event's line: the orchestrator writes a line to standard input once it
+// has acted (scripts/sim.py looks for this text).
+constexpr const char* kAwaitingOrchestrator = ": waiting for the orchestrator";
 
 struct Options {
   std::string scene = "room";
@@ -61,6 +65,7 @@ struct Options {
   std::string key_file;
   std::string mission_file;
   bool realtime = false;
+  bool orchestrated = false;
   double max_seconds = 0.0;
   double wait_s = 10.0;
   double takeoff_height_m = 1.0;
@@ -285,6 +290,16 @@ int run(const Options& o) {
     return 2;
   }
   const Mission& mission = loaded.value();
+  for (const MissionEvent& e : mission.events) {
+    if (e.orchestrated() && !o.orchestrated) {
+      std::fprintf(stderr,
+                   "kinfly-sim: --mission: the ground_restart at %.1f s needs the program that "
+                   "runs the ground station to act on it: fly this mission with scripts/sim.py "
+                   "(which passes --orchestrated)\n",
+                   e.at_s);
+      return 2;
+    }
+  }
   StatusOr<link::Key> key = link::loadKeyFile(o.key_file);
   if (!key.ok()) {
     std::fprintf(stderr, "kinfly-sim: --key-file: %s\n", key.status().message().c_str());
@@ -424,10 +439,23 @@ int run(const Options& o) {
         case MissionEvent::Kind::kVisionDropout: dropout_until_s = e.at_s + e.duration_s; break;
         case MissionEvent::Kind::kImuBiasStep: imu.stepBias(e.vector, e.accel_m_s2); break;
         case MissionEvent::Kind::kMotorLoss: drone.setRotorEfficiency(e.rotor - 1, e.fraction); break;
+        case MissionEvent::Kind::kGroundKilled:
+        case MissionEvent::Kind::kGroundRestarted: break;  // the orchestrator's, below
       }
       flight.events.emplace_back(t_s, e.name);
-      std::printf("kinfly-sim: t=%.2f s: %s\n", t_s, e.name.c_str());
+      std::printf("kinfly-sim: t=%.2f s: %s%s\n", t_s, e.name.c_str(),
+                  e.orchestrated() ? kAwaitingOrchestrator : "");
       std::fflush(stdout);
+      // Simulation time stands still while the orchestrator acts, so the ground is down for
+      // exactly duration_s of it, however long a restart takes on this machine.
+      if (e.orchestrated()) {
+        std::string done;
+        if (!std::getline(std::cin, done)) {
+          std::fprintf(stderr, "kinfly-sim: the orchestrator closed standard input before it "
+                               "acted on %s\n", e.name.c_str());
+          return 1;
+        }
+      }
     }
 
     // Depth frames captured now, delivered after the latency.
@@ -655,6 +683,11 @@ int main(int argc, char** argv) {
                  "a mission file (TOML: commands and scripted faults, docs/sim.md); empty: take "
                  "off, hold --hover-s, land");
   app.add_flag("--realtime", o.realtime, "pace simulation time to the wall clock, for watching");
+  app.add_flag("--orchestrated", o.orchestrated,
+               "a program that runs the ground station (scripts/sim.py) acts on the mission's "
+               "ground_restart: at each kill and restart kinfly-sim prints 'kinfly-sim: t=T s: "
+               "ground_killed: waiting for the orchestrator' (or ground_restarted) and waits for a "
+               "line on standard input; without it such a mission is refused");
   app.add_option("--max-seconds", o.max_seconds,
                  "simulated seconds at most [0, 86400]; 0: the mission's max_s")
       ->capture_default_str();

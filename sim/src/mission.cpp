@@ -157,11 +157,18 @@ StatusOr<MissionCommand> readCommand(const Reader& r, const toml::table& t) {
   return c;
 }
 
+// "12.5", not std::to_string's "12.500000".
+std::string seconds(double s) {
+  std::ostringstream text;
+  text << s;
+  return text.str();
+}
+
 StatusOr<MissionEvent> readEvent(const Reader& r, const toml::table& t) {
   MissionEvent e;
   const std::optional<std::string> kind = t["kind"].value<std::string>();
   if (!kind) return r.error(t, "an event needs a kind (wind_step, gust, vision_dropout, "
-                               "imu_bias_step, motor_loss)");
+                               "imu_bias_step, motor_loss, ground_restart)");
   e.name = *kind;
   KINFLY_TRY_ASSIGN(e.at_s, r.number(t, "at_s", 0.0, kMaxTimeS));
   if (*kind == "wind_step") {
@@ -194,9 +201,15 @@ StatusOr<MissionEvent> readEvent(const Reader& r, const toml::table& t) {
     if (rotor != std::floor(rotor)) return r.error(*t.get("rotor"), "'rotor' must be 1, 2, 3 or 4");
     e.rotor = static_cast<int>(rotor);
     KINFLY_TRY_ASSIGN(e.fraction, r.number(t, "fraction", 0.0, 1.0));
+  } else if (*kind == "ground_restart") {
+    // The loader adds the restart, duration_s after this kill.
+    e.kind = MissionEvent::Kind::kGroundKilled;
+    e.name = "ground_killed";
+    if (Status s = r.onlyKnown(t, {"kind", "at_s", "duration_s"}, *kind); !s.ok()) return s;
+    KINFLY_TRY_ASSIGN(e.duration_s, r.number(t, "duration_s", 0.0, 3600.0));
   } else {
     return r.error(t, "unknown event kind '" + *kind + "' (known: wind_step, gust, "
-                      "vision_dropout, imu_bias_step, motor_loss)");
+                      "vision_dropout, imu_bias_step, motor_loss, ground_restart)");
   }
   return e;
 }
@@ -276,10 +289,35 @@ StatusOr<Mission> parseMission(std::string_view text, const std::string& source)
       if (table == nullptr) return r.error(node, "[[event]] must be a table");
       MissionEvent e;
       KINFLY_TRY_ASSIGN(e, readEvent(r, *table));
-      mission.events.push_back(std::move(e));
+      mission.events.push_back(e);
+      if (e.kind == MissionEvent::Kind::kGroundKilled) {
+        if (e.at_s + e.duration_s >= mission.max_s) {
+          return r.error(node, "the ground_restart at " + seconds(e.at_s) + " s would restart the "
+                               "station after the mission's max_s (" + seconds(mission.max_s) +
+                               " s)");
+        }
+        e.kind = MissionEvent::Kind::kGroundRestarted;
+        e.name = "ground_restarted";
+        e.at_s += e.duration_s;
+        mission.events.push_back(std::move(e));
+      }
     }
     std::stable_sort(mission.events.begin(), mission.events.end(),
                      [](const MissionEvent& a, const MissionEvent& b) { return a.at_s < b.at_s; });
+    // One station: a kill while it is down would have nothing to kill, and its restart would
+    // start a second one.
+    std::optional<double> down_since_s;
+    for (const MissionEvent& e : mission.events) {
+      if (e.kind == MissionEvent::Kind::kGroundKilled) {
+        if (down_since_s) {
+          return r.error("the ground_restart at " + seconds(e.at_s) + " s begins while the "
+                         "station killed at " + seconds(*down_since_s) + " s is still down");
+        }
+        down_since_s = e.at_s;
+      } else if (e.kind == MissionEvent::Kind::kGroundRestarted) {
+        down_since_s.reset();
+      }
+    }
   }
   return mission;
 }

@@ -178,6 +178,9 @@ TEST(Trajectory, RefusesBadInputsAndNamesThem) {
   TrajectoryParams gentle;
   gentle.max_accel_m_s2 = 25.0;
   EXPECT_EQ(gentle.validate().message(), "trajectory.max_accel_m_s2 must be in (0, 20] (got 25)");
+  TrajectoryParams smooth;
+  smooth.max_jerk_m_s3 = 0.0;
+  EXPECT_EQ(smooth.validate().message(), "trajectory.max_jerk_m_s3 must be in (0, 200] (got 0)");
 }
 
 TEST(Trajectory, OneSegmentIsTheClosedFormRestToRestMinimumSnap) {
@@ -289,7 +292,20 @@ TEST(Trajectory, AllocatedTimesKeepTheMaxAcceleration) {
   EXPECT_LT(peak_m_s, params.max_speed_m_s);
 }
 
-TEST(Trajectory, StraightLineFromRestToRestWithinBothLimits) {
+TEST(Trajectory, AllocatedTimesKeepTheMaxJerk) {
+  TrajectoryParams params;
+  params.max_speed_m_s = 5.0;  // speed and acceleration loose: the jerk is the tighter limit
+  params.max_accel_m_s2 = 20.0;
+  params.max_jerk_m_s3 = 10.0;
+  auto trajectory = Trajectory::minimumSnap(test::figureEightWaypoints(), params, 0.0);
+  ASSERT_TRUE(trajectory.ok());
+  double peak_m_s3 = 0.0;
+  for (double t_s = 0.0; t_s < trajectory->durationS(); t_s += 1e-3)
+    peak_m_s3 = std::max(peak_m_s3, trajectory->sample(t_s).j_world_m_s3.norm());
+  EXPECT_NEAR(peak_m_s3, params.max_jerk_m_s3, 0.01 * params.max_jerk_m_s3);
+}
+
+TEST(Trajectory, StraightLineFromRestToRestWithinItsLimits) {
   TrajectoryParams params;
   const Vector3d from(0, 0, -1), to(3, -4, -2);
   const StraightLine line(from, to, params, 0.4);
@@ -320,9 +336,15 @@ TEST(Trajectory, StraightLineFromRestToRestWithinBothLimits) {
     EXPECT_LT((a.j_world_m_s3 - b.j_world_m_s3).norm(), 1e-6) << t_s;
     EXPECT_EQ(a.yaw_rad, 0.4);
   }
-  // A short hop: the acceleration binds.
+  // A short hop: the jerk binds, and its peak is the limit, at mid-way.
   const StraightLine hop(from, from + Vector3d(0.05, 0, 0), params, 0.0);
-  EXPECT_NEAR(hop.durationS(), std::sqrt(7.513188404399289 * 0.05 / params.max_accel_m_s2), 1e-9);
+  EXPECT_NEAR(hop.durationS(), std::cbrt(52.5 * 0.05 / params.max_jerk_m_s3), 1e-9);
+  EXPECT_NEAR(hop.sample(0.5 * hop.durationS()).j_world_m_s3.norm(), params.max_jerk_m_s3, 1e-9);
+  // With room for jerk, the acceleration binds.
+  TrajectoryParams jerky = params;
+  jerky.max_jerk_m_s3 = 200.0;
+  const StraightLine quick(from, from + Vector3d(0.05, 0, 0), jerky, 0.0);
+  EXPECT_NEAR(quick.durationS(), std::sqrt(7.513188404399289 * 0.05 / jerky.max_accel_m_s2), 1e-9);
   // No distance, no time.
   EXPECT_EQ(StraightLine(to, to, params, 0.0).durationS(), 0.0);
   const PositionSetpoint held = Trajectory::hold(to, 1.0).sample(5.0);

@@ -74,6 +74,53 @@ TEST(Mission, AFileSaysWhatItsMissionDoes) {
   EXPECT_EQ(m.events[1].fraction, 0.8);
 }
 
+TEST(Mission, AGroundRestartIsAKillAndARestartForTheOrchestrator) {
+  StatusOr<Mission> parsed = parseMission(
+      "[[command]]\nat_s = 1\nkind = \"arm\"\n"
+      "[[event]]\nat_s = 10\nkind = \"ground_restart\"\nduration_s = 4\n"
+      "[[event]]\nat_s = 12\nkind = \"gust\"\namplitude_m_s = [1, 0, 0]\nduration_s = 0.5\n"
+      "[[event]]\nat_s = 20\nkind = \"ground_restart\"\nduration_s = 0\n",
+      "m.toml");
+  ASSERT_TRUE(parsed.ok()) << parsed.status().message();
+  const std::vector<MissionEvent>& e = parsed.value().events;
+  ASSERT_EQ(e.size(), 5u);
+  EXPECT_EQ(e[0].kind, MissionEvent::Kind::kGroundKilled);
+  EXPECT_EQ(e[0].name, "ground_killed");
+  EXPECT_EQ(e[0].at_s, 10.0);
+  EXPECT_EQ(e[1].kind, MissionEvent::Kind::kGust);
+  EXPECT_FALSE(e[1].orchestrated());
+  EXPECT_EQ(e[2].kind, MissionEvent::Kind::kGroundRestarted);
+  EXPECT_EQ(e[2].name, "ground_restarted");
+  EXPECT_EQ(e[2].at_s, 14.0);
+  // Down for no time: killed, then restarted, in that order.
+  EXPECT_EQ(e[3].kind, MissionEvent::Kind::kGroundKilled);
+  EXPECT_EQ(e[4].kind, MissionEvent::Kind::kGroundRestarted);
+  EXPECT_EQ(e[4].at_s, 20.0);
+  EXPECT_TRUE(e[0].orchestrated() && e[2].orchestrated());
+  EXPECT_EQ(parseMission("[[command]]\nat_s = 1\nkind = \"arm\"\n[[event]]\nat_s = 2\n"
+                         "kind = \"ground_restart\"\n",
+                         "m.toml")
+                .status()
+                .message(),
+            "m.toml:4: 'duration_s' is required here");
+  // One station: no kill while it is down, no restart after the mission's end.
+  EXPECT_EQ(parseMission("[[command]]\nat_s = 1\nkind = \"arm\"\n"
+                         "[[event]]\nat_s = 8\nkind = \"ground_restart\"\nduration_s = 3\n"
+                         "[[event]]\nat_s = 9\nkind = \"ground_restart\"\nduration_s = 0.5\n",
+                         "m.toml")
+                .status()
+                .message(),
+            "m.toml: the ground_restart at 9 s begins while the station killed at 8 s is still "
+            "down");
+  EXPECT_EQ(parseMission("[mission]\nmax_s = 20\n[[command]]\nat_s = 1\nkind = \"arm\"\n"
+                         "[[event]]\nat_s = 15\nkind = \"ground_restart\"\nduration_s = 5\n",
+                         "m.toml")
+                .status()
+                .message(),
+            "m.toml:6: the ground_restart at 15 s would restart the station after the mission's "
+            "max_s (20 s)");
+}
+
 TEST(Mission, MistakesAreNamedWithTheirLine) {
   const auto message = [](const std::string& text) {
     return parseMission(text, "m.toml").status().message();

@@ -11,6 +11,8 @@ import lcm
 import numpy as np
 import pytest
 from kinfly.flight_status_t import flight_status_t
+from kinfly.ground_truth_t import ground_truth_t
+from kinfly.pose3d_t import pose3d_t
 from kinfly.sim_state_t import sim_state_t
 from scipy.spatial.transform import Rotation
 
@@ -123,12 +125,19 @@ def test_the_map_is_placed_by_the_first_cameras_true_pose_and_scored(tmp_path: P
     in_map = (grid - T_scene_cam0[:3, 3]) @ T_scene_cam0[:3, :3]
     points = trimesh.Trimesh(vertices=in_map, faces=[[0, 1, 2]], process=False)
     points.export(tmp_path / "mesh.ply")
-    q = Rotation.from_matrix(T_scene_cam0[:3, :3]).as_quat()
-    (tmp_path / "trajectory_ground_truth.tum").write_text(
-        "0.966 0 0 0 0 0 0 1\n1.000 " + " ".join(f"{v:.9f}" for v in [*T_scene_cam0[:3, 3], *q])
-        + "\n")
+    # The simulator's truth in the log: a frame before the odometry's first (whose pose would
+    # put the map elsewhere), then that first one's.
+    log = lcm.EventLog(str(tmp_path / "flight.lcmlog"), "w", overwrite=True)
+    for utime, T in ((966_000, np.eye(4)), (1_000_000, T_scene_cam0)):
+        truth = ground_truth_t()
+        truth.utime, truth.vehicle_id = utime, VEHICLE
+        truth.T_world_cam = pose3d_t()
+        truth.T_world_cam.position_m = list(T[:3, 3])
+        truth.T_world_cam.orientation_xyzw = list(Rotation.from_matrix(T[:3, :3]).as_quat())
+        log.write_event(utime, f"KINFLY_{VEHICLE}_GROUND_TRUTH", truth.encode())
+    log.close()
     (tmp_path / "drone_trajectory.tum").write_text("# odometry\n1.000 0 0 0 0 0 0 1\n")
-    stats = sim_plots.map_accuracy(tmp_path)
+    stats = sim_plots.map_accuracy(tmp_path, VEHICLE)
     assert stats["points"] == len(grid)
     assert stats["mean_m"] == pytest.approx(0.003, abs=1e-6)
     assert stats["outlier_fraction"] == 0.0

@@ -62,7 +62,8 @@ Status checkWaypoints(const std::vector<Eigen::Vector3d>& waypoints_world_m) {
 Status TrajectoryParams::validate() const {
   return firstError(
       outOfRange("trajectory.max_speed_m_s", max_speed_m_s, 0.0, 20.0, Bound::kOpen),
-      outOfRange("trajectory.max_accel_m_s2", max_accel_m_s2, 0.0, 20.0, Bound::kOpen));
+      outOfRange("trajectory.max_accel_m_s2", max_accel_m_s2, 0.0, 20.0, Bound::kOpen),
+      outOfRange("trajectory.max_jerk_m_s3", max_jerk_m_s3, 0.0, 200.0, Bound::kOpen));
 }
 
 Trajectory::Trajectory(std::vector<Segment> segments, const Eigen::Vector3d& first_world_m,
@@ -175,7 +176,7 @@ StatusOr<Trajectory> Trajectory::minimumSnap(const std::vector<Eigen::Vector3d>&
   // Scaling every time by alpha gives p(t / alpha), the same shape (the cost scales as a whole
   // and the constraints are unchanged in normalised time) at 1 / alpha the speed and 1 / alpha^2
   // the acceleration.
-  double peak_m_s = 0.0, peak_m_s2 = 0.0;
+  double peak_m_s = 0.0, peak_m_s2 = 0.0, peak_m_s3 = 0.0;
   for (int i = 0; i < trajectory->segmentCount(); ++i) {
     const Segment& segment = trajectory->segments_[i];
     for (int j = 0; j <= kSpeedSamplesPerSegment; ++j) {
@@ -183,11 +184,13 @@ StatusOr<Trajectory> Trajectory::minimumSnap(const std::vector<Eigen::Vector3d>&
       const PositionSetpoint sp = trajectory->sample(t_s);
       peak_m_s = std::max(peak_m_s, sp.v_world_m_s.norm());
       peak_m_s2 = std::max(peak_m_s2, sp.a_world_m_s2.norm());
+      peak_m_s3 = std::max(peak_m_s3, sp.j_world_m_s3.norm());
     }
   }
   if (peak_m_s == 0.0) return Trajectory::hold(waypoints_world_m.front(), yaw_rad);
-  const double alpha = std::max(peak_m_s / params.max_speed_m_s,
-                                std::sqrt(peak_m_s2 / params.max_accel_m_s2));
+  const double alpha = std::max({peak_m_s / params.max_speed_m_s,
+                                 std::sqrt(peak_m_s2 / params.max_accel_m_s2),
+                                 std::cbrt(peak_m_s3 / params.max_jerk_m_s3)});
   std::vector<Segment> scaled = trajectory->segments_;
   for (Segment& segment : scaled) segment.duration_s *= alpha;
   return Trajectory(std::move(scaled), waypoints_world_m.front(), waypoints_world_m.back(),
@@ -243,6 +246,7 @@ namespace {
 // its peak curvature, at s = (5 - √5) / 10, 7.5132 (where the third derivative is zero).
 constexpr double kRestToRestPeakSpeed = 35.0 / 16.0;
 constexpr double kRestToRestPeakAccel = 7.513188404399289;
+constexpr double kRestToRestPeakJerk = 52.5;  // at s = 1/2
 
 std::array<double, 4> restToRest(double s) {
   const double s2 = s * s, s3 = s2 * s, s4 = s3 * s;
@@ -257,8 +261,9 @@ StraightLine::StraightLine(const Eigen::Vector3d& from_world_m, const Eigen::Vec
                            const TrajectoryParams& params, double yaw_rad)
     : from_world_m_(from_world_m), delta_m_(to_world_m - from_world_m), yaw_rad_(yaw_rad) {
   const double length_m = delta_m_.norm();
-  duration_s_ = std::max(kRestToRestPeakSpeed * length_m / params.max_speed_m_s,
-                         std::sqrt(kRestToRestPeakAccel * length_m / params.max_accel_m_s2));
+  duration_s_ = std::max({kRestToRestPeakSpeed * length_m / params.max_speed_m_s,
+                          std::sqrt(kRestToRestPeakAccel * length_m / params.max_accel_m_s2),
+                          std::cbrt(kRestToRestPeakJerk * length_m / params.max_jerk_m_s3)});
 }
 
 PositionSetpoint StraightLine::sample(double t_s) const {

@@ -26,16 +26,26 @@ struct MissionCommand {
 };
 
 struct MissionEvent {
-  enum class Kind { kWindStep, kGust, kVisionDropout, kImuBiasStep, kMotorLoss };
+  // kGroundKilled and kGroundRestarted come in pairs from one ground_restart in the file: the
+  // orchestrator that runs the ground station acts on them (MissionEvent::orchestrated).
+  enum class Kind {
+    kWindStep, kGust, kVisionDropout, kImuBiasStep, kMotorLoss, kGroundKilled, kGroundRestarted
+  };
   double at_s = 0.0;                                    // [s] simulation time
   Kind kind = Kind::kWindStep;
   Eigen::Vector3d vector = Eigen::Vector3d::Zero();     // wind [m/s], gust amplitude [m/s],
                                                         // gyro bias step [rad/s]
   Eigen::Vector3d accel_m_s2 = Eigen::Vector3d::Zero(); // accelerometer bias step
-  double duration_s = 0.0;                              // gust rise, dropout length
+  double duration_s = 0.0;                              // gust rise, dropout length, ground
+                                                        // down
   int rotor = 1;                                        // motor loss: 1..4 (PX4's order)
   double fraction = 1.0;                                // motor loss: what is left of its thrust
   std::string name;
+
+  // Not the world's to act on: scripts/sim.py kills and restarts the ground station.
+  bool orchestrated() const {
+    return kind == Kind::kGroundKilled || kind == Kind::kGroundRestarted;
+  }
 };
 
 struct Mission {

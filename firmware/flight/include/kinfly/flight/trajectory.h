@@ -27,6 +27,12 @@ struct TrajectoryParams {
   // the times by a scales it by 1 / a^2). PX4's MPC_ACC_HOR_MAX default; a descent reaches its
   // speed at this rate.
   double max_accel_m_s2 = 5.0;
+  // [m/s^3] (0, 200] ... or this peak jerk: the tilt the attitude loop is asked to follow turns
+  // at about jerk / g. Without it a hop of millimetres (a hold's setpoint to a mission's start)
+  // took 0.1 s at the full acceleration, a 27 degree tilt demanded and taken back within 50 ms,
+  // and the simulated drone tumbled 40 cm (docs/sim.md). 30 leaves the figure eights at 1 and
+  // 2 m/s (peaks 8 and 29 m/s^3) as they were.
+  double max_jerk_m_s3 = 30.0;
   Status validate() const;
 };
 
@@ -85,7 +91,8 @@ class Trajectory {
 // From rest at one point to rest at another along the straight line between them, in closed
 // form: the two-point minimum-snap polynomial p(s) = p0 + (p1 - p0) σ(s) with
 // σ(s) = 35 s^4 - 84 s^5 + 70 s^6 - 20 s^7, s = t / T, T the shortest time that keeps the peak
-// speed (35/16 |p1 - p0| / T) and acceleration (7.513 |p1 - p0| / T^2) within the params.
+// speed (35/16 |p1 - p0| / T), acceleration (7.513 |p1 - p0| / T^2) and jerk
+// (52.5 |p1 - p0| / T^3) within the params.
 // Made and sampled without allocating or solving: the flight modes start one inside the control
 // tick (take-off, go-to, the way to a mission's start).
 class StraightLine {

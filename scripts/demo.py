@@ -81,8 +81,9 @@ def fresh_output(out: Path) -> Path:
     return make_key(out / "vehicle.key")
 
 
-def ground_command(out: Path, *, key: Path | None, vehicle: int | None = VEHICLE_ID) -> list[str]:
-    command = [str(Path(sys.executable).parent / "kinfly-ground"), "run", "--lcm-url", LCM_URL,
+def ground_command(out: Path, *, key: Path | None, vehicle: int | None = VEHICLE_ID,
+                   lcm_url: str = LCM_URL) -> list[str]:
+    command = [str(Path(sys.executable).parent / "kinfly-ground"), "run", "--lcm-url", lcm_url,
                "--out", str(out)]
     if vehicle is not None:
         command += ["--vehicle", str(vehicle)]

@@ -64,6 +64,9 @@ class LinkShape:
     loss_run_packets: float = 1.0  # mean run of consecutive losses; 1: independent losses
     rate_kbit_s: float | None = None  # cap on all traffic through lo [kbit/s]; None: no cap
     queue_ms: float = 100.0  # [ms] the cap's queue holds before dropping; > 0
+    # Loss only for UDP datagrams to these ports (a unicast link beside a lossless local bus,
+    # scripts/sim.py); empty: every packet. The cap, if any, is for everything still.
+    udp_ports: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if not 576 <= self.mtu_bytes <= 65536:
@@ -84,6 +87,8 @@ class LinkShape:
             raise ValueError(f"LinkShape.rate_kbit_s={self.rate_kbit_s}: None or >= 64")
         if not self.queue_ms > 0:
             raise ValueError(f"LinkShape.queue_ms={self.queue_ms}: must be > 0")
+        if not all(0 < port < 65536 for port in self.udp_ports):
+            raise ValueError(f"LinkShape.udp_ports={self.udp_ports}: ports within 1..65535")
 
     @property
     def bursty(self) -> bool:
@@ -98,6 +103,8 @@ class LinkShape:
             parts.append(f"{self.rate_kbit_s:g} kbit/s ({self.queue_ms:g} ms queue)")
         if self.mtu_bytes != 1500:
             parts.append(f"MTU {self.mtu_bytes}")
+        if self.udp_ports:
+            parts.append(f"to UDP ports {', '.join(map(str, self.udp_ports))}")
         return ", ".join(parts)
 
     def nft_ruleset(self) -> str:
@@ -130,7 +137,11 @@ class LinkShape:
                 "meta mark 0x6b66 add @bad { iifname } meta mark set 0 counter name dropped drop",
                 "meta mark 0x6b66 meta mark set 0 counter name burst_refused",
             ]
-        body = "\n".join(f"    {rule}" for rule in ["counter name seen", *rules])
+        # Every IP fragment but the first lacks the UDP header: the ports' datagrams are kept
+        # below the MTU (the chunks are), so none is fragmented.
+        match = (f"udp dport {{ {', '.join(map(str, self.udp_ports))} }} "
+                 if self.udp_ports else "")
+        body = "\n".join(f"    {match}{rule}" for rule in ["counter name seen", *rules])
         return (f"table netdev {LINK_TABLE} {{\n"
                 "  counter seen {}\n  counter dropped {}\n  counter burst_refused {}\n"
                 f"{state}"
@@ -188,6 +199,19 @@ def link_counters(prefix: Sequence[str]) -> dict[str, int]:
         if "counter" in item:
             counts[item["counter"]["name"]] = item["counter"]["packets"]
     return counts
+
+
+def set_loss(prefix: Sequence[str], shape: LinkShape | None) -> None:
+    """Replaces the loss model of PREFIX's namespace (as network_namespace yields it) with
+    SHAPE's, or removes it (None): a link that turns lossy in flight, and back."""
+    root = as_root(prefix)
+    subprocess.run([*root, system_tool("nft"), "delete", "table", "netdev", LINK_TABLE],
+                   capture_output=True)  # none yet: nothing to delete
+    if shape is not None and (ruleset := shape.nft_ruleset()):
+        done = subprocess.run([*root, system_tool("nft"), "-f", "-"], input=ruleset,
+                              capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"nft: {done.stderr.strip()}")
 
 
 def _shape_link(root: list[str], shape: LinkShape) -> None:

@@ -4,14 +4,19 @@ kinfly-sim (the world: dynamics, wind, IMU, the depth camera rendered by Embree)
 kinfly-fw (depth over LCM, the motors backend, the IMU as its only clock) in lockstep, and
 kinfly-ground maps the keyframes and sends its corrections, each keyframe's before the drone's
 next frame (source.lockstep), so that a seed flies the same flight on any machine. lcm-logger
-records the flight. They talk LCM over UDP multicast in a private network namespace, as `make
-demo` does. The simulator flies its mission (the room tour unless told otherwise: take off, three
-go-tos, a figure eight, land) and the run succeeds only
-when the drone landed without a collision or a failsafe and the ground mapped what it was sent.
-Nothing waits a fixed time: each program's readiness and end are what the next step waits for.
-A mission's ground_restart is this script's to act on: kinfly-sim (--orchestrated) stops its clock
-at the kill and at the restart until told that it was done, so the ground is away for exactly the
-mission's simulated time.
+records the flight. They run in a private network namespace, as `make demo` does, in two
+parts as on a drone: the simulator and kinfly-fw share the drone's bus (LCM multicast: IMU, depth,
+rotor commands), and the drone and the ground station talk over the link, kinfly's UDP unicast
+peers (docs/wire.md, "Unicast on Wi-Fi"), each side on a multicast group of its own; the
+simulator sends the truth to the ground's bus too, as a motion-capture system would. The simulator
+flies its mission (the room tour unless told otherwise: take off, three go-tos, a figure eight,
+land) and the run succeeds only when the drone landed without a collision or a failsafe and the
+ground mapped what it was sent. Nothing waits a fixed time: each program's readiness and end are
+what the next step waits for. A mission's ground_restart and link_loss are this script's to act
+on: kinfly-sim (--orchestrated) stops its clock at each kill, restart, loss start and end until
+told that it was done, so each lasts exactly the mission's simulated time; the loss is an
+nftables rule on the link's two UDP ports alone (scripts/netns.py), so the drone's bus stays
+whole.
 
 Run with the project's .venv python (the Makefile does). Needs root or passwordless sudo for the
 namespace (docs/sim.md)."""
@@ -20,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -31,7 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, GROUND_READY_TIMEOUT_S,  # noqa: E402
                   LCM_URL, VEHICLE_ID, Watched, check_flight, fresh_output, ground_command,
                   list_outputs, report)
-from netns import NetnsUnavailable, kill_group, network_namespace, send_signal  # noqa: E402
+from netns import (LinkShape, NetnsUnavailable, kill_group, link_counters,  # noqa: E402
+                   network_namespace, send_signal, set_loss)
 from sim_plots import kinfly_eval, write as write_plots  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -40,10 +47,17 @@ ROOM_TOUR = REPO_ROOT / "sim" / "missions" / "room_tour.toml"
 HOVER = "hover"  # --mission: kinfly-sim's built-in take off, hold, land
 # kinfly-sim's words after an event it waits on this script for (kAwaitingOrchestrator).
 AWAITING = ": waiting for the orchestrator"
-# What lcm-logger records: everything but the raw depth frames (30 a second at VGA; the keyframes
-# that reached the ground are in their chunks).
+# The link: each side's UDP port for the other's unicast, and the ground's own LCM bus.
+DRONE_PEER_PORT, GROUND_PEER_PORT = 7668, 7669
+GROUND_LCM_URL = "udpm://239.255.76.68:7667?ttl=0"
+# What lcm-logger records on the drone's bus: everything but the raw depth frames (30 a second at
+# VGA; the keyframes that reached the ground are in their chunks) ...
 RECORDED = (f"KINFLY_{VEHICLE_ID}_(IMU|MOTOR_COMMAND|SIM_STATE|ODOMETRY|KEYFRAME_CHUNK|STATUS|"
-            "FLIGHT|GROUND_STATUS|CORRECTION|COMMAND|CHUNK_REQUEST|GROUND_TRUTH)")
+            "FLIGHT|COMMAND|GROUND_TRUTH)")
+# ... and on the ground's: what the ground station sent back.
+RECORDED_GROUND = f"KINFLY_{VEHICLE_ID}_(GROUND_STATUS|CORRECTION|CHUNK_REQUEST)"
+# The loss a mission's link_loss_started line asks for (kinfly-sim: "loss=0.2 run=4").
+LOSS_SHAPE = re.compile(r"loss=([0-9.e+-]+) run=([0-9.e+-]+)")
 OUTPUTS = {
     "sim_summary.json": "the simulator's figures: hover against truth, touchdown, collisions",
     "summary.json": "the ground station's: keyframes, corrections, ATE, memory",
@@ -52,7 +66,8 @@ OUTPUTS = {
     "trajectory_onboard.tum": "each keyframe's pose as the drone sent it",
     "trajectory_corrected.tum": "each keyframe's pose as the ground refined it",
     "trajectory_ground_truth.tum": "the simulator's true camera poses",
-    "flight.lcmlog": "the flight on LCM but the raw depth (kinfly-ground replay reads it)",
+    "flight.lcmlog": "the drone's bus but the raw depth (kinfly-ground replay reads it)",
+    "ground.lcmlog": "what the ground station sent back: corrections, status, repair requests",
     "tracking.png": "position and attitude: truth, the drone's estimate, its setpoint",
     "errors.png": "the estimate's and the tracking's errors against truth",
     "flight_errors.json": "their RMS while airborne",
@@ -72,7 +87,9 @@ class Ground:
     """kinfly-ground in the namespace, killed and restarted as the mission says."""
 
     def __init__(self, netns: list[str], out: Path, key: Path) -> None:
-        self.command = [*netns, *ground_command(out, key=key)]
+        self.command = [*netns, *ground_command(out, key=key, lcm_url=GROUND_LCM_URL),
+                        "--peer", f"127.0.0.1:{DRONE_PEER_PORT}", "--peer-port",
+                        str(GROUND_PEER_PORT)]
         self.out = out
         self.kills = 0
         self.current: Watched | None = None  # None while it is down
@@ -111,15 +128,6 @@ class Ground:
                                f"(kept as {kept.name}.partial): {made.stderr.strip()}")
         partial.unlink()
 
-    def act(self, line: str) -> None:
-        """What kinfly-sim's LINE asks for."""
-        if ": ground_killed" in line:
-            self.kill()
-        elif ": ground_restarted" in line:
-            self.start()
-        else:
-            raise RuntimeError(f"kinfly-sim waits for what sim.py cannot do: {line.strip()}")
-
     def stop(self) -> list[str]:
         """SIGTERM, as Ctrl-C: it writes its outputs. What went wrong, if anything."""
         if self.current is None:
@@ -131,12 +139,52 @@ class Ground:
         return []
 
 
+class Link:
+    """The drone-ground link's loss as the mission says: an nftables rule on its two UDP ports,
+    the drone's bus untouched."""
+
+    def __init__(self, netns: list[str]) -> None:
+        self.netns = netns
+        self.shape: LinkShape | None = None
+        self.losses: list[str] = []  # what each loss did
+
+    def start(self, line: str) -> None:
+        shape = LOSS_SHAPE.search(line)
+        if shape is None:
+            raise RuntimeError(f"kinfly-sim's link loss says no shape: {line.strip()}")
+        self.shape = LinkShape(loss=float(shape[1]), loss_run_packets=float(shape[2]),
+                               udp_ports=(DRONE_PEER_PORT, GROUND_PEER_PORT))
+        set_loss(self.netns, self.shape)
+
+    def end(self, line: str) -> None:
+        counts = link_counters(self.netns)
+        set_loss(self.netns, None)
+        label = self.shape.label() if self.shape else "?"
+        self.losses.append(f"{label}: {counts['dropped']} of {counts['seen']} datagrams dropped "
+                           f"(until {line.split(': ')[1]})")
+        self.shape = None
+
+
+def act(line: str, ground: Ground, link: Link) -> None:
+    """What kinfly-sim's LINE asks for."""
+    for event, action in ((": ground_killed", lambda: ground.kill()),
+                          (": ground_restarted", lambda: ground.start()),
+                          (": link_loss_started", lambda: link.start(line)),
+                          (": link_loss_ended", lambda: link.end(line))):
+        if event in line:
+            action()
+            return
+    raise RuntimeError(f"kinfly-sim waits for what sim.py cannot do: {line.strip()}")
+
+
 def drone_command(key: Path, out: Path, camera_downsample: int) -> list[str]:
     """kinfly-fw for the simulated Kinect at 1/CAMERA_DOWNSAMPLE of 640x480: its odometry at
     320x240 (the configuration's downsample of VGA), or at the camera's size when smaller."""
     width, height = 640 // camera_downsample, 480 // camera_downsample
     return [str(BUILD / "kinfly-fw"), "--config", str(FW_CONFIG), "--vehicle.id", str(VEHICLE_ID),
             "--source.width", str(width), "--source.height", str(height),
+            "--link.peers", f"127.0.0.1:{GROUND_PEER_PORT}", "--link.peer_port",
+            str(DRONE_PEER_PORT),
             "--odometry.downsample", str(max(1, 2 // camera_downsample)),
             "--vehicle.key_file", str(key), "--link.lcm_url", LCM_URL, "--source.kind", "lcm",
             "--source.realtime", "false", "--source.lockstep", "true", "--flight.backend", "motors",
@@ -149,11 +197,12 @@ def sim_command(key: Path, out: Path, args: argparse.Namespace) -> list[str]:
             "--lcm-url", LCM_URL, "--scene", args.scene, "--seed", str(args.seed),
             "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
             "--summary", str(out / "sim_summary.json"), "--scene-mesh", str(out / "scene.ply"),
-            "--orchestrated", *([] if args.mission == HOVER else ["--mission", str(args.mission)])]
+            "--truth-lcm-url", GROUND_LCM_URL, "--orchestrated",
+            *([] if args.mission == HOVER else ["--mission", str(args.mission)])]
 
 
 def stop_all(sim: Watched | None, drone: Watched | None, ground: Ground | None,
-             logger: subprocess.Popen) -> list[str]:
+             loggers: list[subprocess.Popen]) -> list[str]:
     """Ends every program, each whatever happened to the others (a simulator still running is
     stopped by a failure here): what went wrong."""
     def stop_sim() -> list[str]:
@@ -169,15 +218,17 @@ def stop_all(sim: Watched | None, drone: Watched | None, ground: Ground | None,
         rc = drone.finish(DRONE_EXIT_TIMEOUT_S)
         return [f"kinfly-fw exited {rc}"] if rc != 0 else []
 
-    def stop_logger() -> list[str]:
-        send_signal(logger, signal.SIGINT)
-        logger.wait(10)
+    def stop_loggers() -> list[str]:
+        for logger in loggers:
+            send_signal(logger, signal.SIGINT)
+        for logger in loggers:
+            logger.wait(10)
         return []
 
     steps: list[tuple[str, Callable[[], list[str]]]] = [
         ("kinfly-sim", stop_sim), ("kinfly-fw", stop_drone),
         ("kinfly-ground", ground.stop if ground is not None else lambda: []),
-        ("lcm-logger", stop_logger)]
+        ("lcm-logger", stop_loggers)]
     problems = []
     for name, step in steps:
         try:
@@ -224,7 +275,12 @@ def main() -> int:
             logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", LCM_URL,
                                        "--channel", RECORDED, str(out / "flight.lcmlog")],
                                       stdout=subprocess.DEVNULL, start_new_session=True)
+            ground_logger = subprocess.Popen(
+                [*netns, "lcm-logger", "--quiet", "--lcm-url", GROUND_LCM_URL, "--channel",
+                 RECORDED_GROUND, str(out / "ground.lcmlog")],
+                stdout=subprocess.DEVNULL, start_new_session=True)
             ground = drone = sim = None
+            link = Link(netns)
             try:
                 ground = Ground(netns, out, key)
                 drone = Watched([*netns, *drone_command(key, out, args.camera_downsample)],
@@ -234,16 +290,16 @@ def main() -> int:
                 acted = 0
                 while sim.wait_for(AWAITING, acted + 1, math.inf):
                     asked = [line for line in sim.output().splitlines() if AWAITING in line]
-                    ground.act(asked[acted])
+                    act(asked[acted], ground, link)
                     sim.answer()
                     acted += 1
                 sim_rc = sim.finish(None)
                 if sim_rc != 0:
                     problems.append(f"kinfly-sim exited {sim_rc}: the flight failed (above)")
-            except (RuntimeError, OSError, subprocess.TimeoutExpired) as error:
+            except (RuntimeError, ValueError, OSError, subprocess.TimeoutExpired) as error:
                 problems.append(f"{type(error).__name__}: {error}")
             finally:
-                problems += stop_all(sim, drone, ground, logger)
+                problems += stop_all(sim, drone, ground, [logger, ground_logger])
     except NetnsUnavailable as error:
         print(f"sim: {error}", file=sys.stderr)
         return 1
@@ -262,6 +318,10 @@ def main() -> int:
               for n in range(1, kills + 1)}
     print(f"\nsim: {time.monotonic() - started:.0f} s; files in {out}:\n"
           f"{list_outputs(out, {**OUTPUTS, **killed})}")
+    for loss in link.losses:
+        print(f"sim: link loss, {loss}")
+    if link.shape is not None:
+        print(f"sim: link loss, {link.shape.label()}: still on when the flight ended")
     if kills and ground is not None and ground.current is not None:
         print(f"sim: the ground station was killed and restarted {kills} time(s); the last one "
               f"heard the drone from keyframe {missed} on, and its "

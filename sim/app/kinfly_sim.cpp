@@ -62,6 +62,7 @@ struct Options {
   uint64_t seed = 1;
   int vehicle_id = 1;
   std::string lcm_url;
+  std::string truth_lcm_url;  // also ground_truth_t there (empty: only on lcm_url)
   std::string key_file;
   std::string mission_file;
   bool realtime = false;
@@ -293,9 +294,10 @@ int run(const Options& o) {
   for (const MissionEvent& e : mission.events) {
     if (e.orchestrated() && !o.orchestrated) {
       std::fprintf(stderr,
-                   "kinfly-sim: --mission: the ground_restart at %.1f s needs the program that "
-                   "runs the ground station to act on it: fly this mission with scripts/sim.py "
-                   "(which passes --orchestrated)\n",
+                   "kinfly-sim: --mission: the %s at %.1f s needs the program that runs the "
+                   "ground station and the network to act on it: fly this mission with "
+                   "scripts/sim.py (which passes --orchestrated)\n",
+                   e.kind == MissionEvent::Kind::kGroundKilled ? "ground_restart" : "link_loss",
                    e.at_s);
       return 2;
     }
@@ -317,6 +319,13 @@ int run(const Options& o) {
   }
   Link link_io(o, &lcm);
   Answers& answers = link_io.answers();
+  // Beside the drone's bus, as a motion-capture system sends the truth to the ground station.
+  std::optional<lcm::LCM> truth_lcm;
+  if (!o.truth_lcm_url.empty() && !truth_lcm.emplace(o.truth_lcm_url).good()) {
+    std::fprintf(stderr, "kinfly-sim: --truth-lcm-url: cannot start LCM on '%s'\n",
+                 o.truth_lcm_url.c_str());
+    return 1;
+  }
 
   Multirotor drone(vehicle_params);
   drone.placeOnFloor(scene.value().start_xy_m, scene.value().start_yaw_rad,
@@ -440,10 +449,17 @@ int run(const Options& o) {
         case MissionEvent::Kind::kImuBiasStep: imu.stepBias(e.vector, e.accel_m_s2); break;
         case MissionEvent::Kind::kMotorLoss: drone.setRotorEfficiency(e.rotor - 1, e.fraction); break;
         case MissionEvent::Kind::kGroundKilled:
-        case MissionEvent::Kind::kGroundRestarted: break;  // the orchestrator's, below
+        case MissionEvent::Kind::kGroundRestarted:
+        case MissionEvent::Kind::kLinkLossStarted:
+        case MissionEvent::Kind::kLinkLossEnded: break;  // the orchestrator's, below
       }
       flight.events.emplace_back(t_s, e.name);
-      std::printf("kinfly-sim: t=%.2f s: %s%s\n", t_s, e.name.c_str(),
+      // The loss's shape in words scripts/sim.py reads: "loss=0.2 run=4".
+      const std::string shape =
+          e.kind == MissionEvent::Kind::kLinkLossStarted
+              ? " loss=" + std::to_string(e.fraction) + " run=" + std::to_string(e.loss_run_packets)
+              : std::string();
+      std::printf("kinfly-sim: t=%.2f s: %s%s%s\n", t_s, e.name.c_str(), shape.c_str(),
                   e.orchestrated() ? kAwaitingOrchestrator : "");
       std::fflush(stdout);
       // Simulation time stands still while the orchestrator acts, so the ground is down for
@@ -486,6 +502,7 @@ int run(const Options& o) {
       pending.push_back(std::move(p));
       link::fillGroundTruth(utime, T_world_cam, &truth_msg);
       lcm.publish(truth_channel, &truth_msg);
+      if (truth_lcm) truth_lcm->publish(truth_channel, &truth_msg);
       ++flight.frames;
       next_frame_us += frame_period_us;
     }
@@ -684,10 +701,14 @@ int main(int argc, char** argv) {
                  "off, hold --hover-s, land");
   app.add_flag("--realtime", o.realtime, "pace simulation time to the wall clock, for watching");
   app.add_flag("--orchestrated", o.orchestrated,
-               "a program that runs the ground station (scripts/sim.py) acts on the mission's "
-               "ground_restart: at each kill and restart kinfly-sim prints 'kinfly-sim: t=T s: "
-               "ground_killed: waiting for the orchestrator' (or ground_restarted) and waits for a "
-               "line on standard input; without it such a mission is refused");
+               "a program that runs the ground station and the network (scripts/sim.py) acts on "
+               "the mission's ground_restart and link_loss: at each kill, restart, loss start and "
+               "end kinfly-sim prints 'kinfly-sim: t=T s: ground_killed: waiting for the "
+               "orchestrator' (ground_restarted, link_loss_started loss=F run=N, link_loss_ended) "
+               "and waits for a line on standard input; without it such a mission is refused");
+  app.add_option("--truth-lcm-url", o.truth_lcm_url,
+                 "also send each frame's true camera pose (ground_truth_t) on this LCM, as a "
+                 "motion-capture system would to the ground station (empty: --lcm-url only)");
   app.add_option("--max-seconds", o.max_seconds,
                  "simulated seconds at most [0, 86400]; 0: the mission's max_s")
       ->capture_default_str();

@@ -168,7 +168,7 @@ StatusOr<MissionEvent> readEvent(const Reader& r, const toml::table& t) {
   MissionEvent e;
   const std::optional<std::string> kind = t["kind"].value<std::string>();
   if (!kind) return r.error(t, "an event needs a kind (wind_step, gust, vision_dropout, "
-                               "imu_bias_step, motor_loss, ground_restart)");
+                               "imu_bias_step, motor_loss, ground_restart, link_loss)");
   e.name = *kind;
   KINFLY_TRY_ASSIGN(e.at_s, r.number(t, "at_s", 0.0, kMaxTimeS));
   if (*kind == "wind_step") {
@@ -207,9 +207,30 @@ StatusOr<MissionEvent> readEvent(const Reader& r, const toml::table& t) {
     e.name = "ground_killed";
     if (Status s = r.onlyKnown(t, {"kind", "at_s", "duration_s"}, *kind); !s.ok()) return s;
     KINFLY_TRY_ASSIGN(e.duration_s, r.number(t, "duration_s", 0.0, 3600.0));
+  } else if (*kind == "link_loss") {
+    // The loader adds its end, duration_s later. The range is scripts/netns.py's LinkShape's.
+    e.kind = MissionEvent::Kind::kLinkLossStarted;
+    e.name = "link_loss_started";
+    if (Status s = r.onlyKnown(t, {"kind", "at_s", "duration_s", "fraction", "loss_run_packets"},
+                               *kind);
+        !s.ok())
+      return s;
+    KINFLY_TRY_ASSIGN(e.duration_s, r.number(t, "duration_s", 0.0, 3600.0));
+    KINFLY_TRY_ASSIGN(e.fraction, r.number(t, "fraction", 1e-6, 0.9));
+    KINFLY_TRY_ASSIGN(e.loss_run_packets,
+                      r.number(t, "loss_run_packets", 1.0, 1000.0, 1.0));
+    // Independent losses already run 1 / (1 - fraction) on average: shorter would make losses
+    // avoid each other (scripts/netns.py, LinkShape).
+    const double independent_run = 1.0 / (1.0 - e.fraction);
+    if (e.loss_run_packets != 1.0 && e.loss_run_packets < independent_run) {
+      return r.error(*t.get("loss_run_packets"),
+                     "'loss_run_packets' must be 1 (independent losses) or at least " +
+                         seconds(independent_run) + " (1 / (1 - fraction))");
+    }
   } else {
     return r.error(t, "unknown event kind '" + *kind + "' (known: wind_step, gust, "
-                      "vision_dropout, imu_bias_step, motor_loss, ground_restart)");
+                      "vision_dropout, imu_bias_step, motor_loss, ground_restart, "
+                      "link_loss)");
   }
   return e;
 }
@@ -290,33 +311,39 @@ StatusOr<Mission> parseMission(std::string_view text, const std::string& source)
       MissionEvent e;
       KINFLY_TRY_ASSIGN(e, readEvent(r, *table));
       mission.events.push_back(e);
-      if (e.kind == MissionEvent::Kind::kGroundKilled) {
+      const bool restart = e.kind == MissionEvent::Kind::kGroundKilled;
+      if (restart || e.kind == MissionEvent::Kind::kLinkLossStarted) {
+        const std::string what = restart ? "ground_restart" : "link_loss";
         if (e.at_s + e.duration_s >= mission.max_s) {
-          return r.error(node, "the ground_restart at " + seconds(e.at_s) + " s would restart the "
-                               "station after the mission's max_s (" + seconds(mission.max_s) +
-                               " s)");
+          return r.error(node, "the " + what + " at " + seconds(e.at_s) + " s would end after "
+                               "the mission's max_s (" + seconds(mission.max_s) + " s)");
         }
-        e.kind = MissionEvent::Kind::kGroundRestarted;
-        e.name = "ground_restarted";
+        e.kind = restart ? MissionEvent::Kind::kGroundRestarted
+                         : MissionEvent::Kind::kLinkLossEnded;
+        e.name = restart ? "ground_restarted" : "link_loss_ended";
         e.at_s += e.duration_s;
         mission.events.push_back(std::move(e));
       }
     }
     std::stable_sort(mission.events.begin(), mission.events.end(),
                      [](const MissionEvent& a, const MissionEvent& b) { return a.at_s < b.at_s; });
-    // One station: a kill while it is down would have nothing to kill, and its restart would
-    // start a second one.
-    std::optional<double> down_since_s;
+    // One station and one link: a kill while it is down would have nothing to kill and its
+    // restart would start a second one; two losses at once would be one rule replacing another.
+    std::optional<double> down_since_s, lossy_since_s;
     for (const MissionEvent& e : mission.events) {
-      if (e.kind == MissionEvent::Kind::kGroundKilled) {
-        if (down_since_s) {
-          return r.error("the ground_restart at " + seconds(e.at_s) + " s begins while the "
-                         "station killed at " + seconds(*down_since_s) + " s is still down");
-        }
-        down_since_s = e.at_s;
-      } else if (e.kind == MissionEvent::Kind::kGroundRestarted) {
-        down_since_s.reset();
+      using Kind = MissionEvent::Kind;
+      if (e.kind == Kind::kGroundKilled && down_since_s) {
+        return r.error("the ground_restart at " + seconds(e.at_s) + " s begins while the "
+                       "station killed at " + seconds(*down_since_s) + " s is still down");
       }
+      if (e.kind == Kind::kLinkLossStarted && lossy_since_s) {
+        return r.error("the link_loss at " + seconds(e.at_s) + " s begins while the one from " +
+                       seconds(*lossy_since_s) + " s goes on");
+      }
+      if (e.kind == Kind::kGroundKilled) down_since_s = e.at_s;
+      if (e.kind == Kind::kGroundRestarted) down_since_s.reset();
+      if (e.kind == Kind::kLinkLossStarted) lossy_since_s = e.at_s;
+      if (e.kind == Kind::kLinkLossEnded) lossy_since_s.reset();
     }
   }
   return mission;

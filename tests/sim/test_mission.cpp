@@ -117,8 +117,35 @@ TEST(Mission, AGroundRestartIsAKillAndARestartForTheOrchestrator) {
                          "m.toml")
                 .status()
                 .message(),
-            "m.toml:6: the ground_restart at 15 s would restart the station after the mission's "
-            "max_s (20 s)");
+            "m.toml:6: the ground_restart at 15 s would end after the mission's max_s (20 s)");
+}
+
+TEST(Mission, ALinkLossStartsAndEndsForTheOrchestrator) {
+  StatusOr<Mission> parsed = parseMission(
+      "[[command]]\nat_s = 1\nkind = \"arm\"\n"
+      "[[event]]\nat_s = 10\nkind = \"link_loss\"\nduration_s = 5\nfraction = 0.2\n"
+      "loss_run_packets = 4\n",
+      "m.toml");
+  ASSERT_TRUE(parsed.ok()) << parsed.status().message();
+  const std::vector<MissionEvent>& e = parsed.value().events;
+  ASSERT_EQ(e.size(), 2u);
+  EXPECT_EQ(e[0].kind, MissionEvent::Kind::kLinkLossStarted);
+  EXPECT_EQ(e[0].name, "link_loss_started");
+  EXPECT_EQ(e[0].fraction, 0.2);
+  EXPECT_EQ(e[0].loss_run_packets, 4.0);
+  EXPECT_EQ(e[1].kind, MissionEvent::Kind::kLinkLossEnded);
+  EXPECT_EQ(e[1].at_s, 15.0);
+  EXPECT_TRUE(e[0].orchestrated() && e[1].orchestrated());
+  const auto message = [](const std::string& events) {
+    return parseMission("[[command]]\nat_s = 1\nkind = \"arm\"\n" + events, "m.toml")
+        .status()
+        .message();
+  };
+  EXPECT_EQ(message("[[event]]\nat_s = 2\nkind = \"link_loss\"\nduration_s = 1\nfraction = 1\n"),
+            "m.toml:8: 'fraction' must be a number in [1e-06, 0.9]");
+  EXPECT_EQ(message("[[event]]\nat_s = 2\nkind = \"link_loss\"\nduration_s = 5\nfraction = 0.1\n"
+                    "[[event]]\nat_s = 4\nkind = \"link_loss\"\nduration_s = 1\nfraction = 0.5\n"),
+            "m.toml: the link_loss at 4 s begins while the one from 2 s goes on");
 }
 
 TEST(Mission, MistakesAreNamedWithTheirLine) {

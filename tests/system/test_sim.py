@@ -47,18 +47,27 @@ height_m = 1.0
 """
 RESTART_MISSION = """\
 [mission]
-name = "ground restart"
+name = "ground restart, link loss"
 max_s = 30
 """ + TAKE_OFF + """
 [[command]]
-at_s = 14.0
+at_s = 16.0
 kind = "land"
 
 [[event]]
 at_s = 8.0
 kind = "ground_restart"
 duration_s = 1.0
+
+[[event]]
+at_s = 11.0
+kind = "link_loss"
+duration_s = 3.0
+fraction = 0.2
+loss_run_packets = 3
 """
+LINK_LOSS_LINE = re.compile(r"sim: link loss, 20% loss, runs of 3, to UDP ports 7668, 7669: "
+                            r"(\d+) of (\d+) datagrams dropped")
 # What differs between two flights of one seed: how long they took on the wall clock.
 WALL_CLOCK_FIELDS = {"wall_s", "real_time_factor"}
 
@@ -229,7 +238,7 @@ def test_a_ground_restart_needs_an_orchestrator(tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=60)
     assert sim.returncode == 2, sim.stderr
     assert ("--mission: the ground_restart at 5.0 s needs the program that runs the ground "
-            "station to act on it" in sim.stderr), sim.stderr
+            "station and the network to act on it" in sim.stderr), sim.stderr
 
 
 def run_sim_py(*args: object) -> tuple[int, str, str]:
@@ -247,19 +256,21 @@ def run_sim_py(*args: object) -> tuple[int, str, str]:
 
 
 # `netns` for its rule (skipped without root or sudo, failed under CI); sim.py makes its own.
-def test_sim_py_flies_through_a_ground_station_killed_and_restarted(netns: list[str],
-                                                                     tmp_path: Path) -> None:
+def test_sim_py_flies_through_a_ground_restart_and_link_loss(netns: list[str],
+                                                             tmp_path: Path) -> None:
     """scripts/sim.py, as `make sim` runs it, with the ground station killed (SIGKILL) in the
-    hover and restarted a simulated second later: the drone lands without a failsafe; it waited
-    for the dead station once, then not until the new one answered; the new station mapped every
-    keyframe from the first it heard; the killed one's recording is kept, whole."""
+    hover and restarted a simulated second later, then 3 s of the link losing a fifth of its
+    datagrams in runs: the drone lands without a failsafe; it waited for the dead station once,
+    then not until the new one was heard; the new station mapped every keyframe from the first
+    it heard, those sent through the loss too; the killed one's recording is kept, whole."""
     mission = tmp_path / "restart.toml"
     mission.write_text(RESTART_MISSION)
     out = tmp_path / "out"
     rc, stdout, stderr = run_sim_py("--mission", mission, "--out", out, "--camera-downsample", 2)
     assert rc == 0, (stdout[-6000:], stderr[-3000:])
     sim = json.loads((out / "sim_summary.json").read_text())
-    assert [name for _, name in sim["events"]] == ["ground_killed", "ground_restarted"]
+    assert [name for _, name in sim["events"]] == ["ground_killed", "ground_restarted",
+                                                   "link_loss_started", "link_loss_ended"]
     assert sim["landed"] and not sim["collided"] and sim["failsafes"] == 0, sim
     vehicle = json.loads((out / "summary.json").read_text())["vehicles"][str(SIM_PY_VEHICLE)]
     first, kf = vehicle["first_keyframe_id"], vehicle["keyframes"]
@@ -267,6 +278,9 @@ def test_sim_py_flies_through_a_ground_station_killed_and_restarted(netns: list[
     assert kf["keyframes_fused"] == vehicle["drone_reported"]["keyframes_sent"] - first, vehicle
     assert stdout.count("no answer from the ground station") == 1, stdout[-6000:]
     assert "the ground station is heard again" in stdout
+    loss = LINK_LOSS_LINE.search(stdout)
+    assert loss is not None, stdout[-3000:]
+    assert 0 < int(loss[1]) < int(loss[2])  # the rule dropped some of the link's datagrams
     verified = subprocess.run([Path(sys.executable).parent / "rerun", "rrd", "verify",
                                out / "session_until_kill_1.rrd"], capture_output=True, text=True)
     assert verified.returncode == 0, verified.stderr

@@ -26,10 +26,12 @@ struct MissionCommand {
 };
 
 struct MissionEvent {
-  // kGroundKilled and kGroundRestarted come in pairs from one ground_restart in the file: the
-  // orchestrator that runs the ground station acts on them (MissionEvent::orchestrated).
+  // kGroundKilled and kGroundRestarted come in pairs from one ground_restart in the file,
+  // kLinkLossStarted and kLinkLossEnded from one link_loss: the orchestrator that runs the
+  // ground station and the network acts on them (MissionEvent::orchestrated).
   enum class Kind {
-    kWindStep, kGust, kVisionDropout, kImuBiasStep, kMotorLoss, kGroundKilled, kGroundRestarted
+    kWindStep, kGust, kVisionDropout, kImuBiasStep, kMotorLoss, kGroundKilled, kGroundRestarted,
+    kLinkLossStarted, kLinkLossEnded
   };
   double at_s = 0.0;                                    // [s] simulation time
   Kind kind = Kind::kWindStep;
@@ -37,14 +39,18 @@ struct MissionEvent {
                                                         // gyro bias step [rad/s]
   Eigen::Vector3d accel_m_s2 = Eigen::Vector3d::Zero(); // accelerometer bias step
   double duration_s = 0.0;                              // gust rise, dropout length, ground
-                                                        // down
+                                                        // down, link loss length
   int rotor = 1;                                        // motor loss: 1..4 (PX4's order)
-  double fraction = 1.0;                                // motor loss: what is left of its thrust
+  double fraction = 1.0;                                // motor loss: what is left of its
+                                                        // thrust; link loss: packets lost
+  double loss_run_packets = 1.0;                        // link loss: mean run of losses
   std::string name;
 
-  // Not the world's to act on: scripts/sim.py kills and restarts the ground station.
+  // Not the world's to act on: scripts/sim.py kills and restarts the ground station, and
+  // shapes the link.
   bool orchestrated() const {
-    return kind == Kind::kGroundKilled || kind == Kind::kGroundRestarted;
+    return kind == Kind::kGroundKilled || kind == Kind::kGroundRestarted ||
+           kind == Kind::kLinkLossStarted || kind == Kind::kLinkLossEnded;
   }
 };
 

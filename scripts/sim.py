@@ -1,22 +1,22 @@
 """`make sim`: the drone flown in the simulated room through the real programs.
 
 kinfly-sim (the world: dynamics, wind, IMU, the depth camera rendered by Embree) drives the native
-kinfly-fw (depth over LCM, the motors backend, the IMU as its only clock) in lockstep, and
-kinfly-ground maps the keyframes and sends its corrections, each keyframe's before the drone's
-next frame (source.lockstep), so that a seed flies the same flight on any machine. lcm-logger
-records the flight. They run in a private network namespace, as `make demo` does, in two
-parts as on a drone: the simulator and kinfly-fw share the drone's bus (LCM multicast: IMU, depth,
-rotor commands), and the drone and the ground station talk over the link, kinfly's UDP unicast
-peers (docs/wire.md, "Unicast on Wi-Fi"), each side on a multicast group of its own; the
-simulator sends the truth to the ground's bus too, as a motion-capture system would. The simulator
-flies its mission (the room tour unless told otherwise: take off, three go-tos, a figure eight,
-land) and the run succeeds only when the drone landed without a collision or a failsafe and the
-ground mapped what it was sent. Nothing waits a fixed time: each program's readiness and end are
-what the next step waits for. A mission's ground_restart and link_loss are this script's to act
-on: kinfly-sim (--orchestrated) stops its clock at each kill, restart, loss start and end until
-told that it was done, so each lasts exactly the mission's simulated time; the loss is an
-nftables rule on the link's two UDP ports alone (scripts/netns.py), so the drone's bus stays
-whole.
+kinfly-fw (depth over LCM, the motors backend, the IMU as its only clock) in lockstep, and kinfly-
+ground maps the keyframes and sends its corrections, each keyframe's before the drone's next frame
+(source.lockstep), so that a seed flies the same flight on any machine (but for a link loss, whose
+nftables rule draws its own random numbers). Two lcm-loggers record the flight. They run in a
+private network namespace, as `make demo` does, in two parts as on a drone: the simulator and
+kinfly-fw share the drone's bus (LCM multicast: IMU, depth, rotor commands), and the drone and the
+ground station talk over the link, kinfly's UDP unicast peers (docs/wire.md, "Unicast on Wi-Fi"),
+each side on a multicast group and port of its own; the simulator sends the truth to the ground's
+bus too, as a motion-capture system would. The simulator flies its mission (the room tour unless
+told otherwise: take off, three go-tos, a figure eight, land) and the run succeeds only when the
+drone landed without a collision or a failsafe and the ground mapped what it was sent. Nothing
+waits a fixed time: each program's readiness and end are what the next step waits for. A mission's
+ground_restart and link_loss are this script's to act on: kinfly-sim (--orchestrated) stops its
+clock at each kill, restart, loss start and end until told that it was done, so each lasts exactly
+the mission's simulated time; the loss is an nftables rule on the link's two UDP ports alone
+(scripts/netns.py), so the drone's bus stays whole.
 
 Run with the project's .venv python (the Makefile does). Needs root or passwordless sudo for the
 namespace (docs/sim.md)."""
@@ -47,9 +47,11 @@ ROOM_TOUR = REPO_ROOT / "sim" / "missions" / "room_tour.toml"
 HOVER = "hover"  # --mission: kinfly-sim's built-in take off, hold, land
 # kinfly-sim's words after an event it waits on this script for (kAwaitingOrchestrator).
 AWAITING = ": waiting for the orchestrator"
-# The link: each side's UDP port for the other's unicast, and the ground's own LCM bus.
+# The link: each side's UDP port for the other's unicast, and the ground's own LCM bus, on a
+# port of its own: Debian's liblcm (kinfly-fw, kinfly-sim, lcm-logger) hears every group on its
+# port, so a group apart on the same port would leak the ground's messages onto the drone's bus.
 DRONE_PEER_PORT, GROUND_PEER_PORT = 7668, 7669
-GROUND_LCM_URL = "udpm://239.255.76.68:7667?ttl=0"
+GROUND_LCM_URL = "udpm://239.255.76.68:7670?ttl=0"
 # What lcm-logger records on the drone's bus: everything but the raw depth frames (30 a second at
 # VGA; the keyframes that reached the ground are in their chunks) ...
 RECORDED = (f"KINFLY_{VEHICLE_ID}_(IMU|MOTOR_COMMAND|SIM_STATE|ODOMETRY|KEYFRAME_CHUNK|STATUS|"
@@ -157,11 +159,20 @@ class Link:
         set_loss(self.netns, self.shape)
 
     def end(self, line: str) -> None:
+        self._end(f"until {line.split(': ')[1]}")
+
+    def lift(self) -> None:
+        """Ends a loss the flight outlived (it landed before the loss's end): the programs' last
+        words then cross a whole link."""
+        if self.shape is not None:
+            self._end("lifted when the flight ended before the loss did")
+
+    def _end(self, until: str) -> None:
         counts = link_counters(self.netns)
         set_loss(self.netns, None)
         label = self.shape.label() if self.shape else "?"
         self.losses.append(f"{label}: {counts['dropped']} of {counts['seen']} datagrams dropped "
-                           f"(until {line.split(': ')[1]})")
+                           f"({until})")
         self.shape = None
 
 
@@ -294,6 +305,7 @@ def main() -> int:
                     sim.answer()
                     acted += 1
                 sim_rc = sim.finish(None)
+                link.lift()
                 if sim_rc != 0:
                     problems.append(f"kinfly-sim exited {sim_rc}: the flight failed (above)")
             except (RuntimeError, ValueError, OSError, subprocess.TimeoutExpired) as error:
@@ -320,8 +332,6 @@ def main() -> int:
           f"{list_outputs(out, {**OUTPUTS, **killed})}")
     for loss in link.losses:
         print(f"sim: link loss, {loss}")
-    if link.shape is not None:
-        print(f"sim: link loss, {link.shape.label()}: still on when the flight ended")
     if kills and ground is not None and ground.current is not None:
         print(f"sim: the ground station was killed and restarted {kills} time(s); the last one "
               f"heard the drone from keyframe {missed} on, and its "

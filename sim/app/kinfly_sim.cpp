@@ -454,12 +454,14 @@ int run(const Options& o) {
         case MissionEvent::Kind::kLinkLossEnded: break;  // the orchestrator's, below
       }
       flight.events.emplace_back(t_s, e.name);
-      // The loss's shape in words scripts/sim.py reads: "loss=0.2 run=4".
-      const std::string shape =
-          e.kind == MissionEvent::Kind::kLinkLossStarted
-              ? " loss=" + std::to_string(e.fraction) + " run=" + std::to_string(e.loss_run_packets)
-              : std::string();
-      std::printf("kinfly-sim: t=%.2f s: %s%s%s\n", t_s, e.name.c_str(), shape.c_str(),
+      // The loss's shape in words scripts/sim.py reads, "loss=0.2 run=4", every digit kept (its
+      // LinkShape checks the run against the fraction as the loader did).
+      char shape[96] = "";
+      if (e.kind == MissionEvent::Kind::kLinkLossStarted) {
+        std::snprintf(shape, sizeof(shape), " loss=%.17g run=%.17g", e.fraction,
+                      e.loss_run_packets);
+      }
+      std::printf("kinfly-sim: t=%.2f s: %s%s%s\n", t_s, e.name.c_str(), shape,
                   e.orchestrated() ? kAwaitingOrchestrator : "");
       std::fflush(stdout);
       // Simulation time stands still while the orchestrator acts, so the ground is down for

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <map>
 #include <optional>
@@ -164,6 +165,13 @@ std::string seconds(double s) {
   return text.str();
 }
 
+// Every digit a double holds: a bound quoted back is one the reader can type.
+std::string exact(double v) {
+  char text[32];
+  std::snprintf(text, sizeof(text), "%.17g", v);
+  return text;
+}
+
 StatusOr<MissionEvent> readEvent(const Reader& r, const toml::table& t) {
   MissionEvent e;
   const std::optional<std::string> kind = t["kind"].value<std::string>();
@@ -206,7 +214,7 @@ StatusOr<MissionEvent> readEvent(const Reader& r, const toml::table& t) {
     e.kind = MissionEvent::Kind::kGroundKilled;
     e.name = "ground_killed";
     if (Status s = r.onlyKnown(t, {"kind", "at_s", "duration_s"}, *kind); !s.ok()) return s;
-    KINFLY_TRY_ASSIGN(e.duration_s, r.number(t, "duration_s", 0.0, 3600.0));
+    KINFLY_TRY_ASSIGN(e.duration_s, r.number(t, "duration_s", 0.01, 3600.0));
   } else if (*kind == "link_loss") {
     // The loader adds its end, duration_s later. The range is scripts/netns.py's LinkShape's.
     e.kind = MissionEvent::Kind::kLinkLossStarted;
@@ -215,7 +223,7 @@ StatusOr<MissionEvent> readEvent(const Reader& r, const toml::table& t) {
                                *kind);
         !s.ok())
       return s;
-    KINFLY_TRY_ASSIGN(e.duration_s, r.number(t, "duration_s", 0.0, 3600.0));
+    KINFLY_TRY_ASSIGN(e.duration_s, r.number(t, "duration_s", 0.01, 3600.0));
     KINFLY_TRY_ASSIGN(e.fraction, r.number(t, "fraction", 1e-6, 0.9));
     KINFLY_TRY_ASSIGN(e.loss_run_packets,
                       r.number(t, "loss_run_packets", 1.0, 1000.0, 1.0));
@@ -225,7 +233,7 @@ StatusOr<MissionEvent> readEvent(const Reader& r, const toml::table& t) {
     if (e.loss_run_packets != 1.0 && e.loss_run_packets < independent_run) {
       return r.error(*t.get("loss_run_packets"),
                      "'loss_run_packets' must be 1 (independent losses) or at least " +
-                         seconds(independent_run) + " (1 / (1 - fraction))");
+                         exact(independent_run) + " (1 / (1 - fraction))");
     }
   } else {
     return r.error(t, "unknown event kind '" + *kind + "' (known: wind_step, gust, "
@@ -325,8 +333,17 @@ StatusOr<Mission> parseMission(std::string_view text, const std::string& source)
         mission.events.push_back(std::move(e));
       }
     }
+    // At one time, an end before a start, whatever the file's order: a loss from 2 to 4 s and
+    // one from 4 s on follow each other (every duration is > 0, so an event's own end is later).
+    const auto ends = [](const MissionEvent& e) {
+      return e.kind == MissionEvent::Kind::kGroundRestarted ||
+             e.kind == MissionEvent::Kind::kLinkLossEnded;
+    };
     std::stable_sort(mission.events.begin(), mission.events.end(),
-                     [](const MissionEvent& a, const MissionEvent& b) { return a.at_s < b.at_s; });
+                     [&](const MissionEvent& a, const MissionEvent& b) {
+                       if (a.at_s != b.at_s) return a.at_s < b.at_s;
+                       return ends(a) && !ends(b);
+                     });
     // One station and one link: a kill while it is down would have nothing to kill and its
     // restart would start a second one; two losses at once would be one rule replacing another.
     std::optional<double> down_since_s, lossy_since_s;

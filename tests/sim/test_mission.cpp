@@ -79,7 +79,7 @@ TEST(Mission, AGroundRestartIsAKillAndARestartForTheOrchestrator) {
       "[[command]]\nat_s = 1\nkind = \"arm\"\n"
       "[[event]]\nat_s = 10\nkind = \"ground_restart\"\nduration_s = 4\n"
       "[[event]]\nat_s = 12\nkind = \"gust\"\namplitude_m_s = [1, 0, 0]\nduration_s = 0.5\n"
-      "[[event]]\nat_s = 20\nkind = \"ground_restart\"\nduration_s = 0\n",
+      "[[event]]\nat_s = 14\nkind = \"ground_restart\"\nduration_s = 0.5\n",
       "m.toml");
   ASSERT_TRUE(parsed.ok()) << parsed.status().message();
   const std::vector<MissionEvent>& e = parsed.value().events;
@@ -92,10 +92,11 @@ TEST(Mission, AGroundRestartIsAKillAndARestartForTheOrchestrator) {
   EXPECT_EQ(e[2].kind, MissionEvent::Kind::kGroundRestarted);
   EXPECT_EQ(e[2].name, "ground_restarted");
   EXPECT_EQ(e[2].at_s, 14.0);
-  // Down for no time: killed, then restarted, in that order.
+  // Killed again as it restarts: the restart first, so the two follow each other.
   EXPECT_EQ(e[3].kind, MissionEvent::Kind::kGroundKilled);
+  EXPECT_EQ(e[3].at_s, 14.0);
   EXPECT_EQ(e[4].kind, MissionEvent::Kind::kGroundRestarted);
-  EXPECT_EQ(e[4].at_s, 20.0);
+  EXPECT_EQ(e[4].at_s, 14.5);
   EXPECT_TRUE(e[0].orchestrated() && e[2].orchestrated());
   EXPECT_EQ(parseMission("[[command]]\nat_s = 1\nkind = \"arm\"\n[[event]]\nat_s = 2\n"
                          "kind = \"ground_restart\"\n",
@@ -146,6 +147,17 @@ TEST(Mission, ALinkLossStartsAndEndsForTheOrchestrator) {
   EXPECT_EQ(message("[[event]]\nat_s = 2\nkind = \"link_loss\"\nduration_s = 5\nfraction = 0.1\n"
                     "[[event]]\nat_s = 4\nkind = \"link_loss\"\nduration_s = 1\nfraction = 0.5\n"),
             "m.toml: the link_loss at 4 s begins while the one from 2 s goes on");
+  // Back to back, in either order in the file.
+  EXPECT_EQ(message("[[event]]\nat_s = 4\nkind = \"link_loss\"\nduration_s = 1\nfraction = 0.5\n"
+                    "[[event]]\nat_s = 2\nkind = \"link_loss\"\nduration_s = 2\nfraction = 0.1\n"),
+            "");
+  // Runs shorter than independent losses' own (1 / (1 - 0.3)) would make losses avoid each other.
+  EXPECT_EQ(message("[[event]]\nat_s = 2\nkind = \"link_loss\"\nduration_s = 1\nfraction = 0.3\n"
+                    "loss_run_packets = 1.2\n"),
+            "m.toml:9: 'loss_run_packets' must be 1 (independent losses) or at least "
+            "1.4285714285714286 (1 / (1 - fraction))");
+  EXPECT_EQ(message("[[event]]\nat_s = 2\nkind = \"link_loss\"\nduration_s = 0\nfraction = 0.3\n"),
+            "m.toml:7: 'duration_s' must be a number in [0.01, 3600]");
 }
 
 TEST(Mission, MistakesAreNamedWithTheirLine) {

@@ -16,7 +16,7 @@ import sys
 from collections.abc import Callable
 
 import pytest
-from netns import LinkShape, link_counters
+from netns import LinkShape, link_counters, set_loss
 
 from conftest import REPO_ROOT
 
@@ -156,3 +156,58 @@ def test_burst_rules_follow_the_stationary_loss() -> None:
     assert "mod 1000000 < 200000 delete @bad" in rules
     assert "mod 1000000 < 10526 meta mark set" in rules
     assert LinkShape().nft_ruleset() == "" and LinkShape().tc_command() == []
+
+
+# Sends COUNT datagrams to each of two UDP ports on 127.0.0.1 in turn, draining both sockets as it
+# goes (so no receive buffer overflows), and prints how many arrived at each.
+TWO_PORTS = """
+import json, socket, sys
+count, ports = int(sys.argv[1]), [int(p) for p in sys.argv[2:]]
+receivers = []
+for port in ports:
+    r = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    r.bind(("127.0.0.1", port))
+    r.setblocking(False)
+    receivers.append(r)
+sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+got = [0] * len(ports)
+def drain():
+    for i, r in enumerate(receivers):
+        while True:
+            try:
+                r.recv(2048)
+            except BlockingIOError:
+                break
+            got[i] += 1
+for _ in range(count):
+    for port in ports:
+        sender.sendto(b"x" * 100, ("127.0.0.1", port))
+    drain()
+drain()
+print(json.dumps(got))
+"""
+LOSSY_PORT, WHOLE_PORT = 7668, 7667
+
+
+def test_a_loss_on_ports_spares_the_rest_and_is_lifted(netns: list[str]) -> None:
+    """set_loss with udp_ports: half of the datagrams to that port lost, none to another port;
+    counted only for that port; and after set_loss(None) nothing is lost (scripts/sim.py's
+    link loss, the drone's bus beside it untouched)."""
+    count = 2000
+
+    def send() -> list[int]:
+        done = subprocess.run([*netns, sys.executable, "-c", TWO_PORTS, str(count),
+                               str(LOSSY_PORT), str(WHOLE_PORT)],
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout)
+
+    set_loss(netns, LinkShape(loss=0.5, udp_ports=(LOSSY_PORT,)))
+    lossy, whole = send()
+    sigma = math.sqrt(count * 0.5 * 0.5)
+    assert abs(lossy - count * 0.5) < SIGMAS * sigma, lossy
+    assert whole == count
+    counts = link_counters(netns)
+    assert counts["seen"] == count and counts["dropped"] == count - lossy, counts
+    set_loss(netns, None)
+    assert send() == [count, count]

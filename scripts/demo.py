@@ -171,6 +171,17 @@ class Watched:
         return self.process.returncode
 
 
+def start_ground(command: Sequence[str], quiet: bool = False) -> Watched:
+    """kinfly-ground from COMMAND (with the namespace's prefix), once it listens; if it does not
+    within GROUND_READY_TIMEOUT_S it is stopped and RuntimeError says what it printed."""
+    ground = Watched(command, "[ground] ", quiet)
+    if not ground.wait_for("listening on", 1, GROUND_READY_TIMEOUT_S):
+        send_signal(ground.process, signal.SIGTERM)
+        ground.finish(GROUND_EXIT_TIMEOUT_S)
+        raise RuntimeError("the ground station did not start listening:\n" + ground.output())
+    return ground
+
+
 def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]], *,
         record: Path | None = None, record_url: str = LCM_URL,
         during: Callable[[], None] | None = None, quiet: bool = False,
@@ -181,18 +192,15 @@ def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]]
     ground serves the drones' vehicle) each drone's final status must have reached the ground
     first: then every keyframe it sent has arrived or is lost, and the drone itself waited for
     the ground's corrections before it exited."""
+    ground_proc = start_ground([*netns, *ground], quiet)
     logger = None
-    if record is not None:
+    if record is not None:  # before any drone: the whole flight is recorded
         logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", record_url,
                                    str(record)], stdout=subprocess.DEVNULL,
                                   start_new_session=True)
-    ground_proc = Watched([*netns, *ground], "[ground] ", quiet)
     drone_lines: list[str] = []
     drone_rcs: list[int] = []
     try:
-        if not ground_proc.wait_for("listening on", 1, GROUND_READY_TIMEOUT_S):
-            raise RuntimeError("the ground station did not start listening:\n"
-                               + ground_proc.output())
         for i, drone in enumerate(drones):
             drone_proc = subprocess.Popen([*netns, *drone], stdout=subprocess.PIPE,
                                           stderr=subprocess.STDOUT, text=True)

@@ -208,23 +208,21 @@ def set_loss(prefix: Sequence[str], shape: LinkShape | None) -> None:
     subprocess.run([*root, system_tool("nft"), "delete", "table", "netdev", LINK_TABLE],
                    capture_output=True)  # none yet: nothing to delete
     if shape is not None and (ruleset := shape.nft_ruleset()):
-        done = subprocess.run([*root, system_tool("nft"), "-f", "-"], input=ruleset,
-                              capture_output=True, text=True)
-        if done.returncode != 0:
-            raise RuntimeError(f"nft: {done.stderr.strip()}")
+        _run(root, [system_tool("nft"), "-f", "-"], stdin=ruleset)
+
+
+def _run(root: Sequence[str], command: list[str], stdin: str | None = None) -> None:
+    done = subprocess.run([*root, *command], input=stdin, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)}: {done.stderr.strip()}")
 
 
 def _shape_link(root: list[str], shape: LinkShape) -> None:
-    def run(command: list[str], stdin: str | None = None) -> None:
-        done = subprocess.run([*root, *command], input=stdin, capture_output=True, text=True)
-        if done.returncode != 0:
-            raise RuntimeError(f"{' '.join(command)}: {done.stderr.strip()}")
-
-    run([system_tool("ip"), "link", "set", "lo", "mtu", str(shape.mtu_bytes)])
+    _run(root, [system_tool("ip"), "link", "set", "lo", "mtu", str(shape.mtu_bytes)])
     if ruleset := shape.nft_ruleset():
-        run([system_tool("nft"), "-f", "-"], stdin=ruleset)
+        _run(root, [system_tool("nft"), "-f", "-"], stdin=ruleset)
     if tc := shape.tc_command():
-        run([system_tool("tc"), *tc])
+        _run(root, [system_tool("tc"), *tc])
 
 
 @contextlib.contextmanager

@@ -34,9 +34,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, GROUND_READY_TIMEOUT_S,  # noqa: E402
-                  LCM_URL, VEHICLE_ID, Watched, check_flight, fresh_output, ground_command,
-                  list_outputs, report)
+from demo import (BUILD, FW_CONFIG, GROUND_EXIT_TIMEOUT_S, LCM_URL, VEHICLE_ID,  # noqa: E402
+                  Watched, check_flight, fresh_output, ground_command, list_outputs, report,
+                  start_ground)
 from netns import (LinkShape, NetnsUnavailable, kill_group, link_counters,  # noqa: E402
                    network_namespace, send_signal, set_loss)
 from sim_plots import kinfly_eval, write as write_plots  # noqa: E402
@@ -100,12 +100,7 @@ class Ground:
     def start(self) -> None:
         if self.current is not None:
             raise RuntimeError("kinfly-sim asked for a second ground station beside the first")
-        ground = Watched(self.command, "[ground] ", quiet=False)
-        if not ground.wait_for("listening on", 1, GROUND_READY_TIMEOUT_S):
-            kill_group(ground.process)
-            ground.finish(GROUND_EXIT_TIMEOUT_S)
-            raise RuntimeError("the ground station did not start listening:\n" + ground.output())
-        self.current = ground
+        self.current = start_ground(self.command)
 
     def kill(self) -> None:
         """As a crash ends it: SIGKILL, no outputs but the recording so far, which is kept and
@@ -299,9 +294,9 @@ def main() -> int:
                 sim = Watched([*netns, *sim_command(key, out, args)], "[sim]    ", quiet=False,
                               answered=True)
                 acted = 0
+                # The simulator waits after each such line: the latest is the one to act on.
                 while sim.wait_for(AWAITING, acted + 1, math.inf):
-                    asked = [line for line in sim.output().splitlines() if AWAITING in line]
-                    act(asked[acted], ground, link)
+                    act(sim.latest(AWAITING), ground, link)
                     sim.answer()
                     acted += 1
                 sim_rc = sim.finish(None)

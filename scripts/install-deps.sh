@@ -44,10 +44,10 @@ demo_packages=(
 )
 
 # sim (make sim; in unit, since the simulator's unit tests build with the others): the ray
-# tracer that renders the simulated depth camera and the TOML reader of its missions
-# (sim/CMakeLists.txt)
+# tracer that renders the simulated depth camera, the TOML reader of its missions and the mesh
+# reader of its scenes from files (sim/CMakeLists.txt)
 sim_packages=(
-  libembree-dev libtomlplusplus-dev
+  libembree-dev libtomlplusplus-dev libcgal-dev
 )
 
 # unit (make test-asan, and the unit tests of make test): GoogleTest (CMake's
@@ -127,8 +127,8 @@ groups it uses:
 
   demo     make demo, make eval: the C++ build of the programs, Python with its headers, `ip`;
            .venv from requirements.txt with the ground package (ground/)
-  sim      make sim: the C++ build, Embree (kinfly-sim's depth camera) and toml++ (its
-           missions)
+  sim      make sim: the C++ build, Embree (kinfly-sim's depth camera), toml++ (its
+           missions) and CGAL (its scenes from mesh files)
   unit     make test-asan: the C++ build, the sim group and GoogleTest
            (every group that compiles, aarch64 too, makes .venv-build from
            requirements-build.txt: pymavlink's mavgen for the firmware's MAVLink headers)

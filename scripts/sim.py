@@ -43,8 +43,17 @@ from sim_plots import kinfly_eval, write as write_plots  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DRONE_EXIT_TIMEOUT_S = 60.0  # kinfly-fw's last corrections and its summary after SIGINT
-ROOM_TOUR = REPO_ROOT / "sim" / "missions" / "room_tour.toml"
+MISSIONS = REPO_ROOT / "sim" / "missions"
 HOVER = "hover"  # --mission: kinfly-sim's built-in take off, hold, land
+# Scenes from the shared data (kinfly_eval.data_root): the mesh file, and where the drone stands
+# on its floor (kinfly-sim --scene-start: x, y in the mesh's frame, heading in degrees), in an
+# open stretch of floor with room to climb.
+DATA_SCENES = {
+    "office0": ("replica_office0_nvblox/replica/office0_mesh.ply", (0.4, -1.7, 90.0)),
+}
+# Each scene's mission unless --mission says otherwise.
+SCENE_MISSIONS = {"room": MISSIONS / "room_tour.toml", "corridor": MISSIONS / "corridor.toml",
+                  "office0": MISSIONS / "office0.toml"}
 # kinfly-sim's words after an event it waits on this script for (kAwaitingOrchestrator).
 AWAITING = ": waiting for the orchestrator"
 # The link: each side's UDP port for the other's unicast, and the ground's own LCM bus, on a
@@ -198,9 +207,21 @@ def drone_command(key: Path, out: Path, camera_downsample: int) -> list[str]:
             "--output.trajectory", str(out / "drone_trajectory.tum")]
 
 
+def scene_arguments(scene: str) -> list[str]:
+    """kinfly-sim's --scene (and --scene-start) for a scene of --scene: built in, or a mesh from
+    the shared data, which must be there."""
+    if scene not in DATA_SCENES:
+        return ["--scene", scene]
+    mesh, start = DATA_SCENES[scene]
+    path = kinfly_eval.data_root() / mesh
+    if not path.is_file():
+        raise ValueError(f"scene {scene}: no mesh at {path} (the shared data: set KINFLY_DATA)")
+    return ["--scene", str(path), "--scene-start", *(str(v) for v in start)]
+
+
 def sim_command(key: Path, out: Path, args: argparse.Namespace) -> list[str]:
     return [str(BUILD / "kinfly-sim"), "--key-file", str(key), "--vehicle", str(VEHICLE_ID),
-            "--lcm-url", LCM_URL, "--scene", args.scene, "--seed", str(args.seed),
+            "--lcm-url", LCM_URL, *scene_arguments(args.scene), "--seed", str(args.seed),
             "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
             "--summary", str(out / "sim_summary.json"), "--scene-mesh", str(out / "scene.ply"),
             "--truth-lcm-url", GROUND_LCM_URL, "--orchestrated",
@@ -260,18 +281,27 @@ def main() -> int:
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "sim")
-    p.add_argument("--scene", default="room", help="room | corridor (default room)")
+    p.add_argument("--scene", default="room", choices=list(SCENE_MISSIONS),
+                   help="room, corridor (kinfly-sim's own) or office0 (Replica's scan in the "
+                   "shared data: $KINFLY_DATA, else <repo>/../shared/data); default room")
     p.add_argument("--seed", type=int, default=1, help="the simulator's seed (default 1)")
     p.add_argument("--hover-s", type=float, default=20.0,
                    help=f"seconds the drone holds at 1 m before it lands (default 20); "
                    f"--mission {HOVER} only")
-    p.add_argument("--mission", default=str(ROOM_TOUR),
+    p.add_argument("--mission", default=None,
                    help=f"a mission file (sim/missions/, docs/sim.md), or {HOVER!r} for "
-                   f"kinfly-sim's built-in take off, hold --hover-s, land (default: the room "
-                   f"tour, {ROOM_TOUR.relative_to(REPO_ROOT)})")
+                   f"kinfly-sim's built-in take off, hold --hover-s, land (default: the "
+                   f"scene's, {MISSIONS.relative_to(REPO_ROOT)}/<room_tour|corridor|office0>.toml)")
     p.add_argument("--camera-downsample", type=int, default=1, choices=range(1, 5),
                    help="the simulated Kinect at 1/N of 640x480 (default 1)")
     args = p.parse_args()
+    if args.mission is None:
+        args.mission = str(SCENE_MISSIONS[args.scene])
+    try:
+        scene_arguments(args.scene)
+    except ValueError as error:
+        print(f"sim: --scene: {error}", file=sys.stderr)
+        return 2
     out = args.out
     key = fresh_output(out)
     started = time.monotonic()

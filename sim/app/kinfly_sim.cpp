@@ -16,6 +16,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <iomanip>
 #include <iostream>
@@ -51,8 +52,6 @@ using Clock = std::chrono::steady_clock;
 
 constexpr int64_t kStartUtime = 1'000'000;  // [us] a start after 0 keeps every stamp positive
 constexpr int kStateEverySteps = 10;        // sim_state_t at a tenth of the IMU rate
-// Directions of the collision probe: the 26 of a cube's faces, edges and corners.
-constexpr int kProbeDirections = 26;
 // After an orchestrated event's line: the orchestrator writes a line to standard input once it
 // has acted (scripts/sim.py looks for this text).
 constexpr const char* kAwaitingOrchestrator = ": waiting for the orchestrator";
@@ -75,6 +74,7 @@ struct Options {
   int camera_downsample = 1;
   std::string summary;
   std::string scene_mesh;
+  std::vector<double> scene_start;  // X Y HEADING_DEG, a mesh file's scene only
   // Errors of the simulated vehicle against the nominal one (what kinfly-fw's flight stack
   // believes by default): fractions, +0.05 = 5 % more.
   double mass_error = 0.0;
@@ -110,6 +110,49 @@ MultirotorParams simulatedVehicle(const Options& o) {
   p.inertia_zz_kg_m2 *= 1.0 + o.inertia_error;
   p.thrust_coeff_n_s2_rad2 *= 1.0 + o.thrust_error;
   return p;
+}
+
+// Whether a face of the scene other than the floor's lies within `radius` of `p`, probed along the
+// 26 directions of a cube's faces, edges and corners.
+bool touchesScene(const RayScene& rays, const Eigen::Vector3d& p, double radius) {
+  for (int x = -1; x <= 1; ++x) {
+    for (int y = -1; y <= 1; ++y) {
+      for (int z = -1; z <= 1; ++z) {
+        if (x == 0 && y == 0 && z == 0) continue;
+        const Eigen::Vector3f direction = Eigen::Vector3f(static_cast<float>(x), static_cast<float>(y),
+                                                          static_cast<float>(z)).normalized();
+        const RayHit hit = rays.cast(p.cast<float>(), direction, static_cast<float>(radius));
+        if (hit.hit && !hit.floor) return true;
+      }
+    }
+  }
+  return false;
+}
+
+// The scene by --scene: a built-in one by name, else a mesh file standing at --scene-start.
+StatusOr<Scene> chosenScene(const Options& o) {
+  const std::vector<std::string>& names = sceneNames();
+  if (std::find(names.begin(), names.end(), o.scene) != names.end()) {
+    if (!o.scene_start.empty()) {
+      return Status::error("--scene-start: scene '" + o.scene + "' has its own start; it is for "
+                           "scenes from mesh files");
+    }
+    return makeScene(o.scene);
+  }
+  if (!std::filesystem::is_regular_file(o.scene)) {
+    std::string known;
+    for (const std::string& name : names) known += (known.empty() ? "" : ", ") + name;
+    return Status::error("--scene: '" + o.scene + "' is neither a scene (" + known +
+                         ") nor a mesh file");
+  }
+  if (o.scene_start.size() != 3) {
+    return Status::error("--scene-start: a scene from a mesh file (" + o.scene + ") needs where "
+                         "the drone stands: X Y HEADING_DEG in the mesh's frame");
+  }
+  StatusOr<Scene> loaded = loadMeshScene(o.scene, {o.scene_start[0], o.scene_start[1]},
+                                         o.scene_start[2] * M_PI / 180.0);
+  if (!loaded.ok()) return Status::error("--scene: " + loaded.status().message());
+  return loaded;
 }
 
 // What kinfly-fw sends back, as the LCM handlers see it.
@@ -244,9 +287,9 @@ struct Flight {
 };
 
 int run(const Options& o) {
-  StatusOr<Scene> scene = makeScene(o.scene);
+  StatusOr<Scene> scene = chosenScene(o);
   if (!scene.ok()) {
-    std::fprintf(stderr, "kinfly-sim: --scene: %s\n", scene.status().message().c_str());
+    std::fprintf(stderr, "kinfly-sim: %s\n", scene.status().message().c_str());
     return 2;
   }
   if (!o.scene_mesh.empty()) {
@@ -330,6 +373,28 @@ int run(const Options& o) {
   Multirotor drone(vehicle_params);
   drone.placeOnFloor(scene.value().start_xy_m, scene.value().start_yaw_rad,
                      scene.value().floor_z_m);
+  {
+    // A start off the floor (above a table, outside the room, over a hole in a scan) or against
+    // the scene would end the flight at once: say so before flying.
+    const Eigen::Vector3d& p = drone.state().p_world_m;
+    const RayHit below = rays.value()->cast(p.cast<float>(), Eigen::Vector3f::UnitZ(),
+                                            static_cast<float>(vehicle_params.gear_height_m + 0.05));
+    const char* problem = !below.hit || !below.floor ? "is not over the scene's floor"
+                          : touchesScene(*rays.value(), p, vehicle_params.body_radius_m)
+                              ? "is within the body's radius of the scene"
+                              : nullptr;
+    if (problem != nullptr && !o.scene_start.empty()) {
+      std::fprintf(stderr, "kinfly-sim: --scene-start %g %g %g: the drone standing there %s "
+                   "(its floor is at %.3f m in the mesh's frame)\n", o.scene_start[0],
+                   o.scene_start[1], o.scene_start[2], problem, -scene.value().floor_z_m);
+      return 2;
+    }
+    if (problem != nullptr) {
+      std::fprintf(stderr, "kinfly-sim: scene %s: its start %s\n", scene.value().name.c_str(),
+                   problem);
+      return 2;
+    }
+  }
   Wind wind(wind_params);
   ImuModel imu(imu_params);
   DepthCamera camera(*rays.value(), camera_params);
@@ -384,16 +449,6 @@ int run(const Options& o) {
   double hover_from_s = 0.0;
   double hover_to_s = 0.0;
   Eigen::Vector3d hover_target = Eigen::Vector3d::Zero();
-  std::array<Eigen::Vector3f, kProbeDirections> probes;
-  {
-    int n = 0;
-    for (int x = -1; x <= 1; ++x)
-      for (int y = -1; y <= 1; ++y)
-        for (int z = -1; z <= 1; ++z)
-          if (x != 0 || y != 0 || z != 0)
-            probes[n++] = Eigen::Vector3f(static_cast<float>(x), static_cast<float>(y),
-                                          static_cast<float>(z)).normalized();
-  }
   const Clock::time_point wall_start = Clock::now();
   int64_t utime = kStartUtime;
   bool airborne = false;
@@ -538,15 +593,10 @@ int run(const Options& o) {
     }
     if (!drone.onFloor()) airborne = true;
     // The scene: a face within the body's radius, the floor aside, ends the flight.
-    for (const Eigen::Vector3f& direction : probes) {
-      const RayHit hit = rays.value()->cast(s.p_world_m.cast<float>(), direction,
-                                            static_cast<float>(vehicle_params.body_radius_m));
-      if (hit.hit && !hit.floor) {
-        flight.collided = true;
-        flight.collision_world_m = s.p_world_m;
-        flight.collision_speed_m_s = s.v_world_m_s.norm();
-        break;
-      }
+    if (touchesScene(*rays.value(), s.p_world_m, vehicle_params.body_radius_m)) {
+      flight.collided = true;
+      flight.collision_world_m = s.p_world_m;
+      flight.collision_speed_m_s = s.v_world_m_s.norm();
     }
     const double now_s = t_s + dt_s;
     if (holding_after_take_off && now_s >= hover_from_s && now_s < hover_to_s) {
@@ -690,7 +740,15 @@ int main(int argc, char** argv) {
       "flies the mission (--mission, or the built-in take off, hold, land) and prints a summary "
       "(docs/sim.md). Exit status: "
       "0 landed, 1 the flight failed (a collision, a hard landing, kinfly-fw gone), 2 bad input."};
-  app.add_option("--scene", o.scene, "room | corridor")->capture_default_str();
+  app.add_option("--scene", o.scene,
+                 "room | corridor | a mesh file (PLY, OBJ, OFF or STL: metres, z up, as Replica's "
+                 "office0_mesh.ply), which needs --scene-start")
+      ->capture_default_str();
+  app.add_option("--scene-start", o.scene_start,
+                 "a mesh file's scene: where the drone stands on its floor, X Y in the mesh's "
+                 "frame [m] and its heading counter-clockwise from the mesh's +x seen from above "
+                 "[deg]")
+      ->expected(3);
   app.add_option("--seed", o.seed, "seeds the IMU, the camera's noise and the wind")
       ->capture_default_str();
   app.add_option("--vehicle", o.vehicle_id, "vehicle id, in every channel name")

@@ -1,9 +1,12 @@
 // The rendered depth camera against ray-plane geometry: exact depth without noise, no return
 // beyond range or at grazing incidence, the Kinect model's spread and disparity steps with noise;
-// and the scenes: closed rooms whose faces look into the free space.
+// and the scenes: closed rooms whose faces look into the free space, and a scene read from a mesh
+// file as the room it holds.
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <filesystem>
+#include <unistd.h>
 
 #include "kinfly/core/noise_model.h"
 #include "kinfly/sim/depth_camera.h"
@@ -193,6 +196,91 @@ TEST(Scenes, FacesLookIntoTheFreeSpace) {
     }
   }
   EXPECT_EQ(makeScene("hall").status().message(), "scene 'hall' is unknown (known: room, corridor)");
+}
+
+// The furnished room written z up as a scan is (a half turn about x), its floor raised to
+// kFloorUpM, and read back: the same room, standing on its floor, not on its ceiling (which has
+// as much horizontal area), rendered as the room is.
+TEST(Scenes, AMeshFileIsTheSceneItHolds) {
+  constexpr float kFloorUpM = 0.7f;
+  constexpr double kStartHeadingRad = 30.0 * M_PI / 180.0;
+  // Depth in 0.1 mm steps (the raw image's unit): the two scenes' floats differ by rounding only.
+  constexpr int kDepthStepsApart = 1;
+  const Scene room = furnishedRoom();
+  TriangleMesh z_up = room.mesh;
+  for (Eigen::Vector3f& v : z_up.vertices) v = Eigen::Vector3f(v.x(), -v.y(), kFloorUpM - v.z());
+  for (Eigen::Vector3f& n : z_up.normals) n = Eigen::Vector3f(n.x(), -n.y(), -n.z());
+  const std::string path =
+      (std::filesystem::temp_directory_path() / ("kinfly_scene_" + std::to_string(::getpid()) + ".ply"))
+          .string();
+  ASSERT_TRUE(writePly(z_up, path).ok());
+  StatusOr<Scene> read = loadMeshScene(path, {0.5, 0.25}, kStartHeadingRad);
+  std::filesystem::remove(path);
+  ASSERT_TRUE(read.ok()) << read.status().message();
+  const Scene& scene = read.value();
+  EXPECT_NEAR(scene.floor_z_m, -kFloorUpM, 1e-5);
+  EXPECT_EQ(scene.start_xy_m, Eigen::Vector2d(0.5, -0.25));
+  EXPECT_DOUBLE_EQ(scene.start_yaw_rad, -kStartHeadingRad);
+  EXPECT_EQ(scene.name, "kinfly_scene_" + std::to_string(::getpid()));
+  EXPECT_NEAR(scene.mesh.surfaceAreaM2(), room.mesh.surfaceAreaM2(), 1e-3);
+  for (int i = 0; i < scene.floor_triangles; ++i) {
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_NEAR(scene.mesh.vertices[scene.mesh.triangles[i][k]].z(), -kFloorUpM, 1e-5);
+    }
+  }
+
+  // Shifted up with it, the camera sees what it sees in the room.
+  Scene shifted = scene;
+  shifted.floor_z_m = room.floor_z_m;
+  for (Eigen::Vector3f& v : shifted.mesh.vertices) v.z() += kFloorUpM;
+  expectClosedAroundTheStart(shifted);
+  const DepthCameraParams params = exactCamera();
+  Pose T_world_cam = Pose::Identity();
+  T_world_cam.linear() = forwardBodyCam().linear();
+  T_world_cam.translation() = Eigen::Vector3d(0.3, 0.2, -1.4);
+  const Image<uint16_t> expected = render(room, params, T_world_cam);
+  T_world_cam.translation().z() -= kFloorUpM;
+  const Image<uint16_t> seen = render(scene, params, T_world_cam);
+  int apart = 0, returns = 0;
+  for (int i = 0; i < expected.width() * expected.height(); ++i) {
+    returns += expected.data()[i] != 0 ? 1 : 0;
+    apart += std::abs(static_cast<int>(expected.data()[i]) - static_cast<int>(seen.data()[i])) >
+                     kDepthStepsApart ? 1 : 0;
+  }
+  EXPECT_GT(returns, expected.width() * expected.height() / 2);
+  EXPECT_EQ(apart, 0);
+}
+
+TEST(Scenes, AMeshFileThatIsNoSceneIsNamed) {
+  const std::string missing = "/nonexistent/office.ply";
+  StatusOr<Scene> read = loadMeshScene(missing, {0.0, 0.0}, 0.0);
+  ASSERT_FALSE(read.ok());
+  EXPECT_EQ(read.status().message(), missing + ": no such file");
+  // Walls alone: nothing horizontal to stand on.
+  TriangleMesh wall;
+  wall.vertices = {{0, 0, 0}, {1, 0, 0}, {1, 0, 1}, {0, 0, 1}};
+  wall.normals.assign(4, Eigen::Vector3f::UnitY());
+  wall.triangles = {{0, 1, 2}, {0, 2, 3}};
+  const std::string path =
+      (std::filesystem::temp_directory_path() / ("kinfly_wall_" + std::to_string(::getpid()) + ".ply"))
+          .string();
+  ASSERT_TRUE(writePly(wall, path).ok());
+  read = loadMeshScene(path, {0.0, 0.0}, 0.0);
+  std::filesystem::remove(path);
+  ASSERT_FALSE(read.ok());
+  EXPECT_EQ(read.status().message(), path + ": the mesh has no horizontal face: no floor");
+  // Cut short in its faces (a copy that did not finish).
+  const std::string cut = path + ".cut.ply";
+  ASSERT_TRUE(writePly(furnishedRoom().mesh, path).ok());
+  std::filesystem::copy_file(path, cut);
+  std::filesystem::resize_file(cut, std::filesystem::file_size(path) - 5);
+  EXPECT_TRUE(loadMeshScene(path, {0.0, 0.0}, 0.0).ok());
+  read = loadMeshScene(cut, {0.0, 0.0}, 0.0);
+  std::filesystem::remove(path);
+  std::filesystem::remove(cut);
+  ASSERT_FALSE(read.ok());
+  EXPECT_EQ(read.status().message(), cut + ": cannot read a mesh from it (PLY, OBJ, OFF or STL): "
+                                           "malformed, cut short, or of another format");
 }
 
 }  // namespace

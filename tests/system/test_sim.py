@@ -176,7 +176,9 @@ def test_says_when_kinfly_fw_is_not_there(netns: list[str], tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize(("args", "message"), [
-    (["--scene", "hall"], "--scene: scene 'hall' is unknown (known: room, corridor)"),
+    (["--scene", "hall"], "--scene: 'hall' is neither a scene (room, corridor) nor a mesh file"),
+    (["--scene", "room", "--scene-start", "0", "0", "0"],
+     "--scene-start: scene 'room' has its own start; it is for scenes from mesh files"),
     (["--mass-error", "0.9"], "--mass-error must be in [-0.5, 0.5] (got 0.9)"),
     (["--takeoff-height-m", "3"], "--takeoff-height-m must be in [0.2, 2.5] (got 3)"),
     (["--imu-rate-hz", "10"], "imu.rate_hz must be in [50, 8000] (got 10)"),
@@ -190,6 +192,70 @@ def test_bad_input_is_refused_naming_it(tmp_path: Path, args: list[str], message
                          capture_output=True, text=True, timeout=60)
     assert sim.returncode != 0
     assert message in sim.stderr, sim.stderr
+
+
+# A 4 m square floor at z = 0.5 (z up, as a scan) with a wall across it at x = 1.
+SQUARE_WITH_A_WALL_PLY = """ply
+format ascii 1.0
+element vertex 8
+property float x
+property float y
+property float z
+element face 4
+property list uchar int vertex_indices
+end_header
+-2 -2 0.5
+2 -2 0.5
+2 2 0.5
+-2 2 0.5
+1 -2 0.5
+1 2 0.5
+1 2 3
+1 -2 3
+3 0 1 2
+3 0 2 3
+3 4 5 6
+3 4 6 7
+"""
+
+
+@pytest.mark.parametrize(("start", "message"), [
+    ([], "--scene-start: a scene from a mesh file ({mesh}) needs where the drone stands: X Y "
+         "HEADING_DEG in the mesh's frame"),
+    (["5", "0", "0"], "--scene-start 5 0 0: the drone standing there is not over the scene's "
+                      "floor (its floor is at 0.500 m in the mesh's frame)"),
+    (["0.95", "0", "0"], "--scene-start 0.95 0 0: the drone standing there is within the body's "
+                         "radius of the scene"),
+])
+def test_a_mesh_scene_needs_a_start_on_its_floor(tmp_path: Path, start: list[str],
+                                                 message: str) -> None:
+    key = keygen(tmp_path)
+    mesh = tmp_path / "square.ply"
+    mesh.write_text(SQUARE_WITH_A_WALL_PLY)
+    sim = subprocess.run([built("bin/kinfly-sim"), "--key-file", key, "--scene", mesh,
+                          *(["--scene-start", *start] if start else [])],
+                         capture_output=True, text=True, timeout=60)
+    assert sim.returncode == 2
+    assert message.format(mesh=mesh) in sim.stderr, sim.stderr
+
+
+def test_a_mesh_scene_with_room_to_stand_flies(tmp_path: Path) -> None:
+    """Beside the wall but clear of it, the simulator gets as far as waiting for kinfly-fw; a file
+    that is no mesh is refused, naming it."""
+    key = keygen(tmp_path)
+    mesh = tmp_path / "square.ply"
+    mesh.write_text(SQUARE_WITH_A_WALL_PLY)
+    sim = subprocess.run([built("bin/kinfly-sim"), "--key-file", key, "--scene", mesh,
+                          "--scene-start", "0.5", "0", "180", "--lcm-url", "memq://",
+                          "--wait-s", "0.1"], capture_output=True, text=True, timeout=60)
+    assert sim.returncode == 1, sim.stderr
+    assert f"scene {mesh}" in sim.stdout and "control task never answered" in sim.stderr
+    mesh.write_text("ply\nformat ascii 1.0\n")
+    sim = subprocess.run([built("bin/kinfly-sim"), "--key-file", key, "--scene", mesh,
+                          "--scene-start", "0.5", "0", "180"], capture_output=True, text=True,
+                         timeout=60)
+    assert sim.returncode == 2
+    assert f"--scene: {mesh}: cannot read a mesh from it" in sim.stderr, sim.stderr
 
 
 def test_refuses_a_key_it_cannot_use(tmp_path: Path) -> None:

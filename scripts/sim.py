@@ -215,13 +215,13 @@ def scene_arguments(scene: str) -> list[str]:
     mesh, start = DATA_SCENES[scene]
     path = kinfly_eval.data_root() / mesh
     if not path.is_file():
-        raise ValueError(f"scene {scene}: no mesh at {path} (the shared data: set KINFLY_DATA)")
+        raise ValueError(f"{scene}: no mesh at {path} (the shared data: set KINFLY_DATA)")
     return ["--scene", str(path), "--scene-start", *(str(v) for v in start)]
 
 
-def sim_command(key: Path, out: Path, args: argparse.Namespace) -> list[str]:
+def sim_command(key: Path, out: Path, args: argparse.Namespace, scene: list[str]) -> list[str]:
     return [str(BUILD / "kinfly-sim"), "--key-file", str(key), "--vehicle", str(VEHICLE_ID),
-            "--lcm-url", LCM_URL, *scene_arguments(args.scene), "--seed", str(args.seed),
+            "--lcm-url", LCM_URL, *scene, "--seed", str(args.seed),
             "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
             "--summary", str(out / "sim_summary.json"), "--scene-mesh", str(out / "scene.ply"),
             "--truth-lcm-url", GROUND_LCM_URL, "--orchestrated",
@@ -298,7 +298,7 @@ def main() -> int:
     if args.mission is None:
         args.mission = str(SCENE_MISSIONS[args.scene])
     try:
-        scene_arguments(args.scene)
+        scene = scene_arguments(args.scene)
     except ValueError as error:
         print(f"sim: --scene: {error}", file=sys.stderr)
         return 2
@@ -321,7 +321,7 @@ def main() -> int:
                 ground = Ground(netns, out, key)
                 drone = Watched([*netns, *drone_command(key, out, args.camera_downsample)],
                                 "[drone]  ", quiet=False)
-                sim = Watched([*netns, *sim_command(key, out, args)], "[sim]    ", quiet=False,
+                sim = Watched([*netns, *sim_command(key, out, args, scene)], "[sim]    ", quiet=False,
                               answered=True)
                 acted = 0
                 # The simulator waits after each such line: the latest is the one to act on.

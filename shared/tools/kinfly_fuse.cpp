@@ -19,6 +19,7 @@
 #include <string>
 #include <vector>
 
+#include "kinfly/core/json.h"
 #include "kinfly/io/png_io.h"
 #include "kinfly/io/tum_dataset.h"
 #include "kinfly/mesh/marching_cubes.h"
@@ -30,6 +31,7 @@
 namespace {
 
 using kinfly::FrameResult;
+using kinfly::jsonEscape;
 using kinfly::tools::percentile;
 using kinfly::TrackingStatus;
 
@@ -61,15 +63,6 @@ double peakRssMb() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   return static_cast<double>(usage.ru_maxrss) / 1024.0;  // Linux reports KiB
-}
-
-std::string jsonEscape(const std::string& s) {
-  std::string out;
-  for (char c : s) {
-    if (c == '"' || c == '\\') out += '\\';
-    out += c;
-  }
-  return out;
 }
 
 }  // namespace

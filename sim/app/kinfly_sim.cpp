@@ -28,6 +28,7 @@
 #include <vector>
 
 #include "kinfly/codec/depth_codec.h"
+#include "kinfly/core/json.h"
 #include "kinfly/core/range_check.h"
 #include "kinfly/core/se3.h"
 #include "kinfly/link/channels.h"
@@ -374,19 +375,33 @@ int run(const Options& o) {
   drone.placeOnFloor(scene.value().start_xy_m, scene.value().start_yaw_rad,
                      scene.value().floor_z_m);
   {
-    // A start off the floor (above a table, outside the room, over a hole in a scan) or against
-    // the scene would end the flight at once: say so before flying.
+    // A start off the floor (on a table, outside the room, over a hole in a scan), under
+    // something (a table, inside a box) or against the scene would end the flight at once: say so
+    // before flying. Below, the floor within the floor's own tolerance of the gear; above, room to
+    // climb to the mission's first take-off height.
+    constexpr double kBelowGearM = 0.05;
     const Eigen::Vector3d& p = drone.state().p_world_m;
     const RayHit below = rays.value()->cast(p.cast<float>(), Eigen::Vector3f::UnitZ(),
-                                            static_cast<float>(vehicle_params.gear_height_m + 0.05));
+                                            static_cast<float>(vehicle_params.gear_height_m + kBelowGearM));
+    double climb_m = o.takeoff_height_m;
+    for (const MissionCommand& c : mission.commands) {
+      if (c.kind == MissionCommand::Kind::kTakeOff) {
+        climb_m = c.height_m;
+        break;
+      }
+    }
+    const RayHit above = rays.value()->cast(p.cast<float>(), -Eigen::Vector3f::UnitZ(),
+                                            static_cast<float>(climb_m + vehicle_params.body_radius_m));
     const char* problem = !below.hit || !below.floor ? "is not over the scene's floor"
+                          : above.hit ? "has no room to take off above it"
                           : touchesScene(*rays.value(), p, vehicle_params.body_radius_m)
                               ? "is within the body's radius of the scene"
                               : nullptr;
     if (problem != nullptr && !o.scene_start.empty()) {
+      // + 0.0: a floor at the mesh's zero prints as 0.000, not -0.000.
       std::fprintf(stderr, "kinfly-sim: --scene-start %g %g %g: the drone standing there %s "
                    "(its floor is at %.3f m in the mesh's frame)\n", o.scene_start[0],
-                   o.scene_start[1], o.scene_start[2], problem, -scene.value().floor_z_m);
+                   o.scene_start[1], o.scene_start[2], problem, -scene.value().floor_z_m + 0.0);
       return 2;
     }
     if (problem != nullptr) {
@@ -674,7 +689,8 @@ int run(const Options& o) {
                   flight.motor_missed == 0 && flight.odometry_missed == 0;
   std::ostringstream json;
   json << std::fixed << std::setprecision(4);
-  json << "{\n  \"scene\": \"" << o.scene << "\",\n  \"mission\": \"" << mission.name
+  json << "{\n  \"scene\": \"" << jsonEscape(o.scene) << "\",\n  \"mission\": \""
+       << jsonEscape(mission.name)
        << "\",\n  \"seed\": " << o.seed << ",\n  \"sim_s\": " << flight.sim_s
        << ",\n  \"wall_s\": " << flight.wall_s
        << ",\n  \"real_time_factor\": " << flight.sim_s / std::max(flight.wall_s, 1e-9)

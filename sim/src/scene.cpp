@@ -1,15 +1,15 @@
 #include "kinfly/sim/scene.h"
 
-#include <CGAL/IO/polygon_soup_io.h>
-#include <CGAL/Simple_cartesian.h>
-
 #include <Eigen/Geometry>
 
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <initializer_list>
+#include <iterator>
 #include <map>
+
+#include "kinfly/sim/mesh_file.h"
 
 namespace kinfly::sim {
 
@@ -124,109 +124,106 @@ void addRoomShell(TriangleMesh* mesh, const Eigen::Vector3f& lo, const Eigen::Ve
 
 StatusOr<Scene> loadMeshScene(const std::string& path, const Eigen::Vector2d& start_xy_m,
                               double start_heading_rad) {
-  // Faces within this of horizontal are the floor's candidates: a scan's floor is not flat.
+  // Faces within this of horizontal (18 degrees) are the floor's candidates.
   constexpr float kHorizontalCos = 0.95f;
   constexpr double kFloorBandM = 0.01;
   constexpr double kFloorAreaShare = 0.25;
   // A scan's floor is not flat: Replica office0's spans 5 cm.
   constexpr double kFloorToleranceM = 0.03;
-  if (!std::filesystem::is_regular_file(path)) return Status::error(path + ": no such file");
-  std::vector<CGAL::Simple_cartesian<double>::Point_3> points;
-  std::vector<std::vector<std::size_t>> polygons;
-  // CGAL's reader, not Assimp's: Debian 12's Assimp (5.2.5) hangs on a PLY cut short in its
-  // header and crashes on one cut short in its faces, where CGAL's says no.
-  if (!CGAL::IO::read_polygon_soup(path, points, polygons, CGAL::parameters::verbose(false))) {
-    return Status::error(path + ": cannot read a mesh from it (PLY, OBJ, OFF or STL): malformed, "
-                         "cut short, or of another format");
+  // Beyond this a vertex is no room's in metres (millimetres, or a broken file).
+  constexpr float kMaxCoordinateM = 1e4f;
+  StatusOr<TriangleMesh> file = readMeshFile(path);
+  if (!file.ok()) return file.status();
+  TriangleMesh mesh = std::move(file.value());
+  // Into the simulator's world (z down): a half turn about x, which keeps the faces' winding.
+  for (Eigen::Vector3f& v : mesh.vertices) {
+    if (!v.allFinite() || v.cwiseAbs().maxCoeff() > kMaxCoordinateM) {
+      return Status::error(path + ": a vertex is not finite or lies beyond 10 km: not a scene in "
+                           "metres");
+    }
+    v = Eigen::Vector3f(v.x(), -v.y(), -v.z());
+  }
+
+  // Each face once: its normal twice its area long (as wound) and its height.
+  struct Face {
+    Eigen::Vector3f cross;
+    double z_m;
+    bool horizontal;
+  };
+  std::vector<Face> faces(mesh.triangles.size());
+  std::map<long, double> horizontal_area_by_band;
+  for (size_t t = 0; t < mesh.triangles.size(); ++t) {
+    const Eigen::Vector3i& tri = mesh.triangles[t];
+    Face& face = faces[t];
+    face.cross = (mesh.vertices[tri[1]] - mesh.vertices[tri[0]])
+                     .cross(mesh.vertices[tri[2]] - mesh.vertices[tri[0]]);
+    face.z_m = (mesh.vertices[tri[0]].z() + mesh.vertices[tri[1]].z() +
+                mesh.vertices[tri[2]].z()) / 3.0;
+    const float area2 = face.cross.norm();
+    face.horizontal = area2 > 0.0f && std::abs(face.cross.z()) >= kHorizontalCos * area2;
+    if (face.horizontal) {
+      horizontal_area_by_band[std::lround(std::floor(face.z_m / kFloorBandM))] += 0.5 * area2;
+    }
+  }
+  if (horizontal_area_by_band.empty()) {
+    return Status::error(path + ": the mesh has no horizontal face: no floor");
+  }
+  // The floor: each 1 cm band weighed by the horizontal area within the tolerance of it (a scan's
+  // floor spreads over several bands, a flat ceiling sits in one, and often has more area than a
+  // furnished floor: office0's 16 against 10 m^2); the lowest band with a quarter of the most,
+  // then up to the top of that hill.
+  const long reach = std::lround(kFloorToleranceM / kFloorBandM);
+  std::map<long, double> weight_by_band;
+  double most = 0.0;
+  for (const auto& [band, area] : horizontal_area_by_band) {
+    double weight = 0.0;
+    for (auto it = horizontal_area_by_band.lower_bound(band - reach);
+         it != horizontal_area_by_band.end() && it->first <= band + reach; ++it) {
+      weight += it->second;
+    }
+    weight_by_band[band] = weight;
+    most = std::max(most, weight);
+  }
+  // z down: the lowest band has the largest z.
+  auto floor_band = weight_by_band.rbegin();
+  while (floor_band->second < kFloorAreaShare * most) ++floor_band;
+  for (auto up = std::next(floor_band); up != weight_by_band.rend() && up->second >= floor_band->second &&
+                                        floor_band->first - up->first <= reach;
+       ++up) {
+    floor_band = up;
+  }
+  const double band_mid_m = (static_cast<double>(floor_band->first) + 0.5) * kFloorBandM;
+  double floor_area = 0.0, floor_weighted_z = 0.0;
+  for (const Face& face : faces) {
+    if (face.horizontal && std::abs(face.z_m - band_mid_m) <= kFloorToleranceM) {
+      floor_area += face.cross.norm();
+      floor_weighted_z += face.cross.norm() * face.z_m;
+    }
   }
   Scene scene;
   scene.name = std::filesystem::path(path).stem().string();
-  TriangleMesh read;
-  // Into the simulator's world (z down): a half turn about x, which keeps the faces' winding.
-  for (const auto& p : points) {
-    read.vertices.emplace_back(static_cast<float>(p.x()), static_cast<float>(-p.y()),
-                               static_cast<float>(-p.z()));
-  }
-  for (size_t f = 0; f < polygons.size(); ++f) {
-    const std::vector<std::size_t>& polygon = polygons[f];
-    for (const std::size_t index : polygon) {
-      if (index >= points.size()) {
-        return Status::error(path + ": face " + std::to_string(f) + " names vertex " +
-                             std::to_string(index) + " of " + std::to_string(points.size()));
-      }
-    }
-    // A polygon as a fan of triangles (a scan's are triangles; others are taken to be convex).
-    for (size_t i = 1; i + 1 < polygon.size(); ++i) {
-      read.triangles.emplace_back(static_cast<int>(polygon[0]), static_cast<int>(polygon[i]),
-                                  static_cast<int>(polygon[i + 1]));
-    }
-  }
-  if (read.triangles.empty()) return Status::error(path + ": the mesh has no triangles");
-  for (const Eigen::Vector3f& v : read.vertices) {
-    if (!v.allFinite()) return Status::error(path + ": the mesh has a vertex that is not finite");
-  }
-
-  // The floor: the lowest 1 cm band of heights whose horizontal faces have a quarter of the area
-  // of the band with the most (a ceiling may have more; stray faces below a scan's floor less).
-  std::vector<Eigen::Vector3f> face_normals(read.triangles.size());
-  std::map<long, double> area_by_band;
-  for (size_t t = 0; t < read.triangles.size(); ++t) {
-    const Eigen::Vector3i& tri = read.triangles[t];
-    const Eigen::Vector3f cross = (read.vertices[tri[1]] - read.vertices[tri[0]])
-                                      .cross(read.vertices[tri[2]] - read.vertices[tri[0]]);
-    face_normals[t] = cross;
-    const float area2 = cross.norm();
-    if (area2 <= 0.0f || std::abs(cross.z()) < kHorizontalCos * area2) continue;
-    const double z = (read.vertices[tri[0]].z() + read.vertices[tri[1]].z() +
-                      read.vertices[tri[2]].z()) / 3.0;
-    area_by_band[std::lround(std::floor(z / kFloorBandM))] += 0.5 * area2;
-  }
-  if (area_by_band.empty()) return Status::error(path + ": the mesh has no horizontal face: no floor");
-  double most_area = 0.0;
-  for (const auto& [band, area] : area_by_band) most_area = std::max(most_area, area);
-  // z down: the lowest band is the one with the largest z.
-  long floor_band = 0;
-  for (auto it = area_by_band.rbegin(); it != area_by_band.rend(); ++it) {
-    if (it->second >= kFloorAreaShare * most_area) {
-      floor_band = it->first;
-      break;
-    }
-  }
-  // Its height: the horizontal faces' within the tolerance of that band, weighted by area.
-  const double band_mid = (static_cast<double>(floor_band) + 0.5) * kFloorBandM;
-  double floor_area = 0.0, floor_weighted_z = 0.0;
-  for (size_t t = 0; t < read.triangles.size(); ++t) {
-    const Eigen::Vector3i& tri = read.triangles[t];
-    const float area2 = face_normals[t].norm();
-    const double z = (read.vertices[tri[0]].z() + read.vertices[tri[1]].z() +
-                      read.vertices[tri[2]].z()) / 3.0;
-    if (area2 > 0.0f && std::abs(face_normals[t].z()) >= kHorizontalCos * area2 &&
-        std::abs(z - band_mid) <= kFloorToleranceM) {
-      floor_area += area2;
-      floor_weighted_z += area2 * z;
-    }
-  }
-  scene.floor_z_m = floor_weighted_z / floor_area;
+  scene.floor_z_m = floor_weighted_z / floor_area;  // the band's own faces: floor_area > 0
 
   // The floor's faces first (Scene::floor_triangles): every face within the tolerance of it, the
   // slopes of its bumps too. Each vertex's normal is the area-weighted mean of its faces' as the
   // file winds them.
   std::vector<Eigen::Vector3i> floor_faces, other_faces;
-  read.normals.assign(read.vertices.size(), Eigen::Vector3f::Zero());
-  for (size_t t = 0; t < read.triangles.size(); ++t) {
-    const Eigen::Vector3i& tri = read.triangles[t];
+  mesh.normals.assign(mesh.vertices.size(), Eigen::Vector3f::Zero());
+  for (size_t t = 0; t < mesh.triangles.size(); ++t) {
+    const Eigen::Vector3i& tri = mesh.triangles[t];
     bool floor = true;
     for (int k = 0; k < 3; ++k) {
-      read.normals[tri[k]] += face_normals[t];
-      floor = floor && std::abs(read.vertices[tri[k]].z() - scene.floor_z_m) <= kFloorToleranceM;
+      mesh.normals[tri[k]] += faces[t].cross;
+      floor = floor && std::abs(mesh.vertices[tri[k]].z() - scene.floor_z_m) <= kFloorToleranceM;
     }
     (floor ? floor_faces : other_faces).push_back(tri);
   }
-  for (Eigen::Vector3f& n : read.normals) {
-    n = n.squaredNorm() > 0.0f ? Eigen::Vector3f(n.normalized()) : Eigen::Vector3f(-Eigen::Vector3f::UnitZ());
+  for (Eigen::Vector3f& n : mesh.normals) {
+    n = n.squaredNorm() > 0.0f ? Eigen::Vector3f(n.normalized())
+                               : Eigen::Vector3f(-Eigen::Vector3f::UnitZ());
   }
-  scene.mesh.vertices = std::move(read.vertices);
-  scene.mesh.normals = std::move(read.normals);
+  scene.mesh.vertices = std::move(mesh.vertices);
+  scene.mesh.normals = std::move(mesh.normals);
   scene.mesh.triangles = std::move(floor_faces);
   scene.floor_triangles = static_cast<int>(scene.mesh.triangles.size());
   scene.mesh.triangles.insert(scene.mesh.triangles.end(), other_faces.begin(), other_faces.end());

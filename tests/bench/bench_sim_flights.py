@@ -31,6 +31,7 @@ import numpy as np
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "scripts"))
 import sim_plots  # noqa: E402
+from sim import DATA_SCENES  # noqa: E402
 
 from kinfly.flight_status_t import flight_status_t  # noqa: E402
 
@@ -217,6 +218,12 @@ def main() -> int:
         for scenario in SCENARIOS:
             if args.only and scenario.name not in args.only:
                 continue
+            if scenario.scene in DATA_SCENES:
+                mesh = sim_plots.kinfly_eval.data_root() / DATA_SCENES[scenario.scene][0]
+                if not mesh.is_file():
+                    print(f"bench_sim_flights: {scenario.name} not flown: no {mesh} (the shared "
+                          "data: set KINFLY_DATA)", file=sys.stderr)
+                    continue
             runs = []
             for seed in args.seeds:
                 started = time.monotonic()

@@ -6,6 +6,9 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
+#include <limits>
+#include <sstream>
 #include <unistd.h>
 
 #include "kinfly/core/noise_model.h"
@@ -198,9 +201,19 @@ TEST(Scenes, FacesLookIntoTheFreeSpace) {
   EXPECT_EQ(makeScene("hall").status().message(), "scene 'hall' is unknown (known: room, corridor)");
 }
 
+// A file in the temporary folder, removed however the test ends.
+struct TempFile {
+  explicit TempFile(const std::string& name)
+      : path((std::filesystem::temp_directory_path() /
+              ("kinfly_" + std::to_string(::getpid()) + "_" + name))
+                 .string()) {}
+  ~TempFile() { std::filesystem::remove(path); }
+  void write(const std::string& text) const { std::ofstream(path) << text; }
+  std::string path;
+};
+
 // The furnished room written z up as a scan is (a half turn about x), its floor raised to
-// kFloorUpM, and read back: the same room, standing on its floor, not on its ceiling (which has
-// as much horizontal area), rendered as the room is.
+// kFloorUpM, and read back: the same room, rendered as the room is.
 TEST(Scenes, AMeshFileIsTheSceneItHolds) {
   constexpr float kFloorUpM = 0.7f;
   constexpr double kStartHeadingRad = 30.0 * M_PI / 180.0;
@@ -210,19 +223,17 @@ TEST(Scenes, AMeshFileIsTheSceneItHolds) {
   TriangleMesh z_up = room.mesh;
   for (Eigen::Vector3f& v : z_up.vertices) v = Eigen::Vector3f(v.x(), -v.y(), kFloorUpM - v.z());
   for (Eigen::Vector3f& n : z_up.normals) n = Eigen::Vector3f(n.x(), -n.y(), -n.z());
-  const std::string path =
-      (std::filesystem::temp_directory_path() / ("kinfly_scene_" + std::to_string(::getpid()) + ".ply"))
-          .string();
-  ASSERT_TRUE(writePly(z_up, path).ok());
-  StatusOr<Scene> read = loadMeshScene(path, {0.5, 0.25}, kStartHeadingRad);
-  std::filesystem::remove(path);
+  const TempFile file("room.ply");
+  ASSERT_TRUE(writePly(z_up, file.path).ok());
+  StatusOr<Scene> read = loadMeshScene(file.path, {0.5, 0.25}, kStartHeadingRad);
   ASSERT_TRUE(read.ok()) << read.status().message();
   const Scene& scene = read.value();
   EXPECT_NEAR(scene.floor_z_m, -kFloorUpM, 1e-5);
   EXPECT_EQ(scene.start_xy_m, Eigen::Vector2d(0.5, -0.25));
   EXPECT_DOUBLE_EQ(scene.start_yaw_rad, -kStartHeadingRad);
-  EXPECT_EQ(scene.name, "kinfly_scene_" + std::to_string(::getpid()));
+  EXPECT_EQ(scene.name, std::filesystem::path(file.path).stem().string());
   EXPECT_NEAR(scene.mesh.surfaceAreaM2(), room.mesh.surfaceAreaM2(), 1e-3);
+  ASSERT_GT(scene.floor_triangles, 0);
   for (int i = 0; i < scene.floor_triangles; ++i) {
     for (int k = 0; k < 3; ++k) {
       EXPECT_NEAR(scene.mesh.vertices[scene.mesh.triangles[i][k]].z(), -kFloorUpM, 1e-5);
@@ -251,6 +262,42 @@ TEST(Scenes, AMeshFileIsTheSceneItHolds) {
   EXPECT_EQ(apart, 0);
 }
 
+// A scan's floor: 16 square tiles of a 4 m floor at heights spread over 4 cm (quads, as an OFF
+// file may have them), a ceiling 2.5 m up with 1.5 times the floor's area, a stray patch 0.3 m
+// below the floor. It stands on the floor: not on the ceiling, which weighs more in any one band,
+// nor on the patch, which is lowest.
+TEST(Scenes, AMeshFileStandsOnItsFloorNotItsCeilingNorAStrayPatch) {
+  constexpr double kTileStepM = 0.01;
+  constexpr int kTileHeights = 5;  // 0 to 4 cm
+  std::ostringstream vertices, faces;
+  int vertex_count = 0, face_count = 0;
+  const auto quad = [&](double x0, double y0, double x1, double y1, double z) {
+    vertices << x0 << ' ' << y0 << ' ' << z << '\n' << x1 << ' ' << y0 << ' ' << z << '\n'
+             << x1 << ' ' << y1 << ' ' << z << '\n' << x0 << ' ' << y1 << ' ' << z << '\n';
+    faces << "4 " << vertex_count << ' ' << vertex_count + 1 << ' ' << vertex_count + 2 << ' '
+          << vertex_count + 3 << '\n';
+    vertex_count += 4;
+    ++face_count;
+  };
+  double weighted_height_m = 0.0;
+  for (int i = 0; i < 16; ++i) {
+    const double z = kTileStepM * (i % kTileHeights);
+    weighted_height_m += z / 16.0;
+    quad(-2.0 + (i % 4), -2.0 + (i / 4), -1.0 + (i % 4), -1.0 + (i / 4), z);
+  }
+  quad(-3.0, -2.0, 3.0, 2.0, 2.5);     // the ceiling: 24 m^2 against the floor's 16
+  quad(0.0, 0.0, 0.2, 0.2, -0.3);      // a stray patch below the floor
+  const TempFile file("floor.off");
+  file.write("OFF\n" + std::to_string(vertex_count) + " " + std::to_string(face_count) + " 0\n" +
+             vertices.str() + faces.str());
+  StatusOr<Scene> read = loadMeshScene(file.path, {0.0, 0.0}, 0.0);
+  ASSERT_TRUE(read.ok()) << read.status().message();
+  EXPECT_NEAR(read->floor_z_m, -weighted_height_m, 1e-6);
+  // Each tile's quad as a fan of two triangles; the ceiling and the patch are not the floor.
+  EXPECT_EQ(read->floor_triangles, 32);
+  EXPECT_EQ(read->mesh.triangles.size(), 36u);
+}
+
 TEST(Scenes, AMeshFileThatIsNoSceneIsNamed) {
   const std::string missing = "/nonexistent/office.ply";
   StatusOr<Scene> read = loadMeshScene(missing, {0.0, 0.0}, 0.0);
@@ -261,26 +308,39 @@ TEST(Scenes, AMeshFileThatIsNoSceneIsNamed) {
   wall.vertices = {{0, 0, 0}, {1, 0, 0}, {1, 0, 1}, {0, 0, 1}};
   wall.normals.assign(4, Eigen::Vector3f::UnitY());
   wall.triangles = {{0, 1, 2}, {0, 2, 3}};
-  const std::string path =
-      (std::filesystem::temp_directory_path() / ("kinfly_wall_" + std::to_string(::getpid()) + ".ply"))
-          .string();
-  ASSERT_TRUE(writePly(wall, path).ok());
-  read = loadMeshScene(path, {0.0, 0.0}, 0.0);
-  std::filesystem::remove(path);
+  const TempFile walls("wall.ply");
+  ASSERT_TRUE(writePly(wall, walls.path).ok());
+  read = loadMeshScene(walls.path, {0.0, 0.0}, 0.0);
   ASSERT_FALSE(read.ok());
-  EXPECT_EQ(read.status().message(), path + ": the mesh has no horizontal face: no floor");
+  EXPECT_EQ(read.status().message(), walls.path + ": the mesh has no horizontal face: no floor");
+  // A vertex that is not finite, or that no room in metres has.
+  for (const float bad : {std::numeric_limits<float>::quiet_NaN(), 1e30f}) {
+    TriangleMesh broken = wall;
+    broken.vertices[2].z() = bad;
+    ASSERT_TRUE(writePly(broken, walls.path).ok());
+    read = loadMeshScene(walls.path, {0.0, 0.0}, 0.0);
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.status().message(), walls.path + ": a vertex is not finite or lies beyond 10 km: "
+                                                    "not a scene in metres");
+  }
+  // A face naming a vertex the file does not have.
+  const TempFile stray("stray.ply");
+  stray.write("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+              "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+              "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n");
+  read = loadMeshScene(stray.path, {0.0, 0.0}, 0.0);
+  ASSERT_FALSE(read.ok());
+  EXPECT_EQ(read.status().message(), stray.path + ": face 0 names a vertex beyond its 3");
   // Cut short in its faces (a copy that did not finish).
-  const std::string cut = path + ".cut.ply";
-  ASSERT_TRUE(writePly(furnishedRoom().mesh, path).ok());
-  std::filesystem::copy_file(path, cut);
-  std::filesystem::resize_file(cut, std::filesystem::file_size(path) - 5);
-  EXPECT_TRUE(loadMeshScene(path, {0.0, 0.0}, 0.0).ok());
-  read = loadMeshScene(cut, {0.0, 0.0}, 0.0);
-  std::filesystem::remove(path);
-  std::filesystem::remove(cut);
+  const TempFile whole("whole.ply"), cut("cut.ply");
+  ASSERT_TRUE(writePly(furnishedRoom().mesh, whole.path).ok());
+  std::filesystem::copy_file(whole.path, cut.path);
+  std::filesystem::resize_file(cut.path, std::filesystem::file_size(whole.path) - 5);
+  EXPECT_TRUE(loadMeshScene(whole.path, {0.0, 0.0}, 0.0).ok());
+  read = loadMeshScene(cut.path, {0.0, 0.0}, 0.0);
   ASSERT_FALSE(read.ok());
-  EXPECT_EQ(read.status().message(), cut + ": cannot read a mesh from it (PLY, OBJ, OFF or STL): "
-                                           "malformed, cut short, or of another format");
+  EXPECT_EQ(read.status().message(), cut.path + ": cannot read a mesh from it (PLY, OBJ, OFF or "
+                                                "STL): malformed, cut short, or of another format");
 }
 
 }  // namespace

@@ -37,14 +37,14 @@ Scene furnishedRoom();
 // at x = -2, heading down the corridor; the far end is beyond the camera's range.
 Scene corridor();
 
-// A scene from a mesh file (PLY, OBJ, OFF or STL, read by CGAL), in metres with z up, as
-// Replica's and most scans' are; a half turn about x puts it in the simulator's world (z down,
-// y mirrored: a scene point (x, y, z) is at (x, -y, -z)). Its floor is the lowest 1 cm band of
-// heights where the mesh's horizontal faces have a quarter of the area of the band with the most
-// (the floor or the ceiling), at those faces' mean height within 3 cm; every face within 3 cm of
-// that height is the floor's, which carries the drone. The
-// drone starts at start_xy_m on the floor, heading start_heading_rad counter-clockwise from the
-// mesh's +x seen from above, both in the mesh's own frame. An error names the file.
+// A scene from a mesh file (PLY, OBJ, OFF or STL: readMeshFile), in metres with z up, as
+// Replica's and most scans' are; a half turn about x puts it in the simulator's world (z down:
+// a point (x, y, z) of the file is at (x, -y, -z)). Its floor: each 1 cm band of heights weighed
+// by the horizontal faces' area within 3 cm of it, the lowest band with a quarter of the heaviest
+// (a ceiling may weigh more), at its faces' mean height; every face within 3 cm of that height is
+// the floor's, which carries the drone. The drone starts at start_xy_m on the floor, heading
+// start_heading_rad counter-clockwise from the mesh's +x seen from above, both in the mesh's own
+// frame. An error names the file.
 StatusOr<Scene> loadMeshScene(const std::string& path, const Eigen::Vector2d& start_xy_m,
                               double start_heading_rad);
 

@@ -20,12 +20,13 @@ repo_root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # shellcheck source=scripts/aarch64-common.sh
 source "$repo_root/scripts/aarch64-common.sh"
 
-# Beyond minbase: boot (kernel, initramfs, GRUB's arm64 modules, udev), the network (Wi-Fi,
-# systemd-networkd, ssh for `make deploy`), time (the uplink's 2 s signing window needs NTP), and
-# what the first boot uses to grow the root partition.
+# Beyond minbase: boot (kernel, initramfs, GRUB's arm64 modules, udev), the network (Wi-Fi with
+# the regulatory database the kernel loads for wifi_country, systemd-networkd, ssh for
+# `make deploy`), time (the uplink's 2 s signing window needs NTP), and what the first boot uses
+# to grow the root partition.
 image_packages=(
   systemd-sysv udev kmod linux-image-arm64 grub-efi-arm64-bin
-  wpasupplicant iproute2 openssh-server chrony
+  wpasupplicant wireless-regdb iproute2 openssh-server chrony
   fdisk dosfstools zstd
 )
 boot_mib=256
@@ -123,11 +124,13 @@ stage_boot_partition() {
     part_msdos fat ext2 normal linux search search_fs_uuid configfile echo gzio efi_gop
   # /vmlinuz and /initrd.img are the kernel package's symlinks to the current kernel, so a kernel
   # upgrade on the drone needs no change here.
+  # The last console= is /dev/console, where systemd and the first boot write: the serial port,
+  # since a drone's board runs headless; the kernel's own messages go to the screen too.
   cat >"$dir/EFI/BOOT/grub.cfg" <<EOF
 set timeout=2
 search --no-floppy --fs-uuid --set=root $root_uuid
 menuentry "kinfly (Debian 12 arm64)" {
-  linux /vmlinuz root=UUID=$root_uuid rw rootwait net.ifnames=0 console=ttyAMA0,115200 console=tty1
+  linux /vmlinuz root=UUID=$root_uuid rw rootwait net.ifnames=0 console=tty1 console=ttyAMA0,115200
   initrd /initrd.img
 }
 EOF

@@ -111,6 +111,9 @@ def test_file_systems_are_clean_and_referenced_by_uuid(boot_fs: Path, root_fs: P
     grub_cfg = run("mtype", "-i", boot_fs, "::/EFI/BOOT/grub.cfg")
     assert f"--set=root {fs_uuid(root_fs)}" in grub_cfg
     assert f"root=UUID={fs_uuid(root_fs)}" in grub_cfg
+    # The serial port is /dev/console (the last console=): systemd's and the first boot's
+    # messages reach a headless board's serial line.
+    assert re.findall(r"console=(\S+)", grub_cfg)[-1] == "ttyAMA0,115200", grub_cfg
 
 
 def test_boot_partition_has_the_loader_and_provisioning_file(boot_fs: Path) -> None:
@@ -134,7 +137,10 @@ def test_root_has_firmware_config_units_and_first_boot(root_fs: Path) -> None:
                  "/usr/lib/systemd/system/kinfly-fw.service",
                  "/usr/libexec/kinfly/kinfly-firstboot",
                  "/etc/systemd/system/kinfly-firstboot.service", "/etc/default/kinfly-fw",
-                 "/etc/systemd/network/10-kinfly-multicast.network", "/vmlinuz", "/initrd.img"):
+                 "/etc/systemd/network/10-kinfly-multicast.network", "/vmlinuz", "/initrd.img",
+                 # The Wi-Fi's regulatory database (wireless-regdb; its postinst links it), or
+                 # the kernel says "failed to load regulatory.db" and wifi_country does nothing.
+                 "/usr/lib/firmware/regulatory.db-debian", "/usr/lib/firmware/regulatory.db"):
         stat(root_fs, path)
     assert "Mode:  0755" in stat(root_fs, "/usr/libexec/kinfly/kinfly-firstboot")
     # The multicast route comes and goes with the Wi-Fi (systemd-networkd), so kinfly-fw, which

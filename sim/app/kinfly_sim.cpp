@@ -12,7 +12,6 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include <algorithm>
-#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>

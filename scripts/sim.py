@@ -321,8 +321,8 @@ def main() -> int:
                 ground = Ground(netns, out, key)
                 drone = Watched([*netns, *drone_command(key, out, args.camera_downsample)],
                                 "[drone]  ", quiet=False)
-                sim = Watched([*netns, *sim_command(key, out, args, scene)], "[sim]    ", quiet=False,
-                              answered=True)
+                sim = Watched([*netns, *sim_command(key, out, args, scene)], "[sim]    ",
+                              quiet=False, answered=True)
                 acted = 0
                 # The simulator waits after each such line: the latest is the one to act on.
                 while sim.wait_for(AWAITING, acted + 1, math.inf):

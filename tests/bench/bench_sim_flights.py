@@ -31,14 +31,12 @@ import numpy as np
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "scripts"))
 import sim_plots  # noqa: E402
-from sim import DATA_SCENES  # noqa: E402
+from sim import SCENE_MISSIONS, scene_arguments  # noqa: E402
 
 from kinfly.flight_status_t import flight_status_t  # noqa: E402
 
 VEHICLE = 1  # scripts/sim.py's
 FLIGHT_TIMEOUT_S = 1800.0  # one scripts/sim.py run's wall time at most, on a busy 2-core machine
-ROOM_TOUR = REPO_ROOT / "sim" / "missions" / "room_tour.toml"
-OFFICE0 = REPO_ROOT / "sim" / "missions" / "office0.toml"
 # The flights whose SLAM is scored too: ATE, the map against the scene, the estimator.
 TOURS = ("tour", "office0")
 # [s] hover windows: from after the climb has settled, 30 s of hold.
@@ -92,10 +90,10 @@ SCENARIOS = [
     Scenario("wind_step", mission("wind step", land(30.0), (
         f'[[event]]\nat_s = {STEP_AT_S}\nkind = "wind_step"\nwind_m_s = [2.0, 0.0, 0.0]\n')),
              "peak <= 10 cm, back within 2 cm in <= 2 s"),
-    Scenario("tour", ROOM_TOUR.read_text(),
+    Scenario("tour", SCENE_MISSIONS["room"].read_text(),
              "ATE onboard <= 3 cm, corrected <= 2 cm; map mean <= 1 cm; estimator <= 1 cm"),
     # Replica's office (the shared data): the tour's figures in a scanned room.
-    Scenario("office0", OFFICE0.read_text(), "as the tour's", scene="office0"),
+    Scenario("office0", SCENE_MISSIONS["office0"].read_text(), "as the tour's", scene="office0"),
 ]
 
 
@@ -218,12 +216,11 @@ def main() -> int:
         for scenario in SCENARIOS:
             if args.only and scenario.name not in args.only:
                 continue
-            if scenario.scene in DATA_SCENES:
-                mesh = sim_plots.kinfly_eval.data_root() / DATA_SCENES[scenario.scene][0]
-                if not mesh.is_file():
-                    print(f"bench_sim_flights: {scenario.name} not flown: no {mesh} (the shared "
-                          "data: set KINFLY_DATA)", file=sys.stderr)
-                    continue
+            try:
+                scene_arguments(scenario.scene)  # a scene from the shared data must be there
+            except ValueError as error:
+                print(f"bench_sim_flights: {scenario.name} not flown: {error}", file=sys.stderr)
+                continue
             runs = []
             for seed in args.seeds:
                 started = time.monotonic()

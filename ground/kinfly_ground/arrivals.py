@@ -6,9 +6,10 @@ Nothing slow runs here (no viewer, no files, no fusion), or the next keyframes w
 buffers until they overflow.
 
 Repairs (a station that sends): the chunks of a keyframe that did not all arrive are asked for
-again, once per group (the Receiver remembers what it asked), as soon as a chunk of a newer
-keyframe shows that the drone has moved on; the newest keyframe's once the drone's status says it
-was sent and no chunk has arrived for StationParams.repair_quiet_s."""
+again as soon as a chunk of a newer keyframe shows that the drone has moved on; the newest
+keyframe's once the drone's status says it was sent and no chunk has arrived for
+StationParams.repair_quiet_s. A group still incomplete is asked for again after
+StationParams.repair_retry_s, up to repair_asks times (the Receiver keeps count)."""
 from __future__ import annotations
 
 import time
@@ -47,7 +48,8 @@ class Arrivals:
         self.vehicles: dict[int, VehicleState] = {}
         self.rejected_too_many_vehicles = 0
         self.handler_errors = 0
-        self.receiver = Receiver()
+        self.receiver = Receiver(repair_max_asks=params.repair_asks,
+                                 repair_retry_s=params.repair_retry_s)
         self._arrival_ns = 0
 
     def on_message(self, channel: str, data: bytes) -> None:

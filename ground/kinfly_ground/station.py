@@ -54,6 +54,11 @@ class StationParams:
     # The newest keyframe's missing chunks are asked for only once the drone's status says it
     # sent that keyframe and no chunk has arrived for this long: until then they may still come.
     repair_quiet_s: float = 0.05        # [s] [0.005, 1]
+    # A resend can be lost too (the request, or a burst of the chunks): a group still incomplete
+    # is asked for again after repair_retry_s, at most repair_asks times in all, while the drone
+    # still keeps its chunks (its last 4 keyframes, about a second).
+    repair_asks: int = 3                # [1, 16]
+    repair_retry_s: float = 0.2         # [s] [0.01, 10]
     # Each correction is sent this many times, correction_copy_interval_s apart, so that a run
     # of lost packets rarely takes every copy; the drone applies the first and counts the others
     # as duplicates. At 10 % independent loss, 4 copies lose 1 in 10 000 (3: 1 in 1000, which
@@ -89,6 +94,8 @@ class StationParams:
              "mesh interval must be 0 (off) or >= 0.5 s"),
             (1 <= self.max_vehicles <= 1000, "max vehicles must be in [1, 1000]"),
             (0.005 <= self.repair_quiet_s <= 1.0, "repair quiet time must be in [0.005, 1] s"),
+            (1 <= self.repair_asks <= 16, "repair asks must be in [1, 16]"),
+            (0.01 <= self.repair_retry_s <= 10.0, "repair retry must be in [0.01, 10] s"),
             (1 <= self.correction_copies <= 10, "correction copies must be in [1, 10]"),
             (0.005 <= self.correction_copy_interval_s <= 0.5,
              "correction copy interval must be in [0.005, 0.5] s"),

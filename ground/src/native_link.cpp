@@ -12,6 +12,7 @@
 
 #include <algorithm>
 #include <array>
+#include <chrono>
 #include <cstring>
 #include <filesystem>
 #include <memory>
@@ -32,6 +33,7 @@
 #include "kinfly/link/decode.h"
 #include "kinfly/link/link_meter.h"
 #include "kinfly/link/peer.h"
+#include "kinfly/link/repair.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
 
@@ -102,7 +104,7 @@ struct LinkReport {
   int64_t chunks_received = 0;
   int64_t keyframes_recovered = 0;   // with recovery chunks or after a repair request
   int64_t keyframes_incomplete = 0;  // given up with chunks missing
-  int64_t repair_requests = 0;       // chunk_request_t handed out (one per group, once)
+  int64_t repair_requests = 0;       // chunk_request_t handed out (every ask of every group)
   // More detail.
   link::ChunkCounters chunks;        // the assembler's, by outcome
   int64_t keyframes_repaired = 0;    // completed after a repair request (and not by FEC alone)
@@ -118,15 +120,14 @@ class Receiver {
   // Vehicles whose keyframe link is followed (an assembler and a meter each, a few hundred KB
   // once grown); chunks of further vehicles are refused and counted.
   static constexpr size_t kMaxLinkVehicles = 16;
-  // (keyframe, group) pairs remembered as asked for: a group is asked for once, never again.
-  // Far more than the groups of the keyframes an assembler holds at once.
-  static constexpr size_t kAskedGroups = 256;
-
-  Receiver() : codec_(codecParams(bounds_)) {
+  explicit Receiver(const link::RepairScheduler::Params& repair)
+      : codec_(codecParams(bounds_)), repair_params_(repair) {
     if (const Status valid = assembler_params_.validate(); !valid.ok())
       throw std::logic_error(valid.message());
     if (const Status valid = meter_params_.validate(); !valid.ok())
       throw std::logic_error(valid.message());
+    if (const Status valid = repair_params_.validate(); !valid.ok())
+      throw std::invalid_argument("repair: " + valid.message());
   }
 
   // None, or (channel, vehicle id, what arrived: Keyframe (whole, or the chunk that completed
@@ -169,7 +170,7 @@ class Receiver {
           v->newest_keyframe_id = std::max(v->newest_keyframe_id, chunk_.keyframe_id);
         if (status != link::ChunkStatus::kCompleted) return result(nb::none());
         if (after.keyframes_recovered == before.keyframes_recovered &&
-            v->wasAsked(chunk_.utime, chunk_.keyframe_id))
+            v->repair.asked(chunk_.utime, chunk_.keyframe_id))
           ++v->keyframes_repaired;
         const std::vector<uint8_t>& message = v->assembler.message();
         if (!decode(message.data(), message.size(), &keyframe_)) return nb::none();
@@ -233,28 +234,23 @@ class Receiver {
     r.chunks_received = r.chunks.chunks;
     r.keyframes_recovered = r.chunks.keyframes_recovered + v->keyframes_repaired;
     r.keyframes_incomplete = r.chunks.keyframes_evicted;
-    r.repair_requests = v->repair_requests;
+    r.repair_requests = v->repair.requests();
     r.keyframes_repaired = v->keyframes_repaired;
     r.newest_keyframe_id = v->newest_keyframe_id;
     return r;
   }
 
-  // Encoded chunk_request_t for the vehicle's incomplete groups not asked for before (each
-  // (keyframe, group) at most once: a resend that is lost too is not chased). The newest
-  // keyframe may still be arriving, so it is left out unless INCLUDE_NEWEST.
-  nb::list repairRequests(int vehicle_id, bool include_newest) {
+  // Encoded chunk_request_t for the vehicle's incomplete groups due to be asked for at NOW_US
+  // (link::RepairScheduler: at once, then again while they stay incomplete). The newest keyframe
+  // may still be arriving, so it is left out unless INCLUDE_NEWEST.
+  nb::list repairRequests(int vehicle_id, bool include_newest, std::optional<int64_t> now_us) {
     nb::list out;
     VehicleLink* v = findLink(vehicle_id);
     if (v == nullptr) return out;
-    const int n = v->assembler.repairRequests(include_newest, &v->requests);
-    for (int i = 0; i < n; ++i) {
-      const chunk_request_t& request = v->requests[static_cast<size_t>(i)];
-      if (v->wasAsked(request.utime, request.keyframe_id, request.group)) continue;
-      v->asked[v->next_asked] = {request.utime, request.keyframe_id, request.group};
-      v->next_asked = (v->next_asked + 1) % v->asked.size();
-      ++v->repair_requests;
-      out.append(bytesOf(encoded(request)));
-    }
+    const int64_t now = now_us.value_or(std::chrono::duration_cast<std::chrono::microseconds>(
+        std::chrono::steady_clock::now().time_since_epoch()).count());
+    const int n = v->repair.due(v->assembler, include_newest, now, &v->requests);
+    for (int i = 0; i < n; ++i) out.append(bytesOf(encoded(v->requests[static_cast<size_t>(i)])));
     return out;
   }
 
@@ -263,27 +259,16 @@ class Receiver {
   int64_t linkVehiclesRefused() const { return link_vehicles_refused_; }
 
  private:
-  struct AskedGroup {
-    int64_t utime = 0;  // the keyframe's capture time: ids start again when the drone restarts
-    int64_t keyframe_id = -1;
-    int16_t group = -1;
-  };
   struct VehicleLink {
     VehicleLink(int32_t id, const link::ChunkAssembler::Params& assembler_params,
-                const link::LinkMeter::Params& meter_params)
-        : vehicle_id(id), assembler(id, assembler_params), meter(meter_params) {}
-    // Any group of the keyframe when group < 0.
-    bool wasAsked(int64_t utime, int64_t keyframe_id, int16_t group = -1) const {
-      return std::any_of(asked.begin(), asked.end(), [&](const AskedGroup& a) {
-        return a.keyframe_id == keyframe_id && a.utime == utime && (group < 0 || a.group == group);
-      });
-    }
+                const link::LinkMeter::Params& meter_params,
+                const link::RepairScheduler::Params& repair_params)
+        : vehicle_id(id), assembler(id, assembler_params), meter(meter_params),
+          repair(repair_params) {}
     int32_t vehicle_id;
     link::ChunkAssembler assembler;
     link::LinkMeter meter;
-    std::array<AskedGroup, kAskedGroups> asked;  // a ring
-    size_t next_asked = 0;
-    int64_t repair_requests = 0;
+    link::RepairScheduler repair;
     int64_t keyframes_repaired = 0;
     int64_t newest_keyframe_id = -1;
     std::vector<chunk_request_t> requests;  // repairRequests()'s, reused
@@ -349,7 +334,8 @@ class Receiver {
       ++link_vehicles_refused_;
       return nullptr;
     }
-    links_.push_back(std::make_unique<VehicleLink>(vehicle_id, assembler_params_, meter_params_));
+    links_.push_back(std::make_unique<VehicleLink>(vehicle_id, assembler_params_, meter_params_,
+                                                   repair_params_));
     return links_.back().get();
   }
 
@@ -361,6 +347,7 @@ class Receiver {
   Image<uint16_t> depth_;      // reused: the codec's output
   link::ChunkAssembler::Params assembler_params_;
   link::LinkMeter::Params meter_params_;
+  link::RepairScheduler::Params repair_params_;
   std::vector<std::unique_ptr<VehicleLink>> links_;
   int64_t link_vehicles_refused_ = 0;
 };
@@ -666,7 +653,17 @@ void bindLink(nb::module_& m) {
                        "Parses, decodes within bounds and checks every received message "
                        "(firmware/link), assembles keyframe chunks and measures each vehicle's "
                        "link, counting what it rejects")
-      .def(nb::init<>())
+      .def("__init__",
+           [](Receiver* self, int repair_max_asks, double repair_retry_s) {
+             link::RepairScheduler::Params repair;
+             repair.max_asks = repair_max_asks;
+             repair.retry_s = repair_retry_s;
+             new (self) Receiver(repair);
+           },
+           nb::arg("repair_max_asks") = link::RepairScheduler::Params().max_asks,
+           nb::arg("repair_retry_s") = link::RepairScheduler::Params().retry_s,
+           "repair_max_asks [1, 16], repair_retry_s [s] [0.01, 10]: how often and how far apart "
+           "an incomplete group is asked for (ValueError outside)")
       .def("receive", &Receiver::receive, nb::arg("channel"), nb::arg("data"),
            nb::arg("arrival_utime") = nb::none(),
            "None when rejected or not for the ground; else (Channel, vehicle id, message). "
@@ -676,9 +673,11 @@ void bindLink(nb::module_& m) {
            "The vehicle's LinkQuality as of now_utime (wall clock by default); None before any "
            "of its keyframes arrived")
       .def("repair_requests", &Receiver::repairRequests, nb::arg("vehicle_id"),
-           nb::arg("include_newest"),
-           "Encoded chunk_request_t for incomplete groups not asked for before (each group "
-           "once); the newest keyframe only with include_newest")
+           nb::arg("include_newest"), nb::arg("now_us") = nb::none(),
+           "Encoded chunk_request_t for the incomplete groups due at now_us (a monotonic clock, "
+           "[us]; CLOCK_MONOTONIC by default): each at once, then every repair_retry_s while it "
+           "stays incomplete, at most repair_max_asks times; the newest keyframe only with "
+           "include_newest")
       .def_prop_ro("rejects", &Receiver::rejects, nb::rv_policy::reference_internal)
       .def_prop_ro("link_vehicles_refused", &Receiver::linkVehiclesRefused,
                    "keyframe chunks refused: too many vehicles' links followed already");

@@ -27,6 +27,7 @@ from kinfly_ground._native import (MAX_LINK_VEHICLES, MAX_VEHICLE_ID, Channel, C
 VEHICLE = 4
 SEED = 20261122
 NOW = 1_700_000_000_000_000  # [us]
+ASKS, RETRY_S = 3, 0.2  # a Receiver's repair settings in the tests that ask for chunks
 # The payload_size field's offset: the fixed part of a keyframe with an empty payload, less 4.
 PAYLOAD_SIZE_AT = len(depth_keyframe_t().encode()) - 4
 
@@ -187,7 +188,7 @@ def test_a_chunked_keyframe_arrives_as_a_whole_one_would() -> None:
     assert (receiver.rejects.malformed, receiver.rejects.total()) == (1, 1)
 
 
-def test_a_missing_chunk_is_asked_for_once() -> None:
+def test_a_missing_chunk_is_asked_for_again_until_it_comes_or_the_asks_run_out() -> None:
     codec = DepthCodec()
     first = keyframe(small_depth(), codec)
     second = keyframe(small_depth(SEED + 1), codec)
@@ -195,24 +196,30 @@ def test_a_missing_chunk_is_asked_for_once() -> None:
     one = chunked(first, first_sequence=0, first_arrival=NOW)
     two = chunked(second, first_sequence=len(one), first_arrival=NOW + 200_000)
     missing = 1
-    receiver = Receiver()
+    receiver = Receiver(repair_max_asks=ASKS, repair_retry_s=RETRY_S)
+    retry_us = round(RETRY_S * 1e6)
     channel = channel_name(Channel.KEYFRAME_CHUNK, VEHICLE)
     for t, data in one[:missing] + one[missing + 1:]:
         assert receiver.receive(channel, data, arrival_utime=t)[2] is None
     # Still the newest keyframe: its chunk may be on its way.
-    assert receiver.repair_requests(VEHICLE, include_newest=False) == []
+    assert receiver.repair_requests(VEHICLE, include_newest=False, now_us=0) == []
     receiver.receive(channel, two[0][1], arrival_utime=two[0][0])
-    requests = receiver.repair_requests(VEHICLE, include_newest=False)
+    requests = receiver.repair_requests(VEHICLE, include_newest=False, now_us=0)
     assert len(requests) == 1
     request = chunk_request_t.decode(requests[0])
     assert (request.utime, request.vehicle_id, request.keyframe_id, request.group) == \
         (first.utime, VEHICLE, first.keyframe_id, 0)
     assert list(request.indices) == [missing]
-    assert receiver.repair_requests(VEHICLE, include_newest=False) == []  # never twice
-    # The newest, while it arrives, only when asked to include it: its missing chunks, once.
-    newest = receiver.repair_requests(VEHICLE, include_newest=True)
+    # The newest, while it arrives, only when asked to include it.
+    newest = receiver.repair_requests(VEHICLE, include_newest=True, now_us=0)
     assert [chunk_request_t.decode(r).keyframe_id for r in newest] == [second.keyframe_id]
-    assert receiver.repair_requests(VEHICLE, include_newest=True) == []
+    # Not again before the retry time; then again, each retry time, until ASKS asks in all.
+    assert receiver.repair_requests(VEHICLE, include_newest=True, now_us=retry_us - 1) == []
+    for ask in range(1, ASKS):
+        again = receiver.repair_requests(VEHICLE, include_newest=False, now_us=ask * retry_us)
+        assert [list(chunk_request_t.decode(r).indices) for r in again] == [[missing]], ask
+    end_us = 10 * ASKS * retry_us
+    assert receiver.repair_requests(VEHICLE, include_newest=False, now_us=end_us) == []
 
     # The drone resends the chunk (a new sequence number): the keyframe is complete, repaired.
     resent = chunks_of(first.encode(), utime=first.utime, vehicle_id=VEHICLE,
@@ -222,8 +229,18 @@ def test_a_missing_chunk_is_asked_for_once() -> None:
     _, _, k = receiver.receive(channel, resent.encode(), arrival_utime=NOW + 213_000)
     assert k is not None and k.keyframe_id == first.keyframe_id
     q = receiver.link_quality(VEHICLE, now_utime=NOW + 213_000)
-    assert (q.repair_requests, q.keyframes_recovered, q.keyframes_repaired) == (2, 1, 1)
+    assert (q.repair_requests, q.keyframes_recovered, q.keyframes_repaired) == (ASKS + 1, 1, 1)
     assert q.chunks.keyframes_completed == 1 and q.newest_keyframe_id == second.keyframe_id
+    # Complete: never asked for again.
+    later = receiver.repair_requests(VEHICLE, include_newest=True, now_us=end_us)
+    assert [chunk_request_t.decode(r).keyframe_id for r in later] == [second.keyframe_id]
+
+
+def test_repair_settings_out_of_range_are_refused() -> None:
+    with pytest.raises(ValueError, match=r"max_asks must be in \[1, 16\]"):
+        Receiver(repair_max_asks=0)
+    with pytest.raises(ValueError, match=r"retry_s must be in \[0.01, 10\] s"):
+        Receiver(repair_retry_s=0.001)
 
 
 def test_chunks_of_too_many_vehicles_are_refused_and_counted() -> None:

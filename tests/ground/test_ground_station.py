@@ -710,15 +710,19 @@ def test_station_params_build_the_engines_parameters() -> None:
 # --- keyframes in chunks --------------------------------------------------------------------
 
 REPAIR_QUIET_S = 0.01  # StationParams.repair_quiet_s for the test (the default is 0.05)
+# StationParams.repair_retry_s for the test: longer than it runs on a loaded machine, so that a
+# group is asked for once in it (the asks again are test_ground_receiver.py's, on its clock).
+REPAIR_RETRY_S = 10.0
 
 
-def test_chunked_keyframes_are_mapped_and_each_lost_chunk_is_asked_for_once(sample) -> None:
+def test_chunked_keyframes_are_mapped_and_each_lost_chunk_is_asked_for(sample) -> None:
     """Keyframes in chunks get their corrections like whole ones. The newest keyframe's lost
     chunk is asked for once the drone's status says it sent it and the chunks have been quiet;
-    an older one's as soon as a newer keyframe's chunk arrives; never twice. The ground's status
-    carries the link's figures."""
+    an older one's as soon as a newer keyframe's chunk arrives; not twice within the retry time.
+    The ground's status carries the link's figures."""
     keyframes = [m for m, _ in flight(sample, 4)]
-    rig = Rig(StationParams(mesh_interval_s=0, repair_quiet_s=REPAIR_QUIET_S))
+    rig = Rig(StationParams(mesh_interval_s=0, repair_quiet_s=REPAIR_QUIET_S,
+                            repair_retry_s=REPAIR_RETRY_S))
     channel = channel_name(Channel.KEYFRAME_CHUNK, VEHICLE)
     status_channel = channel_name(Channel.STATUS, VEHICLE)
     chunks, sequence = [], 0

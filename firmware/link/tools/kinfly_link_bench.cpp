@@ -17,7 +17,8 @@
 //       assembles chunks, decodes keyframes within bounds, measures latency (receive time minus
 //       the keyframe's utime, stamped after encoding) and loss (of keyframes: those the drone's
 //       final status says it sent; of chunks: sequence gaps); with --tum checks every keyframe
-//       bit for bit; with --repair asks once per incomplete group, when the next keyframe starts
+//       bit for bit; with --repair asks for incomplete groups as the ground station does
+//       (link::RepairScheduler: a keyframe's once the next one starts, again while incomplete)
 //       and at the end; with --key signs a correction of each keyframe. Ends after the drone's
 //       final status (or 1 s without its status) and a last repair round. Prints one JSON
 //       summary.
@@ -49,6 +50,7 @@
 #include "kinfly/link/conversions.h"
 #include "kinfly/link/counters.h"
 #include "kinfly/link/decode.h"
+#include "kinfly/link/repair.h"
 #include "kinfly/link/signing.h"
 #include "kinfly/link/uplink.h"
 #include "percentile.h"
@@ -69,7 +71,7 @@ constexpr double kDroneLingerS = 1.5;
 // [s] without a drone status, and nothing left to handle, the ground takes the drone to have
 // stopped (its final statuses lost); within the drone's linger, so the last repairs are answered.
 constexpr double kDroneQuietS = 1.0;
-// [s] the ground waits for the answers to its last repair round.
+// [s] the ground's last repair rounds (asks again included) and their answers.
 constexpr double kLastRepairWaitS = 0.5;
 // Messages LCM queues for a subscription before it drops the newest (its default is 30): a
 // keyframe is ~45 chunks, which arrive within the spread while the handler may wait for a core
@@ -445,16 +447,12 @@ class GroundEnd {
     // Everything else on our channels is our own traffic looping back.
   }
 
-  // Once per incomplete group: the resends it asks for are not asked again.
+  // The requests due now (the older keyframes' only, unless include_newest).
   void askRepairs(bool include_newest) {
-    const int n = assembler_.repairRequests(include_newest, &requests_);
-    for (int i = 0; i < n; ++i) {
-      chunk_request_t& request = requests_[static_cast<size_t>(i)];
-      if (!asked_.insert({request.keyframe_id, request.group}).second) continue;
-      repaired_ids_.insert(request.keyframe_id);
-      lcm_->publish(request_channel_, &request);
-      ++repair_requests_;
-    }
+    const int64_t now_us =
+        std::chrono::duration_cast<std::chrono::microseconds>(Clock::now().time_since_epoch()).count();
+    const int n = repair_.due(assembler_, include_newest, now_us, &requests_);
+    for (int i = 0; i < n; ++i) lcm_->publish(request_channel_, &requests_[static_cast<size_t>(i)]);
   }
 
   int64_t received() const { return static_cast<int64_t>(keyframe_ids_.size()); }
@@ -501,7 +499,7 @@ class GroundEnd {
         static_cast<long long>(c.stale), static_cast<long long>(c.mismatch),
         static_cast<long long>(c.malformed), static_cast<long long>(c.digest_mismatch),
         loss.lossFraction(), loss.meanLossRun(), static_cast<long long>(loss.expected),
-        static_cast<long long>(loss.received), static_cast<long long>(repair_requests_),
+        static_cast<long long>(loss.received), static_cast<long long>(repair_.requests()),
         static_cast<long long>(corrections_sent_), countersJson(rejects_).c_str());
   }
 
@@ -540,21 +538,19 @@ class GroundEnd {
       rejects_.count(decoded.status);
       return;
     }
-    const bool newer = chunk_.keyframe_id > newest_id_;
     const int64_t recovered_before = assembler_.counters().keyframes_recovered;
     const link::ChunkStatus status = assembler_.add(chunk_);
     const bool kept =
         status == link::ChunkStatus::kStored || status == link::ChunkStatus::kCompleted;
-    if (newer && kept) newest_id_ = chunk_.keyframe_id;
     if (status == link::ChunkStatus::kCompleted) {
-      const bool repaired = repaired_ids_.count(chunk_.keyframe_id) > 0;
+      const bool repaired = repair_.asked(chunk_.utime, chunk_.keyframe_id);
       repaired_ += repaired;
       fec_recovered_ +=
           !repaired && assembler_.counters().keyframes_recovered > recovered_before;
       onKeyframe(now);
     }
-    // The keyframe before a newer one's first chunk has had all its chunks sent.
-    if (newer && kept && options_.repair) askRepairs(/*include_newest=*/false);
+    // The keyframes before the newest have had all their chunks sent.
+    if (kept && options_.repair) askRepairs(/*include_newest=*/false);
   }
 
   void onKeyframe(int64_t now) {
@@ -646,14 +642,12 @@ class GroundEnd {
   depth_keyframe_t keyframe_;
   Image<uint16_t> depth_;
   mutable std::vector<chunk_request_t> requests_;
-  std::set<std::pair<int64_t, int>> asked_;  // (keyframe id, group) already asked for
-  std::set<int64_t> repaired_ids_;           // keyframes asked for
+  link::RepairScheduler repair_{link::RepairScheduler::Params()};
   std::vector<uint8_t> inner_;
   signed_t envelope_;
-  int64_t newest_id_ = -1;
   std::set<int64_t> keyframe_ids_;
   std::vector<double> latency_ms_, bytes_;
-  int64_t mismatches_ = 0, fec_recovered_ = 0, repaired_ = 0, repair_requests_ = 0;
+  int64_t mismatches_ = 0, fec_recovered_ = 0, repaired_ = 0;
   int64_t corrections_sent_ = 0;
   bool status_heard_ = false, drone_final_ = false;
   int64_t drone_sent_ = 0;
@@ -693,11 +687,11 @@ int runGround(const Options& options) {
     end.sendDueCopies();
     if (handled == 0 && end.sinceDroneStatus() > kDroneQuietS) break;
   }
-  // The drone has stopped: one last round for what is still incomplete, the newest included.
+  // The drone has stopped: last rounds for what is still incomplete, the newest included.
   if (running()) {
-    if (options.repair) end.askRepairs(/*include_newest=*/true);
     const Clock::time_point last_round = Clock::now();
     while (running() && secondsSince(last_round) < kLastRepairWaitS) {
+      if (options.repair) end.askRepairs(/*include_newest=*/true);
       lcm.handleTimeout(static_cast<int>(1e3 * std::max(0.0, end.nextCopyS(0.05))));
       end.sendDueCopies();
     }

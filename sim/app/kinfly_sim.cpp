@@ -112,23 +112,6 @@ MultirotorParams simulatedVehicle(const Options& o) {
   return p;
 }
 
-// Whether a face of the scene other than the floor's lies within `radius` of `p`, probed along the
-// 26 directions of a cube's faces, edges and corners.
-bool touchesScene(const RayScene& rays, const Eigen::Vector3d& p, double radius) {
-  for (int x = -1; x <= 1; ++x) {
-    for (int y = -1; y <= 1; ++y) {
-      for (int z = -1; z <= 1; ++z) {
-        if (x == 0 && y == 0 && z == 0) continue;
-        const Eigen::Vector3f direction = Eigen::Vector3f(static_cast<float>(x), static_cast<float>(y),
-                                                          static_cast<float>(z)).normalized();
-        const RayHit hit = rays.cast(p.cast<float>(), direction, static_cast<float>(radius));
-        if (hit.hit && !hit.floor) return true;
-      }
-    }
-  }
-  return false;
-}
-
 // The scene by --scene: a built-in one by name, else a mesh file standing at --scene-start.
 StatusOr<Scene> chosenScene(const Options& o) {
   const std::vector<std::string>& names = sceneNames();
@@ -393,7 +376,7 @@ int run(const Options& o) {
                                             static_cast<float>(climb_m + vehicle_params.body_radius_m));
     const char* problem = !below.hit || !below.floor ? "is not over the scene's floor"
                           : above.hit ? "has no room to take off above it"
-                          : touchesScene(*rays.value(), p, vehicle_params.body_radius_m)
+                          : rays.value()->touches(p, vehicle_params.body_radius_m)
                               ? "is within the body's radius of the scene"
                               : nullptr;
     if (problem != nullptr && !o.scene_start.empty()) {
@@ -607,7 +590,7 @@ int run(const Options& o) {
     }
     if (!drone.onFloor()) airborne = true;
     // The scene: a face within the body's radius, the floor aside, ends the flight.
-    if (touchesScene(*rays.value(), s.p_world_m, vehicle_params.body_radius_m)) {
+    if (rays.value()->touches(s.p_world_m, vehicle_params.body_radius_m)) {
       flight.collided = true;
       flight.collision_world_m = s.p_world_m;
       flight.collision_speed_m_s = s.v_world_m_s.norm();

@@ -120,4 +120,19 @@ void RayScene::cast8(const Eigen::Vector3f& origin, const Eigen::Vector3f direct
   }
 }
 
+bool RayScene::touches(const Eigen::Vector3d& p, double radius) const {
+  for (int x = -1; x <= 1; ++x) {
+    for (int y = -1; y <= 1; ++y) {
+      for (int z = -1; z <= 1; ++z) {
+        if (x == 0 && y == 0 && z == 0) continue;
+        const Eigen::Vector3f direction = Eigen::Vector3f(static_cast<float>(x), static_cast<float>(y),
+                                                          static_cast<float>(z)).normalized();
+        const RayHit hit = cast(p.cast<float>(), direction, static_cast<float>(radius));
+        if (hit.hit && !hit.floor) return true;
+      }
+    }
+  }
+  return false;
+}
+
 }  // namespace kinfly::sim

@@ -180,6 +180,31 @@ void expectClosedAroundTheStart(const Scene& scene) {
   EXPECT_GT(floor_hits, 0);
 }
 
+// The body's sphere against a plane: whichever way the plane faces, found within the probes'
+// bound (cos 27.6° of the radius), never beyond the radius; the floor never.
+TEST(RayScene, TouchesWhatIsWithinTheBodysRadius) {
+  constexpr double kRadius = 0.27;
+  constexpr double kProbesFindWithin = 0.886;  // RayScene::touches(): cos 27.6°
+  const Eigen::Vector3d p(1.0, -2.0, -1.5);
+  NormalRandom random(6);
+  for (int i = 0; i < 50; ++i) {
+    const Eigen::Vector3d normal = random.vector3().normalized();
+    for (const auto& [distance, touches] : {std::pair{0.99 * kProbesFindWithin * kRadius, true},
+                                            std::pair{1.01 * kRadius, false}}) {
+      const Scene scene = planeScene((p - distance * normal).cast<float>(), normal.cast<float>());
+      auto rays = RayScene::create(scene);
+      ASSERT_TRUE(rays.ok());
+      EXPECT_EQ(rays.value()->touches(p, kRadius), touches) << normal.transpose() << " at " << distance;
+    }
+  }
+  Scene floor = planeScene({0, 0, 0}, {0, 0, -1});
+  floor.floor_triangles = 2;
+  auto rays = RayScene::create(floor);
+  ASSERT_TRUE(rays.ok());
+  EXPECT_FALSE(rays.value()->touches({0, 0, -0.1}, kRadius));
+  EXPECT_FALSE(rays.value()->touches({0, 0, 0.1}, kRadius));  // beneath it, too
+}
+
 TEST(Scenes, RoomAndCorridorAreClosedAroundTheStart) {
   expectClosedAroundTheStart(furnishedRoom());
   expectClosedAroundTheStart(corridor());

@@ -36,6 +36,11 @@ class RayScene {
   void cast8(const Eigen::Vector3f& origin, const Eigen::Vector3f directions[8],
              const bool active[8], float max_distance, float distances[8],
              float cos_incidence[8]) const;
+  // Whether a face other than the floor's lies within `radius` of `p` (the body's sphere against
+  // the scene: a collision, or no room to stand), probed along the 26 directions of a cube's
+  // faces, edges and corners. No direction is more than 27.6° from a probe, so a plane is found
+  // once it is within cos 27.6° = 0.886 of `radius` along its normal, whichever way it faces.
+  bool touches(const Eigen::Vector3d& p, double radius) const;
 
  private:
   struct Embree;

@@ -55,8 +55,9 @@ class StationParams:
     # sent that keyframe and no chunk has arrived for this long: until then they may still come.
     repair_quiet_s: float = 0.05        # [s] [0.005, 1]
     # A resend can be lost too (the request, or a burst of the chunks): a group still incomplete
-    # is asked for again after repair_retry_s, at most repair_asks times in all, while the drone
-    # still keeps its chunks (its last 4 keyframes, about a second).
+    # is asked for again after repair_retry_s, at most repair_asks times in all. The drone keeps
+    # its last 4 keyframes' chunks (0.8 s at 5 Hz): (repair_asks - 1) * repair_retry_s should
+    # fit in that, or the last asks go unanswered.
     repair_asks: int = 3                # [1, 16]
     repair_retry_s: float = 0.2         # [s] [0.01, 10]
     # Each correction is sent this many times, correction_copy_interval_s apart, so that a run

@@ -11,7 +11,6 @@
 #include <nanobind/stl/vector.h>
 
 #include <algorithm>
-#include <array>
 #include <chrono>
 #include <cstring>
 #include <filesystem>
@@ -255,6 +254,7 @@ class Receiver {
   }
 
   const link::RejectCounters& rejects() const { return rejects_; }
+  const link::RepairScheduler::Params& repairParams() const { return repair_params_; }
   // Keyframe chunks refused because kMaxLinkVehicles vehicles were followed already.
   int64_t linkVehiclesRefused() const { return link_vehicles_refused_; }
 
@@ -679,6 +679,9 @@ void bindLink(nb::module_& m) {
            "stays incomplete, at most repair_max_asks times; the newest keyframe only with "
            "include_newest")
       .def_prop_ro("rejects", &Receiver::rejects, nb::rv_policy::reference_internal)
+      .def_prop_ro("repair_max_asks",
+                   [](const Receiver& r) { return r.repairParams().max_asks; })
+      .def_prop_ro("repair_retry_s", [](const Receiver& r) { return r.repairParams().retry_s; })
       .def_prop_ro("link_vehicles_refused", &Receiver::linkVehiclesRefused,
                    "keyframe chunks refused: too many vehicles' links followed already");
   m.attr("MAX_LINK_VEHICLES") = Receiver::kMaxLinkVehicles;

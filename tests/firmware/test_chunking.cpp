@@ -10,9 +10,11 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <map>
 #include <numeric>
 #include <random>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #include "kinfly/link/channels.h"
@@ -754,7 +756,7 @@ TEST(RepairScheduler, AskingAgainRidesOutABurst) {
     const auto message = randomMessage(50'000, 20);
     const int k = encoder.originalsPerGroup(static_cast<int64_t>(message.size()));
     const int m = recoveryChunks(k, {0.0, 1.0}, RedundancyParams());
-    const auto retry_us = static_cast<int64_t>(params.retry_s * 1e6);
+    const auto retry_us = std::llround(params.retry_s * 1e6);
     int64_t now_us = 0;
     std::vector<chunk_request_t> requests;
     for (int id = 0; id < kKeyframes; ++id) {
@@ -788,6 +790,59 @@ TEST(RepairScheduler, AskingAgainRidesOutABurst) {
   const double target = RedundancyParams().target_failure;
   EXPECT_LE(static_cast<double>(lost_asking_again) / kKeyframes,
             target + 3.0 * std::sqrt(target / kKeyframes));
+}
+
+// One group of a keyframe incomplete: asked at once, again each retry time, max_asks times in
+// all; and however many groups are incomplete at once, none is asked more.
+TEST(RepairScheduler, AsksAgainWhileIncompleteAndNoMore) {
+  const RepairScheduler::Params params;
+  const auto retry_us = std::llround(params.retry_s * 1e6);
+  ChunkEncoder::Params small_groups;
+  small_groups.max_originals_per_group = 2;
+  ChunkEncoder encoder(small_groups);
+  ChunkAssembler::Params many;
+  many.max_keyframes = 16;  // all of the keyframes below held at once, ~300 groups
+  ChunkAssembler assembler(kVehicle, many);
+  RepairScheduler scheduler(params);
+  std::vector<chunk_request_t> requests;
+  std::map<std::tuple<int64_t, int64_t, int>, int> asks;  // (utime, keyframe, group) -> asks
+  int64_t now_us = 0;
+  const auto ask = [&](bool include_newest) {
+    const int n = scheduler.due(assembler, include_newest, now_us, &requests);
+    for (int i = 0; i < n; ++i) {
+      const chunk_request_t& r = requests[static_cast<size_t>(i)];
+      ++asks[{r.utime, r.keyframe_id, r.group}];
+    }
+    return n;
+  };
+  const auto message = randomMessage(100'000, 21);
+  // Keyframe 0 lacks group 0's first original (no recovery chunks); keyframe 1 arrives whole.
+  std::vector<keyframe_chunk_t> first = chunksOf(encoder, message, 0, 0);
+  ASSERT_GT(first.back().group, 30);  // 100 KB in groups of two blocks
+  const keyframe_chunk_t lost = first[0];
+  for (size_t c = 1; c < first.size(); ++c) assembler.add(first[c]);
+  for (const auto& chunk : chunksOf(encoder, message, 1, 0)) assembler.add(chunk);
+  EXPECT_EQ(ask(false), 1);
+  now_us = retry_us - 1;
+  EXPECT_EQ(ask(false), 0);
+  for (int again = 1; again < params.max_asks; ++again) {
+    now_us = again * retry_us;
+    EXPECT_EQ(ask(false), 1) << again;
+  }
+  now_us += 10 * retry_us;
+  EXPECT_EQ(ask(false), 0);
+  EXPECT_TRUE(scheduler.asked(lost.utime, 0));
+  // Seven more keyframes, every group missing a chunk, asked after every one: no group of any
+  // keyframe is asked more than max_asks times, however many are held at once.
+  for (int id = 2; id <= 8; ++id) {
+    for (const auto& chunk : chunksOf(encoder, message, id, 0))
+      if (chunk.index != 0) assembler.add(chunk);
+    for (int round = 0; round < 2 * params.max_asks; ++round, now_us += retry_us) ask(true);
+  }
+  int most = 0;
+  for (const auto& [group, n] : asks) most = std::max(most, n);
+  EXPECT_EQ(most, params.max_asks);
+  EXPECT_GT(asks.size(), 100u);
 }
 
 TEST(RepairScheduler, ParamsAreValidated) {

@@ -3,7 +3,8 @@
 poses); unknown channels, wrong fingerprints, truncated messages, absurd sizes, payloads longer
 than declared, undecodable depth and another vehicle's messages are rejected and counted, and
 nothing raises. Keyframes in chunks (made here from docs/wire.md's layout) come out as the same
-Keyframe, a missing chunk is asked for once, and the link's quality is measured. Then the rest of
+Keyframe, a missing chunk is asked for (again, while it stays missing, up to the asks allowed),
+and the link's quality is measured. Then the rest of
 the link as Python sees it: channel names, key files, signing."""
 from __future__ import annotations
 
@@ -231,9 +232,13 @@ def test_a_missing_chunk_is_asked_for_again_until_it_comes_or_the_asks_run_out()
     q = receiver.link_quality(VEHICLE, now_utime=NOW + 213_000)
     assert (q.repair_requests, q.keyframes_recovered, q.keyframes_repaired) == (ASKS + 1, 1, 1)
     assert q.chunks.keyframes_completed == 1 and q.newest_keyframe_id == second.keyframe_id
-    # Complete: never asked for again.
-    later = receiver.repair_requests(VEHICLE, include_newest=True, now_us=end_us)
-    assert [chunk_request_t.decode(r).keyframe_id for r in later] == [second.keyframe_id]
+    # The newest, asked for once, is due again by now, unless it is complete: it is not asked
+    # for again once its chunks have come.
+    assert [chunk_request_t.decode(r).keyframe_id for r in receiver.repair_requests(
+        VEHICLE, include_newest=True, now_us=end_us)] == [second.keyframe_id]
+    for t, data in two[1:]:
+        receiver.receive(channel, data, arrival_utime=t)
+    assert receiver.repair_requests(VEHICLE, include_newest=True, now_us=2 * end_us) == []
 
 
 def test_repair_settings_out_of_range_are_refused() -> None:

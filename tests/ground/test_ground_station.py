@@ -783,6 +783,14 @@ def test_chunked_keyframes_are_mapped_and_each_lost_chunk_is_asked_for(sample) -
     assert s.keyframes_received == 3
 
 
+def test_the_repair_settings_reach_the_receiver() -> None:
+    station = Station(StationParams(repair_asks=5, repair_retry_s=0.5), Viewer(),
+                      vehicle_id=VEHICLE, signers={}, publish=None, inline=True)
+    assert (station.receiver.repair_max_asks, station.receiver.repair_retry_s) == (5, 0.5)
+    assert "repair asks" in StationParams(repair_asks=0).validate()
+    assert "repair retry" in StationParams(repair_retry_s=0.001).validate()
+
+
 def test_a_station_that_sends_nothing_asks_for_nothing(sample) -> None:
     (m, _), = flight(sample, 1)
     station = Station(QUIET, Viewer(), vehicle_id=VEHICLE, signers={}, publish=None, inline=True)

@@ -27,16 +27,28 @@ RepairScheduler::Asked* RepairScheduler::find(const chunk_request_t& request) {
 
 int RepairScheduler::due(const ChunkAssembler& assembler, bool include_newest, int64_t now_us,
                          std::vector<chunk_request_t>* out) {
-  const int incomplete = assembler.repairRequests(include_newest, &incomplete_);
+  // Forgotten only once the assembler no longer holds its group incomplete (completed, given up,
+  // a restarted drone's): the newest keyframe's too, which include_newest may leave out.
+  const int held = assembler.repairRequests(true, &incomplete_);
+  const auto still_held = [&](const Asked& a) {
+    return std::any_of(incomplete_.begin(), incomplete_.begin() + held,
+                       [&](const chunk_request_t& r) {
+                         return r.keyframe_id == a.keyframe_id && r.utime == a.utime &&
+                                r.group == a.group;
+                       });
+  };
+  asked_.erase(std::remove_if(asked_.begin(), asked_.end(),
+                              [&](const Asked& a) { return !still_held(a); }),
+               asked_.end());
+  const int incomplete =
+      include_newest ? held : assembler.repairRequests(false, &incomplete_);
   const auto retry_us = static_cast<int64_t>(std::llround(params_.retry_s * 1e6));
   int n = 0;
   for (int i = 0; i < incomplete; ++i) {
     const chunk_request_t& request = incomplete_[static_cast<size_t>(i)];
     Asked* a = find(request);
     if (a == nullptr) {
-      a = &asked_[next_];
-      next_ = (next_ + 1) % asked_.size();
-      *a = Asked{request.utime, request.keyframe_id, request.group, 0, 0};
+      a = &asked_.emplace_back(Asked{request.utime, request.keyframe_id, request.group, 0, 0});
     } else if (a->asks >= params_.max_asks || now_us - a->last_us < retry_us) {
       continue;
     }

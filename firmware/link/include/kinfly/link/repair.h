@@ -6,7 +6,6 @@
 // no longer answer must not be asked for forever.
 #pragma once
 
-#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <vector>
@@ -24,10 +23,6 @@ class RepairScheduler {
     double retry_s = 0.2;   // [s] [0.01, 10] between asks for the same group
     Status validate() const;
   };
-  // (keyframe, group) pairs remembered: far more than the groups of the keyframes an assembler
-  // holds at once, so a group is never forgotten while it can still be asked for.
-  static constexpr size_t kRemembered = 256;
-
   // params must validate().
   explicit RepairScheduler(const Params& params);
 
@@ -37,7 +32,8 @@ class RepairScheduler {
   int due(const ChunkAssembler& assembler, bool include_newest, int64_t now_us,
           std::vector<chunk_request_t>* out);
 
-  // Whether any group of the keyframe (capture time, id) has been asked for.
+  // Whether any group of the keyframe (capture time, id) has been asked for; a keyframe that
+  // completes is remembered until the next due().
   bool asked(int64_t utime, int64_t keyframe_id) const;
   // Requests handed out by due(), all asks counted.
   int64_t requests() const { return requests_; }
@@ -53,8 +49,9 @@ class RepairScheduler {
   Asked* find(const chunk_request_t& request);
 
   Params params_;
-  std::array<Asked, kRemembered> asked_;  // a ring
-  size_t next_ = 0;
+  // The groups asked for that the assembler still holds incomplete: it bounds them, and the
+  // vector keeps its capacity, so nothing allocates once it has grown.
+  std::vector<Asked> asked_;
   int64_t requests_ = 0;
   std::vector<chunk_request_t> incomplete_;  // the assembler's requests, reused
 };

@@ -318,8 +318,9 @@ inline StatusOr<PositionFlight> figureEightFlight(uint32_t seed) {
   return flight;
 }
 
-// Holding a point in the steady wind from the start: long enough for the integral to take the
-// whole force over (its slowest pole is ~1/s at the default gains).
+// Holding a point in the steady wind from the start: long enough for the integral alone to take
+// the whole force over (its slowest pole is ~1/s at the default gains), as the test flies it
+// without the force fed forward too.
 inline PositionFlight windFlight(uint32_t seed) {
   PositionFlight flight;
   flight.duration_s = 8.0;

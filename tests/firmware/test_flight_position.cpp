@@ -74,6 +74,63 @@ TEST(PositionController, FeedsTheAccelerationForwardThroughTheThrustDirection) {
   EXPECT_NEAR(out.thrust_n, vehicle.params().mass_kg * (1.0 + kGravityMS2), kTight);
 }
 
+TEST(PositionController, FeedsTheFeltForceForwardAfterItsFilter) {
+  // Level, on the setpoint, the accelerometer feeling 0.5 m/s^2 of push along body x (a wind)
+  // and a body z that is the thrust's and not fed forward: the thrust leans against the push by
+  // its filter's step response, 1 - (tau / (tau + dt))^n after n samples, and the integral,
+  // with no position error, stays zero.
+  const Vehicle vehicle{VehicleParams{}};
+  const PositionControllerParams params;
+  PositionController controller(params, vehicle);
+  const Vector3d push(0.5, 0.0, -kGravityMS2 - 3.0);
+  constexpr double kImuDt = 0.001;
+  constexpr int kSamples = 100;
+  for (int i = 0; i < kSamples; ++i) controller.feel(push, Quaterniond::Identity(), kImuDt);
+  const PositionOutput out = controller.update(PositionSetpoint{}, stateAt(Vector3d::Zero()), 0.01);
+  const double felt = 0.5 * (1.0 - std::pow(params.disturbance_filter_s /
+                                                (params.disturbance_filter_s + kImuDt), kSamples));
+  EXPECT_LT((controller.disturbanceMS2() - Vector3d(felt, 0.0, 0.0)).norm(), kTight);
+  const Vector3d thrust_m_s2(-felt, 0.0, -kGravityMS2);
+  EXPECT_LT((out.q_world_body_sp * Vector3d::UnitZ() + thrust_m_s2.normalized()).norm(), kTight);
+  EXPECT_EQ(controller.integralMS2(), Vector3d::Zero());
+  // A take-off starts it afresh; it is felt in world, turned with the body (yawed a quarter
+  // turn: body x is world y); a gain of 0 feeds none.
+  controller.reset();
+  EXPECT_EQ(controller.disturbanceMS2(), Vector3d::Zero());
+  const Quaterniond yawed(Eigen::AngleAxisd(M_PI / 2.0, Vector3d::UnitZ()));
+  for (int i = 0; i < kSamples; ++i) controller.feel(push, yawed, kImuDt);
+  EXPECT_LT((controller.disturbanceMS2() - Vector3d(0.0, felt, 0.0)).norm(), kTight);
+  PositionControllerParams off = params;
+  off.disturbance_gain = 0.0;
+  PositionController unfed(off, vehicle);
+  for (int i = 0; i < kSamples; ++i) unfed.feel(push, Quaterniond::Identity(), kImuDt);
+  const PositionOutput level = unfed.update(PositionSetpoint{}, stateAt(Vector3d::Zero()), 0.01);
+  EXPECT_LT((level.q_world_body_sp * Vector3d::UnitZ() - Vector3d::UnitZ()).norm(), kTight);
+}
+
+TEST(PositionController, TheRotorsVibrationStaysOutOfTheFeltForce) {
+  // 2 m/s^2 of vibration along body x at 200.5 Hz on a 0.5 m/s^2 push, sampled at 1 kHz: felt
+  // at every sample the filter leaves the push; taken every tenth sample (the loop's 100 Hz) the
+  // vibration folds down to 0.5 Hz and would tilt the vehicle by metres per second squared.
+  const Vehicle vehicle{VehicleParams{}};
+  PositionController every(PositionControllerParams{}, vehicle), tenth(PositionControllerParams{}, vehicle);
+  constexpr double kImuDt = 0.001, kVibrationHz = 200.5, kVibrationMS2 = 2.0, kPushMS2 = 0.5;
+  constexpr double kWithinMS2 = 0.05;  // the filter's leftover at 200 Hz is ~0.016
+  double worst = 0.0, worst_tenth = 0.0;
+  for (int i = 0; i < 4000; ++i) {
+    const double t = i * kImuDt;
+    const Vector3d f(kPushMS2 + kVibrationMS2 * std::sin(2.0 * M_PI * kVibrationHz * t), 0.0, -kGravityMS2);
+    every.feel(f, Quaterniond::Identity(), kImuDt);
+    if (i % 10 == 0) tenth.feel(f, Quaterniond::Identity(), 10 * kImuDt);
+    if (t > 1.0) {
+      worst = std::max(worst, std::abs(every.disturbanceMS2().x() - kPushMS2));
+      worst_tenth = std::max(worst_tenth, std::abs(tenth.disturbanceMS2().x() - kPushMS2));
+    }
+  }
+  EXPECT_LT(worst, kWithinMS2);
+  EXPECT_GT(worst_tenth, 1.0);
+}
+
 TEST(PositionController, CutsTheTiltAndKeepsTheHeight) {
   const Vehicle vehicle{VehicleParams{}};
   const PositionControllerParams params;
@@ -417,13 +474,25 @@ TEST(FlightPosition, SteadyWindLeavesNoSteadyError) {
   print("2 m/s wind", figures);
   expectNoFailsafe(figures);
   EXPECT_LT(figures.tail_mean_m.norm(), test::kWindSteadyErrorTargetM);
-  // Without the integral the same wind leaves F / (m K_p) = 3.75 cm: the integral is what
-  // removes it.
+  // Without the integral and the force fed forward the same wind leaves F / (m K_p) = 3.75 cm;
+  // either removes it.
+  const test::PositionFlight with_both = flight;
   flight.position.i_gain_1_s3.setZero();
+  const test::PositionFigures fed_forward = test::flyPosition(vehicle, flight);
+  print("2 m/s wind, no integral", fed_forward);
+  expectNoFailsafe(fed_forward);
+  EXPECT_LT(fed_forward.tail_mean_m.norm(), test::kWindSteadyErrorTargetM);
+  flight.position.disturbance_gain = 0.0;
   const test::PositionFigures proportional = test::flyPosition(vehicle, flight);
-  print("2 m/s wind, no integral", proportional);
+  print("2 m/s wind, no integral, nothing fed forward", proportional);
   expectNoFailsafe(proportional);
   EXPECT_GT(proportional.tail_mean_m.norm(), 3.0 * test::kWindSteadyErrorTargetM);
+  flight = with_both;
+  flight.position.disturbance_gain = 0.0;
+  const test::PositionFigures integral = test::flyPosition(vehicle, flight);
+  print("2 m/s wind, nothing fed forward", integral);
+  expectNoFailsafe(integral);
+  EXPECT_LT(integral.tail_mean_m.norm(), test::kWindSteadyErrorTargetM);
 }
 
 TEST(FlightStackParams, DefaultsBuildAndARangeIsNamed) {

@@ -514,6 +514,7 @@ EstimatorState Estimator::state() const {
   out.gyro_bias_rad_s = now.x.gyro_bias_rad_s;
   out.accel_bias_m_s2 = now.x.accel_bias_m_s2;
   out.omega_body_rad_s = now.imu.gyro_rad_s - now.x.gyro_bias_rad_s;
+  out.f_body_m_s2 = now.imu.accel_m_s2 - now.x.accel_bias_m_s2;
   return out;
 }
 

@@ -85,6 +85,13 @@ bool FlightStack::addImu(const ImuSample& sample) {
   const double weight =
       previous_utime < 0 || !(dt_s > 0.0) ? 1.0 : std::min(1.0, dt_s / kLiftTimeConstantS);
   lift_m_s2_ += weight * (lift_m_s2 - lift_m_s2_);
+  // In flight, not landing: there the floor may already push and rub, and what the wind did is
+  // held, not relearnt.
+  const FlightMode mode = modes_.mode();
+  if (flying_ && previous_utime >= 0 && mode != FlightMode::kLand && mode != FlightMode::kDescend) {
+    const EstimatorState state = estimator_.state();
+    position_.feel(state.f_body_m_s2, state.q_world_body, dt_s);
+  }
   return true;
 }
 

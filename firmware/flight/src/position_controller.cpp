@@ -16,6 +16,8 @@ Status PositionControllerParams::validate() const {
       axesInRange("position.v_gain_1_s", v_gain_1_s, kWorldAxes, 0.0, 50.0),
       axesInRange("position.i_gain_1_s3", i_gain_1_s3, kWorldAxes, 0.0, 200.0),
       axesInRange("position.integral_limit_m_s2", integral_limit_m_s2, kWorldAxes, 0.0, 10.0),
+      outOfRange("position.disturbance_gain", disturbance_gain, 0.0, 1.0),
+      outOfRange("position.disturbance_filter_s", disturbance_filter_s, 0.01, 1.0),
       outOfRange("position.tilt_max_rad", tilt_max_rad, 0.0, 1.4, Bound::kOpen),
       // Below g, so that the vehicle can always be told to descend; above g at the top, so that
       // it can always climb.
@@ -28,19 +30,31 @@ PositionController::PositionController(const PositionControllerParams& params,
                                        const Vehicle& vehicle)
     : params_(params), mass_kg_(vehicle.params().mass_kg) {}
 
-void PositionController::reset() { integral_m_s2_.setZero(); }
+void PositionController::feel(const Eigen::Vector3d& f_body_m_s2,
+                              const Eigen::Quaterniond& q_world_body, double dt_s) {
+  if (!(dt_s > 0.0)) return;
+  const Eigen::Vector3d felt_m_s2 = q_world_body * Eigen::Vector3d(f_body_m_s2.x(), f_body_m_s2.y(), 0.0);
+  disturbance_m_s2_ += dt_s / (params_.disturbance_filter_s + dt_s) * (felt_m_s2 - disturbance_m_s2_);
+}
+
+void PositionController::reset() {
+  integral_m_s2_.setZero();
+  disturbance_m_s2_.setZero();
+}
 
 PositionOutput PositionController::update(const PositionSetpoint& setpoint,
                                           const EstimatorState& state, double dt_s) {
   const Eigen::Vector3d error_p_m = state.p_world_body_m - setpoint.p_world_m;
   const Eigen::Vector3d error_v_m_s = state.v_world_body_m_s - setpoint.v_world_m_s;
   // Lee et al. (2010) divided by the mass: the acceleration the thrust must give
-  // on top of gravity's, a = a_d - K_p e_p - K_v e_v - I; the thrust is then m (a - g).
+  // on top of gravity's, a = a_d - K_p e_p - K_v e_v - I; the thrust is then m (a - g - k_d d),
+  // d the external force per mass felt, so that a is what the vehicle does.
   const Eigen::Vector3d accel_cmd_m_s2 = setpoint.a_world_m_s2 -
                                          params_.p_gain_1_s2.cwiseProduct(error_p_m) -
                                          params_.v_gain_1_s.cwiseProduct(error_v_m_s) -
                                          integral_m_s2_;
-  Eigen::Vector3d thrust_accel_m_s2 = accel_cmd_m_s2 - Eigen::Vector3d(0.0, 0.0, kGravityMS2);
+  Eigen::Vector3d thrust_accel_m_s2 = accel_cmd_m_s2 - Eigen::Vector3d(0.0, 0.0, kGravityMS2) -
+                                      params_.disturbance_gain * disturbance_m_s2_;
 
   PositionOutput out;
   // The vertical part first, as PX4 does: thrust must point up (-z) by at least the minimum,

@@ -120,6 +120,7 @@ struct EstimatorState {
   Eigen::Vector3d gyro_bias_rad_s = Eigen::Vector3d::Zero();
   Eigen::Vector3d accel_bias_m_s2 = Eigen::Vector3d::Zero();
   Eigen::Vector3d omega_body_rad_s = Eigen::Vector3d::Zero();  // gyro less its bias
+  Eigen::Vector3d f_body_m_s2 = Eigen::Vector3d::Zero();       // accelerometer less its bias
 };
 
 enum class VisionOutcome {

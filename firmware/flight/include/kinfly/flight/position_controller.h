@@ -41,6 +41,13 @@ struct PositionControllerParams {
   // [m/s^2] [0, 10] the integral's share of the commanded acceleration: it holds a steady force
   // (a 2 m/s wind on a small quadrotor needs ~1 m/s^2); beyond that it could only wind up.
   Eigen::Vector3d integral_limit_m_s2{3.0, 3.0, 3.0};
+  // [0, 1] how much of the external force the accelerometer feels is fed forward (0: none, the
+  // integral alone takes it up). The rotors' thrust acts along body z only, so the specific
+  // force's body x and y are what else pushes the vehicle: its drag, the wind's.
+  double disturbance_gain = 1.0;
+  // [s] [0.01, 1] time constant of the low-pass on that force (at the IMU's rate, feel()): the
+  // accelerometer's noise and the frame's vibration stay out of the tilt.
+  double disturbance_filter_s = 0.1;
   // [rad] (0, 1.4] largest tilt of the thrust from the vertical; the horizontal demand gives
   // way first, so height is held when the tilt is cut.
   double tilt_max_rad = 0.6;
@@ -68,15 +75,24 @@ class PositionController {
   // limited (it still unwinds).
   PositionOutput update(const PositionSetpoint& setpoint, const EstimatorState& state,
                         double dt_s);
+  // One accelerometer sample less its bias (body) at the attitude it was taken at, DT_S after the
+  // last: its body x and y, turned into world, move the external force's low-pass. At the IMU's
+  // rate, not the loop's: the rotors' vibration, sampled at 100 Hz, would fold down into slow
+  // tilts that the filter lets through.
+  void feel(const Eigen::Vector3d& f_body_m_s2, const Eigen::Quaterniond& q_world_body,
+            double dt_s);
   void reset();
 
   // [m/s^2] the integral's part of the commanded acceleration (subtracted from it).
   const Eigen::Vector3d& integralMS2() const { return integral_m_s2_; }
+  // [m/s^2] world, the external force per mass felt (low-passed; subtracted, times the gain).
+  const Eigen::Vector3d& disturbanceMS2() const { return disturbance_m_s2_; }
 
  private:
   PositionControllerParams params_;
   double mass_kg_;
   Eigen::Vector3d integral_m_s2_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d disturbance_m_s2_ = Eigen::Vector3d::Zero();
 };
 
 }  // namespace kinfly::flight

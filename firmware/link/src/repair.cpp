@@ -17,11 +17,13 @@ RepairScheduler::RepairScheduler(const Params& params) : params_(params) {
   if (const Status valid = params.validate(); !valid.ok()) throw std::invalid_argument(valid.message());
 }
 
+bool RepairScheduler::Asked::is(const chunk_request_t& request) const {
+  return keyframe_id == request.keyframe_id && utime == request.utime && group == request.group;
+}
+
 RepairScheduler::Asked* RepairScheduler::find(const chunk_request_t& request) {
-  const auto it = std::find_if(asked_.begin(), asked_.end(), [&](const Asked& a) {
-    return a.keyframe_id == request.keyframe_id && a.utime == request.utime &&
-           a.group == request.group;
-  });
+  const auto it = std::find_if(asked_.begin(), asked_.end(),
+                               [&](const Asked& a) { return a.is(request); });
   return it == asked_.end() ? nullptr : &*it;
 }
 
@@ -32,20 +34,16 @@ int RepairScheduler::due(const ChunkAssembler& assembler, bool include_newest, i
   const int held = assembler.repairRequests(true, &incomplete_);
   const auto still_held = [&](const Asked& a) {
     return std::any_of(incomplete_.begin(), incomplete_.begin() + held,
-                       [&](const chunk_request_t& r) {
-                         return r.keyframe_id == a.keyframe_id && r.utime == a.utime &&
-                                r.group == a.group;
-                       });
+                       [&](const chunk_request_t& r) { return a.is(r); });
   };
   asked_.erase(std::remove_if(asked_.begin(), asked_.end(),
                               [&](const Asked& a) { return !still_held(a); }),
                asked_.end());
-  const int incomplete =
-      include_newest ? held : assembler.repairRequests(false, &incomplete_);
   const auto retry_us = static_cast<int64_t>(std::llround(params_.retry_s * 1e6));
   int n = 0;
-  for (int i = 0; i < incomplete; ++i) {
+  for (int i = 0; i < held; ++i) {
     const chunk_request_t& request = incomplete_[static_cast<size_t>(i)];
+    if (!include_newest && request.keyframe_id == assembler.newestKeyframeId()) continue;
     Asked* a = find(request);
     if (a == nullptr) {
       a = &asked_.emplace_back(Asked{request.utime, request.keyframe_id, request.group, 0, 0});

@@ -257,6 +257,8 @@ class ChunkAssembler {
   // indices (lowest first) as it lacks, and returns n; *out only grows. The newest keyframe may
   // still be arriving, so it is left out unless include_newest.
   int repairRequests(bool include_newest, std::vector<chunk_request_t>* out) const;
+  // The newest keyframe id chunks were accepted of; -1 before any, or after a restart.
+  int64_t newestKeyframeId() const { return newest_id_; }
 
  private:
   struct Group {

@@ -45,6 +45,7 @@ class RepairScheduler {
     int16_t group = -1;
     int asks = 0;
     int64_t last_us = 0;
+    bool is(const chunk_request_t& request) const;  // the group REQUEST asks for
   };
   Asked* find(const chunk_request_t& request);
 

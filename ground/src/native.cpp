@@ -339,6 +339,7 @@ void bindParams(nb::module_& m) {
       .def_rw("max_translation_m", &IcpTracker::Params::max_translation_m)
       .def_rw("max_rotation_rad", &IcpTracker::Params::max_rotation_rad)
       .def_rw("max_rmse_m", &IcpTracker::Params::max_rmse_m)
+      .def_rw("max_rmse_sigmas", &IcpTracker::Params::max_rmse_sigmas)
       .def_rw("noise_weighting", &IcpTracker::Params::noise_weighting)
       .def_rw("huber_sigmas", &IcpTracker::Params::huber_sigmas)
       .def_rw("convergence_epsilon", &IcpTracker::Params::convergence_epsilon)

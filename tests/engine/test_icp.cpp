@@ -6,6 +6,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <random>
+#include <string>
 #include <utility>
 #include <vector>
 
@@ -97,6 +100,57 @@ TEST_F(IcpFixture, RecoversRandomSixDofOffsets) {
     EXPECT_GT(result.rmse_m, 0.f);
     EXPECT_LT(result.rmse_m, IcpTracker::Params().max_rmse_m);
     EXPECT_GT(result.iterations, 0);
+  }
+}
+
+// The residual gate (issue 17): a wall facing the camera, seen with the sensor's noise. The gate
+// is the larger of max_rmse_m and max_rmse_sigmas times the noise's sigma at the inliers' depths;
+// at 1 m the fixed 2 cm decides, at 3.8 m the sensor's own noise (2.3 cm) does, and a frame whose
+// residual is that noise is tracked. The noise is correlated over the sensor's matching window
+// (the PrimeSense matches 9x9 patches, so neighbours share their error): one Gaussian offset of
+// sigma(z) per 8x8 block, which leaves the normals within a block true. Noise drawn anew for
+// every pixel at 3.8 m leaves no normal within the 20 degree gate (docs/engine.md). A lone wall
+// leaves three directions to the prior.
+TEST_F(IcpFixture, TheResidualGateGrowsWithTheNoiseAtTheMatchedDepths) {
+  // The RMS of sigma over the inliers: every inlier of the wall at z lies within a few sigma of
+  // z, and sigma changes by 2 * 0.0019 * (z - 0.4) * 3 sigma, under 5 %, across them.
+  constexpr double kNoiseRmsRelTol = 0.05;
+  constexpr int kBlockPx = 8;
+  const IcpTracker::Params params;
+  for (const float wall_m : {1.0f, 3.8f}) {
+    SyntheticScene scene;
+    scene.addPlane(Eigen::Vector3f(0.f, 0.f, -1.f), -wall_m);
+    buildModel(scene);
+    std::mt19937 rng(11);
+    std::normal_distribution<float> unit(0.f, 1.f);
+    Image<float> offsets((camera.width + kBlockPx - 1) / kBlockPx,
+                         (camera.height + kBlockPx - 1) / kBlockPx);
+    for (int i = 0; i < offsets.width() * offsets.height(); ++i) offsets.data()[i] = unit(rng);
+    for (int y = 0; y < camera.height; ++y)
+      for (int x = 0; x < camera.width; ++x) {
+        const float z = depth(x, y);
+        const float noisy = z + kinectNoiseSigmaM(z) * offsets(x / kBlockPx, y / kBlockPx);
+        raw(x, y) = static_cast<uint16_t>(std::lround(noisy / test::kTumDepthScale));
+      }
+    preprocessor.process(raw, &current);
+    const IcpResult result = IcpTracker(params).track(current, model, Pose::Identity(),
+                                                      /*prior=*/true);
+    ASSERT_EQ(result.status, TrackingStatus::kOk) << "wall at " << wall_m << " m: "
+                                                  << result.reason;
+    const double sigma = kinectNoiseSigmaM(wall_m);
+    EXPECT_NEAR(result.noise_rms_m, sigma, kNoiseRmsRelTol * sigma) << "wall at " << wall_m;
+    EXPECT_FLOAT_EQ(result.max_rmse_m,
+                    std::max(params.max_rmse_m, params.max_rmse_sigmas * result.noise_rms_m));
+    std::printf("[icp] wall at %.1f m: residual %.1f mm, gate %.1f mm (noise %.1f mm)\n", wall_m,
+                result.rmse_m * 1e3, result.max_rmse_m * 1e3, result.noise_rms_m * 1e3);
+    if (wall_m > 3.f) {
+      EXPECT_GT(result.rmse_m, params.max_rmse_m) << "the fixed gate would refuse this frame";
+      IcpTracker::Params fixed = params;
+      fixed.max_rmse_sigmas = 0.f;
+      const IcpResult refused = IcpTracker(fixed).track(current, model, Pose::Identity(), true);
+      EXPECT_EQ(refused.status, TrackingStatus::kLost);
+      EXPECT_NE(refused.reason.find("exceeds the gate"), std::string::npos) << refused.reason;
+    }
   }
 }
 

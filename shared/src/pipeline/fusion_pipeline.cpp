@@ -1,7 +1,10 @@
 #include "kinfly/pipeline/fusion_pipeline.h"
 
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <sstream>
+#include <string>
 
 namespace kinfly {
 
@@ -17,6 +20,8 @@ Status FusionPipeline::Params::validate(float voxel_size_m) const {
     if (!stage.ok()) return stage;
   if (!(min_valid_depth_fraction >= 0.f && min_valid_depth_fraction < 1.f))
     return Status::error("min_valid_depth_fraction must be in [0, 1)");
+  if (!(max_recovery_gate_scale >= 1.f))
+    return Status::error("max_recovery_gate_scale must be >= 1");
   return {};
 }
 
@@ -52,18 +57,55 @@ bool FusionPipeline::preprocess(ImageView<const uint16_t> raw_depth, int64_t uti
 FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, int64_t utime,
                                          const Pose* T_world_cam_prior) {
   FrameResult result;
-  if (!preprocess(raw_depth, utime, T_world_cam_, &result)) return result;
+  const int lost_before = lost_in_a_row_;
+  // Frames the source never delivered since the last one (a covered or stalled camera, a full
+  // queue) count as missed: the camera moved on meanwhile.
+  int undelivered = 0;
+  if (last_utime_ >= 0 && utime > last_utime_) {
+    const int64_t interval = utime - last_utime_;
+    if (frame_interval_us_ == 0 || interval < frame_interval_us_) frame_interval_us_ = interval;
+    undelivered = static_cast<int>(
+        std::lround(static_cast<double>(interval) / static_cast<double>(frame_interval_us_)) - 1);
+  }
+  last_utime_ = utime;
+  const int missed_before = missed_ + undelivered;
+  auto counted = [&](FrameResult r) {
+    if (r.status == TrackingStatus::kLost) {
+      r.lost_in_a_row = lost_in_a_row_ = lost_before + 1;
+      missed_ = missed_before + 1;
+    } else {
+      lost_in_a_row_ = missed_ = 0;
+      r.recovered_after = lost_before;
+    }
+    return r;
+  };
+  if (!preprocess(raw_depth, utime, T_world_cam_, &result)) return counted(result);
   if (!has_model_) {
     result.status = TrackingStatus::kFirstFrame;
-    return fuse(result, /*predict_from_pose=*/true);
+    return counted(fuse(result, /*predict_from_pose=*/true));
+  }
+  const float gate_scale =
+      std::min(1.f + static_cast<float>(missed_before), params_.max_recovery_gate_scale);
+  std::string from_prior;
+  if (missed_before > 0 && T_world_cam_prior != nullptr) {
+    model_at_pose_ = false;
+    predict(*T_world_cam_prior, &result);
+    FrameResult r = trackAndFuse(result, *T_world_cam_prior, Pose::Identity(), /*prior=*/true,
+                                 /*predict_from_pose=*/true, gate_scale);
+    if (r.status != TrackingStatus::kLost) return counted(r);
+    from_prior = "from the prior: " + r.lost_reason + "; from the last pose: ";
+    result.ms = r.ms;
   }
   if (!model_at_pose_) predict(T_world_cam_, &result);
   // The model was raycast from the last pose, so without a prior the guess relative to it is
-  // the identity.
-  const Pose guess = T_world_cam_prior != nullptr ? T_world_cam_.inverse() * *T_world_cam_prior
-                                                  : Pose::Identity();
-  return trackAndFuse(result, T_world_cam_, guess, /*prior=*/T_world_cam_prior != nullptr,
-                      /*predict_from_pose=*/true);
+  // the identity. While recovering, the prior was tried above: this is the try from the last
+  // pose, as the frame would be tracked without an IMU.
+  const bool prior = T_world_cam_prior != nullptr && missed_before == 0;
+  const Pose guess = prior ? T_world_cam_.inverse() * *T_world_cam_prior : Pose::Identity();
+  FrameResult r = trackAndFuse(result, T_world_cam_, guess, prior, /*predict_from_pose=*/true,
+                               gate_scale);
+  if (r.status == TrackingStatus::kLost) r.lost_reason = from_prior + r.lost_reason;
+  return counted(r);
 }
 
 FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_depth,
@@ -94,10 +136,10 @@ void FusionPipeline::predict(const Pose& T_world_cam, FrameResult* result) {
 
 FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world_ref,
                                          const Pose& T_ref_cur_guess, bool prior,
-                                         bool predict_from_pose) {
+                                         bool predict_from_pose, float gate_scale) {
   const auto t0 = std::chrono::steady_clock::now();
-  const IcpResult icp = tracker_.track(frame_, model_, T_ref_cur_guess, prior);
-  result.ms.track = msSince(t0);
+  const IcpResult icp = tracker_.track(frame_, model_, T_ref_cur_guess, prior, gate_scale);
+  result.ms.track += msSince(t0);
   result.status = icp.status;
   result.inlier_fraction = icp.inlier_fraction;
   result.rmse_m = icp.rmse_m;

@@ -17,6 +17,7 @@ void IcpSystem::add(const IcpSystem& other) {
   for (size_t i = 0; i < ata.size(); ++i) ata[i] += other.ata[i];
   for (size_t i = 0; i < atb.size(); ++i) atb[i] += other.atb[i];
   error_sq += other.error_sq;
+  noise_sq += other.noise_sq;
   inliers += other.inliers;
   valid_points += other.valid_points;
 }
@@ -37,6 +38,7 @@ Status IcpTracker::Params::validate() const {
   if (!(max_translation_m > 0.f)) why << "max_translation_m must be > 0; ";
   if (!(max_rotation_rad > 0.f)) why << "max_rotation_rad must be > 0; ";
   if (!(max_rmse_m > 0.f)) why << "max_rmse_m must be > 0; ";
+  if (!(max_rmse_sigmas >= 0.f)) why << "max_rmse_sigmas must be >= 0; ";
   if (!(huber_sigmas >= 0.f)) why << "huber_sigmas must be >= 0; ";
   if (!(convergence_epsilon >= 0.0)) why << "convergence_epsilon must be >= 0; ";
   return why.str().empty() ? Status() : Status::error(why.str());
@@ -116,11 +118,13 @@ inline Ints modelPixel(const Vec3s& p, const Association& a, Ints* inside) {
   return *inside ? iv * a.width + iu : 0;
 }
 
-// Columns of one point-to-plane row: J, the residual e, and the residual's weight (zero for a
-// rejected pair). The system sums w J J^T, w J e and, for the reported error, e^2.
-constexpr int kColumns = 8;
-constexpr int kResidual = 6, kWeight = 7;
-constexpr int kSums = 28;  // 21 upper-triangle A, 6 b, 1 squared error
+// Columns of one point-to-plane row: J, the residual e, the residual's weight and the sensor
+// noise's variance at its depth (zero for a rejected pair). The system sums w J J^T, w J e and,
+// for the residual gate, e^2 and the variance.
+constexpr int kColumns = 9;
+constexpr int kResidual = 6, kWeight = 7, kNoiseVar = 8;
+constexpr int kErrorSum = 27, kNoiseSum = 28;  // after 21 upper-triangle A and 6 b
+constexpr int kSums = 29;
 
 // The rows of current points (p in the reference frame, depth z_cur, normal n_cur) against model
 // points (q, nq) where `found`; rejected pairs give zero rows. Returns the inlier mask.
@@ -138,10 +142,11 @@ inline Ints pointToPlane(const Vec3s& p, Floats z_cur, const Vec3s& n_cur, const
   const Floats noise = a.noise_weighting ? noise_sqrt * noise_sqrt : lanes::splat(1.f);
   const Floats abs_r = lanes::abs(e) * inv_sigma;
   const Floats weight = abs_r > a.huber_k ? noise * (a.huber_k / abs_r) : noise;
+  const Floats sigma = 1.f / inv_sigma;
   const Floats values[kColumns] = {p.y * nq.z - p.z * nq.y,  // p x nq
                                    p.z * nq.x - p.x * nq.z,
                                    p.x * nq.y - p.y * nq.x,
-                                   nq.x, nq.y, nq.z, e, weight};
+                                   nq.x, nq.y, nq.z, e, weight, sigma * sigma};
   for (int k = 0; k < kColumns; ++k) row[k] = inlier ? values[k] : 0.f;
   return inlier;
 }
@@ -169,7 +174,7 @@ inline void accumulateRow(const Columns& cols, Floats* sums) {
 }
 
 // Adds the block's rows to `sums`: row by row of [J e]'s weighted upper triangle, then the
-// squared error.
+// squared error and the noise's variance.
 inline void accumulate(const Columns& cols, Floats sums[kSums]) {
   accumulateRow<0>(cols, sums);
   accumulateRow<1>(cols, sums + 7);
@@ -177,9 +182,13 @@ inline void accumulate(const Columns& cols, Floats sums[kSums]) {
   accumulateRow<3>(cols, sums + 18);
   accumulateRow<4>(cols, sums + 22);
   accumulateRow<5>(cols, sums + 25);
-  Floats acc = {};
-  for (int g = 0; g < cols.groups; ++g) acc += cols.c[kResidual][g] * cols.c[kResidual][g];
-  sums[kSums - 1] += acc;
+  Floats error = {}, noise = {};
+  for (int g = 0; g < cols.groups; ++g) {
+    error += cols.c[kResidual][g] * cols.c[kResidual][g];
+    noise += cols.c[kNoiseVar][g];
+  }
+  sums[kErrorSum] += error;
+  sums[kNoiseSum] += noise;
 }
 
 // Rows are summed in fixed chunks and the chunks added in order, so the result does not depend
@@ -256,7 +265,8 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
         for (int j = i; j < 6; ++j) s.ata[ata++] += row[k++];
         s.atb[i] -= row[k++];
       }
-      s.error_sq += row[kSums - 1];
+      s.error_sq += row[kErrorSum];
+      s.noise_sq += row[kNoiseSum];
     }
   });
   IcpSystem total;
@@ -319,10 +329,13 @@ bool solve(const Eigen::Matrix<double, 6, 6>& A, const Eigen::Matrix<double, 6, 
 }  // namespace
 
 IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
-                            const Pose& T_ref_cur_guess, bool prior) const {
+                            const Pose& T_ref_cur_guess, bool prior, float gate_scale) const {
   IcpResult result;
   result.T_ref_cur = T_ref_cur_guess;
-  const SystemParams system = systemParams();
+  SystemParams system = systemParams();
+  system.distance_gate_m *= gate_scale;
+  const float max_translation_m = params_.max_translation_m * gate_scale;
+  const float max_rotation_rad = params_.max_rotation_rad * gate_scale;
   auto fail = [&](const std::string& why) {
     result.status = TrackingStatus::kLost;
     result.T_ref_cur = T_ref_cur_guess;
@@ -373,17 +386,25 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
   result.inlier_fraction =
       last.valid_points > 0 ? static_cast<float>(last.inliers) / static_cast<float>(last.valid_points) : 0.f;
   result.rmse_m = last.inliers > 0 ? static_cast<float>(std::sqrt(last.error_sq / last.inliers)) : 0.f;
+  result.noise_rms_m =
+      last.inliers > 0 ? static_cast<float>(std::sqrt(last.noise_sq / last.inliers)) : 0.f;
+  result.max_rmse_m = std::max(params_.max_rmse_m, params_.max_rmse_sigmas * result.noise_rms_m);
 
   const Pose jump = T_ref_cur_guess.inverse() * T;
   std::ostringstream why;
-  if (jump.translation().norm() > params_.max_translation_m)
-    why << "jump of " << jump.translation().norm() << " m exceeds max_translation_m";
-  else if (rotationAngleRad(jump) > params_.max_rotation_rad)
-    why << "rotation of " << rotationAngleRad(jump) << " rad exceeds max_rotation_rad";
+  const std::string widened =
+      gate_scale != 1.f ? " times " + std::to_string(gate_scale) + " after lost frames" : "";
+  if (jump.translation().norm() > max_translation_m)
+    why << "jump of " << jump.translation().norm() << " m exceeds max_translation_m" << widened;
+  else if (rotationAngleRad(jump) > max_rotation_rad)
+    why << "rotation of " << rotationAngleRad(jump) << " rad exceeds max_rotation_rad" << widened;
   else if (result.inlier_fraction < params_.min_inlier_fraction)
     why << "inlier fraction " << result.inlier_fraction << " below min_inlier_fraction";
-  else if (result.rmse_m > params_.max_rmse_m)
-    why << "residual " << result.rmse_m << " m exceeds max_rmse_m";
+  else if (result.rmse_m > result.max_rmse_m)
+    why << "residual " << result.rmse_m << " m exceeds the gate of " << result.max_rmse_m
+        << " m (max_rmse_m " << params_.max_rmse_m << ", or max_rmse_sigmas "
+        << params_.max_rmse_sigmas << " times the sensor noise's " << result.noise_rms_m
+        << " m at these depths)";
   if (!why.str().empty()) return fail(why.str());  // keeps the measured inliers and residual
   result.T_ref_cur = T;
   result.status = TrackingStatus::kOk;

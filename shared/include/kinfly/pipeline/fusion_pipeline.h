@@ -40,6 +40,10 @@ struct FrameResult {
   // pose keeps the prior along them where processFrame had one.
   WeakDirections weak;
   double weakest_fraction = 0.0;  // IcpResult's: how close the frame came to degenerate
+  // Frames lost in a row, this one included (0 once one is tracked); on the first frame tracked
+  // after a loss, `recovered_after` says how many were lost before it (processFrame only).
+  int lost_in_a_row = 0;
+  int recovered_after = 0;
   StageTimesMs ms;
 };
 
@@ -52,6 +56,11 @@ class FusionPipeline {
     Raycaster::Params raycast;
     // Frames with fewer valid depth pixels than this are not tracked or integrated.
     float min_valid_depth_fraction = 0.05f;  // [0, 1)
+    // After missed frames (lost, or never delivered: a gap in the frames' times) ICP's gates
+    // widen by one per frame missed, up to this factor (IcpTracker::track's gate_scale): without
+    // a prior the camera has moved that many frames' worth since the last tracked one; with
+    // one, the prior's error has grown with them.
+    float max_recovery_gate_scale = 3.f;  // >= 1
     Status validate(float voxel_size_m) const;
   };
 
@@ -60,7 +69,10 @@ class FusionPipeline {
 
   // Tracks the frame against the model, then fuses it. ICP starts from the last pose, or from
   // `T_world_cam_prior` where the caller predicts the motion (the drone's IMU): where the scene
-  // leaves a direction weak, the pose follows the prior along it.
+  // leaves a direction weak, the pose follows the prior along it. After missed frames (lost, or
+  // a gap in `utime` of more than one and a half of the shortest interval seen) it tries from
+  // the prior first, against the model seen from there (the last pose's view may overlap the
+  // frame little by then), then from the last pose, both with widened gates.
   FrameResult processFrame(ImageView<const uint16_t> raw_depth, int64_t utime,
                            const Pose* T_world_cam_prior = nullptr);
   // Tracks the frame against the model as seen from a pose guess, then fuses it: the ground
@@ -96,7 +108,8 @@ class FusionPipeline {
   // ICP against model_, which was raycast from T_world_ref, from a guess of the pose relative to
   // it (a prior: IcpTracker::track); fuses on success.
   FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref,
-                           const Pose& T_ref_cur_guess, bool prior, bool predict_from_pose);
+                           const Pose& T_ref_cur_guess, bool prior, bool predict_from_pose,
+                           float gate_scale = 1.f);
   // Integrates at result.T_world_cam; with predict_from_pose, raycasts model_ from there for
   // the next frame to track against.
   FrameResult fuse(FrameResult result, bool predict_from_pose);
@@ -112,6 +125,10 @@ class FusionPipeline {
   std::unique_ptr<ModelMaps> render_maps_;  // allocated by the first renderShaded()
   bool has_model_ = false;
   bool model_at_pose_ = false;  // model_ was raycast from T_world_cam_
+  int lost_in_a_row_ = 0;        // processFrame's frames lost since the last fused one
+  int missed_ = 0;               // those and the frames not delivered between them
+  int64_t last_utime_ = -1;      // processFrame's last frame, tracked or not
+  int64_t frame_interval_us_ = 0;  // the shortest positive interval between its frames
   // Latest fused pose; the model maps are always raycast from it, since lost frames change
   // neither.
   Pose T_world_cam_ = Pose::Identity();

@@ -21,6 +21,8 @@ struct IcpResult {
   TrackingStatus status = TrackingStatus::kLost;
   float inlier_fraction = 0.f;  // finest level: inliers / valid current pixels
   float rmse_m = 0.f;           // finest level point-to-plane RMS over inliers
+  float noise_rms_m = 0.f;      // finest level: RMS of the sensor's noise sigma over inliers
+  float max_rmse_m = 0.f;       // the residual gate this frame was held to (Params::max_rmse_m)
   int iterations = 0;           // total over all levels
   // Degenerate geometry (a corridor, a single wall): the directions of motion the scene does not
   // pin down (Params::weak_direction_fraction), as unit twists [w; t] of T_ref_cur
@@ -42,6 +44,7 @@ struct IcpSystem {
   std::array<double, 21> ata{};
   std::array<double, 6> atb{};
   double error_sq = 0.0;   // [m^2] sum of squared point-to-plane residuals over inliers
+  double noise_sq = 0.0;   // [m^2] sum of the sensor noise's variance at the inliers' depths
   int inliers = 0;
   int valid_points = 0;    // current pixels with a vertex and a normal
   void add(const IcpSystem& other);
@@ -70,7 +73,14 @@ class IcpTracker {
     int max_weak_directions = 3;             // [0, 5]
     float max_translation_m = 0.20f;      // [m] per frame: a larger jump is a divergence -> lost
     float max_rotation_rad = 0.35f;       // [rad] per frame (20 degrees)
-    float max_rmse_m = 0.02f;             // [m] finest-level residual above this -> lost
+    // The finest level's RMS residual is compared with the larger of max_rmse_m and
+    // max_rmse_sigmas times the RMS of the sensor's noise sigma (noise_model.h) at the depths
+    // of the inliers: at 3.5 m the sensor's own noise (2 cm) reaches the fixed gate, and a
+    // correct alignment would be refused. A correct alignment's residual is about one sigma
+    // (the frame's noise; the fused model's is averaged down); 2.5 leaves room for the model's
+    // and the quantisation's. Near the sensor (sigma 2 mm at 1 m) max_rmse_m decides, as before.
+    float max_rmse_m = 0.02f;             // [m] > 0
+    float max_rmse_sigmas = 2.5f;         // >= 0; 0 leaves max_rmse_m alone
     // Weight each residual by the inverse variance of the sensor's depth noise at its range
     // (noise_model.h), normalised to 1 at 1 m: the maximum-likelihood estimate under the seed's
     // noise model. Without it the few far, noisy points (sigma ~ z^2) pull the pose off.
@@ -104,8 +114,10 @@ class IcpTracker {
   // `T_ref_cur_guess`. On failure the result keeps the guess and says why. A guess that is a
   // `prior` (a motion measured otherwise, the IMU's) is kept along the weak directions; any
   // other guess (the last pose) is not, since there the scene's weak answer is still the best.
+  // `gate_scale` (>= 1) widens the correspondence gate and the jump gates: after lost frames the
+  // motion since the last tracked frame, or the prior's error, has grown with every frame lost.
   IcpResult track(const DepthFrame& current, const ModelMaps& model, const Pose& T_ref_cur_guess,
-                  bool prior = false) const;
+                  bool prior = false, float gate_scale = 1.f) const;
 
   // Builds one level's system; serial and threaded loops use the same per-pixel kernel.
   static IcpSystem buildSystem(const DepthFrame& current, const ModelMaps& model, int level,

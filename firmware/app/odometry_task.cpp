@@ -89,10 +89,11 @@ void OdometryTask::process(const DepthCapture& capture) {
                    capture.frame_id, r.lost_reason, lost_log_.suppressed());
   } else if (r.recovered_after > 0) {
     ++counters_->recoveries;
+    if (r.relocalised) ++counters_->relocalisations;
     if (r.recovered_after > counters_->longest_loss_frames)
       counters_->longest_loss_frames = r.recovered_after;
-    spdlog::info("odometry: frame {}: tracking back after {} lost frame(s)", capture.frame_id,
-                 r.recovered_after);
+    spdlog::info("odometry: frame {}: tracking back after {} lost frame(s){}", capture.frame_id,
+                 r.recovered_after, r.relocalised ? ", relocalised against a keyframe" : "");
   }
   const bool keyframe = selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction);
   Pose T_world_odom;

@@ -355,5 +355,54 @@ TEST_F(PipelineFixture, DroppedFramesWithoutAPriorAreRecoveredByWidenedGates) {
   EXPECT_LE(recovered_at - (kDroppedFrom + kDropped), kMaxRecoveryFrames);
 }
 
+// Kidnapped (issue 17): after 40 frames along the fixture's path (78 cm and 39 degrees from the
+// start) five frames come empty and the camera is then back near where it started, 2 cm and 1
+// degree off the path's fourth pose, without a prior. From the last pose that is beyond even the
+// widened gates; the keyframes the pipeline kept along the way know the place.
+TEST_F(PipelineFixture, AKidnappedCameraIsRelocalisedWhereItHasBeen) {
+  constexpr int kPath = 40, kEmpty = 5, kBack = 15;
+  const Pose offset = test::makePose(Eigen::Vector3d(0.01, 0.012, -0.008),
+                                     Eigen::Vector3d(0.012, -0.01, 0.012));
+  const auto back = [&](int j) { return groundTruth(3) * offset * test::makePose(
+      Eigen::Vector3d::Zero(), Eigen::Vector3d(0.005 * j, 0.0, 0.0)); };
+  for (const bool relocalise : {true, false}) {
+    HashedVolume map{HashedVolume::Params{}};
+    FusionPipeline::Params params;
+    params.relocalise = relocalise;
+    FusionPipeline p(camera, params, &map);
+    int k = 0, recovered_at = -1;
+    bool relocalised = false;
+    for (; k < kPath; ++k) {
+      render(k, 8000 + k);
+      ASSERT_NE(p.processFrame(raw, utimeOf(k)).status, TrackingStatus::kLost) << "frame " << k;
+    }
+    for (; k < kPath + kEmpty; ++k) {
+      raw.fill(0);
+      ASSERT_EQ(p.processFrame(raw, utimeOf(k)).status, TrackingStatus::kLost);
+    }
+    for (int j = 0; j < kBack; ++j, ++k) {
+      renderAt(back(j), 8000 + k);
+      const FrameResult r = p.processFrame(raw, utimeOf(k));
+      if (r.status == TrackingStatus::kLost) continue;
+      if (recovered_at < 0) {
+        recovered_at = j;
+        relocalised = r.relocalised;
+      }
+      EXPECT_LT(test::translationErrorM(r.T_world_cam, back(j)), kPoseTolM) << "frame " << k;
+      EXPECT_LT(test::radToDeg(test::rotationErrorRad(r.T_world_cam, back(j))), kPoseTolDeg)
+          << "frame " << k;
+    }
+    if (!relocalise) {
+      EXPECT_EQ(recovered_at, -1) << "tracked again without relocalisation";
+      continue;
+    }
+    std::printf("[pipeline] kidnapped 78 cm and 39 deg back to the start: relocalised %d frames "
+                "after it came back\n", recovered_at);
+    ASSERT_GE(recovered_at, 0) << "never relocalised";
+    EXPECT_TRUE(relocalised);
+    EXPECT_LE(recovered_at, kMaxRecoveryFrames);
+  }
+}
+
 }  // namespace
 }  // namespace kinfly

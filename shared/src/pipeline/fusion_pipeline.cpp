@@ -1,6 +1,7 @@
 #include "kinfly/pipeline/fusion_pipeline.h"
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <sstream>
@@ -22,6 +23,10 @@ Status FusionPipeline::Params::validate(float voxel_size_m) const {
     return Status::error("min_valid_depth_fraction must be in [0, 1)");
   if (!(max_recovery_gate_scale >= 1.f))
     return Status::error("max_recovery_gate_scale must be >= 1");
+  if (relocalise) {
+    const Status r = relocaliser.validate();
+    if (!r.ok()) return Status::error("relocaliser: " + r.message());
+  }
   return {};
 }
 
@@ -33,6 +38,7 @@ FusionPipeline::FusionPipeline(const PinholeCamera& input_camera, const Params& 
       tracker_(params.icp),
       integrator_(params.integrate),
       raycaster_(preprocessor_.camera(), params.raycast),
+      relocaliser_(params.relocaliser),
       frame_(preprocessor_.camera()),
       model_(preprocessor_.camera()) {
   integrator_.reserve(preprocessor_.camera().width, preprocessor_.camera().height, *volume);
@@ -76,6 +82,10 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
     } else {
       lost_in_a_row_ = missed_ = 0;
       r.recovered_after = lost_before;
+      if (params_.relocalise) {
+        relocaliser_.encode(frame_.depth_m[kPyramidLevels - 1].view());
+        relocaliser_.harvest(r.T_world_cam);
+      }
     }
     return r;
   };
@@ -104,8 +114,35 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
   const Pose guess = prior ? T_world_cam_.inverse() * *T_world_cam_prior : Pose::Identity();
   FrameResult r = trackAndFuse(result, T_world_cam_, guess, prior, /*predict_from_pose=*/true,
                                gate_scale);
-  if (r.status == TrackingStatus::kLost) r.lost_reason = from_prior + r.lost_reason;
-  return counted(r);
+  if (r.status != TrackingStatus::kLost || missed_before == 0 || !params_.relocalise)
+    return counted(r);
+  return counted(relocalise(result, from_prior + r.lost_reason));
+}
+
+FrameResult FusionPipeline::relocalise(FrameResult result, const std::string& why_lost) {
+  relocaliser_.encode(frame_.depth_m[kPyramidLevels - 1].view());
+  std::array<Relocaliser::Candidate, kRelocaliseCandidates> candidates;
+  const int found = relocaliser_.nearest(kRelocaliseCandidates, candidates.data());
+  std::string reason = why_lost;
+  for (int i = 0; i < found; ++i) {
+    const Pose& T_world_kf = candidates[static_cast<size_t>(i)].T_world_cam;
+    model_at_pose_ = false;
+    predict(T_world_kf, &result);
+    FrameResult r = trackAndFuse(result, T_world_kf, Pose::Identity(), /*prior=*/false,
+                                 /*predict_from_pose=*/true, params_.max_recovery_gate_scale);
+    if (r.status != TrackingStatus::kLost) {
+      r.relocalised = true;
+      return r;
+    }
+    reason += "; from keyframe " + std::to_string(i + 1) + " of " + std::to_string(found) + ": " +
+              r.lost_reason;
+    result.ms = r.ms;
+  }
+  if (found == 0) reason += "; no keyframe looks like it";
+  result.status = TrackingStatus::kLost;
+  result.T_world_cam = T_world_cam_;
+  result.lost_reason = reason;
+  return result;
 }
 
 FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_depth,

@@ -17,6 +17,7 @@
 #include "kinfly/preprocessing/depth_preprocessor.h"
 #include "kinfly/raycast/raycaster.h"
 #include "kinfly/tracking/icp_tracker.h"
+#include "kinfly/tracking/relocaliser.h"
 #include "kinfly/volume/tsdf_integrator.h"
 #include "kinfly/volume/tsdf_volume.h"
 
@@ -44,6 +45,7 @@ struct FrameResult {
   // after a loss, `recovered_after` says how many were lost before it (processFrame only).
   int lost_in_a_row = 0;
   int recovered_after = 0;
+  bool relocalised = false;  // tracked again from a keyframe's pose (Relocaliser)
   StageTimesMs ms;
 };
 
@@ -61,6 +63,10 @@ class FusionPipeline {
     // a prior the camera has moved that many frames' worth since the last tracked one; with
     // one, the prior's error has grown with them.
     float max_recovery_gate_scale = 3.f;  // >= 1
+    // Where neither the prior nor the last pose tracks a frame after missed ones, the frame is
+    // tracked from the poses of the keyframes most like it (processFrame keeps them).
+    bool relocalise = true;
+    Relocaliser::Params relocaliser;
     Status validate(float voxel_size_m) const;
   };
 
@@ -72,7 +78,9 @@ class FusionPipeline {
   // leaves a direction weak, the pose follows the prior along it. After missed frames (lost, or
   // a gap in `utime` of more than one and a half of the shortest interval seen) it tries from
   // the prior first, against the model seen from there (the last pose's view may overlap the
-  // frame little by then), then from the last pose, both with widened gates.
+  // frame little by then), then from the last pose, both with widened gates, then from the
+  // keyframes most like it (relocalisation). Tracked frames that show something new become
+  // keyframes.
   FrameResult processFrame(ImageView<const uint16_t> raw_depth, int64_t utime,
                            const Pose* T_world_cam_prior = nullptr);
   // Tracks the frame against the model as seen from a pose guess, then fuses it: the ground
@@ -110,6 +118,10 @@ class FusionPipeline {
   FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref,
                            const Pose& T_ref_cur_guess, bool prior, bool predict_from_pose,
                            float gate_scale = 1.f);
+  // After every other try failed: tracks from the poses of the keyframes most like the frame.
+  // `why_lost` is what the other tries said; the result says it too when these fail.
+  FrameResult relocalise(FrameResult result, const std::string& why_lost);
+  static constexpr int kRelocaliseCandidates = 2;  // ICP runs at most this many times more
   // Integrates at result.T_world_cam; with predict_from_pose, raycasts model_ from there for
   // the next frame to track against.
   FrameResult fuse(FrameResult result, bool predict_from_pose);
@@ -120,6 +132,7 @@ class FusionPipeline {
   IcpTracker tracker_;
   TsdfIntegrator integrator_;
   Raycaster raycaster_;
+  Relocaliser relocaliser_;
   DepthFrame frame_;
   ModelMaps model_;
   std::unique_ptr<ModelMaps> render_maps_;  // allocated by the first renderShaded()

@@ -92,8 +92,12 @@ void OdometryTask::process(const DepthCapture& capture) {
     if (r.relocalised) ++counters_->relocalisations;
     if (r.recovered_after > counters_->longest_loss_frames)
       counters_->longest_loss_frames = r.recovered_after;
-    spdlog::info("odometry: frame {}: tracking back after {} lost frame(s){}", capture.frame_id,
-                 r.recovered_after, r.relocalised ? ", relocalised against a keyframe" : "");
+    if (recovery_log_.allow(secondsSince(began_)))
+      spdlog::info("odometry: frame {}: tracking back after {} lost frame(s){} ({} more such "
+                   "recoveries since the last report)",
+                   capture.frame_id, r.recovered_after,
+                   r.relocalised ? ", relocalised against a keyframe" : "",
+                   recovery_log_.suppressed());
   }
   const bool keyframe = selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction);
   Pose T_world_odom;

@@ -80,7 +80,7 @@ class OdometryTask {
   // Counters::ground_statuses when a lockstep wait ran out; none while the ground answers.
   std::optional<int64_t> unanswered_since_status_;
   Clock::time_point began_ = Clock::now();
-  LogThrottle lost_log_, keyframe_drop_log_, weak_log_;
+  LogThrottle lost_log_, keyframe_drop_log_, weak_log_, recovery_log_;
   std::vector<StampedPose> trajectory_, ground_truth_;
 };
 

@@ -50,18 +50,39 @@ TEST_F(RelocaliserFixture, KeepsNewViewsOnlyAndFindsTheMostAlike) {
   code(&r, turned(40), 3);
   EXPECT_TRUE(r.harvest(turned(40))) << "turned 40 degrees is a new view";
   EXPECT_EQ(r.keyframes(), 2);
-  // Near the second keyframe: it comes first, the other after it or not at all.
+  // Near the second keyframe: it comes first; the first, turned 37 degrees away, is beyond
+  // the candidates' bound.
   code(&r, turned(37), 4);
-  const int found = r.nearest(2, best);
-  ASSERT_GE(found, 1);
+  ASSERT_EQ(r.nearest(2, best), 1);
   EXPECT_TRUE(best[0].T_world_cam.isApprox(turned(40)));
-  if (found == 2) EXPECT_LE(best[0].dissimilarity, best[1].dissimilarity);
-  for (int i = 0; i < found; ++i)
-    EXPECT_LT(best[i].dissimilarity, r.params().max_candidate_dissimilarity);
+  EXPECT_LT(best[0].dissimilarity, r.params().max_candidate_dissimilarity);
   // An empty image is like nothing kept.
   depth.fill(0.f);
   r.encode(depth);
   EXPECT_EQ(r.nearest(2, best), 0);
+}
+
+TEST_F(RelocaliserFixture, TheNearestAreTheFirstOfAllSortedByLikeness) {
+  Relocaliser::Params params;
+  params.new_keyframe_dissimilarity = 0.05f;  // every 20 degrees is kept
+  params.max_candidate_dissimilarity = 1.f;   // and every one is a candidate
+  Relocaliser r(params);
+  constexpr int kViews = 5;
+  for (int i = 0; i < kViews; ++i) {
+    code(&r, turned(20.0 * i), 20 + i);
+    ASSERT_TRUE(r.harvest(turned(20.0 * i))) << "view " << i;
+  }
+  code(&r, turned(38.0), 30);
+  Relocaliser::Candidate all[kViews], two[2];
+  ASSERT_EQ(r.nearest(kViews, all), kViews);
+  for (int i = 1; i < kViews; ++i) EXPECT_LE(all[i - 1].dissimilarity, all[i].dissimilarity);
+  EXPECT_TRUE(all[0].T_world_cam.isApprox(turned(40.0))) << "38 degrees is most like 40";
+  // Fewer places than keyframes: the kept list evicts as better ones come.
+  ASSERT_EQ(r.nearest(2, two), 2);
+  for (int i = 0; i < 2; ++i) {
+    EXPECT_TRUE(two[i].T_world_cam.isApprox(all[i].T_world_cam)) << i;
+    EXPECT_EQ(two[i].dissimilarity, all[i].dissimilarity) << i;
+  }
 }
 
 TEST_F(RelocaliserFixture, StopsAddingWhenFull) {

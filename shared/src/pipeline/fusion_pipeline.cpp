@@ -23,10 +23,9 @@ Status FusionPipeline::Params::validate(float voxel_size_m) const {
     return Status::error("min_valid_depth_fraction must be in [0, 1)");
   if (!(max_recovery_gate_scale >= 1.f))
     return Status::error("max_recovery_gate_scale must be >= 1");
-  if (relocalise) {
-    const Status r = relocaliser.validate();
-    if (!r.ok()) return Status::error("relocaliser: " + r.message());
-  }
+  // The relocaliser is built either way (its ferns drawn from these settings).
+  if (const Status r = relocaliser.validate(); !r.ok())
+    return Status::error("relocaliser: " + r.message());
   return {};
 }
 
@@ -60,39 +59,60 @@ bool FusionPipeline::preprocess(ImageView<const uint16_t> raw_depth, int64_t uti
   return false;
 }
 
+int FusionPipeline::undeliveredBefore(int64_t utime) {
+  if (last_utime_ < 0 || utime <= last_utime_) {
+    // The first frame, a repeated time or a clock that went back (a restarted log or sensor):
+    // nothing to measure a gap by, so the new time is where the next interval starts.
+    last_utime_ = utime;
+    return 0;
+  }
+  const int64_t interval = utime - last_utime_;
+  last_utime_ = utime;
+  intervals_[static_cast<size_t>(interval_count_ % kIntervals)] = interval;
+  ++interval_count_;
+  if (interval_count_ < kMinIntervals) return 0;
+  // The median of the latest intervals: a few short ones (jittered or repeated times) or long
+  // ones (the gaps themselves) do not move it.
+  std::array<int64_t, kIntervals> sorted = intervals_;
+  const int n = std::min(interval_count_, kIntervals);
+  std::nth_element(sorted.begin(), sorted.begin() + n / 2, sorted.begin() + n);
+  const double frames = std::min(static_cast<double>(interval) / static_cast<double>(sorted[n / 2]),
+                                 static_cast<double>(kMaxMissedCounted));
+  return std::max(static_cast<int>(std::lround(frames)) - 1, 0);
+}
+
 FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, int64_t utime,
                                          const Pose* T_world_cam_prior) {
   FrameResult result;
   const int lost_before = lost_in_a_row_;
   // Frames the source never delivered since the last one (a covered or stalled camera, a full
   // queue) count as missed: the camera moved on meanwhile.
-  int undelivered = 0;
-  if (last_utime_ >= 0 && utime > last_utime_) {
-    const int64_t interval = utime - last_utime_;
-    if (frame_interval_us_ == 0 || interval < frame_interval_us_) frame_interval_us_ = interval;
-    undelivered = static_cast<int>(
-        std::lround(static_cast<double>(interval) / static_cast<double>(frame_interval_us_)) - 1);
-  }
-  last_utime_ = utime;
-  const int missed_before = missed_ + undelivered;
+  const int missed_before = std::min(missed_ + undeliveredBefore(utime), kMaxMissedCounted);
   auto counted = [&](FrameResult r) {
+    r.missed = missed_before;
     if (r.status == TrackingStatus::kLost) {
-      r.lost_in_a_row = lost_in_a_row_ = lost_before + 1;
-      missed_ = missed_before + 1;
-    } else {
-      lost_in_a_row_ = missed_ = 0;
-      r.recovered_after = lost_before;
-      if (params_.relocalise) {
-        relocaliser_.encode(frame_.depth_m[kPyramidLevels - 1].view());
-        relocaliser_.harvest(r.T_world_cam);
-      }
+      lost_in_a_row_ = std::min(lost_before + 1, kMaxMissedCounted);
+      r.lost_in_a_row = lost_in_a_row_;
+      missed_ = std::min(missed_before + 1, kMaxMissedCounted);
+      return r;
+    }
+    lost_in_a_row_ = missed_ = 0;
+    // Frames lost before the first had no map to be tracked against: nothing to recover.
+    if (r.status != TrackingStatus::kFirstFrame) r.recovered_after = lost_before;
+    if (params_.relocalise) {
+      const auto t0 = std::chrono::steady_clock::now();
+      relocaliser_.encode(frame_.depth_m[kPyramidLevels - 1].view());
+      relocaliser_.harvest(r.T_world_cam);
+      const double ms = msSince(t0);
+      r.ms.track += ms;
+      r.ms.total += ms;
     }
     return r;
   };
-  if (!preprocess(raw_depth, utime, T_world_cam_, &result)) return counted(result);
+  if (!preprocess(raw_depth, utime, T_world_cam_, &result)) return counted(std::move(result));
   if (!has_model_) {
     result.status = TrackingStatus::kFirstFrame;
-    return counted(fuse(result, /*predict_from_pose=*/true));
+    return counted(fuse(std::move(result), /*predict_from_pose=*/true));
   }
   const float gate_scale =
       std::min(1.f + static_cast<float>(missed_before), params_.max_recovery_gate_scale);
@@ -102,47 +122,58 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
     predict(*T_world_cam_prior, &result);
     FrameResult r = trackAndFuse(result, *T_world_cam_prior, Pose::Identity(), /*prior=*/true,
                                  /*predict_from_pose=*/true, gate_scale);
-    if (r.status != TrackingStatus::kLost) return counted(r);
+    if (r.status != TrackingStatus::kLost) return counted(std::move(r));
     from_prior = "from the prior: " + r.lost_reason + "; from the last pose: ";
     result.ms = r.ms;
   }
-  if (!model_at_pose_) predict(T_world_cam_, &result);
+  if (!model_at_pose_) {
+    predict(T_world_cam_, &result);
+    model_at_pose_ = true;
+  }
   // The model was raycast from the last pose, so without a prior the guess relative to it is
   // the identity. While recovering, the prior was tried above: this is the try from the last
   // pose, as the frame would be tracked without an IMU.
   const bool prior = T_world_cam_prior != nullptr && missed_before == 0;
   const Pose guess = prior ? T_world_cam_.inverse() * *T_world_cam_prior : Pose::Identity();
-  FrameResult r = trackAndFuse(result, T_world_cam_, guess, prior, /*predict_from_pose=*/true,
-                               gate_scale);
+  FrameResult r = trackAndFuse(std::move(result), T_world_cam_, guess, prior,
+                               /*predict_from_pose=*/true, gate_scale);
+  if (r.status == TrackingStatus::kLost) r.lost_reason = from_prior + r.lost_reason;
   if (r.status != TrackingStatus::kLost || missed_before == 0 || !params_.relocalise)
-    return counted(r);
-  return counted(relocalise(result, from_prior + r.lost_reason));
+    return counted(std::move(r));
+  return counted(relocalise(std::move(r), T_world_cam_prior, gate_scale));
 }
 
-FrameResult FusionPipeline::relocalise(FrameResult result, const std::string& why_lost) {
+FrameResult FusionPipeline::relocalise(FrameResult lost, const Pose* T_world_cam_prior,
+                                       float gate_scale) {
+  const auto t0 = std::chrono::steady_clock::now();
   relocaliser_.encode(frame_.depth_m[kPyramidLevels - 1].view());
   std::array<Relocaliser::Candidate, kRelocaliseCandidates> candidates;
   const int found = relocaliser_.nearest(kRelocaliseCandidates, candidates.data());
-  std::string reason = why_lost;
+  const double ms = msSince(t0);
+  lost.ms.track += ms;
+  lost.ms.total += ms;
+  if (found == 0) lost.lost_reason += "; no keyframe looks like it";
   for (int i = 0; i < found; ++i) {
     const Pose& T_world_kf = candidates[static_cast<size_t>(i)].T_world_cam;
     model_at_pose_ = false;
-    predict(T_world_kf, &result);
-    FrameResult r = trackAndFuse(result, T_world_kf, Pose::Identity(), /*prior=*/false,
-                                 /*predict_from_pose=*/true, params_.max_recovery_gate_scale);
+    predict(T_world_kf, &lost);
+    // A keyframe is where the camera was, not where it may have moved since: the gates stay the
+    // normal frame's. With an IMU, the pose must also agree with its prediction within the
+    // widened gates, so that a place that merely looks alike cannot move the drone.
+    FrameResult r = trackAndFuse(lost, T_world_kf, Pose::Identity(), /*prior=*/false,
+                                 /*predict_from_pose=*/true, /*gate_scale=*/1.f,
+                                 T_world_cam_prior, gate_scale);
     if (r.status != TrackingStatus::kLost) {
       r.relocalised = true;
       return r;
     }
-    reason += "; from keyframe " + std::to_string(i + 1) + " of " + std::to_string(found) + ": " +
-              r.lost_reason;
-    result.ms = r.ms;
+    lost.lost_reason += "; from keyframe " + std::to_string(i + 1) + " of " +
+                        std::to_string(found) + ": " + r.lost_reason;
+    lost.ms = r.ms;
+    lost.inlier_fraction = r.inlier_fraction;
+    lost.rmse_m = r.rmse_m;
   }
-  if (found == 0) reason += "; no keyframe looks like it";
-  result.status = TrackingStatus::kLost;
-  result.T_world_cam = T_world_cam_;
-  result.lost_reason = reason;
-  return result;
+  return lost;
 }
 
 FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_depth,
@@ -173,7 +204,8 @@ void FusionPipeline::predict(const Pose& T_world_cam, FrameResult* result) {
 
 FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world_ref,
                                          const Pose& T_ref_cur_guess, bool prior,
-                                         bool predict_from_pose, float gate_scale) {
+                                         bool predict_from_pose, float gate_scale,
+                                         const Pose* T_world_cam_near, float near_scale) {
   const auto t0 = std::chrono::steady_clock::now();
   const IcpResult icp = tracker_.track(frame_, model_, T_ref_cur_guess, prior, gate_scale);
   result.ms.track += msSince(t0);
@@ -189,6 +221,21 @@ FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world
     return result;
   }
   result.T_world_cam = orthonormalized(T_world_ref * icp.T_ref_cur);
+  if (T_world_cam_near != nullptr) {
+    const Pose off = T_world_cam_near->inverse() * result.T_world_cam;
+    const IcpTracker::Params& gates = tracker_.params();
+    if (off.translation().norm() > gates.max_translation_m * near_scale ||
+        rotationAngleRad(off) > gates.max_rotation_rad * near_scale) {
+      std::ostringstream why;
+      why << "tracked " << off.translation().norm() << " m and " << rotationAngleRad(off)
+          << " rad from the prior, beyond its gates times " << near_scale;
+      result.status = TrackingStatus::kLost;
+      result.T_world_cam = T_world_cam_;
+      result.lost_reason = why.str();
+      result.ms.total = result.ms.preprocess + result.ms.track + result.ms.raycast;
+      return result;
+    }
+  }
   // A twist [w; t] of T_ref_cur moves the camera's position in the reference frame by
   // w x p + t and turns the camera by R_ref_cur^T w in its own frame.
   const Eigen::Matrix3d R_ref_cur = icp.T_ref_cur.linear();

@@ -392,19 +392,24 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
 
   const Pose jump = T_ref_cur_guess.inverse() * T;
   std::ostringstream why;
-  const std::string widened =
-      gate_scale != 1.f ? " times " + std::to_string(gate_scale) + " after lost frames" : "";
-  if (jump.translation().norm() > max_translation_m)
-    why << "jump of " << jump.translation().norm() << " m exceeds max_translation_m" << widened;
-  else if (rotationAngleRad(jump) > max_rotation_rad)
-    why << "rotation of " << rotationAngleRad(jump) << " rad exceeds max_rotation_rad" << widened;
-  else if (result.inlier_fraction < params_.min_inlier_fraction)
+  // Written only when a gate fails: a tracked frame allocates nothing.
+  const auto widened = [&](std::ostringstream& out) {
+    if (gate_scale != 1.f) out << " times " << gate_scale << " after missed frames";
+  };
+  if (jump.translation().norm() > max_translation_m) {
+    why << "jump of " << jump.translation().norm() << " m exceeds max_translation_m";
+    widened(why);
+  } else if (rotationAngleRad(jump) > max_rotation_rad) {
+    why << "rotation of " << rotationAngleRad(jump) << " rad exceeds max_rotation_rad";
+    widened(why);
+  } else if (result.inlier_fraction < params_.min_inlier_fraction) {
     why << "inlier fraction " << result.inlier_fraction << " below min_inlier_fraction";
-  else if (result.rmse_m > result.max_rmse_m)
+  } else if (result.rmse_m > result.max_rmse_m) {
     why << "residual " << result.rmse_m << " m exceeds the gate of " << result.max_rmse_m
         << " m (max_rmse_m " << params_.max_rmse_m << ", or max_rmse_sigmas "
         << params_.max_rmse_sigmas << " times the sensor noise's " << result.noise_rms_m
         << " m at these depths)";
+  }
   if (!why.str().empty()) return fail(why.str());  // keeps the measured inliers and residual
   result.T_ref_cur = T;
   result.status = TrackingStatus::kOk;

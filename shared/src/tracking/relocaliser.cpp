@@ -1,7 +1,6 @@
 #include "kinfly/tracking/relocaliser.h"
 
 #include <algorithm>
-#include <cmath>
 #include <random>
 #include <sstream>
 

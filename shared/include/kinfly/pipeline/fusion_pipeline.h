@@ -3,6 +3,7 @@
 // passed in, not owned, so the same pipeline runs onboard (dense) and on the ground (hashed).
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -42,9 +43,12 @@ struct FrameResult {
   WeakDirections weak;
   double weakest_fraction = 0.0;  // IcpResult's: how close the frame came to degenerate
   // Frames lost in a row, this one included (0 once one is tracked); on the first frame tracked
-  // after a loss, `recovered_after` says how many were lost before it (processFrame only).
+  // after a loss, `recovered_after` says how many were lost before it; `missed` counts the
+  // frames missed between the last tracked frame and this one, lost or never delivered
+  // (processFrame only).
   int lost_in_a_row = 0;
   int recovered_after = 0;
+  int missed = 0;
   bool relocalised = false;  // tracked again from a keyframe's pose (Relocaliser)
   StageTimesMs ms;
 };
@@ -76,7 +80,7 @@ class FusionPipeline {
   // Tracks the frame against the model, then fuses it. ICP starts from the last pose, or from
   // `T_world_cam_prior` where the caller predicts the motion (the drone's IMU): where the scene
   // leaves a direction weak, the pose follows the prior along it. After missed frames (lost, or
-  // a gap in `utime` of more than one and a half of the shortest interval seen) it tries from
+  // a gap in `utime` of at least one and a half times the median interval) it tries from
   // the prior first, against the model seen from there (the last pose's view may overlap the
   // frame little by then), then from the last pose, both with widened gates, then from the
   // keyframes most like it (relocalisation). Tracked frames that show something new become
@@ -115,13 +119,24 @@ class FusionPipeline {
   void predict(const Pose& T_world_cam, FrameResult* result);
   // ICP against model_, which was raycast from T_world_ref, from a guess of the pose relative to
   // it (a prior: IcpTracker::track); fuses on success.
+  // With `T_world_cam_near`, a pose farther from it than the jump gates times `near_scale` is
+  // lost, before anything is fused.
   FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref,
                            const Pose& T_ref_cur_guess, bool prior, bool predict_from_pose,
-                           float gate_scale = 1.f);
-  // After every other try failed: tracks from the poses of the keyframes most like the frame.
-  // `why_lost` is what the other tries said; the result says it too when these fail.
-  FrameResult relocalise(FrameResult result, const std::string& why_lost);
+                           float gate_scale = 1.f, const Pose* T_world_cam_near = nullptr,
+                           float near_scale = 1.f);
+  // After every other try lost the frame (`lost` says why): tracks from the poses of the
+  // keyframes most like it; with a prior, only to a pose that agrees with it within the jump
+  // gates times `gate_scale`.
+  FrameResult relocalise(FrameResult lost, const Pose* T_world_cam_prior, float gate_scale);
   static constexpr int kRelocaliseCandidates = 2;  // ICP runs at most this many times more
+  // Frames missed since the last tracked one, from the gap between `utime` and the last frame's
+  // in units of the median of the latest intervals; 0 until a few intervals are known.
+  int undeliveredBefore(int64_t utime);
+  static constexpr int kIntervals = 15, kMinIntervals = 3;
+  // Counts of missed frames stop here: only the gates' scale (capped far lower) and reports read
+  // them, and a long loss must not overflow.
+  static constexpr int kMaxMissedCounted = 100000;
   // Integrates at result.T_world_cam; with predict_from_pose, raycasts model_ from there for
   // the next frame to track against.
   FrameResult fuse(FrameResult result, bool predict_from_pose);
@@ -141,9 +156,10 @@ class FusionPipeline {
   int lost_in_a_row_ = 0;        // processFrame's frames lost since the last fused one
   int missed_ = 0;               // those and the frames not delivered between them
   int64_t last_utime_ = -1;      // processFrame's last frame, tracked or not
-  int64_t frame_interval_us_ = 0;  // the shortest positive interval between its frames
-  // Latest fused pose; the model maps are always raycast from it, since lost frames change
-  // neither.
+  std::array<int64_t, kIntervals> intervals_{};  // [us] the latest intervals between its frames
+  int interval_count_ = 0;
+  // Latest fused pose. The model maps are raycast from it, except after a lost frame that was
+  // tried from another view (the prior, a keyframe): model_at_pose_ says which.
   Pose T_world_cam_ = Pose::Identity();
 };
 

@@ -22,7 +22,8 @@ struct IcpResult {
   float inlier_fraction = 0.f;  // finest level: inliers / valid current pixels
   float rmse_m = 0.f;           // finest level point-to-plane RMS over inliers
   float noise_rms_m = 0.f;      // finest level: RMS of the sensor's noise sigma over inliers
-  float max_rmse_m = 0.f;       // the residual gate this frame was held to (Params::max_rmse_m)
+  float max_rmse_m = 0.f;       // the residual gate this frame was held to (Params::max_rmse_m,
+                                // max_rmse_sigmas)
   int iterations = 0;           // total over all levels
   // Degenerate geometry (a corridor, a single wall): the directions of motion the scene does not
   // pin down (Params::weak_direction_fraction), as unit twists [w; t] of T_ref_cur

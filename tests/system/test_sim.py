@@ -19,7 +19,7 @@ from netns import send_signal
 
 from conftest import REPO_ROOT, built
 from demo import Watched, make_key
-from firmware_run import firmware
+from firmware_run import firmware, summary
 
 VEHICLE = 5
 LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
@@ -155,6 +155,47 @@ def test_faults_end_in_the_failsafes_table_never_in_a_crash(netns: list[str],
     assert "failsafe: vision lost: hold -> descend" in drone_output, drone_output[-3000:]
     diverged = re.search(r"failsafes: \d+ vision lost, (\d+) estimator diverged", drone_output)
     assert diverged and diverged.group(1) == "0", drone_output[-3000:]
+
+
+# Issue 17's recovery: the camera gives nothing for 0.9 s (27 frames, under the vision-lost
+# failsafe's 1 s) while the drone flies 1.2 m across the room; the odometry must be tracking
+# again within 10 frames of the camera coming back, and the flight goes on (here: the first
+# frame back is tracked, 0 lost).
+DROPOUT_MISSION = """
+[mission]
+name = "a dropout in flight"
+max_s = 30
+""" + TAKE_OFF + """
+[[command]]
+at_s = 7.0
+kind = "go_to"
+target_m = [1.0, -0.6, -1.0]
+
+[[event]]
+at_s = 7.5
+kind = "vision_dropout"
+duration_s = 0.9
+
+[[command]]
+at_s = 13.0
+kind = "land"
+"""
+MAX_RECOVERY_FRAMES = 10  # issue 17: tracking back within 10 frames
+
+
+def test_the_odometry_tracks_again_after_a_dropout_in_flight(netns: list[str],
+                                                            tmp_path: Path) -> None:
+    key = keygen(tmp_path)
+    mission = tmp_path / "dropout.toml"
+    mission.write_text(DROPOUT_MISSION)
+    figures, sim_output, drone_output = fly(netns, key, tmp_path / "summary.json",
+                                            mission=mission)
+    assert figures["landed"] and not figures["collided"], figures
+    assert figures["failsafes"] == 0, drone_output[-3000:]
+    assert "t=7.50 s: vision_dropout" in sim_output, sim_output
+    counts = summary(drone_output)
+    assert counts.longest_loss <= MAX_RECOVERY_FRAMES, counts
+    assert counts.lost <= MAX_RECOVERY_FRAMES, (counts, drone_output[-3000:])
 
 
 def test_one_seed_flies_one_flight(netns: list[str], tmp_path: Path) -> None:

@@ -415,6 +415,7 @@ TEST_F(PipelineFixture, AKidnappedCameraIsRelocalisedWhereItHasBeen) {
       if (recovered_at < 0) {
         recovered_at = j;
         relocalised = r.relocalised;
+        EXPECT_TRUE(r.lost_reason.empty()) << r.lost_reason;
       }
       EXPECT_LT(test::translationErrorM(r.T_world_cam, back(j)), kPoseTolM) << "frame " << k;
       EXPECT_LT(test::radToDeg(test::rotationErrorRad(r.T_world_cam, back(j))), kPoseTolDeg)

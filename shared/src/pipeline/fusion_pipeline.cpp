@@ -165,6 +165,7 @@ FrameResult FusionPipeline::relocalise(FrameResult lost, const Pose* T_world_cam
                                  T_world_cam_prior, gate_scale);
     if (r.status != TrackingStatus::kLost) {
       r.relocalised = true;
+      r.lost_reason.clear();  // the other tries' reasons came along in `lost`
       return r;
     }
     lost.lost_reason += "; from keyframe " + std::to_string(i + 1) + " of " +

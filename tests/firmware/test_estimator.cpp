@@ -94,6 +94,11 @@ struct Scenario {
   double bias_step_s = -1.0;
   Vector3d gyro_bias_step_rad_s = Vector3d::Zero();
   Vector3d accel_bias_step_m_s2 = Vector3d::Zero();
+  // When set, the start's alignment of odom is tilted off the truth by this (about world's x and
+  // y), and the start's attitude with it, as a start from a biased accelerometer at rest is;
+  // otherwise the tilt is drawn from the initial covariance.
+  bool start_tilted = false;
+  Vector3d start_tilt_rad = Vector3d::Zero();
 };
 
 // Everything the estimator will be fed and the truth at every IMU sample, computed up front so
@@ -104,7 +109,8 @@ struct Recording {
   std::vector<Vector3d> gyro_bias_rad_s, accel_bias_m_s2;
   std::vector<Delivery> poses;  // in arrival order
   EstimatorInit init;           // with errors drawn from the initial covariance
-  Pose T_world_odom;
+  Pose T_world_odom;            // the truth; init.T_world_odom is tilted off it
+  Vector3d odom_tilt_rad;       // the truth's tilt against init.T_world_odom, about world's x, y
 };
 
 double secondsOf(int64_t utime) { return static_cast<double>(utime - kStartUs) * 1e-6; }
@@ -126,13 +132,21 @@ Recording record(const Scenario& scenario) {
   Vector3d gyro_bias = params.init_gyro_bias_std_rad_s * gaussian();
   Vector3d accel_bias = params.init_accel_bias_std_m_s2 * gaussian();
   rec.init.utime = kStartUs;
-  rec.init.T_world_odom = rec.T_world_odom;
   rec.init.p_world_body_m = start.p_world_body_m + params.init_pos_std_m * gaussian();
   rec.init.v_world_body_m_s = start.v_world_body_m_s + params.init_vel_std_m_s * gaussian();
   rec.init.q_world_body =
       start.q_world_body * rotationFromVector(params.init_att_std_rad * gaussian());
   rec.init.gyro_bias_rad_s = Vector3d::Zero();
   rec.init.accel_bias_m_s2 = Vector3d::Zero();
+  // The alignment the filter starts from is tilted off the truth, as one from a biased
+  // accelerometer at rest is: T_world_odom = Exp(odom_tilt_rad) * init.T_world_odom.
+  rec.odom_tilt_rad = params.init_odom_tilt_std_rad * gaussian();
+  rec.odom_tilt_rad.z() = 0.0;
+  if (scenario.start_tilted) {
+    rec.odom_tilt_rad = scenario.start_tilt_rad;
+    rec.init.q_world_body = rotationFromVector(-rec.odom_tilt_rad) * start.q_world_body;
+  }
+  rec.init.T_world_odom = Pose(rotationFromVector(-rec.odom_tilt_rad)) * rec.T_world_odom;
 
   for (int k = 0; k <= samples; ++k) {
     const int64_t utime = kStartUs + k * kImuPeriodUs;
@@ -179,8 +193,9 @@ Recording record(const Scenario& scenario) {
 
 // true - estimate, in the filter's error-state order and frames.
 ErrorVector errorOf(const EstimatorState& est, const Truth& truth, const Vector3d& gyro_bias,
-                    const Vector3d& accel_bias) {
+                    const Vector3d& accel_bias, const Vector3d& odom_tilt_rad) {
   ErrorVector e;
+  e.segment<2>(15) = (odom_tilt_rad - est.odom_tilt_rad).head<2>();
   e.segment<3>(0) = truth.p_world_body_m - est.p_world_body_m;
   e.segment<3>(3) = truth.v_world_body_m_s - est.v_world_body_m_s;
   e.segment<3>(6) = rotationVector(est.q_world_body.conjugate() * truth.q_world_body);
@@ -231,7 +246,7 @@ Figures measure(const Recording& rec, Estimator& estimator, double t_begin_s, do
     const double t_s = secondsOf(rec.imu[k - 1].utime);
     if (t_s < t_begin_s || t_s > t_end_s) return;
     const ErrorVector e = errorOf(est.state(), rec.truth[k], rec.gyro_bias_rad_s[k],
-                                  rec.accel_bias_m_s2[k]);
+                                  rec.accel_bias_m_s2[k], rec.odom_tilt_rad);
     figures.pos_m.add(e.segment<3>(0).norm());
     figures.vel_m_s.add(e.segment<3>(3).norm());
     figures.tilt_rad.add(tiltErrorRad(est.state().q_world_body, rec.truth[k].q_world_body));
@@ -317,6 +332,45 @@ TEST(Estimator, SurvivesHalfASecondWithoutVisionAndConvergesAgain) {
   EXPECT_FALSE(estimator.health().diverged);
 }
 
+// The start's tilt is off by what a biased accelerometer at rest gives (0.73°: |b_a| = 0.12 m/s²
+// across, 1.8σ of the default's 0.05 m/s² per axis),
+// and the poses keep agreeing with it: only the motion tells a tilted odom from a bias (a bias
+// turns with the body, the frame's tilt does not). Estimated, the tilt comes within the issue's
+// figure; held fixed (the filter before δφ), it stays off.
+TEST(Estimator, LearnsTheTiltOfTheOdometrysFrameFromTheMotion) {
+  Scenario scenario;
+  scenario.duration_s = 20.0;
+  scenario.start_tilted = true;
+  scenario.start_tilt_rad = Vector3d(0.009, -0.009, 0.0);
+  const Recording rec = record(scenario);
+  constexpr double kFromS = 10.0;  // the second half: what the tilt settles to
+  Estimator estimator(scenario.params);
+  estimator.initialise(rec.init);
+  const Figures figures = measure(rec, estimator, kFromS, scenario.duration_s);
+  const double tilt_error_rad = (rec.odom_tilt_rad - estimator.state().odom_tilt_rad).norm();
+
+  EstimatorParams fixed_params = scenario.params;
+  fixed_params.init_odom_tilt_std_rad = 1e-9;  // the alignment taken as exact
+  fixed_params.odom_tilt_walk_rad_rts = 0.0;
+  Estimator fixed(fixed_params);
+  fixed.initialise(rec.init);
+  const Figures fixed_figures = measure(rec, fixed, kFromS, scenario.duration_s);
+  std::printf("[estimator] start tilted %.2f°: from %.0f s tilt RMS %.4f° (the frame's tilt "
+              "%.4f° off at the end), position RMS %.2f mm; with the alignment held: %.4f°, "
+              "%.2f mm\n",
+              rec.odom_tilt_rad.norm() * 180.0 / kPi, kFromS,
+              figures.tilt_rad.value() * 180.0 / kPi, tilt_error_rad * 180.0 / kPi,
+              figures.pos_m.value() * 1e3, fixed_figures.tilt_rad.value() * 180.0 / kPi,
+              fixed_figures.pos_m.value() * 1e3);
+  EXPECT_LE(figures.tilt_rad.value(), kTiltRmsRad);
+  EXPECT_LE(figures.pos_m.value(), kPosRmsM);
+  // Learned, not just within the figure: the frame's tilt to within a fifth of the start's.
+  constexpr double kLearnedFraction = 0.2;
+  EXPECT_LT(tilt_error_rad, kLearnedFraction * rec.odom_tilt_rad.norm());
+  // The fixed alignment misses the figure: the test's tilt is one that matters.
+  EXPECT_GT(fixed_figures.tilt_rad.value(), kTiltRmsRad);
+}
+
 // ---- Consistency -------------------------------------------------------------------------------
 
 // Wilson–Hilferty: the chi-square quantile for dof degrees of freedom at the standard normal z;
@@ -346,7 +400,7 @@ TEST(Estimator, NeesOverSeededRunsIsWithinTheChiSquareBounds) {
       const int checkpoint = static_cast<int>(since_start / kCheckpointUs) - 1;
       if (checkpoint < 0 || checkpoint >= kCheckpoints) return;
       const ErrorVector e = errorOf(est.state(), rec.truth[k], rec.gyro_bias_rad_s[k],
-                                    rec.accel_bias_m_s2[k]);
+                                    rec.accel_bias_m_s2[k], rec.odom_tilt_rad);
       nees_sum[checkpoint] += e.dot(est.covariance().ldlt().solve(e));
     });
   }
@@ -354,8 +408,8 @@ TEST(Estimator, NeesOverSeededRunsIsWithinTheChiSquareBounds) {
   const double lo = chiSquareQuantile(dof, -kZ95) / kRuns;
   const double hi = chiSquareQuantile(dof, kZ95) / kRuns;
   int inside = 0;
-  std::printf("[estimator] NEES (15 states) averaged over %d runs, 95 %% bounds [%.2f, %.2f]:",
-              kRuns, lo, hi);
+  std::printf("[estimator] NEES (%d states) averaged over %d runs, 95 %% bounds [%.2f, %.2f]:",
+              kErrorStates, kRuns, lo, hi);
   for (int c = 0; c < kCheckpoints; ++c) {
     const double average = nees_sum[c] / kRuns;
     std::printf(" %.2f", average);
@@ -693,8 +747,9 @@ TEST(Estimator, PosesOlderThanTheHistoryOrOutOfOrderAreRejected) {
   EXPECT_EQ(estimator.health().vision_rejected_out_of_order, 1);
 }
 
-// Flies 5 s, applies the ground's jump D_world (seen in world) as a reset, checks what must be
-// continuous, then flies on with the odometry's poses in the new frame.
+// Flies 5 s, applies the ground's jump D_world (seen in the filter's world, through its alignment
+// of odom) as a reset, checks what must be continuous, then flies on with the odometry's poses in
+// the new frame.
 void checkReset(const Pose& D_world) {
   Scenario scenario;
   const Recording rec = record(scenario);
@@ -706,7 +761,8 @@ void checkReset(const Pose& D_world) {
 
   OdomReset reset;
   reset.utime = rec.imu[k - 1].utime;
-  reset.T_odomNew_odomOld = rec.T_world_odom.inverse() * D_world * rec.T_world_odom;
+  const Pose T_world_odom = estimator.T_world_odom();
+  reset.T_odomNew_odomOld = T_world_odom.inverse() * D_world * T_world_odom;
   reset.reset_counter = 7;
   OdomReset unusable = reset;
   unusable.pos_std_m = 0.0;

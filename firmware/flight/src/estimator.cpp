@@ -18,7 +18,7 @@ using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Jacobian = Eigen::Matrix<double, 6, kErrorStates>;
 
 // Error-state block offsets.
-constexpr int kP = 0, kV = 3, kTheta = 6, kBg = 9, kBa = 12;
+constexpr int kP = 0, kV = 3, kTheta = 6, kBg = 9, kBa = 12, kPhi = 15;
 
 constexpr double kUsToS = 1e-6;
 // Below this angle the series of Exp and Log is exact in double precision.
@@ -48,7 +48,7 @@ Vector3d logRotation(Quaterniond q) {
 }
 
 // The error-state transition of one IMU step, Solà (2017) §5.4: the identity but for the
-// blocks below. Multiplying by its blocks costs a sixth of the dense 15x15 product, and this runs
+// blocks below. Multiplying by its blocks costs a sixth of the dense 17x17 product, and this runs
 // on every sample and again for every sample a delayed pose replays.
 struct Transition {
   double dt_s;
@@ -100,6 +100,8 @@ Status EstimatorParams::validate() const {
                  Bound::kOpen),
       outOfRange("estimator.init_accel_bias_std_m_s2", init_accel_bias_std_m_s2, 0, 10,
                  Bound::kOpen),
+      outOfRange("estimator.init_odom_tilt_std_rad", init_odom_tilt_std_rad, 0, 0.5, Bound::kOpen),
+      outOfRange("estimator.odom_tilt_walk_rad_rts", odom_tilt_walk_rad_rts, 0, 0.1),
       outOfRange("estimator.init_still_s", init_still_s, 0.01, 10),
       // The rotation's distance from orthonormal (Frobenius): 1e-6 is float rounding of a
       // configured matrix, anything larger is a typo.
@@ -134,6 +136,7 @@ Estimator::Estimator(const EstimatorParams& params)
       std::pow(params.gyro_bias_walk_rad_s2_rthz, 2));
   Q_density_.diagonal().segment<3>(kBa).setConstant(
       std::pow(params.accel_bias_walk_m_s3_rthz, 2));
+  Q_density_.diagonal().segment<2>(kPhi).setConstant(std::pow(params.odom_tilt_walk_rad_rts, 2));
 }
 
 void Estimator::initialise(const EstimatorInit& init) {
@@ -169,6 +172,7 @@ Covariance Estimator::initialCovariance() const {
   P.diagonal().segment<3>(kTheta).setConstant(std::pow(params_.init_att_std_rad, 2));
   P.diagonal().segment<3>(kBg).setConstant(std::pow(params_.init_gyro_bias_std_rad_s, 2));
   P.diagonal().segment<3>(kBa).setConstant(std::pow(params_.init_accel_bias_std_m_s2, 2));
+  P.diagonal().segment<2>(kPhi).setConstant(std::pow(params_.init_odom_tilt_std_rad, 2));
   return P;
 }
 
@@ -212,11 +216,13 @@ void Estimator::predict(Nominal& x, Covariance& P, const ImuSample& imu, double 
   symmetrise(P);
 }
 
-bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_world_cam,
+bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_odom_cam,
                      const WeakDirections& weak) {
   const Matrix3d R_world_body = x.q_world_body.toRotationMatrix();
   const Vector3d t_body_cam_m = params_.T_body_cam.translation();
   const Matrix3d R_body_cam = params_.T_body_cam.linear();
+  const Pose T_world_odom = alignment(x);
+  const Pose T_world_cam = T_world_odom * T_odom_cam;
 
   // The camera's position and the body's attitude: the attitude innovation lives in the same body
   // frame as δθ, so its Jacobian is the identity; the lever arm couples δθ into the position.
@@ -231,12 +237,16 @@ bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_world_cam,
   H.block<3, 3>(0, kP).setIdentity();
   H.block<3, 3>(0, kTheta) = -R_world_body * skew(t_body_cam_m);
   H.block<3, 3>(3, kTheta).setIdentity();
+  // The pose as measured turns with odom's tilt about world's origin: Exp(δφ) moves the camera by
+  // δφ × p and turns the measured attitude by R^T δφ in the body (world's x and y only).
+  H.block<3, 2>(0, kPhi) = skew(T_world_cam.translation()).leftCols<2>();
+  H.block<3, 2>(3, kPhi) = -R_world_body.transpose().leftCols<2>();
 
   // Isotropic noise is the same in odom, world, camera and body frames.
   Matrix6d R_noise = Matrix6d::Zero();
   R_noise.diagonal().head<3>().setConstant(std::pow(params_.vision_pos_std_m, 2));
   R_noise.diagonal().tail<3>().setConstant(std::pow(params_.vision_att_std_rad, 2));
-  addWeak(weak, &R_noise);
+  addWeak(weak, T_world_odom.linear(), &R_noise);
 
   const Eigen::Matrix<double, 6, kErrorStates> HP = H * P;
   const Matrix6d S = HP * H.transpose() + R_noise;
@@ -263,6 +273,7 @@ bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_world_cam,
   x.q_world_body = (x.q_world_body * expRotation(dx.segment<3>(kTheta))).normalized();
   x.gyro_bias_rad_s += dx.segment<3>(kBg);
   x.accel_bias_m_s2 += dx.segment<3>(kBa);
+  x.odom_tilt_rad.head<2>() += dx.segment<2>(kPhi);
 
   // Solà (2017) §6.3, the reset: the error is now taken about the corrected attitude.
   Covariance G = Covariance::Identity();
@@ -359,16 +370,15 @@ VisionOutcome Estimator::addVision(const VisionPose& pose) {
     predict(x, P, at(k + 1).imu,
             static_cast<double>(pose.utime - at(k).imu.utime) * kUsToS);
   }
-  const Pose T_world_cam = T_world_odom_ * pose.T_odom_cam;
   VisionOutcome outcome = VisionOutcome::kFused;
-  if (!fuse(x, P, T_world_cam, pose.weak)) {
+  if (!fuse(x, P, pose.T_odom_cam, pose.weak)) {
     ++health_.vision_rejected_gate;
     ++health_.consecutive_gate_rejections;
     if (health_.consecutive_gate_rejections < params_.vision_reset_rejections) {
       updateDivergence();
       return VisionOutcome::kRejectedGate;
     }
-    resetToPose(x, P, T_world_cam, pose.weak);
+    resetToPose(x, P, pose.T_odom_cam, pose.weak);
     pose_reset_utimes_[health_.pose_resets % params_.diverged_resets] = pose.utime;
     ++health_.pose_resets;
     outcome = VisionOutcome::kResetToPose;
@@ -403,10 +413,18 @@ void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nomi
   }
 }
 
-void Estimator::addWeak(const WeakDirections& weak, Matrix6d* cov) const {
+Pose Estimator::alignment(const Nominal& x) const {
+  return Pose(expRotation(x.odom_tilt_rad)) * T_world_odom_;
+}
+
+Pose Estimator::T_world_odom() const {
+  return initialised() ? alignment(newest().x) : T_world_odom_;
+}
+
+void Estimator::addWeak(const WeakDirections& weak, const Matrix3d& R_world_odom,
+                        Matrix6d* cov) const {
   // A weak direction moves the camera's position in odom and turns it in its own frame: in the
   // innovation's terms (and the error state's), the position in world and the body's attitude.
-  const Matrix3d R_world_odom = T_world_odom_.linear();
   const Matrix3d R_body_cam = params_.T_body_cam.linear();
   for (int i = 0; i < weak.count; ++i) {
     Vector6d m;
@@ -415,8 +433,10 @@ void Estimator::addWeak(const WeakDirections& weak, Matrix6d* cov) const {
   }
 }
 
-void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam,
+void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
                             const WeakDirections& weak) const {
+  const Pose T_world_odom = alignment(x);
+  const Pose T_world_cam = T_world_odom * T_odom_cam;
   // Position and attitude from the pose; the velocity stays (vision has none to give) but its
   // uncertainty, and the biases', go back to the start's so that the next poses can correct them:
   // a bias that stepped is what a drift the gate could not follow most often means.
@@ -428,7 +448,7 @@ void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam,
   P.diagonal().segment<3>(kTheta).setConstant(std::pow(params_.vision_att_std_rad, 2));
   // The pose said nothing along its weak directions: the reset knows nothing there either.
   Matrix6d pose_cov = Matrix6d::Zero();
-  addWeak(weak, &pose_cov);
+  addWeak(weak, T_world_odom.linear(), &pose_cov);
   P.block<3, 3>(kP, kP) += pose_cov.topLeftCorner<3, 3>();
   P.block<3, 3>(kP, kTheta) += pose_cov.topRightCorner<3, 3>();
   P.block<3, 3>(kTheta, kP) += pose_cov.bottomLeftCorner<3, 3>();
@@ -445,7 +465,8 @@ bool Estimator::applyReset(const OdomReset& reset) {
   // The jump in world coordinates. Only its heading and position are applied (tilt is the IMU's
   // to know); whatever tilt the ground's jump had goes into the alignment, so that the next
   // poses agree with the continuous tilt.
-  const Pose D_world = T_world_odom_ * reset.T_odomNew_odomOld * T_world_odom_.inverse();
+  const Pose T_world_odom = alignment(newest().x);
+  const Pose D_world = T_world_odom * reset.T_odomNew_odomOld * T_world_odom.inverse();
   const double yaw_rad = std::atan2(D_world.linear()(1, 0), D_world.linear()(0, 0));
   const Matrix3d R_yaw = Eigen::AngleAxisd(yaw_rad, Vector3d::UnitZ()).toRotationMatrix();
   const Vector3d p_now_m = newest().x.p_world_body_m;
@@ -453,14 +474,19 @@ bool Estimator::applyReset(const OdomReset& reset) {
   D_applied.linear() = R_yaw;
   // Moves the body now exactly where the full jump would.
   D_applied.translation() = D_world * p_now_m - R_yaw * p_now_m;
-  T_world_odom_ = D_applied * D_world.inverse() * T_world_odom_;
+  // World turns by the yaw, and the tilt of odom, a rotation vector in world, with it; the start's
+  // alignment takes the rest.
+  const Vector3d odom_tilt_rad = R_yaw * newest().x.odom_tilt_rad;
+  T_world_odom_ = Pose(expRotation(-odom_tilt_rad)) * D_applied * D_world.inverse() * T_world_odom;
 
   // Every stored state moves too, so that poses captured after the reset but before now are
   // fused against states in the new frame.
   const Quaterniond q_yaw(R_yaw);
+  const Eigen::Matrix2d R_yaw_xy = R_yaw.topLeftCorner<2, 2>();
   for (int j = 0; j < count_; ++j) {
     Entry& entry = at(j);
     entry.x.p_world_body_m = D_applied * entry.x.p_world_body_m;
+    entry.x.odom_tilt_rad = R_yaw * entry.x.odom_tilt_rad;
     entry.x.v_world_body_m_s = R_yaw * entry.x.v_world_body_m_s;
     entry.x.q_world_body = (q_yaw * entry.x.q_world_body).normalized();
     // Heading in the body-local δθ: the world's z seen from the body.
@@ -472,6 +498,7 @@ bool Estimator::applyReset(const OdomReset& reset) {
       GX.middleRows<3>(kP).setZero();
       GX.middleRows<3>(kV) = R_yaw * X.middleRows<3>(kV);
       GX.middleRows<3>(kTheta) = tilt_only * X.middleRows<3>(kTheta);
+      GX.middleRows<2>(kPhi) = R_yaw_xy * X.middleRows<2>(kPhi);
       return GX;
     };
     entry.P = G_times(G_times(entry.P).transpose());  // G P G^T, P symmetric
@@ -513,6 +540,7 @@ EstimatorState Estimator::state() const {
   out.q_world_body = now.x.q_world_body;
   out.gyro_bias_rad_s = now.x.gyro_bias_rad_s;
   out.accel_bias_m_s2 = now.x.accel_bias_m_s2;
+  out.odom_tilt_rad = now.x.odom_tilt_rad;
   out.omega_body_rad_s = now.imu.gyro_rad_s - now.x.gyro_bias_rad_s;
   out.f_body_m_s2 = now.imu.accel_m_s2 - now.x.accel_bias_m_s2;
   return out;

@@ -5,7 +5,7 @@
 // Frames: body FRD; `world` gravity-aligned with z down (g_world = (0, 0, +g)); `odom` the
 // odometry's frame (its first keyframe's optical camera frame). q_world_body is Hamilton and
 // maps body to world. Error state, in this order: δp, δv (world), δθ (body, R_true = R ⊗ Exp(δθ)),
-// δb_g, δb_a.
+// δb_g, δb_a, δφ (the tilt of `odom` against gravity: world's x and y, left of T_world_odom).
 //
 // Delayed poses are fused at their capture time: every IMU step stores the state, its covariance
 // and the sample in a ring allocated at construction; a pose rolls the filter back to its capture
@@ -24,7 +24,7 @@
 
 namespace kinfly::flight {
 
-constexpr int kErrorStates = 15;
+constexpr int kErrorStates = 17;
 constexpr int kMaxDivergedResets = 16;
 using Covariance = Eigen::Matrix<double, kErrorStates, kErrorStates>;
 
@@ -45,6 +45,14 @@ struct EstimatorParams {
   double init_att_std_rad = 0.02;                  // [rad] (0, 3.15]
   double init_gyro_bias_std_rad_s = 0.005;         // [rad/s] (0, 1]
   double init_accel_bias_std_m_s2 = 0.05;          // [m/s²] (0, 10]
+  // `odom`'s alignment with gravity is taken from the body's tilt at the start, which the
+  // accelerometer's bias tilts by |b_a| / g: 0.05 m/s² is 0.29°, and the poses would then hold
+  // the estimate's tilt there for good. It is estimated (δφ); the motion tells the two apart
+  // (a bias turns with the body, a tilted frame does not). Its 1σ at the start, per axis:
+  double init_odom_tilt_std_rad = 0.005;           // [rad] (0, 0.5]
+  // The odometry's own tilt drifts (rotation drift the ground's corrections leave to the IMU):
+  // a random walk of this density.
+  double odom_tilt_walk_rad_rts = 1.0e-4;          // [rad/√s] [0, 0.1]
   // At rest before the first pose: the accelerometer's mean over this long gives the tilt.
   double init_still_s = 0.5;                       // [s] [0.01, 10]
 
@@ -109,7 +117,7 @@ struct EstimatorInit {
   Eigen::Quaterniond q_world_body = Eigen::Quaterniond::Identity();
   Eigen::Vector3d gyro_bias_rad_s = Eigen::Vector3d::Zero();
   Eigen::Vector3d accel_bias_m_s2 = Eigen::Vector3d::Zero();
-  Pose T_world_odom = Pose::Identity();
+  Pose T_world_odom = Pose::Identity();  // its tilt is then corrected as the state's δφ
 };
 
 struct EstimatorState {
@@ -121,6 +129,9 @@ struct EstimatorState {
   Eigen::Vector3d accel_bias_m_s2 = Eigen::Vector3d::Zero();
   Eigen::Vector3d omega_body_rad_s = Eigen::Vector3d::Zero();  // gyro less its bias
   Eigen::Vector3d f_body_m_s2 = Eigen::Vector3d::Zero();       // accelerometer less its bias
+  // The correction to the start's alignment of `odom` (about world's x and y, z zero):
+  // T_world_odom() = Exp(odom_tilt_rad) * the start's.
+  Eigen::Vector3d odom_tilt_rad = Eigen::Vector3d::Zero();
 };
 
 enum class VisionOutcome {
@@ -179,7 +190,8 @@ class Estimator {
   EstimatorState state() const;
   // Of the error state, in the order above; only when initialised().
   const Covariance& covariance() const;
-  const Pose& T_world_odom() const { return T_world_odom_; }
+  // The odometry's frame in world, with the estimated tilt.
+  Pose T_world_odom() const;
   EstimatorHealth health() const;
 
  private:
@@ -189,6 +201,8 @@ class Estimator {
     Eigen::Quaterniond q_world_body = Eigen::Quaterniond::Identity();
     Eigen::Vector3d gyro_bias_rad_s = Eigen::Vector3d::Zero();
     Eigen::Vector3d accel_bias_m_s2 = Eigen::Vector3d::Zero();
+    // Small (the start's error), so that adding δφ to it is composing to first order; z stays 0.
+    Eigen::Vector3d odom_tilt_rad = Eigen::Vector3d::Zero();
   };
   // The filter after the sample `imu` (which held over the step that ends at imu.utime).
   struct Entry {
@@ -202,9 +216,9 @@ class Estimator {
   Covariance initialCovariance() const;
   VisionOutcome startFromStill(const VisionPose& pose);
   void predict(Nominal& x, Covariance& P, const ImuSample& imu, double dt_s) const;
-  // Fuses the pose, in world, into (x, P), with no information along its weak directions; false
+  // Fuses the pose, in odom, into (x, P), with no information along its weak directions; false
   // when gated out.
-  bool fuse(Nominal& x, Covariance& P, const Pose& T_world_cam, const WeakDirections& weak);
+  bool fuse(Nominal& x, Covariance& P, const Pose& T_odom_cam, const WeakDirections& weak);
   // Index 0 is the oldest stored state.
   Entry& at(int index) { return ring_[(head_ + index) % ring_.size()]; }
   const Entry& at(int index) const { return ring_[(head_ + index) % ring_.size()]; }
@@ -217,18 +231,21 @@ class Estimator {
   // `split`, and integrates the later samples again up to now.
   void replayFrom(int k, bool split, const VisionPose& pose, const Nominal& x,
                   const Covariance& P);
-  void resetToPose(Nominal& x, Covariance& P, const Pose& T_world_cam,
+  void resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
                    const WeakDirections& weak) const;
+  // `odom` in world as the state x has it: its tilt applied to the start's alignment.
+  Pose alignment(const Nominal& x) const;
   // Adds vision_weak_std² along each weak direction, in the innovation's (and the error state's)
-  // position and attitude terms, to a pose's 6x6 covariance.
-  void addWeak(const WeakDirections& weak, Eigen::Matrix<double, 6, 6>* cov) const;
+  // position and attitude terms, to a pose's 6x6 covariance; R_world_odom turns the directions.
+  void addWeak(const WeakDirections& weak, const Eigen::Matrix3d& R_world_odom,
+               Eigen::Matrix<double, 6, 6>* cov) const;
 
   EstimatorParams params_;
   Covariance Q_density_;  // diagonal, per second: times dt gives the step's process noise
   std::vector<Entry> ring_;  // oldest at head_, count_ entries
   int head_ = 0;
   int count_ = 0;
-  Pose T_world_odom_ = Pose::Identity();
+  Pose T_world_odom_ = Pose::Identity();  // the start's alignment, less the states' odom_tilt_rad
   // Poses captured before this would meet states that do not yet hold the last fusion.
   int64_t barrier_utime_ = 0;
   // Poses captured before the last reset are in the odometry's old frame.

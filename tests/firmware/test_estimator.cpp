@@ -791,6 +791,12 @@ void checkReset(const Pose& D_world) {
   const double turned_rad =
       Eigen::AngleAxisd(after.q_world_body * before.q_world_body.conjugate()).angle();
   EXPECT_NEAR(turned_rad, std::abs(yaw_rad), kExact);
+  // The alignment takes the rest of the jump, and odom's tilt, in world, turns with the heading.
+  const Pose expected_alignment = D_applied * D_world.inverse() * T_world_odom;
+  EXPECT_LT((estimator.T_world_odom().matrix() - expected_alignment.matrix()).norm(), kExact);
+  EXPECT_LT((after.odom_tilt_rad - D_applied.linear() * before.odom_tilt_rad).norm(), kExact);
+  EXPECT_EQ(after.odom_tilt_rad.z(), 0.0);
+  EXPECT_GT(before.odom_tilt_rad.norm(), 0.0);  // drawn: the check above is not 0 = 0
   EXPECT_EQ(estimator.health().reset_counter, 7);
   EXPECT_EQ(estimator.health().resets, 1);
   EXPECT_NEAR(std::sqrt(estimator.covariance()(0, 0)), reset.pos_std_m, kExact);
@@ -850,7 +856,8 @@ TEST(AnchoredVision, TheAnchorsJumpIsAResetAndItsRefinementsAreFused) {
   const Recording rec = record(scenario);
   Estimator estimator(scenario.params);
   estimator.initialise(rec.init);
-  const Pose& T_world_odom = rec.T_world_odom;  // the estimator's alignment until the reset
+  // The true alignment (the filter's starts tilted off it by a draw and learns the tilt).
+  const Pose& T_world_odom = rec.T_world_odom;
 
   // Both given in world (what the filter sees), handed over as anchors of the odometry.
   Pose refinement_world = Pose::Identity();

@@ -443,9 +443,26 @@ void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
   const Matrix3d R_world_body = T_world_cam.linear() * params_.T_body_cam.linear().transpose();
   x.q_world_body = Quaterniond(R_world_body).normalized();
   x.p_world_body_m = T_world_cam.translation() - R_world_body * params_.T_body_cam.translation();
+  // The pose says nothing about odom's tilt: what the filter knew of it stays, and the reset's
+  // position and attitude, taken through Exp(φ), carry its error: δp = -[p]x δφ, δθ = R^T δφ.
+  const Eigen::Matrix2d P_phi = P.block<2, 2>(kPhi, kPhi);
+  Eigen::Matrix<double, 6, 2> J;
+  J.topRows<3>() = -skew(x.p_world_body_m).leftCols<2>();
+  J.bottomRows<3>() = R_world_body.transpose().leftCols<2>();
   P = initialCovariance();
   P.diagonal().segment<3>(kP).setConstant(std::pow(params_.vision_pos_std_m, 2));
   P.diagonal().segment<3>(kTheta).setConstant(std::pow(params_.vision_att_std_rad, 2));
+  P.block<2, 2>(kPhi, kPhi) = P_phi;
+  const Eigen::Matrix<double, 6, 6> JPJ = J * P_phi * J.transpose();
+  P.block<3, 3>(kP, kP) += JPJ.topLeftCorner<3, 3>();
+  P.block<3, 3>(kP, kTheta) += JPJ.topRightCorner<3, 3>();
+  P.block<3, 3>(kTheta, kP) += JPJ.bottomLeftCorner<3, 3>();
+  P.block<3, 3>(kTheta, kTheta) += JPJ.bottomRightCorner<3, 3>();
+  const Eigen::Matrix<double, 6, 2> JP = J * P_phi;
+  P.block<3, 2>(kP, kPhi) = JP.topRows<3>();
+  P.block<3, 2>(kTheta, kPhi) = JP.bottomRows<3>();
+  P.block<2, 3>(kPhi, kP) = JP.topRows<3>().transpose();
+  P.block<2, 3>(kPhi, kTheta) = JP.bottomRows<3>().transpose();
   // The pose said nothing along its weak directions: the reset knows nothing there either.
   Matrix6d pose_cov = Matrix6d::Zero();
   addWeak(weak, T_world_odom.linear(), &pose_cov);

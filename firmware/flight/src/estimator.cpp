@@ -321,8 +321,10 @@ int Estimator::newestAtOrBefore(int64_t utime) const {
 }
 
 VisionOutcome Estimator::startFromStill(const VisionPose& pose) {
+  if (still_samples_ > 0 && !still_pose_ && pose.utime >= still_first_utime_) still_pose_ = pose;
   const double still_s = static_cast<double>(last_imu_utime_ - still_first_utime_) * kUsToS;
   if (still_samples_ == 0 || still_s < params_.init_still_s) return VisionOutcome::kNotInitialised;
+  const Pose& T_odom_cam_at_rest = still_pose_ ? still_pose_->T_odom_cam : pose.T_odom_cam;
   // At rest the accelerometer reads -g: world's z (down) seen from the body is opposite to it.
   const Vector3d down_body = -still_accel_sum_.normalized();
   // World's x: the body's x made level, so that world's heading is the body's at the start.
@@ -337,7 +339,7 @@ VisionOutcome Estimator::startFromStill(const VisionPose& pose) {
   x.gyro_bias_rad_s = still_gyro_sum_ / static_cast<double>(still_samples_);
   Pose T_world_body = Pose::Identity();
   T_world_body.linear() = R_body_world.transpose();
-  T_world_odom_ = T_world_body * params_.T_body_cam * pose.T_odom_cam.inverse();
+  T_world_odom_ = T_world_body * params_.T_body_cam * T_odom_cam_at_rest.inverse();
   start(last_imu_utime_, x);
   last_vision_utime_ = pose.utime;
   ++health_.vision_fused_count;
@@ -473,7 +475,9 @@ void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
 }
 
 bool Estimator::applyReset(const OdomReset& reset) {
-  // Before the start the first pose anchors the new frame anyway.
+  // Before the start the poses anchor the new frame anyway, the rest's first once it is in it.
+  if (!initialised() && still_pose_ && isFinite(reset.T_odomNew_odomOld))
+    still_pose_->T_odom_cam = reset.T_odomNew_odomOld * still_pose_->T_odom_cam;
   if (!initialised() || !isFinite(reset.T_odomNew_odomOld) || !(reset.pos_std_m > 0.0) ||
       !(reset.yaw_std_rad > 0.0)) {
     ++health_.resets_rejected;

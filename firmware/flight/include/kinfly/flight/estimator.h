@@ -17,6 +17,7 @@
 #include <Eigen/Geometry>
 #include <array>
 #include <cstdint>
+#include <optional>
 #include <vector>
 
 #include "kinfly/core/se3.h"
@@ -181,9 +182,13 @@ class Estimator {
   bool addImu(const ImuSample& sample);
   // Before the start, the first pose after init_still_s of samples starts the filter there:
   // world's origin at the body, its heading the body's, its tilt from the mean specific force.
+  // The body has not moved since the rest began, so odom is anchored on the first pose captured
+  // in it: the odometry's error grows from its first frame on, and a later pose of the same
+  // place would carry its drift into world's definition for good.
   VisionOutcome addVision(const VisionPose& pose);
   // Resets position and heading to follow the jump; velocity and tilt stay continuous. False
-  // (counted, nothing changes) before the start or for a non-finite jump or a std not > 0.
+  // (counted, nothing changes) before the start or for a non-finite jump or a std not > 0; before
+  // the start the rest's first pose follows the jump into the new frame.
   bool applyReset(const OdomReset& reset);
 
   bool initialised() const { return count_ > 0; }
@@ -255,6 +260,8 @@ class Estimator {
   Eigen::Vector3d still_gyro_sum_ = Eigen::Vector3d::Zero();
   int64_t still_samples_ = 0;
   int64_t still_first_utime_ = -1;
+  // The first pose captured at rest (since still_first_utime_), which anchors odom at the start.
+  std::optional<VisionPose> still_pose_;
   int64_t last_imu_utime_ = -1;
   // Capture times of the last resets to a pose, a ring of diverged_resets (read only once it
   // holds that many).

@@ -52,6 +52,9 @@ class FlightPlant {
     drag_n_s_m_ = drag_n_s_m;
   }
   void setAttitude(const Eigen::Quaterniond& q_world_body) { state_.q_world_body = q_world_body; }
+  // Held still (not stepped) by a stand, whatever the rotors and the wind do: the accelerometer
+  // then feels the hold, gravity's support alone, as a real one on a held body does.
+  void hold(bool held) { held_ = held; }
 
   void step(const Vector4d& rotor_speed_cmd_rad_s, double dt_s) {
     // Without lag the rotors are where they are told, and derivative() leaves them there.
@@ -102,7 +105,9 @@ class FlightPlant {
   Eigen::Vector3d accelBodyMS2() {
     // The rotor command moves only the rotors' derivative, not the body's acceleration.
     const Eigen::Vector3d a_world_m_s2 =
-        derivative(state_, state_.rotor_speed_rad_s).v + contact_accel_world_m_s2_;
+        held_ ? Eigen::Vector3d::Zero()
+              : Eigen::Vector3d(derivative(state_, state_.rotor_speed_rad_s).v +
+                                contact_accel_world_m_s2_);
     const Eigen::Vector3d specific_force_body_m_s2 =
         state_.q_world_body.conjugate() * (a_world_m_s2 - Eigen::Vector3d(0.0, 0.0, kGravityMS2));
     if (accel_noise_density_ == 0.0) return specific_force_body_m_s2;
@@ -182,6 +187,7 @@ class FlightPlant {
   double sample_rate_hz_ = 1000.0;
   double ground_z_m_ = NAN;  // no floor
   Eigen::Vector3d contact_accel_world_m_s2_ = Eigen::Vector3d::Zero();
+  bool held_ = false;
   bool on_ground_ = false;
   Gaussian gaussian_;
 };

@@ -222,6 +222,7 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
   FlightPlant plant(vehicle, kGyroNoiseDensity, flight.seed, kAccelNoiseDensity);
   plant.startHovering(flight.trajectory.sample(0.0).p_world_m);
   plant.setWind(flight.wind_world_m_s, kWindDragNSM);
+  plant.hold(true);
 
   // The estimator starts where the body is, as after a take-off.
   const EstimatorInit init = initAt(plant.state());
@@ -257,6 +258,7 @@ inline PositionFigures flyPosition(const Vehicle& vehicle, const PositionFlight&
     if (flown < 0 && out.modes.mode == FlightMode::kMission &&
         utime >= stack.missionStartUtime()) {
       flown = 0;
+      plant.hold(false);
     }
     if (flown >= 0) plant.step(out.mixer.rotor_speed_rad_s, kControlDtS);
 

@@ -1041,6 +1041,93 @@ TEST(Estimator, AStartAtRestAnchorsOnTheRestsFirstPose) {
             kAnchorTolM);
 }
 
+// Standing in a corridor: every pose is weak along it, and only the IMU says where the drone is
+// along it. Disarmed (rotors stopped) and still, zero velocity is fused: the velocity's 1σ along
+// the corridor stays near rest_vel_std_m_s, and after the take-off (the rotors running, here
+// still standing) the position's 1σ there grows from it, not from the start's, and the drone
+// keeps its place longer before the vision-lost failsafe (a 1σ beyond 0.3 m) acts.
+TEST(Estimator, ZeroVelocityAtRestPinsWhatThePosesCannot) {
+  const EstimatorParams params = testParams();
+  const double dt_s = static_cast<double>(kImuPeriodUs) * 1e-6;
+  const Vector3d accel_bias_m_s2(0.04, -0.03, 0.02);
+  WeakDirections along;  // odom's z: the camera's optical axis, the corridor
+  along.count = 1;
+  along.d[0] << 0.0, 0.0, 1.0, 0.0, 0.0, 0.0;
+  struct Run {
+    double vel_std_at_rest_m_s, pos_std_after_m, pos_error_after_m;
+    int64_t rest_updates;
+  };
+  const auto run = [&](bool rotors_stopped) {
+    Gaussian gaussian(13);
+    Estimator estimator(params);
+    int64_t utime = kStartUs;
+    const auto feed = [&](double seconds, bool stopped) {
+      for (int i = 0; i < static_cast<int>(seconds / dt_s); ++i) {
+        ImuSample sample;
+        sample.utime = (utime += kImuPeriodUs);
+        sample.gyro_rad_s = params.gyro_noise_rad_s_rthz / std::sqrt(dt_s) * gaussian();
+        sample.accel_m_s2 = Vector3d(0, 0, -kGravity) + accel_bias_m_s2 +
+                            params.accel_noise_m_s2_rthz / std::sqrt(dt_s) * gaussian();
+        estimator.addImu(sample, stopped);
+        if (utime % kVisionPeriodUs < kImuPeriodUs && estimator.initialised())
+          estimator.addVision({utime - kVisionDelayUs, Pose::Identity(), along});
+      }
+    };
+    feed(0.6, rotors_stopped);
+    estimator.addVision({utime, Pose::Identity(), along});
+    feed(3.0, rotors_stopped);  // on the floor
+    Run out;
+    const Vector3d axis = estimator.T_world_odom().linear() * Vector3d::UnitZ();
+    out.vel_std_at_rest_m_s = std::sqrt(axis.dot(estimator.covariance().block<3, 3>(3, 3) * axis));
+    feed(5.0, false);  // the rotors running
+    out.pos_std_after_m = std::sqrt(axis.dot(estimator.covariance().block<3, 3>(0, 0) * axis));
+    out.pos_error_after_m = std::abs(estimator.state().p_world_body_m.dot(axis));
+    out.rest_updates = estimator.health().rest_updates;
+    return out;
+  };
+  const Run rest = run(true), none = run(false);
+  std::printf("[estimator] poses weak along a corridor: velocity 1σ along it at rest %.1f mm/s "
+              "(%.1f without the rest's zero velocity); 5 s later position 1σ %.1f mm (%.1f), "
+              "error %.1f mm (%.1f); %lld rest updates\n",
+              rest.vel_std_at_rest_m_s * 1e3, none.vel_std_at_rest_m_s * 1e3,
+              rest.pos_std_after_m * 1e3, none.pos_std_after_m * 1e3,
+              rest.pos_error_after_m * 1e3, none.pos_error_after_m * 1e3,
+              static_cast<long long>(rest.rest_updates));
+  // One update every rest_period_s over the 3.6 s on the floor after the start (0.6 s before it
+  // feed the still start instead).
+  EXPECT_GE(rest.rest_updates, static_cast<int64_t>(3.0 / params.rest_period_s) - 1);
+  EXPECT_EQ(none.rest_updates, 0);
+  EXPECT_LT(rest.vel_std_at_rest_m_s, params.rest_vel_std_m_s);
+  // The position's 1σ along the corridor 5 s after the rest: at most half of what it is without.
+  constexpr double kHalf = 0.5;
+  EXPECT_LT(rest.pos_std_after_m, kHalf * none.pos_std_after_m);
+  // And honest: the error within three of it.
+  constexpr double kSigmas = 3.0;
+  EXPECT_LT(rest.pos_error_after_m, kSigmas * rest.pos_std_after_m);
+}
+
+// Carried with the rotors stopped (the analytic flight, turning at 0.3 rad/s and more): no sample
+// is still, no zero velocity is fused, and the estimate is the one without the flag.
+TEST(Estimator, ACarriedBodyIsNotAtRest) {
+  Scenario scenario;
+  scenario.duration_s = 4.0;
+  const Recording rec = record(scenario);
+  Estimator carried(scenario.params), plain(scenario.params);
+  carried.initialise(rec.init);
+  plain.initialise(rec.init);
+  size_t next_pose = 0;
+  for (const ImuSample& sample : rec.imu) {
+    carried.addImu(sample, true);
+    plain.addImu(sample);
+    while (next_pose < rec.poses.size() && rec.poses[next_pose].arrival_utime <= sample.utime) {
+      carried.addVision(rec.poses[next_pose].pose);
+      plain.addVision(rec.poses[next_pose++].pose);
+    }
+  }
+  EXPECT_EQ(carried.health().rest_updates, 0);
+  EXPECT_EQ(carried.state().p_world_body_m, plain.state().p_world_body_m);
+}
+
 TEST(Estimator, RejectsImuTimeThatDoesNotIncrease) {
   Estimator estimator(testParams());
   EstimatorInit init;

@@ -103,11 +103,6 @@ Status EstimatorParams::validate() const {
       outOfRange("estimator.init_odom_tilt_std_rad", init_odom_tilt_std_rad, 0, 0.5, Bound::kOpen),
       outOfRange("estimator.odom_tilt_walk_rad_rts", odom_tilt_walk_rad_rts, 0, 0.1),
       outOfRange("estimator.init_still_s", init_still_s, 0.01, 10),
-      outOfRange("estimator.rest_vel_std_m_s", rest_vel_std_m_s, 0, 1, Bound::kOpen),
-      outOfRange("estimator.rest_period_s", rest_period_s, 0, 1, Bound::kOpen),
-      outOfRange("estimator.rest_gyro_max_rad_s", rest_gyro_max_rad_s, 0, 1, Bound::kOpen),
-      outOfRange("estimator.rest_accel_tolerance_m_s2", rest_accel_tolerance_m_s2, 0, 5,
-                 Bound::kOpen),
       // The rotation's distance from orthonormal (Frobenius): 1e-6 is float rounding of a
       // configured matrix, anything larger is a typo.
       outOfRange("estimator.T_body_cam rotation's |R R^T - I|", orthonormality, 0, 1e-6),
@@ -181,7 +176,7 @@ Covariance Estimator::initialCovariance() const {
   return P;
 }
 
-void Estimator::push(const ImuSample& sample, double dt_s, bool rest) {
+void Estimator::push(const ImuSample& sample, double dt_s) {
   const Entry& previous = newest();
   const bool full = count_ == static_cast<int>(ring_.size());
   // The slot after the newest: when full, that is the oldest, dropped here.
@@ -189,9 +184,7 @@ void Estimator::push(const ImuSample& sample, double dt_s, bool rest) {
   next.x = previous.x;
   next.P = previous.P;
   next.imu = sample;
-  next.rest = rest;
   predict(next.x, next.P, sample, dt_s);
-  if (rest) fuseRest(next.x, next.P);
   if (full) {
     head_ = (head_ + 1) % static_cast<int>(ring_.size());
   } else {
@@ -275,12 +268,6 @@ bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_odom_cam,
   const Covariance I_KH = Covariance::Identity() - K * H;
   P = (I_KH * P * I_KH.transpose()).eval() + K * R_noise * K.transpose();
 
-  inject(x, P, dx);
-  return true;
-}
-
-void Estimator::inject(Nominal& x, Covariance& P,
-                       const Eigen::Matrix<double, kErrorStates, 1>& dx) {
   x.p_world_body_m += dx.segment<3>(kP);
   x.v_world_body_m_s += dx.segment<3>(kV);
   x.q_world_body = (x.q_world_body * expRotation(dx.segment<3>(kTheta))).normalized();
@@ -293,24 +280,10 @@ void Estimator::inject(Nominal& x, Covariance& P,
   G.block<3, 3>(kTheta, kTheta) -= skew(0.5 * dx.segment<3>(kTheta));
   P = (G * P * G.transpose()).eval();
   symmetrise(P);
+  return true;
 }
 
-void Estimator::fuseRest(Nominal& x, Covariance& P) const {
-  // H selects δv: P H^T is P's velocity columns, S its velocity block plus the noise.
-  const Eigen::Matrix<double, kErrorStates, 3> PHt = P.middleCols<3>(kV);
-  const Matrix3d S = PHt.middleRows<3>(kV) +
-                     std::pow(params_.rest_vel_std_m_s, 2) * Matrix3d::Identity();
-  const Eigen::Matrix<double, kErrorStates, 3> K = S.llt().solve(PHt.transpose()).transpose();
-  const Eigen::Matrix<double, kErrorStates, 1> dx = K * (-x.v_world_body_m_s);
-  // Joseph form, as for the poses: (I - K H) P (I - K H)^T + K R K^T.
-  Eigen::Matrix<double, kErrorStates, kErrorStates> I_KH = Covariance::Identity();
-  I_KH.middleCols<3>(kV) -= K;
-  P = (I_KH * P * I_KH.transpose()).eval() +
-      std::pow(params_.rest_vel_std_m_s, 2) * K * K.transpose();
-  inject(x, P, dx);
-}
-
-bool Estimator::addImu(const ImuSample& sample, bool rotors_stopped) {
+bool Estimator::addImu(const ImuSample& sample) {
   if (sample.utime <= last_imu_utime_ || !sample.gyro_rad_s.allFinite() ||
       !sample.accel_m_s2.allFinite()) {
     ++health_.imu_rejected;
@@ -329,18 +302,7 @@ bool Estimator::addImu(const ImuSample& sample, bool rotors_stopped) {
   health_.imu_fused = dt_s <= params_.imu_gap_s;
   if (!health_.imu_fused) ++health_.imu_gaps;
   last_imu_utime_ = sample.utime;
-  const bool still =
-      rotors_stopped && sample.gyro_rad_s.norm() <= params_.rest_gyro_max_rad_s &&
-      std::abs(sample.accel_m_s2.norm() - params_.gravity_m_s2) <=
-          params_.rest_accel_tolerance_m_s2;
-  const bool rest =
-      still && (last_rest_utime_ < 0 || static_cast<double>(sample.utime - last_rest_utime_) *
-                                                kUsToS >= params_.rest_period_s);
-  if (rest) {
-    last_rest_utime_ = sample.utime;
-    ++health_.rest_updates;
-  }
-  push(sample, dt_s, rest);
+  push(sample, dt_s);
   updateDivergence();
   return true;
 }
@@ -440,7 +402,6 @@ void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nomi
   if (split) {
     predict(fused.x, fused.P, at(k + 1).imu,
             static_cast<double>(at(k + 1).imu.utime - pose.utime) * kUsToS);
-    if (fused.rest) fuseRest(fused.x, fused.P);
     first_replayed = k + 2;
   }
   barrier_utime_ = fused.imu.utime;
@@ -451,7 +412,6 @@ void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nomi
     entry.P = previous.P;
     predict(entry.x, entry.P, entry.imu,
             static_cast<double>(entry.imu.utime - previous.imu.utime) * kUsToS);
-    if (entry.rest) fuseRest(entry.x, entry.P);
   }
 }
 
@@ -515,8 +475,10 @@ void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
 }
 
 bool Estimator::applyReset(const OdomReset& reset) {
-  // Before the start the poses anchor the new frame anyway, the rest's first once it is in it.
-  if (!initialised() && still_pose_ && isFinite(reset.T_odomNew_odomOld))
+  // Before the start the poses anchor the new frame anyway, the rest's first once it is in it
+  // (one captured from the reset on is in it already).
+  if (!initialised() && still_pose_ && still_pose_->utime < reset.utime &&
+      isFinite(reset.T_odomNew_odomOld))
     still_pose_->T_odom_cam = reset.T_odomNew_odomOld * still_pose_->T_odom_cam;
   if (!initialised() || !isFinite(reset.T_odomNew_odomOld) || !(reset.pos_std_m > 0.0) ||
       !(reset.yaw_std_rad > 0.0)) {

@@ -77,9 +77,7 @@ FlightStack::FlightStack(const FlightStackParams& params, AttitudeController att
 
 bool FlightStack::addImu(const ImuSample& sample) {
   const int64_t previous_utime = last_imu_utime_;
-  // Disarmed, the rotors are stopped: still, the drone stands (or is held still); carried, the
-  // estimator's stillness test fails.
-  if (!estimator_.addImu(sample, modes_.mode() == FlightMode::kDisarmed)) return false;
+  if (!estimator_.addImu(sample)) return false;
   last_imu_utime_ = sample.utime;
   // A first-order low-pass; the first sample (and one after a long gap) starts it.
   const double lift_m_s2 = -sample.accel_m_s2.z();

@@ -70,16 +70,6 @@ struct EstimatorParams {
   // Vision counts as fused while its last fused pose is at most this old.
   double vision_timeout_s = 0.2;                   // [s] (0, 10]
 
-  // At rest on the floor (the caller says the rotors are stopped, and the sample is still: the
-  // gyro below rest_gyro_max_rad_s, the specific force within rest_accel_tolerance_m_s2 of g) the
-  // velocity is known to be zero, as EKF2 fuses it when its vehicle is at rest: it pins the
-  // accelerometer's bias with the tilt where vision cannot (along a corridor), before the
-  // take-off. One such update every rest_period_s, 1σ rest_vel_std_m_s per axis.
-  double rest_vel_std_m_s = 0.01;                  // [m/s] (0, 1]
-  double rest_period_s = 0.02;                     // [s] (0, 1]
-  double rest_gyro_max_rad_s = 0.05;               // [rad/s] (0, 1]
-  double rest_accel_tolerance_m_s2 = 0.5;          // [m/s²] (0, 5]
-
   // The state history poses can reach back into; the ring holds history_s * imu_rate_max_hz.
   double history_s = 0.4;                          // [s] [0.3, 2]
   double imu_rate_max_hz = 1000.0;                 // [Hz] [50, 4000]
@@ -175,7 +165,6 @@ struct EstimatorHealth {
   int64_t vision_rejected_invalid = 0;
   int consecutive_gate_rejections = 0;
   int64_t pose_resets = 0;  // kResetToPose outcomes
-  int64_t rest_updates = 0;  // zero velocity fused at rest
   int32_t reset_counter = 0;  // the last applied reset's
   int64_t resets = 0;
   int64_t resets_rejected = 0;
@@ -189,9 +178,8 @@ class Estimator {
   void initialise(const EstimatorInit& init);
 
   // Before the start, samples feed the still-start average. Returns false for a sample whose
-  // time does not increase (counted, ignored). `rotors_stopped`: the vehicle can only be carried,
-  // not fly; a still sample then fuses zero velocity (rest_* above).
-  bool addImu(const ImuSample& sample, bool rotors_stopped = false);
+  // time does not increase (counted, ignored).
+  bool addImu(const ImuSample& sample);
   // Before the start, the first pose after init_still_s of samples starts the filter there:
   // world's origin at the body, its heading the body's, its tilt from the mean specific force.
   // The body has not moved since the rest began, so odom is anchored on the first pose captured
@@ -224,7 +212,6 @@ class Estimator {
   // The filter after the sample `imu` (which held over the step that ends at imu.utime).
   struct Entry {
     ImuSample imu;
-    bool rest = false;  // zero velocity fused after the sample, again on every replay
     Nominal x;
     Covariance P = Covariance::Zero();
   };
@@ -242,13 +229,8 @@ class Estimator {
   const Entry& at(int index) const { return ring_[(head_ + index) % ring_.size()]; }
   const Entry& newest() const { return at(count_ - 1); }
   int newestAtOrBefore(int64_t utime) const;
-  // Predicts the newest state over the sample into the next slot, dropping the oldest when full,
-  // and fuses zero velocity there when `rest`.
-  void push(const ImuSample& sample, double dt_s, bool rest);
-  // Zero velocity, 1σ rest_vel_std_m_s.
-  void fuseRest(Nominal& x, Covariance& P) const;
-  // Adds the error dx to the nominal x and takes P about it (Solà 2017, §6.3).
-  static void inject(Nominal& x, Covariance& P, const Eigen::Matrix<double, kErrorStates, 1>& dx);
+  // Predicts the newest state over the sample into the next slot, dropping the oldest when full.
+  void push(const ImuSample& sample, double dt_s);
   void updateDivergence();
   // Stores (x, P) as the state at the pose's capture, the stored sample k + 1 split there when
   // `split`, and integrates the later samples again up to now.
@@ -281,7 +263,6 @@ class Estimator {
   // The first pose captured at rest (since still_first_utime_), which anchors odom at the start.
   std::optional<VisionPose> still_pose_;
   int64_t last_imu_utime_ = -1;
-  int64_t last_rest_utime_ = -1;  // of the last zero-velocity update
   // Capture times of the last resets to a pose, a ring of diverged_resets (read only once it
   // holds that many).
   std::array<int64_t, kMaxDivergedResets> pose_reset_utimes_{};

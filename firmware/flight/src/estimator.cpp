@@ -455,18 +455,14 @@ void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
   P.diagonal().segment<3>(kP).setConstant(std::pow(params_.vision_pos_std_m, 2));
   P.diagonal().segment<3>(kTheta).setConstant(std::pow(params_.vision_att_std_rad, 2));
   P.block<2, 2>(kPhi, kPhi) = P_phi;
-  const Eigen::Matrix<double, 6, 6> JPJ = J * P_phi * J.transpose();
-  P.block<3, 3>(kP, kP) += JPJ.topLeftCorner<3, 3>();
-  P.block<3, 3>(kP, kTheta) += JPJ.topRightCorner<3, 3>();
-  P.block<3, 3>(kTheta, kP) += JPJ.bottomLeftCorner<3, 3>();
-  P.block<3, 3>(kTheta, kTheta) += JPJ.bottomRightCorner<3, 3>();
   const Eigen::Matrix<double, 6, 2> JP = J * P_phi;
   P.block<3, 2>(kP, kPhi) = JP.topRows<3>();
   P.block<3, 2>(kTheta, kPhi) = JP.bottomRows<3>();
   P.block<2, 3>(kPhi, kP) = JP.topRows<3>().transpose();
   P.block<2, 3>(kPhi, kTheta) = JP.bottomRows<3>().transpose();
-  // The pose said nothing along its weak directions: the reset knows nothing there either.
-  Matrix6d pose_cov = Matrix6d::Zero();
+  // The reset pose's own uncertainty: the tilt's error through it, and nothing known along its
+  // weak directions.
+  Matrix6d pose_cov = JP * J.transpose();
   addWeak(weak, T_world_odom.linear(), &pose_cov);
   P.block<3, 3>(kP, kP) += pose_cov.topLeftCorner<3, 3>();
   P.block<3, 3>(kP, kTheta) += pose_cov.topRightCorner<3, 3>();

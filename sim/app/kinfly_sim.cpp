@@ -787,6 +787,12 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--camera-latency-s", o.camera.latency_s, "capture to delivery [s]")
       ->capture_default_str();
+  // kinfly-fw waits in the lockstep while a frame renders, so its core is free for the rays.
+  o.camera.threads = static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 4u));
+  app.add_option("--camera-threads", o.camera.threads,
+                 "threads a frame is rendered over (the frame is the same for any count) [1, 64]; "
+                 "default: the cores, at most 4")
+      ->capture_default_str();
   app.add_option("--imu-rate-hz", o.imu.rate_hz, "IMU samples (and physics steps) per second")
       ->capture_default_str();
   app.add_option("--mass-error", o.mass_error, "the simulated mass against the nominal, +0.05: 5 % more")

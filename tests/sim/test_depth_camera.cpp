@@ -4,11 +4,13 @@
 // file as the room it holds.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <limits>
 #include <sstream>
+#include <vector>
 #include <unistd.h>
 
 #include "kinfly/core/noise_model.h"
@@ -149,11 +151,65 @@ TEST(DepthCamera, TheSeedFixesTheNoise) {
   EXPECT_FALSE(std::equal(a.data(), a.data() + a.numPixels(), c.data()));
 }
 
+// A frame split over threads is the frame of one thread, bit for bit, and so is the next (the
+// noise's spare deviate carried from one frame to the next as the sequence has it).
+TEST(DepthCamera, ThreadsRenderTheSameFrames) {
+  DepthCameraParams params = exactCamera();
+  params.noise = true;
+  const Eigen::Vector3f normal =
+      Eigen::AngleAxisf(1.2f, Eigen::Vector3f::UnitY()) * Eigen::Vector3f(0, 0, -1);
+  auto rays = RayScene::create(planeScene({0, 0, 2.5f}, normal));  // part out of range
+  ASSERT_TRUE(rays.ok());
+  std::vector<std::vector<uint16_t>> frames[2];
+  for (const int threads : {1, 3}) {
+    params.threads = threads;
+    DepthCamera camera(*rays.value(), params);
+    Image<uint16_t> raw(params.camera.width, params.camera.height);
+    for (int frame = 0; frame < 3; ++frame) {
+      Pose T_world_cam = Pose::Identity();
+      T_world_cam.translation().x() = 0.05 * frame;
+      camera.render(T_world_cam, raw);
+      frames[threads == 1 ? 0 : 1].emplace_back(raw.data(), raw.data() + raw.numPixels());
+    }
+  }
+  const auto returns = std::count_if(frames[0][0].begin(), frames[0][0].end(),
+                                     [](uint16_t d) { return d > 0; });
+  EXPECT_GT(returns, 0);
+  EXPECT_LT(returns, static_cast<long>(frames[0][0].size()));
+  for (int frame = 0; frame < 3; ++frame) EXPECT_EQ(frames[0][frame], frames[1][frame]) << frame;
+}
+
+// fill gives what as many calls give, whatever the split of its transform, an odd count leaving
+// the spare for the next draw.
+TEST(NormalRandom, FillDrawsTheSequenceOfSingleDraws) {
+  NormalRandom single(11);
+  NormalRandom bulk(11);
+  std::vector<double> expected;
+  std::vector<double> filled;
+  for (const size_t n : {size_t{5}, size_t{0}, size_t{1}, size_t{6}, size_t{7}}) {
+    for (size_t i = 0; i < n; ++i) expected.push_back(single());
+    std::vector<double> out(n);
+    // The pairs transformed last first, in parts of two: any order must do.
+    bulk.fill(out.data(), n, [](size_t pairs, auto&& transform) {
+      for (size_t end = pairs; end > 0; end = end >= 2 ? end - 2 : 0) {
+        transform(end >= 2 ? end - 2 : 0, end);
+      }
+    });
+    filled.insert(filled.end(), out.begin(), out.end());
+  }
+  EXPECT_EQ(filled, expected);
+  EXPECT_EQ(bulk(), single());  // the spare of the odd count, then a fresh pair
+  EXPECT_EQ(bulk(), single());
+}
+
 TEST(DepthCamera, BadSettingsAreNamed) {
   DepthCameraParams params;
   params.min_range_m = 5.0;
   EXPECT_EQ(params.validate().message().rfind("camera.min_range_m must be in (0, ", 0), 0u)
       << params.validate().message();
+  params = DepthCameraParams();
+  params.threads = 0;
+  EXPECT_EQ(params.validate().message(), "camera.threads must be in [1, 64] (got 0)");
 }
 
 // From inside, every ray meets a face that looks back at it: the scene is closed around the

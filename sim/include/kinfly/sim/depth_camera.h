@@ -6,7 +6,9 @@
 // Raw depth as the OpenNI source gives it: uint16 in depth_scale_m units, 0 for no return.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
+#include <vector>
 
 #include "kinfly/core/camera.h"
 #include "kinfly/core/image.h"
@@ -32,6 +34,9 @@ struct DepthCameraParams {
   double disparity_step_px = 0.125;   // [px] [0, 1] disparity resolution; 0: not quantised
   double depth_scale_m = 0.001;       // [m] (0, 0.01] per raw unit (OpenNI: 1 mm)
   uint64_t seed = 3;
+  // [1, 64] threads a frame's rays and its noise's transform are split over; the frame is the
+  // same for any count (the noise's draws stay in one sequence)
+  int threads = 1;
   Status validate() const;
 };
 
@@ -55,6 +60,9 @@ class DepthCamera {
   DepthCameraParams params_;
   NormalRandom random_;
   float min_cos_incidence_;
+  std::vector<float> depth_m_;       // the frame's exact depths; 0: no return
+  std::vector<size_t> first_noise_;  // a row's first deviate in noise_
+  std::vector<double> noise_;
 };
 
 }  // namespace kinfly::sim

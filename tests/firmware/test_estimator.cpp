@@ -5,6 +5,7 @@
 // keeps them): build/tests/test_estimator
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <vector>
@@ -1039,6 +1040,64 @@ TEST(Estimator, AStartAtRestAnchorsOnTheRestsFirstPose) {
   EXPECT_EQ(corrected.addVision({utime, Pose::Identity()}), VisionOutcome::kFused);
   EXPECT_LT((corrected.T_world_odom().translation() - T_world_cam.translation()).norm(),
             kAnchorTolM);
+}
+
+// The vision pose's Jacobian against central differences of its innovation, column by column of
+// the error state, about a state with a lever arm, a tilted odom and a pose a little off the
+// prediction. H is the first-order model about a small error: the attitude's Log and the tilt's
+// Exp differ from it by about half the angles involved (5 mrad and 12 mrad here), so a column
+// may be off by ~1 %; a wrong sign, frame or lever arm is off by its whole size.
+TEST(Estimator, TheVisionJacobianIsTheInnovationsDerivative) {
+  constexpr double kStep = 1e-6;              // central differences: O(step²) truncation
+  constexpr double kLinearisationTol = 0.02;  // of a column's size (at least 1)
+  Gaussian gaussian(17);
+  Pose T_body_cam = EstimatorParams::defaultBodyCam();
+  T_body_cam.translation() = Vector3d(0.06, 0.01, -0.03);
+  Pose T_world_odom_start = Pose::Identity();
+  T_world_odom_start.linear() = rotationFromVector(0.5 * gaussian()).toRotationMatrix();
+  T_world_odom_start.translation() = gaussian();
+  const Vector3d p_world_body(0.4, -1.2, -1.0);
+  const Quaterniond q_world_body = rotationFromVector(0.4 * gaussian());
+  const Vector3d odom_tilt(0.010, -0.007, 0.0);
+  const auto T_world_odom = [&](const Vector3d& tilt) {
+    Pose T = Pose::Identity();
+    T.linear() = rotationFromVector(tilt).toRotationMatrix();
+    return T * T_world_odom_start;
+  };
+  Pose T_world_body = Pose::Identity();
+  T_world_body.linear() = q_world_body.toRotationMatrix();
+  T_world_body.translation() = p_world_body;
+  Pose off = Pose::Identity();
+  off.linear() = rotationFromVector(Vector3d(0.003, -0.004, 0.002)).toRotationMatrix();
+  off.translation() = Vector3d(0.002, -0.001, 0.003);
+  const Pose T_odom_cam = T_world_odom(odom_tilt).inverse() * T_world_body * T_body_cam * off;
+
+  const VisionLinearisation model =
+      linearizeVision(p_world_body, q_world_body, T_world_odom(odom_tilt), T_odom_cam, T_body_cam);
+  EXPECT_GT(model.innovation.norm(), 1e-3);  // off the prediction, as a pose is
+  for (int i = 0; i < kErrorStates; ++i) {
+    const auto innovation = [&](double step) {
+      Vector3d p = p_world_body;
+      Quaterniond q = q_world_body;
+      Vector3d tilt = odom_tilt;
+      Vector3d unit = Vector3d::Zero();
+      if (i < error_state::kP + 3) {
+        p[i - error_state::kP] += step;
+      } else if (i >= error_state::kTheta && i < error_state::kTheta + 3) {
+        unit[i - error_state::kTheta] = step;
+        q = q * rotationFromVector(unit);
+      } else if (i >= error_state::kPhi) {
+        tilt[i - error_state::kPhi] += step;
+      }
+      return linearizeVision(p, q, T_world_odom(tilt), T_odom_cam, T_body_cam).innovation;
+    };
+    const Eigen::Matrix<double, 6, 1> derivative =
+        -(innovation(kStep) - innovation(-kStep)) / (2.0 * kStep);
+    EXPECT_LT((derivative - model.H.col(i)).norm(),
+              kLinearisationTol * std::max(1.0, model.H.col(i).norm()))
+        << "error state " << i << ": finite differences " << derivative.transpose()
+        << ", H " << model.H.col(i).transpose();
+  }
 }
 
 TEST(Estimator, RejectsImuTimeThatDoesNotIncrease) {

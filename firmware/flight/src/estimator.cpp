@@ -17,8 +17,7 @@ using Vector6d = Eigen::Matrix<double, 6, 1>;
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Jacobian = Eigen::Matrix<double, 6, kErrorStates>;
 
-// Error-state block offsets.
-constexpr int kP = 0, kV = 3, kTheta = 6, kBg = 9, kBa = 12, kPhi = 15;
+using namespace error_state;
 
 constexpr double kUsToS = 1e-6;
 // Below this angle the series of Exp and Log is exact in double precision.
@@ -192,6 +191,33 @@ void Estimator::push(const ImuSample& sample, double dt_s) {
   }
 }
 
+VisionLinearisation linearizeVision(const Vector3d& p_world_body_m,
+                                    const Quaterniond& q_world_body, const Pose& T_world_odom,
+                                    const Pose& T_odom_cam, const Pose& T_body_cam) {
+  const Matrix3d R_world_body = q_world_body.toRotationMatrix();
+  const Vector3d t_body_cam_m = T_body_cam.translation();
+  const Pose T_world_cam = T_world_odom * T_odom_cam;
+  VisionLinearisation model;
+  // The camera's position and the body's attitude: the attitude innovation lives in the same body
+  // frame as δθ, so its Jacobian is the identity; the lever arm couples δθ into the position.
+  model.innovation.head<3>() =
+      T_world_cam.translation() - (p_world_body_m + R_world_body * t_body_cam_m);
+  const Matrix3d R_world_body_measured = T_world_cam.linear() * T_body_cam.linear().transpose();
+  model.innovation.tail<3>() =
+      logRotation(Quaterniond(R_world_body.transpose() * R_world_body_measured).normalized());
+
+  Jacobian& H = model.H;
+  H.setZero();
+  H.block<3, 3>(0, kP).setIdentity();
+  H.block<3, 3>(0, kTheta) = -R_world_body * skew(t_body_cam_m);
+  H.block<3, 3>(3, kTheta).setIdentity();
+  // The pose as measured turns with odom's tilt about world's origin: Exp(δφ) moves the camera by
+  // δφ × p and turns the measured attitude by R^T δφ in the body (world's x and y only).
+  H.block<3, 2>(0, kPhi) = skew(T_world_cam.translation()).leftCols<2>();
+  H.block<3, 2>(3, kPhi) = -R_world_body.transpose().leftCols<2>();
+  return model;
+}
+
 // Solà (2017) §5.4 (nominal state and error-state Jacobian), the angular error local to the body.
 void Estimator::predict(Nominal& x, Covariance& P, const ImuSample& imu, double dt_s) const {
   const Vector3d omega_rad_s = imu.gyro_rad_s - x.gyro_bias_rad_s;
@@ -218,29 +244,11 @@ void Estimator::predict(Nominal& x, Covariance& P, const ImuSample& imu, double 
 
 bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_odom_cam,
                      const WeakDirections& weak) {
-  const Matrix3d R_world_body = x.q_world_body.toRotationMatrix();
-  const Vector3d t_body_cam_m = params_.T_body_cam.translation();
-  const Matrix3d R_body_cam = params_.T_body_cam.linear();
   const Pose T_world_odom = alignment(x);
-  const Pose T_world_cam = T_world_odom * T_odom_cam;
-
-  // The camera's position and the body's attitude: the attitude innovation lives in the same body
-  // frame as δθ, so its Jacobian is the identity; the lever arm couples δθ into the position.
-  Vector6d innovation;
-  innovation.head<3>() =
-      T_world_cam.translation() - (x.p_world_body_m + R_world_body * t_body_cam_m);
-  const Matrix3d R_world_body_measured = T_world_cam.linear() * R_body_cam.transpose();
-  innovation.tail<3>() =
-      logRotation(Quaterniond(R_world_body.transpose() * R_world_body_measured).normalized());
-
-  Jacobian H = Jacobian::Zero();
-  H.block<3, 3>(0, kP).setIdentity();
-  H.block<3, 3>(0, kTheta) = -R_world_body * skew(t_body_cam_m);
-  H.block<3, 3>(3, kTheta).setIdentity();
-  // The pose as measured turns with odom's tilt about world's origin: Exp(δφ) moves the camera by
-  // δφ × p and turns the measured attitude by R^T δφ in the body (world's x and y only).
-  H.block<3, 2>(0, kPhi) = skew(T_world_cam.translation()).leftCols<2>();
-  H.block<3, 2>(3, kPhi) = -R_world_body.transpose().leftCols<2>();
+  const VisionLinearisation model = linearizeVision(x.p_world_body_m, x.q_world_body,
+                                                    T_world_odom, T_odom_cam, params_.T_body_cam);
+  const Vector6d& innovation = model.innovation;
+  const Jacobian& H = model.H;
 
   // Isotropic noise is the same in odom, world, camera and body frames.
   Matrix6d R_noise = Matrix6d::Zero();

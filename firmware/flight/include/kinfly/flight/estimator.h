@@ -29,6 +29,27 @@ constexpr int kErrorStates = 17;
 constexpr int kMaxDivergedResets = 16;
 using Covariance = Eigen::Matrix<double, kErrorStates, kErrorStates>;
 
+// Where each block of the error state starts in it (the order above).
+namespace error_state {
+constexpr int kP = 0, kV = 3, kTheta = 6, kBg = 9, kBa = 12, kPhi = 15;
+}  // namespace error_state
+
+// A vision pose linearised about the state: its innovation (measured less predicted: the
+// camera's position in world, then the body's attitude error in the body) and the innovation's
+// Jacobian in the error state, H (innovation(x ⊕ δx) ≈ innovation(x) − H δx).
+struct VisionLinearisation {
+  Eigen::Matrix<double, 6, 1> innovation;
+  Eigen::Matrix<double, 6, kErrorStates> H;
+};
+
+// The body at (p_world_body_m, q_world_body), odom at T_world_odom with its tilt applied
+// (Exp(φ) of the start's alignment), the camera on the body at T_body_cam. The filter's own
+// model, apart so that a test holds H against finite differences.
+VisionLinearisation linearizeVision(const Eigen::Vector3d& p_world_body_m,
+                                    const Eigen::Quaterniond& q_world_body,
+                                    const Pose& T_world_odom, const Pose& T_odom_cam,
+                                    const Pose& T_body_cam);
+
 struct EstimatorParams {
   // IMU noise, continuous-time densities: the ADIS16448 of the EuRoC MAV dataset as its
   // sensor.yaml gives them (Burri et al., IJRR 2016).

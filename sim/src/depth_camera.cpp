@@ -87,9 +87,9 @@ void DepthCamera::render(const Pose& T_world_cam, ImageView<uint16_t> raw) {
         for (int i = 0; i < 8; ++i) {
           const int u = u0 + i;
           active[i] = u < camera.width;
-          directions[i] = R_world_cam * Eigen::Vector3f((static_cast<float>(u) - camera.cx) / camera.fx,
-                                                        (static_cast<float>(v) - camera.cy) / camera.fy,
-                                                        1.0f);
+          directions[i] =
+              R_world_cam * Eigen::Vector3f((static_cast<float>(u) - camera.cx) / camera.fx,
+                                            (static_cast<float>(v) - camera.cy) / camera.fy, 1.0f);
         }
         scene_.cast8(origin, directions, active, max_distance, depth, cos_incidence);
         for (int i = 0; i < 8 && u0 + i < camera.width; ++i) {

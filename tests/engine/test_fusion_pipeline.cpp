@@ -192,7 +192,6 @@ TEST_F(PipelineFixture, RefinesKeyframesFromADriftedGuess) {
 // the tracker's threshold (set where the map has been fused from many frames, docs/engine.md).
 TEST(PipelineDegenerate, AlongAWallThePoseFollowsThePriorWithinItAndTheWallAcrossIt) {
   constexpr int kWallFrames = 20;
-  constexpr double kStepM = 0.02;  // [m] a frame along the wall: 0.6 m/s at 30 Hz
   // The weak directions lie in the null space of the noise-free wall, to the fraction of a degree
   // that the map's voxels tilt its normals by; frames swapped or unrotated would be off by ~0.5.
   constexpr double kNullSpaceTol = 1e-2;

@@ -947,9 +947,9 @@ TEST(Estimator, StartsAtRestFromTheAccelerometerAndTheFirstPose) {
     }
   };
   feed(0.3);
-  EXPECT_EQ(estimator.addVision({utime, T_odom_cam}), VisionOutcome::kNotInitialised);
+  EXPECT_EQ(estimator.addVision({utime, T_odom_cam, {}}), VisionOutcome::kNotInitialised);
   feed(0.3);
-  EXPECT_EQ(estimator.addVision({utime, T_odom_cam}), VisionOutcome::kFused);
+  EXPECT_EQ(estimator.addVision({utime, T_odom_cam, {}}), VisionOutcome::kFused);
   ASSERT_TRUE(estimator.initialised());
   // Tilt from 600 samples: σ_a / sqrt(dt * n) / g = 0.26 mrad; 1 mrad is four of those.
   constexpr double kTiltTolRad = 1e-3;
@@ -962,7 +962,7 @@ TEST(Estimator, StartsAtRestFromTheAccelerometerAndTheFirstPose) {
   // Standing still, the same pose keeps it where it is.
   for (int i = 0; i < 30; ++i) {
     feed(1.0 / 30.0);
-    EXPECT_EQ(estimator.addVision({utime - kVisionDelayUs, T_odom_cam}), VisionOutcome::kFused);
+    EXPECT_EQ(estimator.addVision({utime - kVisionDelayUs, T_odom_cam, {}}), VisionOutcome::kFused);
   }
   // Vision noise is absent here; what moves it is the accelerometer's noise between poses.
   constexpr double kStillM = 1e-3;
@@ -1000,9 +1000,9 @@ TEST(Estimator, AStartAtRestAnchorsOnTheRestsFirstPose) {
 
   Estimator estimator(params);
   feed(estimator, 0.1);
-  EXPECT_EQ(estimator.addVision({utime, Pose::Identity()}), VisionOutcome::kNotInitialised);
+  EXPECT_EQ(estimator.addVision({utime, Pose::Identity(), {}}), VisionOutcome::kNotInitialised);
   feed(estimator, 0.5);
-  EXPECT_EQ(estimator.addVision({utime, drifted}), VisionOutcome::kFused);
+  EXPECT_EQ(estimator.addVision({utime, drifted, {}}), VisionOutcome::kFused);
   ASSERT_TRUE(estimator.initialised());
   // odom's origin (the first pose) is the camera where the body stands, within the tilt from
   // 600 noisy samples (σ_a / sqrt(dt n) / g = 0.26 mrad) across the lever arm.
@@ -1014,7 +1014,7 @@ TEST(Estimator, AStartAtRestAnchorsOnTheRestsFirstPose) {
   // the drifted poses, comes back to the body's place.
   for (int i = 0; i < 15; ++i) {
     feed(estimator, 1.0 / 30.0);
-    EXPECT_EQ(estimator.addVision({utime - kVisionDelayUs, drifted}), VisionOutcome::kFused);
+    EXPECT_EQ(estimator.addVision({utime - kVisionDelayUs, drifted, {}}), VisionOutcome::kFused);
   }
   OdomReset reset;
   reset.utime = utime;
@@ -1022,7 +1022,7 @@ TEST(Estimator, AStartAtRestAnchorsOnTheRestsFirstPose) {
   ASSERT_TRUE(estimator.applyReset(reset));
   for (int i = 0; i < 15; ++i) {
     feed(estimator, 1.0 / 30.0);
-    EXPECT_EQ(estimator.addVision({utime - kVisionDelayUs, Pose::Identity()}),
+    EXPECT_EQ(estimator.addVision({utime - kVisionDelayUs, Pose::Identity(), {}}),
               VisionOutcome::kFused);
   }
   // Vision noise is absent; the accelerometer's between poses and the lever arm's tilt remain.
@@ -1034,10 +1034,10 @@ TEST(Estimator, AStartAtRestAnchorsOnTheRestsFirstPose) {
   utime = kStartUs;
   Estimator corrected(params);
   feed(corrected, 0.1);
-  EXPECT_EQ(corrected.addVision({utime, drifted}), VisionOutcome::kNotInitialised);
+  EXPECT_EQ(corrected.addVision({utime, drifted, {}}), VisionOutcome::kNotInitialised);
   EXPECT_FALSE(corrected.applyReset(reset));  // nothing to reset yet: counted
   feed(corrected, 0.5);
-  EXPECT_EQ(corrected.addVision({utime, Pose::Identity()}), VisionOutcome::kFused);
+  EXPECT_EQ(corrected.addVision({utime, Pose::Identity(), {}}), VisionOutcome::kFused);
   EXPECT_LT((corrected.T_world_odom().translation() - T_world_cam.translation()).norm(),
             kAnchorTolM);
 }

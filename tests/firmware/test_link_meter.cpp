@@ -165,7 +165,8 @@ TEST(LinkMeter, AChunkedKeyframesAgeIsItsTimeOnTheLinkWhateverTheClocks) {
       meter.onChunk(chunk, arrival, kDatagramBytes);
     }
     meter.onKeyframe(5, kCaptureUs, arrival, 3.0 / 37.0);
-    EXPECT_NEAR(meter.quality(arrival).keyframe_age_ms, 39.0 + queued_us * 1e-3, kRoundoff)
+    EXPECT_NEAR(meter.quality(arrival).keyframe_age_ms,
+                39.0 + static_cast<double>(queued_us) * 1e-3, kRoundoff)
         << queued_us;
   }
 }

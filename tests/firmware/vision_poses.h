@@ -40,7 +40,7 @@ inline Delivery odometryPose(int64_t capture_utime, const Pose& T_world_body,
   T_odom_cam.linear() =
       T_odom_cam.linear() *
       rotationFromVector(params.vision_att_std_rad * gaussian()).toRotationMatrix();
-  return {capture_utime + kVisionDelayUs, {capture_utime, T_odom_cam}};
+  return {capture_utime + kVisionDelayUs, {capture_utime, T_odom_cam, {}}};
 }
 
 }  // namespace kinfly::flight::test

@@ -23,7 +23,7 @@ Status FusionPipeline::Params::validate(float voxel_size_m) const {
     return Status::error("min_valid_depth_fraction must be in [0, 1)");
   if (!(max_recovery_gate_scale >= 1.f))
     return Status::error("max_recovery_gate_scale must be >= 1");
-  // The relocaliser is built either way (its ferns drawn from these settings).
+  // Checked even when relocalisation is off: turning it on later must not meet a bad setting.
   if (const Status r = relocaliser.validate(); !r.ok())
     return Status::error("relocaliser: " + r.message());
   return {};
@@ -37,10 +37,10 @@ FusionPipeline::FusionPipeline(const PinholeCamera& input_camera, const Params& 
       tracker_(params.icp),
       integrator_(params.integrate),
       raycaster_(preprocessor_.camera(), params.raycast),
-      relocaliser_(params.relocaliser),
       frame_(preprocessor_.camera()),
       model_(preprocessor_.camera()) {
   integrator_.reserve(preprocessor_.camera().width, preprocessor_.camera().height, *volume);
+  if (params_.relocalise) relocaliser_.emplace(params_.relocaliser);
 }
 
 bool FusionPipeline::preprocess(ImageView<const uint16_t> raw_depth, int64_t utime,
@@ -101,8 +101,8 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
     if (r.status != TrackingStatus::kFirstFrame) r.recovered_after = lost_before;
     if (params_.relocalise) {
       const auto t0 = std::chrono::steady_clock::now();
-      relocaliser_.encode(frame_.depth_m[kPyramidLevels - 1].view());
-      relocaliser_.harvest(r.T_world_cam);
+      relocaliser_->encode(frame_.depth_m[kPyramidLevels - 1].view());
+      relocaliser_->harvest(r.T_world_cam);
       const double ms = msSince(t0);
       r.ms.track += ms;
       r.ms.total += ms;
@@ -146,9 +146,9 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
 FrameResult FusionPipeline::relocalise(FrameResult lost, const Pose* T_world_cam_prior,
                                        float gate_scale) {
   const auto t0 = std::chrono::steady_clock::now();
-  relocaliser_.encode(frame_.depth_m[kPyramidLevels - 1].view());
+  relocaliser_->encode(frame_.depth_m[kPyramidLevels - 1].view());
   std::array<Relocaliser::Candidate, kRelocaliseCandidates> candidates;
-  const int found = relocaliser_.nearest(kRelocaliseCandidates, candidates.data());
+  const int found = relocaliser_->nearest(kRelocaliseCandidates, candidates.data());
   const double ms = msSince(t0);
   lost.ms.track += ms;
   lost.ms.total += ms;

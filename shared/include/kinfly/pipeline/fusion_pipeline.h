@@ -6,6 +6,7 @@
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "kinfly/core/camera.h"
@@ -147,7 +148,9 @@ class FusionPipeline {
   IcpTracker tracker_;
   TsdfIntegrator integrator_;
   Raycaster raycaster_;
-  Relocaliser relocaliser_;
+  // Only with params_.relocalise: its keyframes' codes and poses are reserved at construction
+  // (0.6 MB at the defaults), which a pipeline without relocalisation should not hold.
+  std::optional<Relocaliser> relocaliser_;
   DepthFrame frame_;
   ModelMaps model_;
   std::unique_ptr<ModelMaps> render_maps_;  // allocated by the first renderShaded()

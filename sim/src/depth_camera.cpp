@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <cassert>
 #include <cmath>
-#include <thread>
 
 #include "kinfly/core/noise_model.h"
 #include "kinfly/core/range_check.h"
@@ -38,11 +37,6 @@ DepthCamera::DepthCamera(const RayScene& scene, const DepthCameraParams& params)
       random_(params.seed),
       min_cos_incidence_(static_cast<float>(std::cos(params.max_incidence_deg * M_PI / 180.0))) {}
 
-namespace {
-
-// std::round for the quantiser's numbers without a call into libm (a tenth of a frame's noise):
-// the same for any x >= 0, and for x < 0 the same after the clamp to 0 that follows (both give
-// a number <= 0). Truncating a double of magnitude below 2^52 is exact, and so is the difference.
 double roundHalfUp(double x) {
   if (!(std::abs(x) < 0x1.0p52)) return x;  // integral already, or not a number
   const double truncated = static_cast<double>(static_cast<int64_t>(x));
@@ -50,17 +44,20 @@ double roundHalfUp(double x) {
   return truncated + static_cast<double>(x - truncated >= 0.5);
 }
 
-// fn(begin, end) over [0, count) in `threads` contiguous parts, this thread taking the first.
+namespace {
+
+// fn(begin, end) over [0, count) in `threads` contiguous parts. OpenMP's team persists between
+// frames; one thread enters no parallel region at all. The engine's loops (shared/src/parallel.h)
+// take the process's thread count; a camera has its own.
 template <class Fn>
-void splitRange(size_t count, int threads, Fn&& fn) {
-  const size_t parts = std::min(static_cast<size_t>(threads), std::max<size_t>(count, 1));
-  std::vector<std::thread> helpers;
-  helpers.reserve(parts - 1);
-  for (size_t part = 1; part < parts; ++part) {
-    helpers.emplace_back([&, part] { fn(count * part / parts, count * (part + 1) / parts); });
+void forEachPart(size_t count, int threads, Fn&& fn) {
+  const size_t parts = static_cast<size_t>(threads);
+  if (parts == 1) {
+    fn(size_t{0}, count);
+    return;
   }
-  fn(0, count / parts);
-  for (std::thread& helper : helpers) helper.join();
+#pragma omp parallel for num_threads(threads) schedule(static, 1)
+  for (size_t part = 0; part < parts; ++part) fn(count * part / parts, count * (part + 1) / parts);
 }
 
 }  // namespace
@@ -74,7 +71,7 @@ void DepthCamera::render(const Pose& T_world_cam, ImageView<uint16_t> raw) {
   const size_t height = static_cast<size_t>(camera.height);
   depth_m_.resize(width * height);
   // The rays, rows split over the threads: each pixel's exact depth, or 0 for no return.
-  splitRange(height, params_.threads, [&](size_t row_begin, size_t row_end) {
+  forEachPart(height, params_.threads, [&](size_t row_begin, size_t row_end) {
     // Directions (x, y, 1) in the camera: a hit's distance along one is its depth z.
     const float max_distance = static_cast<float>(params_.max_range_m) * 1.01f;
     Eigen::Vector3f directions[8];
@@ -112,12 +109,12 @@ void DepthCamera::render(const Pose& T_world_cam, ImageView<uint16_t> raw) {
   if (params_.noise) {
     noise_.resize(first_noise_[height]);
     random_.fill(noise_.data(), noise_.size(), [&](size_t pairs, auto&& transform) {
-      splitRange(pairs, params_.threads, transform);
+      forEachPart(pairs, params_.threads, transform);
     });
   }
   const double bf_px_m = params_.baseline_m * params_.disparity_focal_px;
   const double max_raw = 65535.0;
-  splitRange(height, params_.threads, [&](size_t row_begin, size_t row_end) {
+  forEachPart(height, params_.threads, [&](size_t row_begin, size_t row_end) {
     for (size_t v = row_begin; v < row_end; ++v) {
       const float* depth = depth_m_.data() + v * width;
       uint16_t* row = raw.row(static_cast<int>(v));

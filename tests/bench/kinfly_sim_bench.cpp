@@ -1,9 +1,10 @@
-// kinfly-sim's own speed on one core, without the drone's programs (docs/sim.md, "Speed"): the
-// world's work for each simulated second (1000 steps of RK4 dynamics, Dryden wind and the IMU,
-// 30 depth frames rendered by Embree with the Kinect noise and encoded for the link) against the
-// wall clock, at 320x240 and 640x480, and at 640x480 with the frame split over two threads (as
-// kinfly-sim renders on this machine, where kinfly-fw waits in the lockstep). The camera flies a circle through the furnished room, so
-// the rendered views vary as a flight's do. Prints JSON; never fails on a time.
+// kinfly-sim's own speed without the drone's programs (docs/sim.md, "Measured"): the world's work
+// for each simulated second (1000 steps of RK4 dynamics, Dryden wind and the IMU, 30 depth frames
+// rendered by Embree with the Kinect noise and encoded for the link) against the wall clock, on
+// one core at 320x240 and 640x480, and at 640x480 with the frame split over two threads (as
+// kinfly-sim renders on this machine, where kinfly-fw waits in the lockstep). The camera flies a
+// circle through the furnished room, so the rendered views vary as a flight's do. Prints JSON;
+// never fails on a time.
 #include <algorithm>
 #include <chrono>
 #include <cmath>

@@ -186,7 +186,8 @@ TEST(NormalRandom, FillDrawsTheSequenceOfSingleDraws) {
   NormalRandom bulk(11);
   std::vector<double> expected;
   std::vector<double> filled;
-  for (const size_t n : {size_t{5}, size_t{0}, size_t{1}, size_t{6}, size_t{7}}) {
+  // Each count after an odd total meets a spare in hand: even, zero, one and odd counts.
+  for (const size_t n : {5, 6, 0, 1, 4, 3, 7}) {
     for (size_t i = 0; i < n; ++i) expected.push_back(single());
     std::vector<double> out(n);
     // The pairs transformed last first, in parts of two: any order must do.
@@ -200,6 +201,24 @@ TEST(NormalRandom, FillDrawsTheSequenceOfSingleDraws) {
   EXPECT_EQ(filled, expected);
   EXPECT_EQ(bulk(), single());  // the spare of the odd count, then a fresh pair
   EXPECT_EQ(bulk(), single());
+}
+
+// The quantiser's rounding is std::round's: halves away from zero, and the doubles either side
+// of each half; below 0 the same once clamped to 0, as the camera clamps.
+TEST(DepthCamera, RoundHalfUpIsStdRound) {
+  for (const double base : {0.0, 1.0, 2.0, 7.0, 696.0, 4499.0, 65534.0, 1e15}) {
+    const double half = base + 0.5;
+    for (const double x : {base, half, std::nextafter(half, 0.0), std::nextafter(half, 2.0 * half),
+                           base + 0.25, base + 0.75, std::nextafter(base, 0.0)}) {
+      EXPECT_EQ(roundHalfUp(x), std::round(x)) << std::hexfloat << x;
+    }
+  }
+  EXPECT_EQ(roundHalfUp(0x1.0p53), 0x1.0p53);
+  EXPECT_TRUE(std::isnan(roundHalfUp(std::nan(""))));
+  for (const double x : {-0.3, -0.5, -0.7, -1.5, -1e30}) {
+    EXPECT_EQ(std::clamp(roundHalfUp(x), 0.0, 65535.0), std::clamp(std::round(x), 0.0, 65535.0))
+        << x;
+  }
 }
 
 TEST(DepthCamera, BadSettingsAreNamed) {

@@ -391,7 +391,7 @@ def run_sim_py(*args: object) -> tuple[int, str, str]:
 def test_sim_py_flies_through_a_ground_restart_and_link_loss(netns: list[str],
                                                              tmp_path: Path) -> None:
     """scripts/sim.py, as `make sim` runs it, with the ground station killed (SIGKILL) in the
-    hover and restarted a simulated second later, then 3 s of the link losing 5 % of its
+    hover and restarted a simulated second later, then 10 s of the link losing 5 % of its
     datagrams in runs of 5: the drone lands without a failsafe; it waited for the dead station once,
     then not until the new one was heard; the new station mapped every keyframe from the first
     it heard, those sent through the loss too; the killed one's recording is kept, whole."""

@@ -191,7 +191,7 @@ void Estimator::push(const ImuSample& sample, double dt_s) {
   }
 }
 
-VisionLinearisation linearizeVision(const Vector3d& p_world_body_m,
+VisionLinearisation lineariseVision(const Vector3d& p_world_body_m,
                                     const Quaterniond& q_world_body, const Pose& T_world_odom,
                                     const Pose& T_odom_cam, const Pose& T_body_cam) {
   const Matrix3d R_world_body = q_world_body.toRotationMatrix();
@@ -245,7 +245,7 @@ void Estimator::predict(Nominal& x, Covariance& P, const ImuSample& imu, double 
 bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_odom_cam,
                      const WeakDirections& weak) {
   const Pose T_world_odom = alignment(x);
-  const VisionLinearisation model = linearizeVision(x.p_world_body_m, x.q_world_body,
+  const VisionLinearisation model = lineariseVision(x.p_world_body_m, x.q_world_body,
                                                     T_world_odom, T_odom_cam, params_.T_body_cam);
   const Vector6d& innovation = model.innovation;
   const Jacobian& H = model.H;

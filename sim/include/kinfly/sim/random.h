@@ -37,7 +37,8 @@ class NormalRandom {
   // The next n deviates into out: the same numbers, in the same order, as n calls of operator().
   // The uniforms are drawn here in order; their transform (a logarithm, a sine and a cosine a
   // pair, most of the cost) is handed to for_each_pair(pairs, transform), which must call
-  // transform(begin, end) over [0, pairs) in any split, on any threads.
+  // transform(begin, end) on parts that cover [0, pairs) once each, in any order and on any
+  // threads, and return when all have finished (they write out, and the spare).
   template <class ForEachPair>
   void fill(double* out, size_t n, ForEachPair&& for_each_pair) {
     size_t k = 0;

@@ -45,7 +45,7 @@ struct VisionLinearisation {
 // The body at (p_world_body_m, q_world_body), odom at T_world_odom with its tilt applied
 // (Exp(φ) of the start's alignment), the camera on the body at T_body_cam. The filter's own
 // model, apart so that a test holds H against finite differences.
-VisionLinearisation linearizeVision(const Eigen::Vector3d& p_world_body_m,
+VisionLinearisation lineariseVision(const Eigen::Vector3d& p_world_body_m,
                                     const Eigen::Quaterniond& q_world_body,
                                     const Pose& T_world_odom, const Pose& T_odom_cam,
                                     const Pose& T_body_cam);
@@ -227,7 +227,8 @@ class Estimator {
     Eigen::Quaterniond q_world_body = Eigen::Quaterniond::Identity();
     Eigen::Vector3d gyro_bias_rad_s = Eigen::Vector3d::Zero();
     Eigen::Vector3d accel_bias_m_s2 = Eigen::Vector3d::Zero();
-    // Small (the start's error), so that adding δφ to it is composing to first order; z stays 0.
+    // Small (the start's error), so that adding δφ to it (as the filter does) is composing on
+    // the left to first order; z stays 0.
     Eigen::Vector3d odom_tilt_rad = Eigen::Vector3d::Zero();
   };
   // The filter after the sample `imu` (which held over the step that ends at imu.utime).

@@ -44,10 +44,10 @@ demo_packages=(
 )
 
 # sim (make sim; in unit, since the simulator's unit tests build with the others): the ray
-# tracer that renders the simulated depth camera, the TOML reader of its missions and the mesh
-# reader of its scenes from files (sim/CMakeLists.txt)
+# tracer that renders the simulated depth camera, the TOML reader of its missions, the mesh
+# reader of its scenes from files and Boost.Random's normal deviates (sim/CMakeLists.txt)
 sim_packages=(
-  libembree-dev libtomlplusplus-dev libcgal-dev
+  libembree-dev libtomlplusplus-dev libcgal-dev libboost-dev
 )
 
 # unit (make test-asan, and the unit tests of make test): GoogleTest (CMake's

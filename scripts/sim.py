@@ -10,13 +10,13 @@ kinfly-fw share the drone's bus (LCM multicast: IMU, depth, rotor commands), and
 ground station talk over the link, kinfly's UDP unicast peers (docs/wire.md, "Unicast on Wi-Fi"),
 each side on a multicast group and port of its own; the simulator sends the truth to the ground's
 bus too, as a motion-capture system would. The simulator flies its mission (the room tour unless
-told otherwise: take off, three go-tos, a figure eight, land) and the run succeeds only when the
-drone landed without a collision or a failsafe and the ground mapped what it was sent. Nothing
-waits a fixed time: each program's readiness and end are what the next step waits for. A mission's
-ground_restart and link_loss are this script's to act on: kinfly-sim (--orchestrated) stops its
-clock at each kill, restart, loss start and end until told that it was done, so each lasts exactly
-the mission's simulated time; the loss is an nftables rule on the link's two UDP ports alone
-(scripts/netns.py), so the drone's bus stays whole.
+told otherwise: take off, three go-tos, a figure eight, the go-tos again, land) and the run
+succeeds only when the drone landed without a collision or a failsafe and the ground mapped what
+it was sent. Nothing waits a fixed time: each program's readiness and end are what the next step
+waits for. A mission's ground_restart and link_loss are this script's to act on: kinfly-sim
+(--orchestrated) stops its clock at each kill, restart, loss start and end until told that it was
+done, so each lasts exactly the mission's simulated time; the loss is an nftables rule on the
+link's two UDP ports alone (scripts/netns.py), so the drone's bus stays whole.
 
 Run with the project's .venv python (the Makefile does). Needs root or passwordless sudo for the
 namespace (docs/sim.md)."""
@@ -67,6 +67,15 @@ RECORDED = (f"KINFLY_{VEHICLE_ID}_(IMU|MOTOR_COMMAND|SIM_STATE|ODOMETRY|KEYFRAME
             "FLIGHT|COMMAND|GROUND_TRUTH)")
 # ... and on the ground's: what the ground station sent back.
 RECORDED_GROUND = f"KINFLY_{VEHICLE_ID}_(GROUND_STATUS|CORRECTION|CHUNK_REQUEST)"
+# How long after its frame's capture each odometry pose reaches the drone's estimator, in simulated
+# time: the camera's 30 ms latency and one frame at 30 Hz for the odometry, the budget a drone's
+# must keep. kinfly-sim waits for a pose only then (--pose-age-ms) and kinfly-fw fuses it then
+# (flight.lockstep_pose_age_s), so the odometry runs beside the simulator and a seed still flies
+# the same flight on any machine (docs/sim.md, "Lockstep").
+POSE_AGE_MS = 63
+# The programs share the cores: OpenMP's threads spinning while they wait (libgomp's default) would
+# take the cores from the others' work (docs/sim.md, "Lockstep").
+SHARE_CORES = ["env", "OMP_WAIT_POLICY=PASSIVE"]
 # The loss a mission's link_loss_started line asks for (kinfly-sim: "loss=0.2 run=4").
 LOSS_SHAPE = re.compile(r"loss=([0-9.e+-]+) run=([0-9.e+-]+)")
 OUTPUTS = {
@@ -98,7 +107,8 @@ class Ground:
     """kinfly-ground in the namespace, killed and restarted as the mission says."""
 
     def __init__(self, netns: list[str], out: Path, key: Path) -> None:
-        self.command = [*netns, *ground_command(out, key=key, lcm_url=GROUND_LCM_URL),
+        self.command = [*netns, *SHARE_CORES,
+                        *ground_command(out, key=key, lcm_url=GROUND_LCM_URL),
                         "--peer", f"127.0.0.1:{DRONE_PEER_PORT}", "--peer-port",
                         str(GROUND_PEER_PORT)]
         self.out = out
@@ -204,8 +214,8 @@ def drone_command(key: Path, out: Path, camera_downsample: int) -> list[str]:
             "--vehicle.key_file", str(key), "--link.lcm_url", LCM_URL, "--source.kind", "lcm",
             "--source.realtime", "false", "--source.lockstep", "true", "--flight.backend", "motors",
             "--flight.imu", "lcm", "--flight.lockstep", "true",
-            # The simulator waits while the odometry runs, and the engine's result does not
-            # depend on its threads (docs/sim.md, "Lockstep").
+            "--flight.lockstep_pose_age_s", str(POSE_AGE_MS / 1000),
+            # The engine's result does not depend on its threads (docs/sim.md, "Lockstep").
             "--odometry.threads", "2",
             "--output.trajectory", str(out / "drone_trajectory.tum")]
 
@@ -224,7 +234,8 @@ def scene_arguments(scene: str) -> list[str]:
 
 def sim_command(key: Path, out: Path, args: argparse.Namespace, scene: list[str]) -> list[str]:
     return [str(BUILD / "kinfly-sim"), "--key-file", str(key), "--vehicle", str(VEHICLE_ID),
-            "--lcm-url", LCM_URL, *scene, "--seed", str(args.seed),
+            "--lcm-url", LCM_URL, *scene, "--seed", str(args.seed), "--pose-age-ms",
+            str(POSE_AGE_MS),
             "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
             "--summary", str(out / "sim_summary.json"), "--scene-mesh", str(out / "scene.ply"),
             "--truth-lcm-url", GROUND_LCM_URL, "--orchestrated",
@@ -322,9 +333,11 @@ def main() -> int:
             link = Link(netns)
             try:
                 ground = Ground(netns, out, key)
-                drone = Watched([*netns, *drone_command(key, out, args.camera_downsample)],
+                drone = Watched([*netns, *SHARE_CORES,
+                                 *drone_command(key, out, args.camera_downsample)],
                                 "[drone]  ", quiet=False)
-                sim = Watched([*netns, *sim_command(key, out, args, scene)], "[sim]    ",
+                sim = Watched([*netns, *SHARE_CORES, *sim_command(key, out, args, scene)],
+                              "[sim]    ",
                               quiet=False, answered=True)
                 acted = 0
                 # The simulator waits after each such line: the latest is the one to act on.

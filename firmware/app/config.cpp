@@ -1,5 +1,6 @@
 #include "config.h"
 
+#include <algorithm>
 #include <cstdlib>
 #include <initializer_list>
 #include <string_view>
@@ -297,6 +298,11 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "the IMU's stamps are the only clock (a lockstep simulator): no ticks of the "
                   "task's own while it is silent")
       ->capture_default_str();
+  app->add_option("--flight.lockstep_pose_age_s", f.lockstep_pose_age_s,
+                  "with flight.lockstep: each odometry pose reaches the estimator this long after "
+                  "its frame's capture, as kinfly-sim --pose-age-ms waits for it [s]; 0: when "
+                  "published")
+      ->capture_default_str();
   app->add_option("--flight.mass_kg", st.vehicle.mass_kg, "vehicle mass [kg]")
       ->capture_default_str();
   app->add_option("--flight.arm_length_m", st.vehicle.arm_length_m,
@@ -418,8 +424,18 @@ Status FlightConfig::validate() const {
                          attitude_law + "\")");
   if (Status url = lcm_url.empty() ? Status() : Publisher::checkUrl(lcm_url); !url.ok())
     return Status::error("flight.lcm_url: " + url.message());
+  if (lockstep_pose_age_s != 0.0 && !lockstep)
+    return Status::error("flight.lockstep_pose_age_s needs flight.lockstep = true: a real IMU's "
+                         "poses are fused when they come");
+  // Half of what the stack counts as a fresh pose (or of the estimator's history, if shorter),
+  // so that the pose after the last fused one comes before the last grows stale.
+  const flight::FlightStackParams params = stackParams();
+  const double max_age_s = 0.5 * std::min({params.estimator.history_s,
+                                           params.estimator.vision_timeout_s,
+                                           params.modes.vision_fresh_s});
   return firstError(outOfRange("flight.rt_priority", rt_priority, 0, 99),
                     outOfRange("flight.cpu", cpu, -1, 1023),
+                    outOfRange("flight.lockstep_pose_age_s", lockstep_pose_age_s, 0.0, max_age_s),
                     namingKeys(stackParams().validate(),
                                {{"position.rate_hz", "flight.position_rate_hz"},
                                 {"vehicle.mass_kg", "flight.mass_kg"},

@@ -120,6 +120,13 @@ struct FlightConfig {                            // [flight] docs/flight.md, "Th
   // is silent after its first sample (so no IMU-lost failsafe either). false: a real IMU, whose
   // silence is a failure the stack must see on the wall clock.
   bool lockstep = false;
+  // lockstep_pose_age_s: with lockstep, each odometry pose reaches the estimator at the first IMU
+  // sample this long after its frame's capture, and the simulator (kinfly-sim --pose-age-ms, the
+  // same age) waits for the pose only then: the odometry runs beside the simulation and the
+  // flight stays the same on any machine. A pose fetched after that sample is counted
+  // (ControlSummary::poses_late). [0, 0.1]; 0: each pose at the first sample after it is
+  // published, as on a drone (kinfly-sim --pose-age-ms 0 waits for it at its frame's delivery).
+  double lockstep_pose_age_s = 0.0;
   // rate_hz (the IMU's sample rate: one tick per sample), position_rate_hz, the vehicle's mass_kg
   // and arm_length_m, max_speed_m_s, max_accel_m_s2, max_jerk_m_s3, land_speed_m_s,
   // vision_lost_s: the flight

@@ -87,7 +87,8 @@ ControlTask::ControlTask(const FirmwareConfig& config, std::unique_ptr<flight::F
       commands_(commands),
       flight_status_(flight_status),
       pose_history_(pose_history),
-      stop_(stop) {
+      stop_(stop),
+      pose_age_us_(std::llround(config.flight.lockstep_pose_age_s * 1e6)) {
   command_.vehicle_id = config.vehicle.id;
 }
 
@@ -225,9 +226,12 @@ void ControlTask::takeImu(const flight::ImuSample& sample) {
     T_world_body.linear() = state.q_world_body.toRotationMatrix();
     T_world_body.translation() = state.p_world_body_m;
     // Never waits for the odometry, which holds the lock for a lookup: a sample it meets held
-    // is left out (the history interpolates across it). Both kinds of reset jump the estimate:
-    // the odometry takes no motion across one.
-    std::unique_lock<std::mutex> lock(pose_history_->mutex, std::try_to_lock);
+    // is left out (the history interpolates across it). A lockstep flight's odometry runs
+    // beside this task (flight.lockstep_pose_age_s): there every sample waits its turn, so that
+    // the history, and the prior, are the same on any machine. Both kinds of reset jump the
+    // estimate: the odometry takes no motion across one.
+    std::unique_lock<std::mutex> lock(pose_history_->mutex, std::defer_lock);
+    if (config_.flight.lockstep) lock.lock(); else static_cast<void>(lock.try_lock());
     if (lock.owns_lock()) {
       pose_history_->history.add(state.utime,
                                  T_world_body * stack_->params().estimator.T_body_cam,
@@ -242,8 +246,25 @@ void ControlTask::tick(int64_t utime) {
   // the stamp of a sample that then arrives late, and the modes' timers (landed for a second,
   // the tilt held beyond its limit) take a time before their start as long ago.
   utime = std::max(utime, last_tick_utime_);
+  const int64_t previous_tick_utime = last_tick_utime_;
   last_tick_utime_ = utime;
-  if (poses_->fetch()) {
+  // Fetched early (flight.lockstep_pose_age_s), a pose waits for its age: it is fused at the
+  // same simulated instant however fast the odometry was. Without an age nothing waits, nor
+  // compares the camera's stamps with the IMU's (a drone's may run on other clocks).
+  if (!pose_held_) {
+    pose_held_ = poses_->fetch();
+    // Its due sample already ticked without it: the flight no longer fuses it at one instant.
+    if (pose_held_ && pose_age_us_ > 0 &&
+        previous_tick_utime >= poses_->front().utime + pose_age_us_) {
+      if (summary_.poses_late++ == 0)
+        spdlog::warn("control: lockstep: the pose of the frame captured at {} µs came after its "
+                     "age ({:.3f} s) had passed: is the simulator's --pose-age-ms larger than "
+                     "flight.lockstep_pose_age_s? (counted in the summary)",
+                     poses_->front().utime, config_.flight.lockstep_pose_age_s);
+    }
+  }
+  if (pose_held_ && (pose_age_us_ == 0 || utime >= poses_->front().utime + pose_age_us_)) {
+    pose_held_ = false;
     const flight::AnchoredVision::Inputs vision = anchored_.take(poses_->front());
     if (vision.reset) {
       if (stack_->applyReset(*vision.reset)) {

@@ -34,6 +34,9 @@ struct ControlSummary {
   int64_t commands_sent = 0;   // motor_command_t published (motors backend)
   int64_t commands_unsent = 0;  // not: the control task's LCM was down
   int64_t poses_fused = 0;
+  // ... of which fetched after the IMU sample their flight.lockstep_pose_age_s was due at: a
+  // simulator waiting for them later than that (kinfly-sim --pose-age-ms larger) or not at all
+  int64_t poses_late = 0;
   int64_t poses_rejected = 0;  // gated, too old, out of order, or before the estimator started
   int64_t pose_resets = 0;     // gated too often in a row: the estimator reset to the pose
   int64_t resets = 0;           // the ground's anchor jumped: the estimator reset
@@ -86,6 +89,8 @@ class ControlTask {
   LatestValue<flight_status_t>* flight_status_;
   SharedPoseHistory* pose_history_;
   const StopToken* stop_;
+  const int64_t pose_age_us_;  // flight.lockstep_pose_age_s
+  bool pose_held_ = false;     // poses_->front() fetched, not fused yet
   // Made by run() after the thread's priority is set: LCM's receive thread, which empties the
   // IMU's socket, is started from it and inherits the priority.
   std::optional<Publisher> publisher_;

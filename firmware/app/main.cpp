@@ -13,6 +13,7 @@
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <csignal>
 #include <cstdio>
 #include <memory>
@@ -229,7 +230,10 @@ int run(int argc, char** argv) {
   LatestValue<OdometryPose> poses;
   LatestValue<CommandMail> commands;
   LatestValue<flight_status_t> flight_status;
-  SharedPoseHistory pose_history;
+  // The fastest of the IMU's rate as configured and the estimator's own limit.
+  const flight::FlightStackParams stack_params = config.flight.stackParams();
+  SharedPoseHistory pose_history(
+      std::max(stack_params.rate_hz, stack_params.estimator.imu_rate_max_hz));
   OdometryTask odometry(config, camera, volume_params, pipeline_params, &anchor, &counters,
                         &capture_queue, &keyframe_queue, stack ? &poses : nullptr,
                         stack ? &pose_history : nullptr, &stop);
@@ -297,14 +301,14 @@ int run(int argc, char** argv) {
     const flight::FlightCounters& f = c.modes;
     std::printf(
         "kinfly-fw: control: %lld IMU samples (%lld rejected), %lld ticks (%lld without a new "
-        "sample); %lld poses fused, %lld rejected, %lld resets to a pose, %lld resets (%lld "
-        "before the start); "
+        "sample); %lld poses fused (%lld after their lockstep age), %lld rejected, %lld resets "
+        "to a pose, %lld resets (%lld before the start); "
         "estimator %s; mode %s, %lld mode changes, %lld commands accepted, %lld refused; "
         "failsafes: %lld vision lost, %lld estimator diverged, %lld attitude limit, %lld IMU "
         "lost, %lld geofence; %lld rotor commands sent, %lld not; %lld signed commands passed "
         "by the link, %lld dropped\n",
         n(c.imu_samples), n(c.imu_rejected), n(c.ticks), n(c.silent_ticks), n(c.poses_fused),
-        n(c.poses_rejected), n(c.pose_resets), n(c.resets), n(c.resets_rejected),
+        n(c.poses_late), n(c.poses_rejected), n(c.pose_resets), n(c.resets), n(c.resets_rejected),
         c.estimator_started ? "started" : "not started",
         flight::toString(c.mode), n(f.mode_changes), n(f.commands_accepted),
         n(f.commands_refused), n(f.vision_lost), n(f.estimator_diverged), n(f.attitude_limit),

@@ -4,6 +4,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <mutex>
 #include <optional>
@@ -81,11 +82,19 @@ struct CommandMail {
 };
 
 // The estimator's camera poses, written by the control task at every IMU sample (when the lock is
-// free: it never waits), read by the odometry for its motion prior (flight::PoseHistory): a
-// second of a 1 kHz IMU.
+// free: it never waits, but in a lockstep flight), read by the odometry for its motion prior
+// across at most kSpanS (flight::PoseHistory). The ring also holds kLeadS, how far the control
+// task may be ahead of the frame the odometry looks up: a drone's latency and processing, or a
+// lockstep flight's pose age (flight.lockstep_pose_age_s, at most 0.1 s), so that a lookup's
+// answer does not depend on how far the control task ran meanwhile.
 struct SharedPoseHistory {
+  static constexpr double kSpanS = 1.0;   // [s] the longest loss of tracking the prior bridges
+  static constexpr double kLeadS = 0.25;  // [s]
+  explicit SharedPoseHistory(double imu_rate_hz)
+      : history(static_cast<int>(std::ceil((kSpanS + kLeadS) * imu_rate_hz)) + 1,
+                static_cast<int64_t>(kSpanS * 1e6)) {}
   std::mutex mutex;
-  flight::PoseHistory history{1024};
+  flight::PoseHistory history;
 };
 
 struct KeyframeJob {

@@ -44,7 +44,10 @@ PEER_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
 # The unicast link's counters in summary.json (PeerCounters, firmware/link peer.h).
 PEER_COUNTERS = ("sent", "send_failed", "too_large", "received", "foreign", "malformed",
                  "unexpected_channel")
-STATUS_PERIOD_S = 0.1      # the ground_status_t at 10 Hz, as the drone's status
+# The ground_status_t at 10 Hz, as the drone's status, and at once (within a turn of the loop,
+# 20 ms at most) when a keyframe is done: a drone in lockstep (source.lockstep) waits for that
+# word before its next frame's pose, and waited 50 ms a keyframe on average for the next tick.
+STATUS_PERIOD_S = 0.1
 LINK_TIMEOUT_S = 1.0       # the drone is STALE after this long unheard (as kinfly-fw's default)
 PROGRESS_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 30.0     # at exit, the longest wait for queued keyframes to be fused
@@ -365,8 +368,10 @@ def run(args: argparse.Namespace) -> int:
 def _serve(transport: Transport, station: Station, bridge: Any, args: argparse.Namespace,
            started: float, stop: threading.Event, export_now: threading.Event,
            snapshot_outputs: Callable[[], None]) -> None:
-    """The LCM thread's loop: messages, status at 10 Hz, MAVLink, progress, until told to stop."""
+    """The LCM thread's loop: messages, status at 10 Hz and when a keyframe is done, MAVLink,
+    progress, until told to stop."""
     next_status = next_progress = time.monotonic()
+    reported_done: dict[int, int] = {}  # each vehicle's last keyframe done, as last published
     while not stop.is_set():
         try:
             transport.handle(20)
@@ -384,8 +389,10 @@ def _serve(transport: Transport, station: Station, bridge: Any, args: argparse.N
         if bridge is not None and bridge.poll() and args.vehicle in station.vehicles:
             station.vehicles[args.vehicle].view.telemetry(bridge.state.last_heard_utime,
                                                           bridge.state.as_metrics())
-        if now >= next_status:
+        done = {vid: state.last_done_keyframe_id for vid, state in list(station.vehicles.items())}
+        if now >= next_status or done != reported_done:
             next_status = now + STATUS_PERIOD_S
+            reported_done = done
             _publish_status(transport, station, ground_status_t.RUN_ACTIVE)
         if now >= next_progress:
             next_progress = now + PROGRESS_PERIOD_S

@@ -4,10 +4,12 @@
 // step per IMU sample), publishes the sample, and waits for kinfly-fw's control task to answer it
 // with the rotor commands of that sample (motor_command_t, same utime) before it goes on. Depth
 // frames are rendered at capture time and published after the camera's latency; the simulator
-// then waits for the odometry's pose of that frame (odometry_t, same utime), so the control task
-// sees it at the same simulated instant on any machine. The mission (a TOML file, or the built-in
-// take off, hold, land) is sent as signed commands, as `kinfly-ground command` would, and its
-// scripted faults act on the world at their times.
+// waits for the odometry's pose of that frame (odometry_t, same utime) before it sends the IMU
+// sample at which the pose is due (--pose-age-ms after the capture; 0: at once), and kinfly-fw's
+// control task fuses the pose at that sample (flight.lockstep_pose_age_s, the same age): the
+// odometry runs beside the simulation, and the flight is the same on any machine. The mission (a
+// TOML file, or the built-in take off, hold, land) is sent as signed commands, as `kinfly-ground
+// command` would, and its scripted faults act on the world at their times.
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
 
@@ -15,6 +17,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <deque>
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
@@ -71,6 +74,7 @@ struct Options {
   double takeoff_height_m = 1.0;
   double hover_s = 10.0;
   double crash_speed_m_s = 1.5;
+  double pose_age_ms = 0.0;
   int camera_downsample = 1;
   std::string summary;
   std::string scene_mesh;
@@ -99,6 +103,30 @@ Status validate(const Options& o) {
       outOfRange("--inertia-error", o.inertia_error, -0.5, 0.5),
       outOfRange("--thrust-error", o.thrust_error, -0.5, 0.5),
       outOfRange("--camera-downsample", o.camera_downsample, 1, 4));
+}
+
+// --pose-age-ms against the clocks: a pose is due after its frame's delivery, and at the latest
+// when the next frame is delivered, so that kinfly-fw has fused it before the odometry can
+// publish the next (its control task holds one pose). Captures fall on the IMU's steps, the next
+// at least the frame period rounded down to them after the last. Rates and latency valid.
+Status checkPoseAge(const Options& o, const ImuParams& imu, const DepthCameraParams& camera) {
+  if (o.pose_age_ms == 0.0) return {};
+  const int64_t step_us = std::llround(1e6 / imu.rate_hz);
+  const int64_t frame_us = std::llround(1e6 / camera.rate_hz);
+  const int64_t latency_us = std::llround(camera.latency_s * 1e6);
+  const int64_t latest_us = latency_us + frame_us / step_us * step_us;
+  const int64_t age_us = std::llround(o.pose_age_ms * 1e3);
+  if (age_us >= latency_us && age_us <= latest_us) return {};
+  char why[320];
+  std::snprintf(why, sizeof why,
+                "--pose-age-ms %g: a pose is due between its frame's delivery (the camera's "
+                "latency, %g ms) and the next frame's (%g ms: the latency and %g ms between "
+                "captures on the IMU's %g ms steps)",
+                o.pose_age_ms, static_cast<double>(latency_us) * 1e-3,
+                static_cast<double>(latest_us) * 1e-3,
+                static_cast<double>(latest_us - latency_us) * 1e-3,
+                static_cast<double>(step_us) * 1e-3);
+  return Status::error(why);
 }
 
 // The simulated vehicle: the nominal one with the stated errors.
@@ -309,6 +337,10 @@ int run(const Options& o) {
       return 2;
     }
   }
+  if (const Status age = checkPoseAge(o, imu_params, camera_params); !age.ok()) {
+    std::fprintf(stderr, "kinfly-sim: %s\n", age.message().c_str());
+    return 2;
+  }
   StatusOr<Mission> loaded = o.mission_file.empty()
                                 ? StatusOr<Mission>(defaultMission(o.takeoff_height_m, o.hover_s))
                                 : loadMission(o.mission_file);
@@ -439,6 +471,22 @@ int run(const Options& o) {
   int64_t next_frame_us = kStartUtime;
   Vector4d command = Vector4d::Zero();
   Flight flight;
+  const int64_t pose_age_us = std::llround(o.pose_age_ms * 1e3);
+  // Capture times of the frames delivered whose poses are due later (--pose-age-ms), oldest first.
+  std::deque<int64_t> awaited;
+  // False when kinfly-fw's odometry did not answer the frame captured at `captured` (counted).
+  const auto awaitPose = [&](int64_t captured) {
+    if (!link_io.waitFor([&] { return answers.odometry.count(captured) > 0; })) {
+      ++flight.odometry_missed;
+      std::fprintf(stderr, "kinfly-sim: kinfly-fw's odometry did not answer the frame captured "
+                           "at t=%.3f s within %.0f s (its log says why: is source.kind = lcm, "
+                           "its camera this one?)\n",
+                   static_cast<double>(captured - kStartUtime) * 1e-6, o.wait_s);
+      return false;
+    }
+    answers.odometry.erase(answers.odometry.begin(), answers.odometry.upper_bound(captured));
+    return true;
+  };
   // Heights are the body's above where it stood (as kinfly-fw's take-off counts them).
   const double stand_z_m = scene.value().floor_z_m - vehicle_params.gear_height_m;
   // Holding after a take-off: from the climb's end (at ~0.5 m/s, with room) to the next command.
@@ -564,15 +612,11 @@ int run(const Options& o) {
       const int64_t captured = pending.front().message.utime;
       lcm.publish(depth_channel, &pending.front().message);
       pending.erase(pending.begin());
-      if (!link_io.waitFor([&] { return answers.odometry.count(captured) > 0; })) {
-        ++flight.odometry_missed;
-        std::fprintf(stderr, "kinfly-sim: kinfly-fw's odometry did not answer the frame captured "
-                             "at t=%.3f s within %.0f s (its log says why: is source.kind = lcm, "
-                             "its camera this one?)\n",
-                     static_cast<double>(captured - kStartUtime) * 1e-6, o.wait_s);
+      if (pose_age_us > 0) {
+        awaited.push_back(captured);
+      } else if (!awaitPose(captured)) {
         break;
       }
-      answers.odometry.erase(answers.odometry.begin(), answers.odometry.upper_bound(captured));
     }
     if (flight.odometry_missed > 0) break;
 
@@ -625,6 +669,10 @@ int run(const Options& o) {
       lcm.publish(state_channel, &state_msg);
     }
     if (flight.collided) break;
+    // The poses due at this sample, before it: the control task fuses them there.
+    while (!awaited.empty() && awaited.front() + pose_age_us <= utime && awaitPose(awaited.front()))
+      awaited.pop_front();
+    if (flight.odometry_missed > 0) break;
     lcm.publish(imu_channel, &imu_msg);
     if (!link_io.waitFor([&] { return answers.motor_utime == utime; })) {
       ++flight.motor_missed;
@@ -659,6 +707,11 @@ int run(const Options& o) {
       std::fflush(stdout);
       next_progress_s += 5.0;
     }
+  }
+  // The poses of the frames delivered, as at a frame's delivery with --pose-age-ms 0: every
+  // frame sent is answered before the flight's outputs are, whatever kinfly-fw was still doing.
+  if (flight.motor_missed == 0 && flight.odometry_missed == 0) {
+    while (!awaited.empty() && awaitPose(awaited.front())) awaited.pop_front();
   }
   flight.sim_s = static_cast<double>(utime - kStartUtime) * 1e-6;
   flight.wall_s = std::chrono::duration<double>(Clock::now() - wall_start).count();
@@ -780,6 +833,13 @@ int main(int argc, char** argv) {
   app.add_option("--crash-speed-m-s", o.crash_speed_m_s,
                  "a touchdown faster than this is a crash [m/s]")
       ->capture_default_str();
+  app.add_option("--pose-age-ms", o.pose_age_ms,
+                 "each frame's pose is waited for before the IMU sample this long after its "
+                 "capture, not at the frame's delivery, so kinfly-fw's odometry runs beside the "
+                 "simulation; kinfly-fw's flight.lockstep_pose_age_s must be the same age (it "
+                 "fuses the pose at that sample) [ms]; from the camera's latency to the next "
+                 "frame's delivery (63 at the defaults); 0: waited for at delivery")
+      ->capture_default_str();
   app.add_option("--camera-downsample", o.camera_downsample,
                  "render a Kinect at 1/N of its 640x480, principal point at the centre [1, 4]")
       ->capture_default_str();
@@ -787,7 +847,8 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--camera-latency-s", o.camera.latency_s, "capture to delivery [s]")
       ->capture_default_str();
-  // kinfly-fw waits in the lockstep while a frame renders, so its core is free for the rays.
+  // With --pose-age-ms 0 kinfly-fw waits in the lockstep while a frame renders, so its cores are
+  // free for the rays; otherwise its odometry shares them.
   o.camera.threads = static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 4u));
   app.add_option("--camera-threads", o.camera.threads,
                  "threads a frame is rendered over (the frame is the same for any count) [1, 64]; "

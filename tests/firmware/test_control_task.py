@@ -176,6 +176,10 @@ def test_signed_commands_reach_the_flight_modes_and_unsigned_ones_do_not(
      "flight.position_rate_hz (250.000000) must not exceed flight.rate_hz (200.000000)"),
     (["--flight.mass_kg", "0"], "flight.mass_kg must be in (0, 50] (got 0)"),
     (["--flight.rt_priority", "120"], "flight.rt_priority must be in [0, 99] (got 120)"),
+    (["--flight.lockstep_pose_age_s", "0.063"],
+     "flight.lockstep_pose_age_s needs flight.lockstep = true"),
+    (["--flight.lockstep", "true", "--flight.lockstep_pose_age_s", "0.15"],
+     "flight.lockstep_pose_age_s must be in [0, 0.1] (got 0.15)"),
 ])
 def test_a_wrong_flight_setting_refuses_to_start(args: list[str], message: str) -> None:
     run = subprocess.run(firmware("--source.kind", "synthetic", *args), capture_output=True,

@@ -10,6 +10,7 @@ namespace kinfly::flight {
 namespace {
 
 constexpr double kTol = 1e-9;  // [m] and [rad]: interpolation is exact for these motions
+constexpr int64_t kAnySpanUs = 1'000'000'000;  // [µs] longer than any motion asked for here
 
 // A camera turning about z at 1 rad/s and moving along x at 1 m/s, from t = 0.
 Pose cameraAt(int64_t utime) {
@@ -26,7 +27,7 @@ double poseError(const Pose& a, const Pose& b) {
 }
 
 TEST(PoseHistory, MotionBetweenTwoTimesIsInterpolatedBetweenSamples) {
-  PoseHistory history(100);
+  PoseHistory history(100, kAnySpanUs);
   for (int64_t u = 0; u <= 50000; u += 5000) history.add(u, cameraAt(u), 0);
   // Between samples (12.5 ms and 37.5 ms): slerp and a straight line are exact for a constant
   // rate and speed.
@@ -42,7 +43,7 @@ TEST(PoseHistory, MotionBetweenTwoTimesIsInterpolatedBetweenSamples) {
 }
 
 TEST(PoseHistory, NoMotionOutsideTheHistoryOrAcrossAJump) {
-  PoseHistory history(4);
+  PoseHistory history(4, kAnySpanUs);
   for (int64_t u = 0; u <= 50000; u += 5000) history.add(u, cameraAt(u), u < 45000 ? 0 : 1);
   // The ring kept the last four: 35, 40, 45 and 50 ms.
   EXPECT_FALSE(history.motion(30000, 40000).has_value());  // forgotten
@@ -56,6 +57,36 @@ TEST(PoseHistory, NoMotionOutsideTheHistoryOrAcrossAJump) {
   ASSERT_TRUE(history.motion(45000, 50000).has_value());
   EXPECT_LT(poseError(*history.motion(45000, 50000), cameraAt(45000).inverse() * cameraAt(50000)),
             kTol);
+}
+
+TEST(PoseHistory, AMotionLongerThanTheSpanIsNone) {
+  constexpr int64_t kSpanUs = 20000;
+  PoseHistory history(100, kSpanUs);
+  for (int64_t u = 0; u <= 50000; u += 5000) history.add(u, cameraAt(u), 0);
+  EXPECT_TRUE(history.motion(10000, 10000 + kSpanUs).has_value());
+  EXPECT_FALSE(history.motion(10000, 10000 + kSpanUs + 1).has_value());
+  EXPECT_FALSE(history.motion(10000 + kSpanUs + 1, 10000).has_value());
+}
+
+// The odometry's lookup of a lockstep flight runs while the control task adds samples: with the
+// span's worth and the control task's lead in the ring, what came after `to` never changes the
+// answer, and a lookup at the span's edge is answered or refused alike.
+TEST(PoseHistory, TheAnswerDoesNotDependOnWhatCameAfter) {
+  constexpr int64_t kStepUs = 1000, kSpanUs = 100000, kLeadUs = 40000;
+  constexpr int kCapacity = static_cast<int>((kSpanUs + kLeadUs) / kStepUs) + 1;
+  PoseHistory early(kCapacity, kSpanUs), late(kCapacity, kSpanUs);
+  constexpr int64_t kTo = 500000;
+  for (int64_t u = 0; u <= kTo; u += kStepUs) early.add(u, cameraAt(u), 0);
+  for (int64_t u = 0; u <= kTo + kLeadUs; u += kStepUs) late.add(u, cameraAt(u), 0);
+  for (const int64_t from : {kTo - kSpanUs - 1, kTo - kSpanUs, kTo - kSpanUs / 2}) {
+    const std::optional<Pose> a = early.motion(from, kTo), b = late.motion(from, kTo);
+    ASSERT_EQ(a.has_value(), b.has_value()) << "from " << from;
+    if (a) {
+      EXPECT_EQ(a->matrix(), b->matrix()) << "from " << from;
+    }
+  }
+  EXPECT_FALSE(late.motion(kTo - kSpanUs - 1, kTo).has_value());
+  EXPECT_TRUE(late.motion(kTo - kSpanUs, kTo).has_value());
 }
 
 }  // namespace

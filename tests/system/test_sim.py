@@ -19,7 +19,8 @@ from netns import send_signal
 
 from conftest import REPO_ROOT, built
 from demo import Watched, make_key
-from firmware_run import firmware, summary
+from firmware_run import control_summary, firmware, summary
+from sim import POSE_AGE_MS
 
 VEHICLE = 5
 LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
@@ -73,6 +74,8 @@ loss_run_packets = 5
 # the ~80 datagrams a second, so 3 s of it dropped none in ~9 % of flights; 10 s leaves ~2e-4.
 LINK_LOSS_LINE = re.compile(r"sim: link loss, 5% loss, runs of 5, to UDP ports 7668, 7669: "
                             r"(\d+) of (\d+) datagrams dropped")
+# kinfly-fw's age 2 ms after the camera's 30 ms latency, where the simulator waits POSE_AGE_MS.
+LATE_POSE_AGE_S = 0.032
 # What differs between two flights of one seed: how long they took on the wall clock.
 WALL_CLOCK_FIELDS = {"wall_s", "real_time_factor"}
 
@@ -82,27 +85,31 @@ def keygen(tmp_path: Path) -> Path:
 
 
 def fly(netns: list[str], key: Path, summary: Path, seed: int = 1,
-        mission: Path | None = None) -> tuple[dict, str, str]:
-    """kinfly-fw (lcm depth, motors backend, lockstep) and kinfly-sim's mission (the built-in
-    take-off, hold and land unless given) at 320x240: the simulator's summary, its output, and
-    kinfly-fw's."""
+        mission: Path | None = None, odometry_threads: int = 1,
+        pose_age_s: float = POSE_AGE_MS / 1000) -> tuple[dict, str, str]:
+    """kinfly-fw (lcm depth, motors backend, lockstep, each pose fused at make sim's age while
+    the odometry runs beside the simulator) and kinfly-sim's mission (the built-in take-off, hold
+    and land unless given) at 320x240: the simulator's summary, its output, and kinfly-fw's."""
     drone = Watched([*netns, *firmware(
         "--vehicle.id", VEHICLE, "--source.kind", "lcm", "--source.realtime", "false",
         "--source.width", 320, "--source.height", 240, "--odometry.downsample", 1,
         "--flight.backend", "motors", "--flight.imu", "lcm", "--flight.lockstep", "true",
-        key_file=str(key), lcm_url=LCM_URL)])
+        "--flight.lockstep_pose_age_s", pose_age_s, "--odometry.threads",
+        odometry_threads, key_file=str(key), lcm_url=LCM_URL)])
     try:
         sim = subprocess.run(
             [*netns, built("bin/kinfly-sim"), "--key-file", key, "--vehicle", str(VEHICLE),
              "--lcm-url", LCM_URL, "--camera-downsample", "2", "--hover-s", str(HOVER_S),
              "--takeoff-height-m", str(TAKEOFF_HEIGHT_M), "--seed", str(seed),
-             "--max-seconds", "40", "--summary", summary,
+             "--max-seconds", "40", "--summary", summary, "--pose-age-ms", str(POSE_AGE_MS),
              *(["--mission", mission] if mission else [])],
             capture_output=True, text=True, timeout=FLIGHT_TIMEOUT_S)
     finally:
         send_signal(drone.process, signal.SIGINT)
         drone.finish(60)
     assert sim.returncode == 0, (sim.stdout, sim.stderr, drone.output()[-3000:])
+    if pose_age_s == POSE_AGE_MS / 1000:  # kinfly-sim's and kinfly-fw's ages agree
+        assert control_summary(drone.output())["poses_late"] == 0, drone.output()[-3000:]
     return json.loads(summary.read_text()), sim.stdout, drone.output()
 
 
@@ -200,13 +207,27 @@ def test_the_odometry_tracks_again_after_a_dropout_in_flight(netns: list[str],
 
 
 def test_one_seed_flies_one_flight(netns: list[str], tmp_path: Path) -> None:
+    """The second flight's odometry on two threads, the first's on one: its poses come at other
+    moments of the simulator's steps, and must still be fused at the same samples."""
     key = keygen(tmp_path)
     first, _, _ = fly(netns, key, tmp_path / "first.json", seed=4)
-    second, _, _ = fly(netns, key, tmp_path / "second.json", seed=4)
+    second, _, _ = fly(netns, key, tmp_path / "second.json", seed=4, odometry_threads=2)
     for figures in (first, second):
         for field in WALL_CLOCK_FIELDS:
             figures.pop(field)
     assert first == second
+
+
+def test_a_pose_later_than_its_age_is_counted(netns: list[str], tmp_path: Path) -> None:
+    """kinfly-fw told a shorter age than the simulator waits for: its poses come after their
+    due samples (each frame's odometry takes milliseconds, the 2 ms from delivery to due take
+    the simulator a fraction of one), and it says so; the flight still flies."""
+    key = keygen(tmp_path)
+    figures, _, drone_output = fly(netns, key, tmp_path / "summary.json",
+                                   pose_age_s=LATE_POSE_AGE_S)
+    assert figures["landed"], figures
+    assert control_summary(drone_output)["poses_late"] > 0, drone_output[-3000:]
+    assert "came after its age (0.032 s) had passed" in drone_output, drone_output[-3000:]
 
 
 def test_says_when_kinfly_fw_is_not_there(netns: list[str], tmp_path: Path) -> None:
@@ -225,6 +246,11 @@ def test_says_when_kinfly_fw_is_not_there(netns: list[str], tmp_path: Path) -> N
     (["--takeoff-height-m", "3"], "--takeoff-height-m must be in [0.2, 2.5] (got 3)"),
     (["--imu-rate-hz", "10"], "imu.rate_hz must be in [50, 8000] (got 10)"),
     (["--wind", "1", "2"], "--wind"),
+    (["--pose-age-ms", "20"], "--pose-age-ms 20: a pose is due between its frame's delivery "
+     "(the camera's latency, 30 ms) and the next frame's (63 ms: the latency and 33 ms between "
+     "captures on the IMU's 1 ms steps)"),
+    (["--pose-age-ms", "64"], "--pose-age-ms 64: a pose is due between"),
+    (["--pose-age-ms", "50", "--camera-rate-hz", "60"], "the next frame's (46 ms"),
     (["--scene-mesh", "/nonexistent/scene.ply"],
      "--scene-mesh: cannot write /nonexistent/scene.ply: No such file or directory"),
 ])

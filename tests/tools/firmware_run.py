@@ -89,7 +89,8 @@ def read_tum(path: Path) -> np.ndarray:
 _CONTROL = re.compile(
     r"kinfly-fw: control: (?P<imu_samples>\d+) IMU samples \((?P<imu_rejected>\d+) rejected\), "
     r"(?P<ticks>\d+) ticks \((?P<silent_ticks>\d+) without a new sample\); (?P<poses_fused>\d+) "
-    r"poses fused, (?P<poses_rejected>\d+) rejected, (?P<pose_resets>\d+) resets to a pose, "
+    r"poses fused \((?P<poses_late>\d+) after their lockstep age\), (?P<poses_rejected>\d+) "
+    r"rejected, (?P<pose_resets>\d+) resets to a pose, "
     r"(?P<resets>\d+) resets \((?P<resets_rejected>\d+) "
     r"before the start\); estimator (?P<estimator>started|not "
     r"started); mode (?P<mode>[a-z -]+), (?P<mode_changes>\d+) mode changes, "

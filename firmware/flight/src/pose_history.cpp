@@ -2,10 +2,12 @@
 
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <cstdlib>
 
 namespace kinfly::flight {
 
-PoseHistory::PoseHistory(int capacity) : ring_(static_cast<size_t>(std::max(capacity, 2))) {}
+PoseHistory::PoseHistory(int capacity, int64_t max_span_us)
+    : ring_(static_cast<size_t>(std::max(capacity, 2))), max_span_us_(max_span_us) {}
 
 void PoseHistory::add(int64_t utime, const Pose& T_world_cam, int64_t epoch) {
   if (count_ > 0 && utime <= at(count_ - 1).utime) return;
@@ -42,6 +44,7 @@ std::optional<PoseHistory::Entry> PoseHistory::poseAt(int64_t utime) const {
 }
 
 std::optional<Pose> PoseHistory::motion(int64_t from_utime, int64_t to_utime) const {
+  if (std::abs(to_utime - from_utime) > max_span_us_) return std::nullopt;
   const std::optional<Entry> from = poseAt(from_utime), to = poseAt(to_utime);
   if (!from || !to || from->epoch != to->epoch) return std::nullopt;
   return from->T_world_cam.inverse() * to->T_world_cam;

@@ -34,8 +34,8 @@ struct DepthCameraParams {
   double disparity_step_px = 0.125;   // [px] [0, 1] disparity resolution; 0: not quantised
   double depth_scale_m = 0.001;       // [m] (0, 0.01] per raw unit (OpenNI: 1 mm)
   uint64_t seed = 3;
-  // [1, 64] threads a frame's rays and its noise's transform are split over; the frame is the
-  // same for any count (the noise's draws stay in one sequence)
+  // [1, 64] threads a frame's rays and its quantisation are split over; the frame is the same
+  // for any count (the noise's deviates are drawn in one sequence, on one thread)
   int threads = 1;
   Status validate() const;
 };

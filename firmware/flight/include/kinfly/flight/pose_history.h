@@ -15,13 +15,18 @@ namespace kinfly::flight {
 
 class PoseHistory {
  public:
-  explicit PoseHistory(int capacity);  // > 1
+  // capacity > 1 entries; max_span_us > 0: the longest motion asked for. A ring that holds
+  // max_span_us and more lets a lookup's answer depend on its arguments alone, not on how many
+  // entries came after `to` before it was made (a lockstep flight's odometry runs beside the
+  // control task, which keeps adding: docs/sim.md, "Lockstep").
+  PoseHistory(int capacity, int64_t max_span_us);
 
   // Times must increase (others are ignored). `epoch` changes where the estimate jumped (a reset
   // to a pose, the ground's correction): no motion is taken across a jump.
   void add(int64_t utime, const Pose& T_world_cam, int64_t epoch);
   // T_world_cam(from)^-1 * T_world_cam(to), each interpolated between the stored poses around
-  // it; nullopt where either time lies outside the history or a jump lies between them.
+  // it; nullopt where either time lies outside the history, a jump lies between them, or they
+  // lie more than max_span_us apart.
   std::optional<Pose> motion(int64_t from_utime, int64_t to_utime) const;
 
  private:
@@ -35,6 +40,7 @@ class PoseHistory {
   std::optional<Entry> poseAt(int64_t utime) const;
 
   std::vector<Entry> ring_;  // oldest at head_, count_ entries
+  int64_t max_span_us_;
   int head_ = 0;
   int count_ = 0;
 };

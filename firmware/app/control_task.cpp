@@ -254,10 +254,11 @@ void ControlTask::tick(int64_t utime) {
   if (!pose_held_) {
     pose_held_ = poses_->fetch();
     // Its due sample already ticked without it: the flight no longer fuses it at one instant.
-    if (pose_held_ && pose_age_us_ > 0 &&
+    // (Ticks on the wall clock, before the first IMU sample, are no samples.)
+    if (pose_held_ && pose_age_us_ > 0 && last_imu_utime_ >= 0 &&
         previous_tick_utime >= poses_->front().utime + pose_age_us_) {
       if (summary_.poses_late++ == 0)
-        spdlog::warn("control: lockstep: the pose of the frame captured at {} µs came after its "
+        spdlog::warn("control: lockstep: the pose of the frame captured at {} us came after its "
                      "age ({:.3f} s) had passed: is the simulator's --pose-age-ms larger than "
                      "flight.lockstep_pose_age_s? (counted in the summary)",
                      poses_->front().utime, config_.flight.lockstep_pose_age_s);

@@ -34,8 +34,8 @@ struct ControlSummary {
   int64_t commands_sent = 0;   // motor_command_t published (motors backend)
   int64_t commands_unsent = 0;  // not: the control task's LCM was down
   int64_t poses_fused = 0;
-  // ... of which fetched after the IMU sample their flight.lockstep_pose_age_s was due at: a
-  // simulator waiting for them later than that (kinfly-sim --pose-age-ms larger) or not at all
+  // Poses (fused or not) fetched after the IMU sample their flight.lockstep_pose_age_s was due
+  // at: a simulator waiting for them later than that (kinfly-sim --pose-age-ms larger) or not
   int64_t poses_late = 0;
   int64_t poses_rejected = 0;  // gated, too old, out of order, or before the estimator started
   int64_t pose_resets = 0;     // gated too often in a row: the estimator reset to the pose

@@ -390,18 +390,24 @@ def _serve(transport: Transport, station: Station, bridge: Any, args: argparse.N
             station.vehicles[args.vehicle].view.telemetry(bridge.state.last_heard_utime,
                                                           bridge.state.as_metrics())
         done = {vid: state.last_done_keyframe_id for vid, state in list(station.vehicles.items())}
-        if now >= next_status or done != reported_done:
+        if now >= next_status:
             next_status = now + STATUS_PERIOD_S
-            reported_done = done
             _publish_status(transport, station, ground_status_t.RUN_ACTIVE)
+        elif changed := [vid for vid, last in done.items() if reported_done.get(vid) != last]:
+            _publish_status(transport, station, ground_status_t.RUN_ACTIVE, changed)
+        reported_done = done
         if now >= next_progress:
             next_progress = now + PROGRESS_PERIOD_S
             _progress(station, now - started)
 
 
-def _publish_status(transport: Transport, station: Station, run_state: int) -> None:
+def _publish_status(transport: Transport, station: Station, run_state: int,
+                    vehicles: list[int] | None = None) -> None:
+    """Every vehicle's status, or VEHICLES' only."""
     now = time.monotonic()
     for state in list(station.vehicles.values()):
+        if vehicles is not None and state.vehicle_id not in vehicles:
+            continue
         transport.publish(channel_name(Channel.GROUND_STATUS, state.vehicle_id),
                    station.ground_status(state, now, LINK_TIMEOUT_S, run_state).encode())
 

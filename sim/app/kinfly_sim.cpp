@@ -105,27 +105,28 @@ Status validate(const Options& o) {
       outOfRange("--camera-downsample", o.camera_downsample, 1, 4));
 }
 
-// --pose-age-ms against the clocks: a pose is due after its frame's delivery, and at the latest
-// when the next frame is delivered, so that kinfly-fw has fused it before the odometry can
-// publish the next (its control task holds one pose). Captures fall on the IMU's steps, the next
-// at least the frame period rounded down to them after the last. Rates and latency valid.
+// --pose-age-ms against the clocks: a pose is due after its frame's delivery (the IMU sample at
+// or after the latency, which has ticked before the frame is sent), and at the latest when the
+// next frame is delivered, so that kinfly-fw has fused it before the odometry can publish the
+// next (its control task holds one pose). Captures fall on the IMU's steps, the next at least the
+// frame period rounded down to them after the last. Rates and latency valid.
 Status checkPoseAge(const Options& o, const ImuParams& imu, const DepthCameraParams& camera) {
   if (o.pose_age_ms == 0.0) return {};
   const int64_t step_us = std::llround(1e6 / imu.rate_hz);
   const int64_t frame_us = std::llround(1e6 / camera.rate_hz);
   const int64_t latency_us = std::llround(camera.latency_s * 1e6);
-  const int64_t latest_us = latency_us + frame_us / step_us * step_us;
+  const int64_t delivered_us = (latency_us + step_us - 1) / step_us * step_us;
+  const int64_t latest_us = delivered_us + frame_us / step_us * step_us;
   const int64_t age_us = std::llround(o.pose_age_ms * 1e3);
-  if (age_us >= latency_us && age_us <= latest_us) return {};
+  if (age_us > delivered_us && age_us <= latest_us) return {};
   char why[320];
   std::snprintf(why, sizeof why,
-                "--pose-age-ms %g: a pose is due between its frame's delivery (the camera's "
-                "latency, %g ms) and the next frame's (%g ms: the latency and %g ms between "
-                "captures on the IMU's %g ms steps)",
-                o.pose_age_ms, static_cast<double>(latency_us) * 1e-3,
-                static_cast<double>(latest_us) * 1e-3,
-                static_cast<double>(latest_us - latency_us) * 1e-3,
-                static_cast<double>(step_us) * 1e-3);
+                "--pose-age-ms %g: a pose is due after its frame's delivery (%g ms: the camera's "
+                "latency on the IMU's %g ms steps) and at the latest at the next frame's (%g ms: "
+                "%g ms more between captures)",
+                o.pose_age_ms, static_cast<double>(delivered_us) * 1e-3,
+                static_cast<double>(step_us) * 1e-3, static_cast<double>(latest_us) * 1e-3,
+                static_cast<double>(latest_us - delivered_us) * 1e-3);
   return Status::error(why);
 }
 
@@ -837,8 +838,8 @@ int main(int argc, char** argv) {
                  "each frame's pose is waited for before the IMU sample this long after its "
                  "capture, not at the frame's delivery, so kinfly-fw's odometry runs beside the "
                  "simulation; kinfly-fw's flight.lockstep_pose_age_s must be the same age (it "
-                 "fuses the pose at that sample) [ms]; from the camera's latency to the next "
-                 "frame's delivery (63 at the defaults); 0: waited for at delivery")
+                 "fuses the pose at that sample) [ms]; after the frame's delivery, at the latest "
+                 "at the next frame's (31 to 63 at the defaults); 0: waited for at delivery")
       ->capture_default_str();
   app.add_option("--camera-downsample", o.camera_downsample,
                  "render a Kinect at 1/N of its 640x480, principal point at the centre [1, 4]")

@@ -86,15 +86,18 @@ def keygen(tmp_path: Path) -> Path:
 
 def fly(netns: list[str], key: Path, summary: Path, seed: int = 1,
         mission: Path | None = None, odometry_threads: int = 1,
-        pose_age_s: float = POSE_AGE_MS / 1000) -> tuple[dict, str, str]:
+        drone_pose_age_s: float | None = None) -> tuple[dict, str, str]:
     """kinfly-fw (lcm depth, motors backend, lockstep, each pose fused at make sim's age while
     the odometry runs beside the simulator) and kinfly-sim's mission (the built-in take-off, hold
-    and land unless given) at 320x240: the simulator's summary, its output, and kinfly-fw's."""
+    and land unless given) at 320x240: the simulator's summary, its output, and kinfly-fw's.
+    DRONE_POSE_AGE_S: kinfly-fw's age, where it is not the simulator's."""
     drone = Watched([*netns, *firmware(
         "--vehicle.id", VEHICLE, "--source.kind", "lcm", "--source.realtime", "false",
         "--source.width", 320, "--source.height", 240, "--odometry.downsample", 1,
         "--flight.backend", "motors", "--flight.imu", "lcm", "--flight.lockstep", "true",
-        "--flight.lockstep_pose_age_s", pose_age_s, "--odometry.threads",
+        "--flight.lockstep_pose_age_s",
+        POSE_AGE_MS / 1000 if drone_pose_age_s is None else drone_pose_age_s,
+        "--odometry.threads",
         odometry_threads, key_file=str(key), lcm_url=LCM_URL)])
     try:
         sim = subprocess.run(
@@ -108,7 +111,7 @@ def fly(netns: list[str], key: Path, summary: Path, seed: int = 1,
         send_signal(drone.process, signal.SIGINT)
         drone.finish(60)
     assert sim.returncode == 0, (sim.stdout, sim.stderr, drone.output()[-3000:])
-    if pose_age_s == POSE_AGE_MS / 1000:  # kinfly-sim's and kinfly-fw's ages agree
+    if drone_pose_age_s is None:  # kinfly-sim's and kinfly-fw's ages agree
         assert control_summary(drone.output())["poses_late"] == 0, drone.output()[-3000:]
     return json.loads(summary.read_text()), sim.stdout, drone.output()
 
@@ -224,7 +227,7 @@ def test_a_pose_later_than_its_age_is_counted(netns: list[str], tmp_path: Path) 
     the simulator a fraction of one), and it says so; the flight still flies."""
     key = keygen(tmp_path)
     figures, _, drone_output = fly(netns, key, tmp_path / "summary.json",
-                                   pose_age_s=LATE_POSE_AGE_S)
+                                   drone_pose_age_s=LATE_POSE_AGE_S)
     assert figures["landed"], figures
     assert control_summary(drone_output)["poses_late"] > 0, drone_output[-3000:]
     assert "came after its age (0.032 s) had passed" in drone_output, drone_output[-3000:]
@@ -246,10 +249,10 @@ def test_says_when_kinfly_fw_is_not_there(netns: list[str], tmp_path: Path) -> N
     (["--takeoff-height-m", "3"], "--takeoff-height-m must be in [0.2, 2.5] (got 3)"),
     (["--imu-rate-hz", "10"], "imu.rate_hz must be in [50, 8000] (got 10)"),
     (["--wind", "1", "2"], "--wind"),
-    (["--pose-age-ms", "20"], "--pose-age-ms 20: a pose is due between its frame's delivery "
-     "(the camera's latency, 30 ms) and the next frame's (63 ms: the latency and 33 ms between "
-     "captures on the IMU's 1 ms steps)"),
-    (["--pose-age-ms", "64"], "--pose-age-ms 64: a pose is due between"),
+    (["--pose-age-ms", "30"], "--pose-age-ms 30: a pose is due after its frame's delivery "
+     "(30 ms: the camera's latency on the IMU's 1 ms steps) and at the latest at the next "
+     "frame's (63 ms: 33 ms more between captures)"),
+    (["--pose-age-ms", "64"], "--pose-age-ms 64: a pose is due after"),
     (["--pose-age-ms", "50", "--camera-rate-hz", "60"], "the next frame's (46 ms"),
     (["--scene-mesh", "/nonexistent/scene.ply"],
      "--scene-mesh: cannot write /nonexistent/scene.ply: No such file or directory"),

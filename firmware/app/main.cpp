@@ -284,13 +284,15 @@ int run(int argc, char** argv) {
   const auto n = [](int64_t v) { return static_cast<long long>(v); };
   std::printf(
       "kinfly-fw: %s: %lld frames captured, %lld processed (%lld lost, %lld in degenerate "
-      "geometry; tracking back %lld times (%lld relocalised), after %lld lost frames at most), "
+      "geometry; tracking back %lld times (%lld relocalised, %lld in a new map), after %lld lost "
+      "frames at most), "
       "%lld dropped by the queue, %lld skipped; sensor opened %lld times, stalled %lld times; "
       "%lld keyframes sent, "
       "%lld dropped; %lld corrections applied, %lld rejected, %lld for unknown keyframes\n",
       interrupted ? "stopped" : "source ended", n(counters.frames_captured),
       n(counters.frames_processed), n(counters.frames_lost), n(counters.frames_weak),
-      n(counters.recoveries), n(counters.relocalisations), n(counters.longest_loss_frames),
+      n(counters.recoveries), n(counters.relocalisations), n(counters.new_maps),
+      n(counters.longest_loss_frames),
       n(capture_queue.dropped()),
       n(counters.frames_skipped), n(counters.sensor_connects), n(link.sensorStalls()),
       n(counters.keyframes_sent), n(counters.keyframes_failed + keyframe_queue.dropped()),

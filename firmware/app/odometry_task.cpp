@@ -90,15 +90,20 @@ void OdometryTask::process(const DepthCapture& capture) {
   } else if (r.recovered_after > 0) {
     ++counters_->recoveries;
     if (r.relocalised) ++counters_->relocalisations;
+    if (r.new_map) ++counters_->new_maps;
     if (r.recovered_after > counters_->longest_loss_frames)
       counters_->longest_loss_frames = r.recovered_after;
     if (recovery_log_.allow(secondsSince(began_)))
       spdlog::info("odometry: frame {}: tracking back after {} lost frame(s){} ({} more such "
                    "recoveries since the last report)",
                    capture.frame_id, r.recovered_after,
-                   r.relocalised ? ", relocalised against a keyframe" : "",
+                   r.relocalised ? ", relocalised against a keyframe"
+                   : r.new_map   ? ", in a new map (the old one no longer fitted)"
+                                 : "",
                    recovery_log_.suppressed());
   }
+  // A new map's first frame is always a keyframe: the ground learns where the new map began.
+  if (r.new_map) selector_.reset();
   const bool keyframe = selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction);
   Pose T_world_odom;
   int32_t reset_counter = 0;
@@ -109,7 +114,9 @@ void OdometryTask::process(const DepthCapture& capture) {
     reset_counter = anchor_->anchor.resetCounter();
   }
   const Pose T_world_cam = T_world_odom * r.T_world_cam;
-  if (poses_ != nullptr && r.status != TrackingStatus::kLost) {
+  // A new map's first pose is the IMU's prediction handed back, not a measurement: the
+  // estimator must not take it for one, nor its vision-lost failsafe for vision.
+  if (poses_ != nullptr && r.status != TrackingStatus::kLost && !r.new_map) {
     poses_->back() = OdometryPose{r.utime, r.T_world_cam, T_world_odom, reset_counter, r.weak};
     poses_->publish();
   }

@@ -53,7 +53,7 @@ struct Counters {
   std::atomic<int64_t> frames_weak{0};  // tracked with weak directions (degenerate geometry)
   // Tracking back after lost frames (by relocalisation against a keyframe or otherwise), and
   // the most frames lost before one of those.
-  std::atomic<int64_t> recoveries{0}, relocalisations{0}, longest_loss_frames{0};
+  std::atomic<int64_t> recoveries{0}, relocalisations{0}, new_maps{0}, longest_loss_frames{0};
   AtomicTracking tracking;
   // link thread
   std::atomic<int64_t> keyframes_sent{0}, keyframes_failed{0}, corrections_unknown{0};

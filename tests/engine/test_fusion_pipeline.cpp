@@ -432,5 +432,96 @@ TEST_F(PipelineFixture, AKidnappedCameraIsRelocalisedWhereItHasBeen) {
   }
 }
 
+
+// Turned about to face what the map never held (issue 17: "if that also fails, it starts a new
+// submap instead of staying lost"): 20 frames along the fixture's path in a closed room, then
+// the camera faces the other way and moves on, about 1 cm a frame. Neither the prior's view, the
+// last pose's nor any keyframe shows that half of the room, so each frame is lost; with the
+// IMU's prior (here exact) the 10th begins a new map at the prior's pose, the old map cleared,
+// and the frames after it track in the new map. Without a prior, or without new maps, the
+// camera stays lost to the end: a new map could only begin at the last pose, a jump.
+TEST(PipelineNewMap, AfterEveryTryFailsANewMapBeginsAtThePriorAndTracks) {
+  constexpr int kPath = 20, kTurned = 25;
+  constexpr int kFailed = 10;  // FusionPipeline::Params' default
+  const PinholeCamera camera = test::tumCamera();
+  SyntheticScene scene = SyntheticScene::cornerRoom();
+  scene.addPlane(Eigen::Vector3f(-1.f, 0.f, 0.f), -1.4f);  // right wall x = 1.4
+  scene.addPlane(Eigen::Vector3f(0.f, 0.f, 1.f), -1.0f);   // front wall z = -1.0
+  // Something in front of that wall: a wall alone leaves the motion along it to the prior.
+  scene.addBox(Eigen::Vector3f(0.15f, 0.2f, -0.75f), Eigen::Vector3f(0.15f, 0.15f, 0.1f));
+  scene.addSphere(Eigen::Vector3f(0.6f, -0.1f, -0.8f), 0.15f);
+  Image<uint16_t> raw(camera.width, camera.height);
+  const auto renderAt = [&](const Pose& T_world_cam, uint32_t seed) {
+    std::mt19937 rng(seed);
+    scene.renderRawDepth(camera, T_world_cam, test::kRenderMaxDepthM, test::kTumDepthScale, &rng,
+                         raw);
+  };
+  const auto turned = [&](int j) {
+    return groundTruth(kPath - 1) *
+           test::makePose(Eigen::Vector3d::UnitY() * M_PI, Eigen::Vector3d::Zero()) *
+           test::makePose(Eigen::Vector3d::Zero(), Eigen::Vector3d(0.005 * j, 0.0, 0.008 * j));
+  };
+  ASSERT_EQ(FusionPipeline::Params().new_map_after_failed_frames, kFailed);
+  FusionPipeline::Params negative;
+  negative.new_map_after_failed_frames = -1;
+  EXPECT_EQ(negative.validate(0.01f).message(),
+            "new_map_after_failed_frames must be >= 0 (0: never)");
+  struct Case {
+    int new_map_after;
+    bool with_prior;
+  };
+  for (const Case c : {Case{kFailed, true}, Case{kFailed, false}, Case{0, true}}) {
+    SCOPED_TRACE(testing::Message() << "new_map_after_failed_frames " << c.new_map_after
+                                    << (c.with_prior ? ", with a prior" : ", without"));
+    const bool expect_new_map = c.new_map_after > 0 && c.with_prior;
+    HashedVolume map{HashedVolume::Params{}};
+    FusionPipeline::Params params;
+    params.new_map_after_failed_frames = c.new_map_after;
+    FusionPipeline p(camera, params, &map);
+    for (int k = 0; k < kPath; ++k) {
+      renderAt(groundTruth(k), 11000 + k);
+      ASSERT_NE(p.processFrame(raw, PipelineFixture::utimeOf(k)).status, TrackingStatus::kLost)
+          << "frame " << k;
+    }
+    const size_t old_map_blocks = map.numAllocatedBlocks();
+    int began_at = -1;
+    for (int j = 0; j < kTurned; ++j) {
+      renderAt(turned(j), 12000 + j);
+      const Pose prior = turned(j);
+      const size_t blocks_before = map.numAllocatedBlocks();
+      const FrameResult r = p.processFrame(raw, PipelineFixture::utimeOf(kPath + j),
+                                           c.with_prior ? &prior : nullptr);
+      if (began_at < 0) {
+        if (r.status == TrackingStatus::kLost) {
+          EXPECT_EQ(map.numAllocatedBlocks(), blocks_before) << "nothing fused from frame " << j;
+          continue;
+        }
+        began_at = j;
+        EXPECT_TRUE(r.new_map);
+        EXPECT_EQ(r.status, TrackingStatus::kFirstFrame);
+        EXPECT_EQ(r.recovered_after, j);
+        EXPECT_TRUE(r.lost_reason.empty()) << r.lost_reason;
+        EXPECT_TRUE(r.T_world_cam.isApprox(prior)) << "the new map begins at the prior";
+        // The old map is gone: what is allocated now is this frame's alone.
+        EXPECT_LT(map.numAllocatedBlocks(), old_map_blocks);
+        continue;
+      }
+      ASSERT_EQ(r.status, TrackingStatus::kOk) << "frame " << j << ": " << r.lost_reason;
+      EXPECT_FALSE(r.new_map);
+      EXPECT_LT(test::translationErrorM(r.T_world_cam, turned(j)), kPoseTolM) << "frame " << j;
+      EXPECT_LT(test::radToDeg(test::rotationErrorRad(r.T_world_cam, turned(j))), kPoseTolDeg)
+          << "frame " << j;
+    }
+    if (!expect_new_map) {
+      EXPECT_EQ(began_at, -1) << "tracked again";
+      continue;
+    }
+    std::printf("[pipeline] turned to face what the map never held: a new map %d frames after "
+                "the turn\n", began_at);
+    EXPECT_EQ(began_at, kFailed - 1);
+    EXPECT_LE(began_at, kMaxRecoveryFrames);
+  }
+}
+
 }  // namespace
 }  // namespace kinfly

@@ -1,6 +1,7 @@
 // Relocaliser: a view coded twice with fresh sensor noise codes alike, a view turned away codes
 // unlike; only new views become keyframes; the nearest keyframes come most alike first and
-// within the candidate bound; bad settings are refused by name.
+// within the candidate bound; a full one adds no more and, cleared, has room again; bad settings
+// are refused by name.
 #include <gtest/gtest.h>
 
 #include <random>
@@ -94,6 +95,14 @@ TEST_F(RelocaliserFixture, StopsAddingWhenFull) {
     EXPECT_EQ(r.harvest(turned(40.0 * i)), i < 2) << "view " << i;
   }
   EXPECT_EQ(r.keyframes(), 2);
+  // A new map forgets the old one's keyframes (FusionPipeline); there is room again.
+  r.clear();
+  EXPECT_EQ(r.keyframes(), 0);
+  code(&r, turned(40.0), 20);  // a view it kept before
+  Relocaliser::Candidate best[1];
+  EXPECT_EQ(r.nearest(1, best), 0) << "a cleared relocaliser knows no place";
+  EXPECT_TRUE(r.harvest(turned(120.0)));
+  EXPECT_EQ(r.keyframes(), 1);
 }
 
 TEST(Relocaliser, RefusesBadSettingsByName) {

@@ -317,7 +317,8 @@ def test_recording_replays_every_frame_like_the_log_replay(
     assert run.returncode == 0, run.stderr
     assert run.stdout.startswith("kinfly-fw: source ended: 60 frames captured, 60 processed "
                                  "(0 lost, 0 in degenerate geometry; tracking back 0 times (0 "
-                                 "relocalised), after 0 lost frames at most), 0 dropped by the "
+                                 "relocalised, 0 in a new map), after 0 lost frames at most), 0 "
+                                 "dropped by the "
                                  "queue, "
                                  "0 skipped; sensor opened 1 times"), run.stdout
     assert "all 60 frames read" in run.stderr, run.stderr

@@ -15,8 +15,8 @@ BINARY = REPO_ROOT / "build" / "bin" / "kinfly-fw"
 _SUMMARY = re.compile(
     r"kinfly-fw: (?P<how>stopped|source ended): (?P<captured>\d+) frames captured, "
     r"(?P<processed>\d+) processed \((?P<lost>\d+) lost, (?P<weak>\d+) in degenerate geometry; "
-    r"tracking back (?P<recoveries>\d+) times \((?P<relocalisations>\d+) relocalised\), after "
-    r"(?P<longest_loss>\d+) lost frames at most\), "
+    r"tracking back (?P<recoveries>\d+) times \((?P<relocalisations>\d+) relocalised, "
+    r"(?P<new_maps>\d+) in a new map\), after (?P<longest_loss>\d+) lost frames at most\), "
     r"(?P<queue_drops>\d+) dropped by the "
     r"queue, (?P<skipped>\d+) skipped; sensor opened (?P<connects>\d+) times, stalled "
     r"(?P<stalls>\d+) times; (?P<keyframes_sent>\d+) keyframes sent, (?P<keyframes_dropped>\d+) "
@@ -43,6 +43,7 @@ class Summary:
     weak: int  # tracked with weak directions
     recoveries: int  # tracked again after lost frames
     relocalisations: int  # of those, from a keyframe's pose
+    new_maps: int  # of those, in a new map (every try had failed)
     longest_loss: int  # the most frames lost before one of those
     queue_drops: int
     skipped: int

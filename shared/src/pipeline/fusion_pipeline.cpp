@@ -23,6 +23,8 @@ Status FusionPipeline::Params::validate(float voxel_size_m) const {
     return Status::error("min_valid_depth_fraction must be in [0, 1)");
   if (!(max_recovery_gate_scale >= 1.f))
     return Status::error("max_recovery_gate_scale must be >= 1");
+  if (new_map_after_failed_frames < 0)
+    return Status::error("new_map_after_failed_frames must be >= 0 (0: never)");
   // Checked even when relocalisation is off: turning it on later must not meet a bad setting.
   if (const Status r = relocaliser.validate(); !r.ok())
     return Status::error("relocaliser: " + r.message());
@@ -96,9 +98,9 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
       missed_ = std::min(missed_before + 1, kMaxMissedCounted);
       return r;
     }
-    lost_in_a_row_ = missed_ = 0;
-    // Frames lost before the first had no map to be tracked against: nothing to recover.
-    if (r.status != TrackingStatus::kFirstFrame) r.recovered_after = lost_before;
+    // Frames lost before the first had no map to be tracked against: nothing to recover. A new
+    // map's first frame does end a loss.
+    if (r.status != TrackingStatus::kFirstFrame || r.new_map) r.recovered_after = lost_before;
     if (params_.relocalise) {
       const auto t0 = std::chrono::steady_clock::now();
       relocaliser_->encode(frame_.depth_m[kPyramidLevels - 1].view());
@@ -138,9 +140,32 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
   FrameResult r = trackAndFuse(std::move(result), T_world_cam_, guess, prior,
                                /*predict_from_pose=*/true, gate_scale);
   if (r.status == TrackingStatus::kLost) r.lost_reason = from_prior + r.lost_reason;
-  if (r.status != TrackingStatus::kLost || missed_before == 0 || !params_.relocalise)
-    return counted(std::move(r));
-  return counted(relocalise(std::move(r), T_world_cam_prior, gate_scale));
+  if (r.status != TrackingStatus::kLost) return counted(std::move(r));
+  if (missed_before > 0 && params_.relocalise)
+    r = relocalise(std::move(r), T_world_cam_prior, gate_scale);
+  if (r.status != TrackingStatus::kLost) return counted(std::move(r));
+  return counted(failedOrNewMap(std::move(r), T_world_cam_prior));
+}
+
+FrameResult FusionPipeline::failedOrNewMap(FrameResult lost, const Pose* T_world_cam_prior) {
+  failed_since_tracked_ = std::min(failed_since_tracked_ + 1, kMaxMissedCounted);
+  if (params_.new_map_after_failed_frames == 0 ||
+      failed_since_tracked_ < params_.new_map_after_failed_frames || T_world_cam_prior == nullptr)
+    return lost;
+  // Cleared even with a prior in the old map's frame: every try said the old map does not fit
+  // this view, so either the prior has drifted from it or the view is new, and fusing the new
+  // view into a map it may contradict would corrupt both (onboard the volume is a window that
+  // follows the camera anyway). The old map's keyframes go with it: relocalising against them
+  // would raycast nothing.
+  volume_->clear();
+  if (relocaliser_) relocaliser_->clear();
+  FrameResult r = std::move(lost);
+  r.T_world_cam = *T_world_cam_prior;
+  r.status = TrackingStatus::kFirstFrame;
+  r.new_map = true;
+  r.lost_reason.clear();
+  r.inlier_fraction = r.rmse_m = 0.f;
+  return fuse(std::move(r), /*predict_from_pose=*/true);
 }
 
 FrameResult FusionPipeline::relocalise(FrameResult lost, const Pose* T_world_cam_prior,
@@ -262,6 +287,8 @@ FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_dep
 }
 
 FrameResult FusionPipeline::fuse(FrameResult result, bool predict_from_pose) {
+  // Whatever fused it (tracked, a given pose, a new map), the frame ends any loss.
+  lost_in_a_row_ = missed_ = failed_since_tracked_ = 0;
   T_world_cam_ = result.T_world_cam;
   volume_->followCamera(T_world_cam_);
 

@@ -64,6 +64,11 @@ bool Relocaliser::harvest(const Pose& T_world_cam) {
   return true;
 }
 
+void Relocaliser::clear() {
+  codes_.clear();
+  poses_.clear();
+}
+
 int Relocaliser::nearest(int count, Candidate* out) const {
   int found = 0;
   for (int k = 0; k < keyframes(); ++k) {

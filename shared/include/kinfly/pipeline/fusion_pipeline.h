@@ -51,6 +51,9 @@ struct FrameResult {
   int recovered_after = 0;
   int missed = 0;
   bool relocalised = false;  // tracked again from a keyframe's pose (Relocaliser)
+  // The old map was given up and this frame began a new one (status kFirstFrame) at the prior's
+  // pose (Params::new_map_after_failed_frames).
+  bool new_map = false;
   StageTimesMs ms;
 };
 
@@ -72,6 +75,16 @@ class FusionPipeline {
     // tracked from the poses of the keyframes most like it (processFrame keeps them).
     bool relocalise = true;
     Relocaliser::Params relocaliser;
+    // Where this many frames with depth since the last fused one were lost (the first of them
+    // tried from the last pose only, the rest also from the prior's view and the keyframes),
+    // and the frame comes with a prior, processFrame gives the map up and begins a new one with
+    // the frame at the prior's pose: the IMU's, so the odometry's frame goes on without a jump.
+    // A camera that sees only what the map never held would otherwise stay lost for good.
+    // Without a prior the frame stays lost: a new map could only begin at the last tracked
+    // pose, a jump in the odometry that nothing would announce (kinfly-fw without its flight
+    // stack, kinfly-fuse). 0: never. Frames without depth (a covered sensor) do not count: they
+    // say nothing of whether the map still fits.
+    int new_map_after_failed_frames = 10;  // >= 0
     Status validate(float voxel_size_m) const;
   };
 
@@ -130,6 +143,9 @@ class FusionPipeline {
   // keyframes most like it; with a prior, only to a pose that agrees with it within the jump
   // gates times `gate_scale`.
   FrameResult relocalise(FrameResult lost, const Pose* T_world_cam_prior, float gate_scale);
+  // Counts a lost frame with depth; the one that reaches new_map_after_failed_frames, with a
+  // prior, begins a new map at it instead of being lost.
+  FrameResult failedOrNewMap(FrameResult lost, const Pose* T_world_cam_prior);
   static constexpr int kRelocaliseCandidates = 2;  // ICP runs at most this many times more
   // Frames missed since the last tracked one, from the gap between `utime` and the last frame's
   // in units of the median of the latest intervals; 0 until a few intervals are known.
@@ -158,6 +174,7 @@ class FusionPipeline {
   bool model_at_pose_ = false;  // model_ was raycast from T_world_cam_
   int lost_in_a_row_ = 0;        // processFrame's frames lost since the last fused one
   int missed_ = 0;               // those and the frames not delivered between them
+  int failed_since_tracked_ = 0;  // of those lost, the frames with depth
   int64_t last_utime_ = -1;      // processFrame's last frame, tracked or not
   std::array<int64_t, kIntervals> intervals_{};  // [us] the latest intervals between its frames
   int interval_count_ = 0;

@@ -55,6 +55,8 @@ class Relocaliser {
   // max_candidate_dissimilarity; returns how many were written to `out`.
   int nearest(int count, Candidate* out) const;
   int keyframes() const { return static_cast<int>(poses_.size()); }
+  // Forgets every keyframe (their map is gone); the room reserved for them stays.
+  void clear();
 
  private:
   struct Comparison {

@@ -1,0 +1,290 @@
+"""A vehicle's map as a chain of submaps (issue 17 §2, after voxgraph and c-blox): each submap is
+a hashed volume of its own, fused from consecutive keyframes and closed after a distance, a time
+or keyframes that failed to register; the submaps are the nodes of a pose graph, and a loop
+closure moves whole submaps (their meshes with them) instead of integrating anything again.
+
+Frames. Every submap is fused in the chain's frame `c`, the drone's odometry frame the first
+keyframe was fused in (as a single map is today), starting at the pose the chain had reached:
+submap k's anchor A_k = T_c_anchor is its first keyframe's pose there. The optimised graph places
+the anchors at O_k = T_world_anchor; submap k's correction C_k = O_k A_k⁻¹ takes its content
+(and its keyframes' poses) from `c` into the optimised world. Before any loop every C_k is the
+identity and the chain is the single map of before.
+
+Threads. `refine` and `close_if_due` run on the fusion thread. `loop_candidates` reads closed
+submaps only (their snapshots do not change), and `add_loops` optimises and swaps the corrections
+under a lock: both run off the keyframe path."""
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ._native import Fusion, MapSnapshot, TrackingStatus
+from .posegraph import EdgeSigma, PoseGraph
+from .registration import LoopCheck, RegistrationParams, check_loop
+
+StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4)
+
+
+@dataclasses.dataclass(frozen=True)
+class SubmapParams:
+    # A submap closes once the camera travelled this far in it, or this long in capture time:
+    # long enough to hold a room's worth of surface for registration, short enough that its own
+    # drift stays under the loop check's residual gate.
+    max_distance_m: float = 3.0
+    max_duration_s: float = 30.0
+    # This many keyframes in a row that do not register start a new submap at the drone's pose:
+    # the map no longer fits where the drone is (a long dropout, a new room).
+    new_after_lost: int = 3
+    # The odometry between consecutive submaps: the ground's refined chain drifts this much per
+    # metre travelled in a submap, plus a floor. Where a submap began after lost keyframes, the
+    # edge is the drone's own odometry across the gap, trusted less.
+    drift_per_m: EdgeSigma = EdgeSigma(translation_m=0.02, rotation_rad=math.radians(1.0))
+    drift_floor: EdgeSigma = EdgeSigma(translation_m=0.01, rotation_rad=math.radians(0.5))
+    lost_gap: EdgeSigma = EdgeSigma(translation_m=0.2, rotation_rad=math.radians(10.0))
+    # A loop's error as registered (registration.py's gates leave it well under these).
+    loop: EdgeSigma = EdgeSigma(translation_m=0.01, rotation_rad=math.radians(0.5))
+    # Closed submaps whose anchors lie within this of a newly closed one's, as the graph now
+    # places them, are loop candidates; neighbours in the chain are joined by odometry already.
+    loop_search_radius_m: float = 3.0
+    min_loop_separation: int = 2
+    # Each check registers two submaps (about a second): the nearest few are enough, a place
+    # seen from several earlier submaps closes against one of them.
+    max_loop_candidates: int = 3
+    registration: RegistrationParams = RegistrationParams()
+
+    def __post_init__(self) -> None:
+        if not (self.max_distance_m > 0 and self.max_duration_s > 0):
+            raise ValueError(f"a submap's distance and duration must be positive: {self}")
+        if self.new_after_lost < 1 or self.min_loop_separation < 2 or self.max_loop_candidates < 1:
+            raise ValueError("new_after_lost and max_loop_candidates must be at least 1, "
+                             f"min_loop_separation at least 2: {self}")
+        if not self.loop_search_radius_m > 0:
+            raise ValueError(f"loop_search_radius_m must be positive: {self.loop_search_radius_m}")
+
+
+@dataclasses.dataclass
+class Submap:
+    index: int
+    T_c_anchor: np.ndarray          # A_k: its first keyframe's pose in the chain's frame
+    first_utime: int
+    fusion: Fusion | None           # None once closed
+    snapshot: MapSnapshot | None = None  # the closed map, meshed for loops and outputs
+    keyframes: list[StampedPose] = dataclasses.field(default_factory=list)  # T_c_cam refined
+    path_m: float = 0.0
+    began_after_loss: bool = False
+    _points: np.ndarray | None = None
+
+    def points(self) -> np.ndarray:
+        """Its surface (mesh vertices) in the chain's frame; closed submaps only."""
+        if self.snapshot is None:
+            raise RuntimeError(f"submap {self.index} is still open")
+        if self._points is None:
+            vertices, _, _ = self.snapshot.mesh()
+            self._points = np.asarray(vertices, dtype=np.float64)
+        return self._points
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopCandidate:
+    older: int                    # submap indices
+    newer: int
+    T_older_newer_guess: np.ndarray  # content of `newer` into `older`'s, both in the chain frame
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopOutcome:
+    candidate: LoopCandidate
+    check: LoopCheck
+    accepted_by_graph: bool  # False where the check refused it, or the graph did
+
+
+class SubmapChain:
+    """MAKE_FUSION makes an empty map for a new submap (the station's camera and parameters)."""
+
+    def __init__(self, params: SubmapParams, make_fusion: Callable[[], Fusion]) -> None:
+        self.params = params
+        self._make_fusion = make_fusion
+        self.submaps: list[Submap] = []
+        self._edges: list[tuple[int, int, np.ndarray, EdgeSigma]] = []  # odometry
+        self._loops: list[tuple[LoopCandidate, np.ndarray]] = []  # accepted checks, anchor edge
+        self.outcomes: list[LoopOutcome] = []
+        self._corrections: list[np.ndarray] = []  # C_k, swapped whole under the lock
+        self._lock = threading.Lock()
+        self._lost_in_a_row = 0
+
+    @property
+    def active(self) -> Submap | None:
+        return self.submaps[-1] if self.submaps else None
+
+    def correction(self, index: int) -> np.ndarray:
+        with self._lock:
+            return self._corrections[index]
+
+    def refine(self, depth: np.ndarray, utime: int, T_world_guess: np.ndarray
+               ) -> tuple[Any, np.ndarray | None]:
+        """Registers a keyframe in the active submap from a guess in the optimised world (the
+        drone's corrected onboard pose) and fuses it; the first keyframe begins the chain, fused
+        at the guess. Returns the engine's result and the keyframe's pose in the optimised
+        world, None when it did not register."""
+        active = self.active
+        if active is None:
+            result = self._begin(depth, utime, T_world_guess, after_loss=False)
+            return result, (result.T_world_cam if self.submaps else None)
+        C = self.correction(active.index)
+        result = active.fusion.refine(depth, utime, np.linalg.inv(C) @ T_world_guess)
+        if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
+            self._lost_in_a_row = 0
+            T_c_cam = result.T_world_cam
+            if active.keyframes:
+                step = T_c_cam[:3, 3] - active.keyframes[-1][1][:3, 3]
+                active.path_m += float(np.linalg.norm(step))
+            active.keyframes.append((utime, T_c_cam))
+            return result, C @ T_c_cam
+        self._lost_in_a_row += 1
+        if self._lost_in_a_row < self.params.new_after_lost:
+            return result, None
+        # The map no longer fits where the drone is: begin again at its pose, with this
+        # keyframe, where it has depth to begin with.
+        count = len(self.submaps)
+        began = self._begin(depth, utime, np.linalg.inv(C) @ T_world_guess, after_loss=True)
+        if len(self.submaps) == count:
+            return result, None
+        self._lost_in_a_row = 0
+        return began, C @ began.T_world_cam
+
+    def close_if_due(self, depth: np.ndarray, utime: int) -> Submap | None:
+        """After the keyframe's correction has gone out: where the active submap has travelled
+        or lasted long enough, closes it and begins the next with the same keyframe at its
+        refined pose. Returns the closed submap (for the loop search), else None."""
+        active = self.active
+        if active is None or active.keyframes[-1][0] != utime:
+            return None
+        age_s = (utime - active.first_utime) * 1e-6
+        if active.path_m < self.params.max_distance_m and age_s < self.params.max_duration_s:
+            return None
+        self._begin(depth, utime, active.keyframes[-1][1], after_loss=False)
+        return active
+
+    def _begin(self, depth: np.ndarray, utime: int, T_c_cam: np.ndarray, after_loss: bool) -> Any:
+        """A new submap whose first keyframe is fused at T_c_cam; the one before is closed.
+        Nothing changes where the keyframe has too little depth to begin a map with."""
+        fusion = self._make_fusion()
+        result = fusion.refine(depth, utime, T_c_cam)
+        if result.status is not TrackingStatus.FIRST_FRAME:
+            return result
+        anchor = result.T_world_cam
+        submap = Submap(len(self.submaps), anchor, utime, fusion, keyframes=[(utime, anchor)],
+                        began_after_loss=after_loss)
+        previous = self.active
+        if previous is not None:
+            previous.snapshot = previous.fusion.snapshot()
+            previous.fusion = None
+        with self._lock:
+            if previous is not None:
+                self._edges.append((previous.index, submap.index,
+                                    np.linalg.inv(previous.T_c_anchor) @ anchor,
+                                    self._odometry_sigma(previous, after_loss)))
+            # It continues its predecessor's frame, so its correction too.
+            self._corrections.append(self._corrections[-1] if self._corrections else np.eye(4))
+            self.submaps.append(submap)
+        return result
+
+    def _odometry_sigma(self, previous: Submap, after_loss: bool) -> EdgeSigma:
+        if after_loss:
+            return self.params.lost_gap
+        p = self.params
+        return EdgeSigma(p.drift_floor.translation_m + p.drift_per_m.translation_m * previous.path_m,
+                         p.drift_floor.rotation_rad + p.drift_per_m.rotation_rad * previous.path_m)
+
+    def loop_candidates(self, closed: Submap) -> list[LoopCandidate]:
+        """Closed submaps near CLOSED as the graph now places them, the nearest few first."""
+        with self._lock:
+            corrections = list(self._corrections)
+        position = (corrections[closed.index] @ closed.T_c_anchor)[:3, 3]
+        found = []
+        with self._lock:
+            earlier = self.submaps[: max(0, closed.index - self.params.min_loop_separation + 1)]
+        for other in earlier:
+            if other.snapshot is None:
+                continue
+            distance = np.linalg.norm((corrections[other.index] @ other.T_c_anchor)[:3, 3]
+                                      - position)
+            if distance <= self.params.loop_search_radius_m:
+                guess = np.linalg.inv(corrections[other.index]) @ corrections[closed.index]
+                found.append((distance, LoopCandidate(other.index, closed.index, guess)))
+        nearest = sorted(found, key=lambda pair: pair[0])[: self.params.max_loop_candidates]
+        return [candidate for _, candidate in nearest]
+
+    def check(self, candidate: LoopCandidate) -> LoopCheck:
+        """Registers the two submaps' surfaces (seconds: off the keyframe path)."""
+        return check_loop(self.submaps[candidate.older].points(),
+                          self.submaps[candidate.newer].points(),
+                          candidate.T_older_newer_guess, self.params.registration)
+
+    def add_loops(self, checked: list[tuple[LoopCandidate, LoopCheck]]) -> list[LoopOutcome]:
+        """Adds the loops that passed their check to the graph, optimises it and swaps every
+        submap's correction. Returns each loop's outcome (also kept in `outcomes`)."""
+        for candidate, check in checked:
+            if check.accepted:
+                older = self.submaps[candidate.older].T_c_anchor
+                newer = self.submaps[candidate.newer].T_c_anchor
+                self._loops.append((candidate, np.linalg.inv(older) @ check.T_target_source
+                                    @ newer))
+        graph = PoseGraph()
+        with self._lock:
+            submaps, edges = list(self.submaps), list(self._edges)
+            corrections = list(self._corrections)
+        for submap in submaps:
+            graph.add_node(submap.index, corrections[submap.index] @ submap.T_c_anchor)
+        for i, j, T, sigma in edges:
+            graph.add_odometry(i, j, T, sigma)
+        for candidate, T in self._loops:
+            graph.add_loop(candidate.older, candidate.newer, T, self.params.loop)
+        result = graph.optimise()
+        accepted = {(c.older, c.newer): ok for (c, _), ok in zip(self._loops, result.loop_accepted)}
+        optimised = [result.poses[s.index] @ np.linalg.inv(s.T_c_anchor) for s in submaps]
+        with self._lock:
+            # Submaps begun meanwhile continue the last one's frame: they move with it.
+            while len(optimised) < len(self._corrections):
+                optimised.append(optimised[-1])
+            self._corrections = optimised
+        outcomes = [LoopOutcome(c, check, check.accepted and accepted[(c.older, c.newer)])
+                    for c, check in checked]
+        self.outcomes.extend(outcomes)
+        return outcomes
+
+    def trajectory(self) -> list[StampedPose]:
+        """Every registered keyframe's pose in the optimised world, by capture time (a keyframe
+        that began a submap is in both; the newer submap's is kept)."""
+        with self._lock:
+            corrections = list(self._corrections)
+        poses: dict[int, np.ndarray] = {}
+        for submap in self.submaps:
+            for utime, T in submap.keyframes:
+                poses[utime] = corrections[submap.index] @ T
+        return sorted(poses.items(), key=lambda pose: pose[0])
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The whole map's mesh in the optimised world: each submap's own mesh moved by its
+        correction (vertices float32 Nx3, triangles int32 Mx3, normals float32 Nx3)."""
+        with self._lock:
+            corrections = list(self._corrections)
+        vertices, triangles, normals = [], [], []
+        offset = 0
+        for submap in self.submaps:
+            snapshot = submap.snapshot if submap.snapshot is not None else submap.fusion.snapshot()
+            v, t, n = snapshot.mesh()
+            C = corrections[submap.index]
+            vertices.append((np.asarray(v, np.float64) @ C[:3, :3].T + C[:3, 3]).astype(np.float32))
+            normals.append((np.asarray(n, np.float64) @ C[:3, :3].T).astype(np.float32))
+            triangles.append(np.asarray(t, np.int32) + offset)
+            offset += len(v)
+        if not vertices:
+            return (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32),
+                    np.zeros((0, 3), np.float32))
+        return np.concatenate(vertices), np.concatenate(triangles), np.concatenate(normals)

@@ -1,10 +1,9 @@
 """Checks a loop candidate by registering two submaps' surfaces (issue 17 §2): small_gicp's
 generalised ICP (Segal et al. 2009; Koide's small_gicp, a kept library) from the candidate's
 guess, then tests before the loop reaches the pose graph: it converged, the surfaces overlap,
-they agree closely where they do, and the overlap fixes every direction of translation (a single
-wall or a corridor lets one submap slide along the other, so the registration there says nothing
-about that direction). Rotation is not checked the same way: turning about a cylinder, or in a
-room symmetric about an axis, would pass. The pose graph's robust kernel is the second line: what passes here can still be
+they agree closely where they do, and the overlap fixes every direction of motion (a single wall
+or a corridor lets one submap slide along the other, a round room lets it turn, so the
+registration there says nothing about that direction). The pose graph's robust kernel is the second line: what passes here can still be
 rejected there if the rest of the graph disagrees."""
 from __future__ import annotations
 
@@ -22,10 +21,12 @@ class RegistrationParams:
     downsampling_m: float = 0.02
     # Each point's normal and covariance from this many neighbours (about 4 cm across at 2 cm):
     # with GICP's default 10, 3 mm of surface noise tilts the normals enough that a corridor's
-    # conditioning (below) reads 0.03, with 20 it reads 0.005 and a furnished room's 0.20.
+    # conditioning (below, on translation alone) read 0.03, with 20 it read 0.005.
     normal_neighbours: int = 20
     # How far GICP looks for a partner: the guess's error it can take (proximity candidates are
-    # off by the drift since the earlier visit).
+    # off by the drift since the earlier visit). From 25 cm GICP slid 0.1-0.8 m along the TUM
+    # teddy submaps' floor from guesses a few mm right, and the slid fits still passed the
+    # gates below (docs/ground.md).
     max_correspondence_m: float = 0.1
     max_iterations: int = 40
     # After alignment, a point of the smaller cloud overlaps when a point of the other lies
@@ -33,9 +34,10 @@ class RegistrationParams:
     inlier_distance_m: float = 0.02
     min_overlap: float = 0.3        # of the smaller cloud's points
     max_rms_m: float = 0.008        # of the overlapping points' distances
-    # The weakest direction's share of the strongest in the overlap's translation information:
-    # a plane's in-plane directions have none, a corridor's axis next to none.
-    min_translation_conditioning: float = 0.02
+    # The weakest direction's share of the strongest in the overlap's point-to-plane
+    # information over the six directions of motion: a plane's in-plane directions have none, a
+    # corridor's axis and a round room's turn about its axis next to none.
+    min_conditioning: float = 0.02
     threads: int = 1
 
     def __post_init__(self) -> None:
@@ -44,9 +46,8 @@ class RegistrationParams:
                 raise ValueError(f"{name} must be positive: {getattr(self, name)}")
         if not 0 < self.min_overlap <= 1:
             raise ValueError(f"min_overlap must be in (0, 1]: {self.min_overlap}")
-        if not 0 <= self.min_translation_conditioning < 1:
-            raise ValueError("min_translation_conditioning must be in [0, 1): "
-                             f"{self.min_translation_conditioning}")
+        if not 0 <= self.min_conditioning < 1:
+            raise ValueError(f"min_conditioning must be in [0, 1): {self.min_conditioning}")
         if self.max_iterations < 1 or self.threads < 1 or self.normal_neighbours < 3:
             raise ValueError("max_iterations and threads must be at least 1, normal_neighbours "
                              f"at least 3: {self}")
@@ -58,7 +59,7 @@ class LoopCheck:
     T_target_source: np.ndarray  # the registered transform (the guess where GICP did not run)
     overlap: float               # fraction of the smaller cloud's points with a partner
     rms_m: float                 # RMS distance of those points to their partners' planes
-    translation_conditioning: float
+    conditioning: float          # the weakest direction of motion's share of the strongest
     reason: str                  # why refused; "" when accepted
 
 
@@ -76,13 +77,19 @@ def _points(name: str, points: np.ndarray) -> np.ndarray:
     return points
 
 
-def _translation_conditioning(normals: np.ndarray) -> float:
-    """How well the overlap's surfaces fix translation: the point-to-plane information for
-    translation is the sum of n nᵀ over the overlapping points; its smallest eigenvalue over its
-    largest."""
-    if len(normals) == 0:
+def _conditioning(points: np.ndarray, normals: np.ndarray) -> float:
+    """How well the overlap's surfaces fix the motion: the point-to-plane information
+    Σ J Jᵀ over the overlapping points, J = [(p − c) × n / r; n] (rotation about their centroid
+    c, scaled by their RMS distance r from it so that both halves are in metres); its smallest
+    eigenvalue over its largest."""
+    if len(normals) < 6:
         return 0.0
-    eigenvalues = np.linalg.eigvalsh(normals.T @ normals)
+    offsets = points - points.mean(axis=0)
+    radius = float(np.sqrt(np.mean(np.sum(offsets**2, axis=1))))
+    if radius == 0.0:
+        return 0.0
+    J = np.hstack([np.cross(offsets, normals) / radius, normals])
+    eigenvalues = np.linalg.eigvalsh(J.T @ J)
     return float(max(eigenvalues[0], 0.0) / eigenvalues[-1]) if eigenvalues[-1] > 0 else 0.0
 
 
@@ -128,7 +135,7 @@ def check_loop(target_points: np.ndarray, source_points: np.ndarray,
     # on the same plane.
     along_normal = np.einsum("ij,ij->i", small[inliers] - large[nearest[inliers]], normals)
     rms = float(np.sqrt(np.mean(np.square(along_normal)))) if inliers.any() else float("inf")
-    conditioning = _translation_conditioning(normals)
+    conditioning = _conditioning(large[nearest[inliers]], normals)
     # The place first (does the fit put the surfaces together at all), then whether they can
     # slide, then whether GICP settled: a fit in the wrong place is reported as that, and
     # sliding surfaces seldom converge, but the sliding is the reason.
@@ -137,9 +144,9 @@ def check_loop(target_points: np.ndarray, source_points: np.ndarray,
         reason = f"overlap {overlap:.2f} below min_overlap {params.min_overlap}"
     elif rms > params.max_rms_m:
         reason = f"residual {1000 * rms:.1f} mm exceeds max_rms_m {1000 * params.max_rms_m:.1f} mm"
-    elif conditioning < params.min_translation_conditioning:
-        reason = (f"degenerate: translation conditioning {conditioning:.3f} below "
-                  f"{params.min_translation_conditioning} (the surfaces can slide)")
+    elif conditioning < params.min_conditioning:
+        reason = (f"degenerate: conditioning {conditioning:.3f} below {params.min_conditioning} "
+                  "(the surfaces can slide or turn)")
     elif not result.converged:
         reason = f"GICP did not converge in {result.iterations} iterations"
     return LoopCheck(reason == "", T, overlap, rms, conditioning, reason)

@@ -1,7 +1,8 @@
 """Loop checks by registering submaps (kinfly_ground.registration) on synthetic rooms: a room with
 furniture seen from two places a metre apart is registered from a guess off by the drift of a lap
-and accepted; another room, a place a repeated structure makes look alike, a bare wall and a
-corridor are refused, each for its own reason; bad inputs are refused by name."""
+and accepted; another room, a place a repeated structure makes look alike, a bare wall, a
+corridor and a round room are refused, each for its own reason; bad inputs are refused by
+name."""
 from __future__ import annotations
 
 import numpy as np
@@ -84,7 +85,7 @@ def test_a_revisited_place_is_registered_from_a_drifted_guess() -> None:
     check = check_loop(target, source, guess)
     translation_m, rotation_rad = _error(check.T_target_source, T_TARGET_SOURCE)
     print(f"revisited: overlap {check.overlap:.2f}, rms {1000 * check.rms_m:.1f} mm, "
-          f"conditioning {check.translation_conditioning:.2f}; error {1000 * translation_m:.1f} "
+          f"conditioning {check.conditioning:.2f}; error {1000 * translation_m:.1f} "
           f"mm, {np.rad2deg(rotation_rad):.2f} deg (guess {_error(guess, T_TARGET_SOURCE)[0]:.2f} m)")
     assert check.accepted, check.reason
     assert translation_m < TRANSLATION_TOLERANCE_M
@@ -116,16 +117,19 @@ def test_a_guess_a_metre_off_is_refused() -> None:
     assert not check.accepted, "a loop a metre wrong"
 
 
-@pytest.mark.parametrize("scene", ["wall", "corridor"])
-def test_surfaces_that_can_slide_are_refused_as_degenerate(scene: str) -> None:
+@pytest.mark.parametrize("scene", ["wall", "corridor", "round room"])
+def test_surfaces_that_can_slide_or_turn_are_refused_as_degenerate(scene: str) -> None:
     rng = np.random.default_rng(SEED)
     if scene == "wall":
         mesh = trimesh.creation.box((8.0, 0.01, 3.0), _pose(0.0, (2.5, 4.0, 1.5)))
-    else:  # two long walls and a floor, open at both ends
+    elif scene == "corridor":  # two long walls and a floor, open at both ends
         mesh = trimesh.util.concatenate([
             trimesh.creation.box((20.0, 0.01, 2.5), _pose(0.0, (2.5, y, 1.25)))
             for y in (0.3, 3.3)] + [trimesh.creation.box((20.0, 3.0, 0.01),
                                                          _pose(0.0, (2.5, 1.8, 0.0)))])
+    else:  # floor, ceiling and a round wall: every translation fixed, the turn about its axis not
+        mesh = trimesh.creation.cylinder(radius=2.2, height=2.5, sections=128,
+                                         transform=_pose(0.0, (2.5, 2.0, 1.25)))
     T_world_source = _pose(0.3, (3.0, 1.8, 1.2))
     T_target_source = np.linalg.inv(T_WORLD_TARGET) @ T_world_source
     check = check_loop(_submap(mesh, T_WORLD_TARGET, rng), _submap(mesh, T_world_source, rng),

@@ -85,10 +85,6 @@ class PoseGraph:
         self._loops: list[tuple[int, int]] = []
 
     @property
-    def nodes(self) -> list[int]:
-        return [int(k) for k in self._initial.keys()]
-
-    @property
     def loops(self) -> list[tuple[int, int]]:
         return list(self._loops)
 

@@ -440,22 +440,14 @@ TEST_F(PipelineFixture, AKidnappedCameraIsRelocalisedWhereItHasBeen) {
 // IMU's prior (here exact) the 10th begins a new map at the prior's pose, the old map cleared,
 // and the frames after it track in the new map. Without a prior, or without new maps, the
 // camera stays lost to the end: a new map could only begin at the last pose, a jump.
-TEST(PipelineNewMap, AfterEveryTryFailsANewMapBeginsAtThePriorAndTracks) {
+TEST_F(PipelineFixture, AfterEveryTryFailsANewMapBeginsAtThePriorAndTracks) {
   constexpr int kPath = 20, kTurned = 25;
   constexpr int kFailed = 10;  // FusionPipeline::Params' default
-  const PinholeCamera camera = test::tumCamera();
-  SyntheticScene scene = SyntheticScene::cornerRoom();
   scene.addPlane(Eigen::Vector3f(-1.f, 0.f, 0.f), -1.4f);  // right wall x = 1.4
   scene.addPlane(Eigen::Vector3f(0.f, 0.f, 1.f), -1.0f);   // front wall z = -1.0
   // Something in front of that wall: a wall alone leaves the motion along it to the prior.
   scene.addBox(Eigen::Vector3f(0.15f, 0.2f, -0.75f), Eigen::Vector3f(0.15f, 0.15f, 0.1f));
   scene.addSphere(Eigen::Vector3f(0.6f, -0.1f, -0.8f), 0.15f);
-  Image<uint16_t> raw(camera.width, camera.height);
-  const auto renderAt = [&](const Pose& T_world_cam, uint32_t seed) {
-    std::mt19937 rng(seed);
-    scene.renderRawDepth(camera, T_world_cam, test::kRenderMaxDepthM, test::kTumDepthScale, &rng,
-                         raw);
-  };
   const auto turned = [&](int j) {
     return groundTruth(kPath - 1) *
            test::makePose(Eigen::Vector3d::UnitY() * M_PI, Eigen::Vector3d::Zero()) *
@@ -480,8 +472,7 @@ TEST(PipelineNewMap, AfterEveryTryFailsANewMapBeginsAtThePriorAndTracks) {
     FusionPipeline p(camera, params, &map);
     for (int k = 0; k < kPath; ++k) {
       renderAt(groundTruth(k), 11000 + k);
-      ASSERT_NE(p.processFrame(raw, PipelineFixture::utimeOf(k)).status, TrackingStatus::kLost)
-          << "frame " << k;
+      ASSERT_NE(p.processFrame(raw, utimeOf(k)).status, TrackingStatus::kLost) << "frame " << k;
     }
     const size_t old_map_blocks = map.numAllocatedBlocks();
     int began_at = -1;
@@ -489,8 +480,8 @@ TEST(PipelineNewMap, AfterEveryTryFailsANewMapBeginsAtThePriorAndTracks) {
       renderAt(turned(j), 12000 + j);
       const Pose prior = turned(j);
       const size_t blocks_before = map.numAllocatedBlocks();
-      const FrameResult r = p.processFrame(raw, PipelineFixture::utimeOf(kPath + j),
-                                           c.with_prior ? &prior : nullptr);
+      const FrameResult r =
+          p.processFrame(raw, utimeOf(kPath + j), c.with_prior ? &prior : nullptr);
       if (began_at < 0) {
         if (r.status == TrackingStatus::kLost) {
           EXPECT_EQ(map.numAllocatedBlocks(), blocks_before) << "nothing fused from frame " << j;

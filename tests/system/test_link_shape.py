@@ -98,9 +98,9 @@ def test_bursty_loss_has_the_mean_run_and_the_average(wifi_netns: WifiNetns) -> 
     run_sigma = math.sqrt((1 - q) / q**2 / expected_runs)
     mean_run = sum(runs) / len(runs)
     assert abs(mean_run - shape.loss_run_packets) <= SIGMAS * run_sigma, mean_run
-    # A burst starts only once the kernel has collected the previous one's set element
-    # (scripts/netns.py); at this test's ~1000 bursts a second a few may not, which would bias
-    # the loss low: they are counted, and must stay negligible.
+    # A burst starts only where the kernel has collected a set element that an earlier burst
+    # left dead (scripts/netns.py: two sets take turns); at this test's ~1000 bursts a second a
+    # start both refuse would bias the loss low: they are counted, and must stay negligible.
     assert link_counters(prefix)["burst_refused"] <= 0.01 * len(runs)
     # One channel state for both directions: each flow sees the average loss too.
     for flow_loss in per_flow:

@@ -85,6 +85,7 @@ OUTPUTS = {
     "mesh.ply": "the ground's map of the room (binary PLY)",
     "trajectory_onboard.tum": "each keyframe's pose as the drone sent it",
     "trajectory_corrected.tum": "each keyframe's pose as the ground refined it",
+    "trajectory_optimised.tum": "each keyframe's pose where the map's pose graph puts it at the end",
     "trajectory_ground_truth.tum": "the simulator's true camera poses",
     "flight.lcmlog": "the drone's bus but the raw depth (kinfly-ground replay reads it)",
     "ground.lcmlog": "what the ground station sent back: corrections, status, repair requests",

@@ -100,6 +100,13 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reset-rotation", type=float, default=math.degrees(d.reset_rotation_rad),
                    metavar="DEG", help="the same for rotation [degrees] "
                    f"(default {math.degrees(d.reset_rotation_rad):g})")
+    p.add_argument("--submap-distance", type=float, default=d.submaps.max_distance_m,
+                   metavar="M", help="a submap closes after the camera travelled this far in it, "
+                   "and is checked for loops with the earlier ones near it "
+                   f"[m] (default {d.submaps.max_distance_m:g})")
+    p.add_argument("--submap-duration", type=float, default=d.submaps.max_duration_s,
+                   metavar="S", help="... or after this long in capture time "
+                   f"[s] (default {d.submaps.max_duration_s:g})")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -185,9 +192,17 @@ def parser() -> argparse.ArgumentParser:
 
 
 def _params(args: argparse.Namespace, **extra: Any) -> StationParams:
+    try:
+        submaps = dataclasses.replace(StationParams().submaps,
+                                      max_distance_m=args.submap_distance,
+                                      max_duration_s=args.submap_duration)
+    except ValueError:
+        raise UsageError(f"--submap-distance {args.submap_distance:g} and --submap-duration "
+                         f"{args.submap_duration:g} must be positive") from None
     params = StationParams(voxel_size_m=args.voxel_size, threads=args.threads,
                            reset_translation_m=args.reset_translation,
-                           reset_rotation_rad=math.radians(args.reset_rotation), **extra)
+                           reset_rotation_rad=math.radians(args.reset_rotation), submaps=submaps,
+                           **extra)
     if why := params.validate():
         raise UsageError(why)
     return params

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from ._native import LinkQuality
+from ._native import LinkQuality, write_ply
 from .outputs import (ate_figures, evaluate, memory, write_atomically, write_error_plot,
                       write_json, write_tum)
 from .station import Station
@@ -32,7 +32,10 @@ def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, A
     # Made at the end by Station.show_final; an export on request evaluates the map so far.
     results = segment.evaluation
     if results is None:
-        results = evaluate({"onboard": segment.onboard, "corrected": segment.corrected}, truth)
+        trajectories = {"onboard": segment.onboard, "corrected": segment.corrected}
+        if segment.chain is not None:
+            trajectories["optimised"] = segment.chain.trajectory()
+        results = evaluate(trajectories, truth)
     if not results:
         return {"available": False, "reason": "fewer than 3 poses match the ground truth in time"}
     write_error_plot(out / "ate.png", results)
@@ -45,13 +48,17 @@ def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, A
 def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str, Any]:
     files: dict[str, str] = {}
     result: dict[str, Any] = {"files": files, "corrected_poses": len(segment.corrected)}
-    if segment.fusion is not None:
-        snapshot = segment.snapshot or segment.fusion.snapshot()
+    chain = segment.chain
+    if chain is not None:
+        mesh = segment.final_mesh or chain.mesh()
         result["mesh_triangles"] = write_atomically(out / "mesh.ply",
-                                                    lambda tmp: snapshot.write_ply(str(tmp)))
+                                                    lambda tmp: write_ply(str(tmp), *mesh))
         files["mesh"] = "mesh.ply"
-        result["map_blocks"] = segment.fusion.num_blocks
-        result["map_memory_mb"] = segment.fusion.memory_bytes / 1e6
+        result["map_blocks"] = chain.num_blocks
+        result["map_memory_mb"] = chain.memory_bytes / 1e6
+        result["submaps"] = len(chain.submaps)
+        write_tum(out / "trajectory_optimised.tum", chain.trajectory())
+        files["trajectory_optimised"] = "trajectory_optimised.tum"
     write_tum(out / "trajectory_onboard.tum", segment.onboard)
     write_tum(out / "trajectory_corrected.tum", segment.corrected)
     files["trajectory_onboard"] = "trajectory_onboard.tum"
@@ -187,10 +194,15 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
               f"p99 {format_ms(lat['p99'])} ms")
         if line := format_link(v.get("link"), drone):
             print(f"    {line}")
+        if v.get("submaps", 0) > 1:
+            print(f"    {v['submaps']} submaps ({k['submaps_after_loss']} begun after lost "
+                  f"keyframes); {k['loop_candidates']} loops checked: {k['loops_accepted']} "
+                  f"accepted, {k['loops_refused_by_check']} refused by the check, "
+                  f"{k['loops_refused_by_graph']} by the graph")
         a = v["ate"]
         if a["available"]:
             parts = [f"{n} {a[n]['rmse_m'] * 100:.2f} cm ({a[n]['matched_poses']} poses)"
-                     for n in ("onboard", "corrected") if n in a]
+                     for n in ("onboard", "corrected", "optimised") if n in a]
             print("    ATE RMSE: " + ", ".join(parts))
         else:
             print(f"    ATE: {a['reason']}")

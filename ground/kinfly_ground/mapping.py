@@ -1,9 +1,12 @@
-"""The maps (the worker thread): each keyframe is refined against its vehicle's map from the
-drone's onboard pose and fused (the GIL released), its correction goes out at once (uplink.py),
-then the viewer gets the keyframe, the render and the health figures, and every few seconds a copy
-of the map to mesh (runner.py). The correction policy: a correction that moves the onboard pose
-beyond the reset bounds is a jump (reset_counter + 1). Ground truth is filed with the map of the
-session it arrived in and drawn in the map's frame."""
+"""The maps (the worker thread): each keyframe is refined against its vehicle's open submap from
+the drone's onboard pose and fused (the GIL released), its correction goes out at once
+(uplink.py), then the viewer gets the keyframe, the render and the health figures, and every few
+seconds a copy of the submap to mesh (runner.py). A submap that has gone far or long enough then
+closes, and its loop candidates are checked off the keyframe path (loops.py); the loops found are
+added to the chain's graph before the next keyframe, which moves the submaps (submaps.py). The
+correction policy: a correction that moves the onboard pose beyond the reset bounds is a jump
+(reset_counter + 1), as after a loop that moved the open submap. Ground truth is filed with the
+map of the session it arrived in and drawn in the map's frame."""
 from __future__ import annotations
 
 import time
@@ -14,7 +17,9 @@ import numpy as np
 
 from . import flight
 from ._native import Fusion, Keyframe, MapSnapshot, TrackingStatus, rotation_angle_rad
+from .loops import LoopCloser
 from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
+from .submaps import Submap, SubmapChain
 from .uplink import Uplink
 from .vehicle import Job, Segment, StampedPose, VehicleState
 
@@ -39,17 +44,18 @@ def truth_anchor(corrected: list[StampedPose], truth: list[StampedPose]) -> np.n
 
 
 class Mapper:
-    """Handles queued keyframes (`process`, on the worker thread). MESH hands a map copy to the
-    mesher."""
+    """Handles queued keyframes (`process`, on the worker thread). MESH hands a submap's copy
+    (vehicle, capture time, submap index, snapshot) to the mesher."""
 
     def __init__(self, params: Any, vehicles: dict[int, VehicleState], uplink: Uplink,
-                 mesh: Callable[[VehicleState, int, MapSnapshot], None],
+                 mesh: Callable[[VehicleState, int, int, MapSnapshot], None],
                  log: Callable[[str], None]) -> None:
         self.params = params
         self.vehicles = vehicles
         self._uplink = uplink
         self._mesh = mesh
         self._log = log
+        self.loops = LoopCloser(log)
 
     def process(self, job: Job) -> None:
         """One keyframe that cannot be handled (intrinsics the engine refuses, say) is counted
@@ -80,28 +86,36 @@ class Mapper:
                       f"({state.segment.camera[:6]} -> {camera[:6]}); starting a new map")
             self._new_segment(state, m.utime)
         segment = state.segment
-        if segment.fusion is None:
+        if segment.chain is None:
             segment.camera = camera
             pipeline = self.params.pipeline_params()
             pipeline.preprocess.depth_scale_m = m.depth_scale_m
-            segment.fusion = Fusion(c, self.params.volume_params(), pipeline,
-                                    threads=self.params.threads)
+            volume = self.params.volume_params()
+            segment.chain = SubmapChain(self.params.submaps, lambda: Fusion(
+                c, volume, pipeline, threads=self.params.threads))
+        chain = segment.chain
+        self._add_loops(state, chain, m.utime)
         has_onboard = m.tracking is not None
         if has_onboard:
             T_onboard = m.T_world_cam
         else:
-            # No onboard pose (its fields are meaningless): start from the last refined one.
-            T_onboard = segment.corrected[-1][1] if segment.corrected else np.eye(4)
+            # No onboard pose (its fields are meaningless): start from the last refined one, in
+            # the chain's frame.
+            T_onboard = chain.active.keyframes[-1][1] if chain.active else np.eye(4)
         depth = m.depth
-        result = segment.fusion.refine(depth, m.utime, T_onboard)
-        state.map_blocks = segment.fusion.num_blocks
+        submaps_before = len(chain.submaps)
+        result, T_corrected = chain.refine(depth, m.utime, T_onboard)
+        if submaps_before and len(chain.submaps) > submaps_before:
+            state.counters.submaps_after_loss += 1
+            self._log(f"vehicle {state.vehicle_id}: keyframe {m.keyframe_id} begins submap "
+                      f"{chain.active.index} at the drone's pose: "
+                      f"{self.params.submaps.new_after_lost} keyframes in a row did not register")
+        state.map_blocks = chain.num_blocks
         state.refine_ms.append(result.total_ms)
         state.last_result = result
         if has_onboard:
             segment.onboard.append((m.utime, T_onboard))
-        T_corrected = None
-        if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
-            T_corrected = result.T_world_cam
+        if T_corrected is not None:
             segment.corrected.append((m.utime, T_corrected))
             state.counters.keyframes_fused += 1
             state.rates["fused"].tick(time.monotonic())
@@ -111,6 +125,50 @@ class Mapper:
             self._log(f"vehicle {state.vehicle_id}: keyframe {m.keyframe_id} not refined "
                       f"({result.lost_reason}); no correction")
         self._show(state, m, depth, T_onboard, T_corrected, result)
+        # After the correction went out and the viewer has the keyframe: closing a submap
+        # snapshots it and begins the next with this keyframe.
+        closed = chain.close_if_due(depth, m.utime)
+        if closed is not None:
+            self._closed(state, chain, closed, m.utime)
+
+    def _closed(self, state: VehicleState, chain: SubmapChain, closed: Submap,
+                utime: int) -> None:
+        state.counters.submaps_closed += 1
+        self._log(f"vehicle {state.vehicle_id}: submap {closed.index} closed after "
+                  f"{closed.path_m:.1f} m, {(utime - closed.first_utime) * 1e-6:.0f} s, "
+                  f"{len(closed.keyframes)} keyframes")
+        # Its whole mesh once, so the viewer keeps it complete (meshing it also serves the
+        # loop check, which reads the same snapshot).
+        state.view.submap_poses(utime, {closed.index: chain.correction(closed.index)})
+        self._mesh(state, utime, closed.index, closed.snapshot)
+        candidates = chain.loop_candidates(closed)
+        state.counters.loop_candidates += len(candidates)
+        self.loops.submit(chain, candidates)
+
+    def _add_loops(self, state: VehicleState, chain: SubmapChain, utime: int) -> None:
+        """Adds the loops checked since the last keyframe to the graph: the submaps move, and
+        the next correction carries the open submap's move to the drone."""
+        done = self.loops.take_done(chain)
+        state.counters.loop_checks_failed += sum(1 for d in done if d.check is None)
+        checked = [(d.candidate, d.check) for d in done if d.check is not None]
+        if not checked:
+            return
+        for outcome in chain.add_loops(checked):
+            c, check = outcome.candidate, outcome.check
+            if outcome.accepted_by_graph:
+                state.counters.loops_accepted += 1
+                verdict = "accepted"
+            elif check.accepted:
+                state.counters.loops_refused_by_graph += 1
+                verdict = "refused by the graph"
+            else:
+                state.counters.loops_refused_by_check += 1
+                verdict = f"refused ({check.reason})"
+            self._log(f"vehicle {state.vehicle_id}: loop between submaps {c.older} and "
+                      f"{c.newer} {verdict}")
+        if state.segment.chain is chain:
+            state.view.submap_poses(utime, chain.corrections())
+            state.view.optimised(utime, np.array([T[:3, 3] for _, T in chain.trajectory()]))
 
     def _correct(self, state: VehicleState, m: Keyframe, T_onboard: np.ndarray,
                  T_corrected: np.ndarray, arrival_ns: int) -> None:
@@ -131,7 +189,8 @@ class Mapper:
         c = m.camera
         state.view.keyframe(m.utime, depth, m.depth_scale_m, (c.fx, c.fy, c.cx, c.cy), T_onboard,
                             T_corrected)
-        fusion = state.segment.fusion
+        chain = state.segment.chain
+        fusion = chain.active.fusion
         if result.status is TrackingStatus.OK:
             # The map as raycast for this keyframe's registration, from its onboard pose (a few
             # mm from the refined one) where it measured depth; a map's first keyframe has none.
@@ -169,7 +228,10 @@ class Mapper:
         if interval_us > 0 and (state.mesh_utime is None
                                 or m.utime - state.mesh_utime >= interval_us):
             state.mesh_utime = m.utime
-            self._mesh(state, m.utime, fusion.snapshot())
+            # A submap begun after a loop continues its predecessor's correction.
+            state.view.submap_poses(m.utime, {chain.active.index:
+                                              chain.correction(chain.active.index)})
+            self._mesh(state, m.utime, chain.active.index, fusion.snapshot())
 
     def _draw_flight(self, state: VehicleState) -> None:
         """The flight stack's newest state with each keyframe: the estimate and the setpoint in
@@ -210,28 +272,37 @@ class Mapper:
 
     def _new_segment(self, state: VehicleState, utime: int) -> None:
         with state.lock:
-            if state.segment.fusion is not None:
+            if state.segment.chain is not None:
                 state.finished_segments.append(state.segment)
             state.segment = Segment()
         state.view.restarted(utime)
 
-    def show_final(self, truth: list[StampedPose] | None) -> None:
-        """Sends every vehicle's map to the viewer as it is at the end, stamped with its last
-        keyframe (the periodic meshes miss whatever came after the last one), and its ground
-        truth (TRUTH, else what the drone sent) as the ATE aligns it with the corrected
-        trajectory: the frame the evaluation compares them in. Call after stop()."""
+    def show_final(self, truth: list[StampedPose] | None, loops_timeout_s: float) -> None:
+        """Adds the loops still being checked (waiting up to LOOPS_TIMEOUT_S), then sends every
+        vehicle's map to the viewer as it is at the end, stamped with its last keyframe (the
+        periodic meshes miss whatever came after the last one), and its ground truth (TRUTH,
+        else what the drone sent) as the ATE aligns it with the corrected trajectory: the frame
+        the evaluation compares them in. Call after stop()."""
+        if not self.loops.wait_idle(loops_timeout_s):
+            self._log(f"loop checks still running after {loops_timeout_s:g} s: left out")
         for state in self.vehicles.values():
             segment = state.segment
-            if segment.fusion is None or not segment.corrected:
+            if segment.chain is None or not segment.corrected:
                 continue
+            chain = segment.chain
             last_utime = segment.corrected[-1][0]
-            segment.snapshot = segment.fusion.snapshot()
-            state.view.mesh(last_utime, *segment.snapshot.mesh())
+            self._add_loops(state, chain, last_utime)
+            active = chain.active
+            state.view.submap_poses(last_utime, chain.corrections())
+            state.view.mesh(last_utime, active.index, *active.fusion.snapshot().mesh())
+            segment.final_mesh = chain.mesh()
             segment_truth = truth if truth is not None else segment.ground_truth
             segment.evaluation = evaluate({"onboard": segment.onboard,
-                                           "corrected": segment.corrected}, segment_truth)
-            if "corrected" in segment.evaluation:
-                T_map_truth = np.linalg.inv(segment.evaluation["corrected"]["T_truth_estimate"])
+                                           "corrected": segment.corrected,
+                                           "optimised": chain.trajectory()}, segment_truth)
+            # The map is where the graph put it: the ground truth is drawn in that frame.
+            if "optimised" in segment.evaluation:
+                T_map_truth = np.linalg.inv(segment.evaluation["optimised"]["T_truth_estimate"])
                 # Stamped no earlier than the last truth drawn during the flight (frames after
                 # the last keyframe have truth too), or a viewer at the end would show that.
                 drawn = (segment.ground_truth[segment.truth_drawn - 1][0]
@@ -239,3 +310,4 @@ class Mapper:
                 state.view.ground_truth_aligned(
                     max(last_utime, drawn),
                     np.array([(T_map_truth @ T)[:3, 3] for _, T in segment_truth]))
+        self.loops.close()

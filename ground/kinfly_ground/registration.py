@@ -93,6 +93,28 @@ def _conditioning(points: np.ndarray, normals: np.ndarray) -> float:
     return float(max(eigenvalues[0], 0.0) / eigenvalues[-1]) if eigenvalues[-1] > 0 else 0.0
 
 
+def _fit(target_cloud, source_cloud, T: np.ndarray,
+         params: RegistrationParams) -> tuple[float, float, float]:
+    """How well SOURCE_CLOUD moved by T fits TARGET_CLOUD: the overlap, the RMS distance along
+    the partners' normals, and the overlap's conditioning."""
+    # Overlap, seen from the smaller cloud: a submap wholly inside a larger one overlaps fully.
+    source_in_target = (T[:3, :3] @ source_cloud.points()[:, :3].T).T + T[:3, 3]
+    target_xyz = target_cloud.points()[:, :3]
+    small, large, large_normals = source_in_target, target_xyz, target_cloud.normals()[:, :3]
+    if len(target_xyz) < len(source_in_target):
+        small, large = target_xyz, source_in_target
+        large_normals = (T[:3, :3] @ source_cloud.normals()[:, :3].T).T
+    distances, nearest = cKDTree(large).query(small, distance_upper_bound=params.inlier_distance_m)
+    inliers = np.isfinite(distances)
+    overlap = float(np.mean(inliers))
+    normals = large_normals[nearest[inliers]]
+    # Along the partner's normal: two samplings of one surface lie a point spacing apart, but
+    # on the same plane.
+    along_normal = np.einsum("ij,ij->i", small[inliers] - large[nearest[inliers]], normals)
+    rms = float(np.sqrt(np.mean(np.square(along_normal)))) if inliers.any() else float("inf")
+    return overlap, rms, _conditioning(large[nearest[inliers]], normals)
+
+
 def check_loop(target_points: np.ndarray, source_points: np.ndarray,
                T_target_source_guess: np.ndarray,
                params: RegistrationParams | None = None) -> LoopCheck:
@@ -120,22 +142,8 @@ def check_loop(target_points: np.ndarray, source_points: np.ndarray,
                               max_correspondence_distance=params.max_correspondence_m,
                               max_iterations=params.max_iterations, num_threads=params.threads)
     T = np.asarray(result.T_target_source)
-    # Overlap, seen from the smaller cloud: a submap wholly inside a larger one overlaps fully.
-    source_in_target = (T[:3, :3] @ source_cloud.points()[:, :3].T).T + T[:3, 3]
-    target_xyz = target_cloud.points()[:, :3]
-    small, large, large_normals = source_in_target, target_xyz, target_cloud.normals()[:, :3]
-    if len(target_xyz) < len(source_in_target):
-        small, large = target_xyz, source_in_target
-        large_normals = (T[:3, :3] @ source_cloud.normals()[:, :3].T).T
-    distances, nearest = cKDTree(large).query(small, distance_upper_bound=params.inlier_distance_m)
-    inliers = np.isfinite(distances)
-    overlap = float(np.mean(inliers))
-    normals = large_normals[nearest[inliers]]
-    # Along the partner's normal: two samplings of one surface lie a point spacing apart, but
-    # on the same plane.
-    along_normal = np.einsum("ij,ij->i", small[inliers] - large[nearest[inliers]], normals)
-    rms = float(np.sqrt(np.mean(np.square(along_normal)))) if inliers.any() else float("inf")
-    conditioning = _conditioning(large[nearest[inliers]], normals)
+    overlap, rms, conditioning = _fit(target_cloud, source_cloud, T, params)
+    guess_overlap, guess_rms, _ = _fit(target_cloud, source_cloud, guess, params)
     # The place first (does the fit put the surfaces together at all), then whether they can
     # slide, then whether GICP settled: a fit in the wrong place is reported as that, and
     # sliding surfaces seldom converge, but the sliding is the reason.

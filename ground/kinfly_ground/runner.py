@@ -37,8 +37,9 @@ class Runner(Generic[Job]):
         self._cv = threading.Condition()
         self._stopping = False
         self._idle = True
-        # (vehicle state, capture time, map snapshot): only the latest waits.
-        self._mesh_jobs: collections.deque[tuple[Any, int, Any]] = collections.deque(maxlen=1)
+        # (vehicle state, capture time, submap index, snapshot) by (vehicle, submap): only each
+        # submap's latest waits, and a closed submap's last mesh is never replaced.
+        self._mesh_jobs: dict[tuple[int, int], tuple[Any, int, int, Any]] = {}
         self._mesh_cv = threading.Condition()
         self._threads: list[threading.Thread] = []
         self._export_requests: list[Callable[[], None]] = []
@@ -60,14 +61,16 @@ class Runner(Generic[Job]):
             self._queue.append(job)
             self._cv.notify()
 
-    def mesh(self, state: Any, utime: int, snapshot: Any) -> None:
-        """Meshes SNAPSHOT for STATE's view on the mesher thread (inline: now); a newer request
-        replaces one still waiting."""
+    def mesh(self, state: Any, utime: int, submap: int, snapshot: Any) -> None:
+        """Meshes SNAPSHOT of STATE's submap SUBMAP for its view on the mesher thread (inline:
+        now); a newer request for the same submap replaces one still waiting."""
         if self._inline:
-            state.view.mesh(utime, *snapshot.mesh())
+            state.view.mesh(utime, submap, *snapshot.mesh())
             return
         with self._mesh_cv:
-            self._mesh_jobs.append((state, utime, snapshot))
+            key = (state.vehicle_id, submap)
+            self._mesh_jobs.pop(key, None)  # the newer goes last, in the order asked
+            self._mesh_jobs[key] = (state, utime, submap, snapshot)
             self._mesh_cv.notify()
 
     def _work(self) -> None:
@@ -108,9 +111,9 @@ class Runner(Generic[Job]):
                     self._mesh_cv.wait()
                 if not self._mesh_jobs:
                     return
-                state, utime, snapshot = self._mesh_jobs.popleft()
+                state, utime, submap, snapshot = self._mesh_jobs.pop(next(iter(self._mesh_jobs)))
             try:
-                state.view.mesh(utime, *snapshot.mesh())
+                state.view.mesh(utime, submap, *snapshot.mesh())
             except Exception as error:  # a mesh is for display: fusion goes on without it
                 self._log(f"vehicle {state.vehicle_id}: no mesh for the viewer: {error}")
 

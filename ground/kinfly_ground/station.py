@@ -29,6 +29,7 @@ from ._native import FusionPipelineParams, HashedVolumeParams, Receiver, Signer
 from .arrivals import Arrivals, Forward
 from .mapping import Mapper
 from .runner import Runner
+from .submaps import SubmapParams
 from .conversions import ground_status
 from .uplink import Publish, Uplink
 from .vehicle import Job, StampedPose, VehicleState
@@ -68,6 +69,11 @@ class StationParams:
     # copy a replay.
     correction_copies: int = 4          # [1, 10]
     correction_copy_interval_s: float = 0.03  # [s] [0.005, 0.5]
+    # The map as a chain of submaps and its loop closure (submaps.py); each closed submap's
+    # loops are checked in a process beside the fusion (loops.py). At the end of a run the
+    # checks still under way get this long to finish before the outputs are written.
+    submaps: SubmapParams = SubmapParams()
+    final_loops_timeout_s: float = 60.0  # [s] > 0
 
     def volume_params(self) -> HashedVolumeParams:
         """The engine's parameters for each map's hashed volume."""
@@ -100,6 +106,7 @@ class StationParams:
             (1 <= self.correction_copies <= 10, "correction copies must be in [1, 10]"),
             (0.005 <= self.correction_copy_interval_s <= 0.5,
              "correction copy interval must be in [0.005, 0.5] s"),
+            (self.final_loops_timeout_s > 0, "final loops timeout must be > 0 s"),
         ]
         if why := next((why for ok, why in checks if not ok), ""):
             return why
@@ -171,8 +178,9 @@ class Station:
         return self.runner.queue_length()
 
     def show_final(self, truth: list[StampedPose] | None) -> None:
-        """The maps and ground truth as they are at the end (Mapper.show_final); after stop()."""
-        self.mapper.show_final(truth)
+        """The loops still being checked, then the maps and ground truth as they are at the end
+        (Mapper.show_final); after stop()."""
+        self.mapper.show_final(truth, self.params.final_loops_timeout_s)
 
     def ground_status(self, state: VehicleState, now_s: float, link_timeout_s: float,
                       run_state: int = ground_status_t.RUN_ACTIVE) -> ground_status_t:

@@ -4,17 +4,19 @@ or keyframes that failed to register; the submaps are the nodes of a pose graph,
 closure moves whole submaps (their meshes with them) instead of integrating anything again.
 
 Frames. Every submap is fused in the chain's frame `c`, the drone's odometry frame the first
-keyframe was fused in (as a single map is today), starting at the pose the chain had reached:
+keyframe was fused in (as a single map was), starting at the pose the chain had reached:
 submap k's anchor A_k = T_c_anchor is its first keyframe's pose there. The optimised graph places
 the anchors at O_k = T_world_anchor; submap k's correction C_k = O_k A_k⁻¹ takes its content
 (and its keyframes' poses) from `c` into the optimised world. Before any loop every C_k is the
 identity and the chain is the single map of before.
 
-Threads. `refine` and `close_if_due` run on the fusion thread. `loop_candidates` reads closed
-submaps only (their snapshots do not change), and `add_loops` optimises and swaps the corrections
-under a lock: both run off the keyframe path."""
+Threads. `refine`, `close_if_due`, `loop_candidates` and `add_loops` (a graph of tens of nodes:
+milliseconds) run on the fusion thread. `check_arguments` meshes closed submaps, whose snapshots do
+not change, and may run anywhere (loops.py checks them off the keyframe path); `correction`,
+`trajectory` and `mesh` read the corrections under a lock."""
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import threading
@@ -37,6 +39,12 @@ class SubmapParams:
     # drift stays under the loop check's residual gate.
     max_distance_m: float = 3.0
     max_duration_s: float = 30.0
+    # A submap begun at a close also holds the closed one's last keyframes, fused at their
+    # refined poses: a map of one keyframe is too thin for the next to register against
+    # (`make sim`'s room tour, replayed: inlier fractions of 0.07-0.10 after each close, 0.1
+    # required, and 7 of 153 keyframes lost; with the last 4 overlapping, one keyframe at 0.097
+    # six after a close; with 8, about 0.8 m of flight, none).
+    overlap_keyframes: int = 8
     # This many keyframes in a row that do not register start a new submap at the drone's pose:
     # the map no longer fits where the drone is (a long dropout, a new room).
     new_after_lost: int = 3
@@ -60,9 +68,11 @@ class SubmapParams:
     def __post_init__(self) -> None:
         if not (self.max_distance_m > 0 and self.max_duration_s > 0):
             raise ValueError(f"a submap's distance and duration must be positive: {self}")
-        if self.new_after_lost < 1 or self.min_loop_separation < 2 or self.max_loop_candidates < 1:
+        if (self.new_after_lost < 1 or self.min_loop_separation < 2
+                or self.max_loop_candidates < 1 or self.overlap_keyframes < 0):
             raise ValueError("new_after_lost and max_loop_candidates must be at least 1, "
-                             f"min_loop_separation at least 2: {self}")
+                             "min_loop_separation at least 2, overlap_keyframes at least 0: "
+                             f"{self}")
         if not self.loop_search_radius_m > 0:
             raise ValueError(f"loop_search_radius_m must be positive: {self.loop_search_radius_m}")
 
@@ -77,6 +87,7 @@ class Submap:
     keyframes: list[StampedPose] = dataclasses.field(default_factory=list)  # T_c_cam refined
     path_m: float = 0.0
     began_after_loss: bool = False
+    closed_memory_bytes: int = 0
     _points: np.ndarray | None = None
 
     def points(self) -> np.ndarray:
@@ -116,6 +127,10 @@ class SubmapChain:
         self._corrections: list[np.ndarray] = []  # C_k, swapped whole under the lock
         self._lock = threading.Lock()
         self._lost_in_a_row = 0
+        # The open submap's last registered keyframes (utime, depth, T_c_cam), the overlap of
+        # the next.
+        self._recent: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(
+            maxlen=params.overlap_keyframes + 1)
 
     @property
     def active(self) -> Submap | None:
@@ -125,18 +140,23 @@ class SubmapChain:
         with self._lock:
             return self._corrections[index]
 
-    def refine(self, depth: np.ndarray, utime: int, T_world_guess: np.ndarray
+    def corrections(self) -> dict[int, np.ndarray]:
+        """Every submap's C_k by index."""
+        with self._lock:
+            return dict(enumerate(self._corrections))
+
+    def refine(self, depth: np.ndarray, utime: int, T_c_guess: np.ndarray
                ) -> tuple[Any, np.ndarray | None]:
-        """Registers a keyframe in the active submap from a guess in the optimised world (the
-        drone's corrected onboard pose) and fuses it; the first keyframe begins the chain, fused
-        at the guess. Returns the engine's result and the keyframe's pose in the optimised
-        world, None when it did not register."""
+        """Registers a keyframe in the active submap from a guess in the chain's frame (the
+        drone's odometry pose, which corrections never move) and fuses it; the first keyframe
+        begins the chain, fused at the guess. Returns the engine's result and the keyframe's
+        pose in the optimised world, None when it did not register."""
         active = self.active
         if active is None:
-            result = self._begin(depth, utime, T_world_guess, after_loss=False)
+            result = self._begin(depth, utime, T_c_guess, after_loss=False)
             return result, (result.T_world_cam if self.submaps else None)
         C = self.correction(active.index)
-        result = active.fusion.refine(depth, utime, np.linalg.inv(C) @ T_world_guess)
+        result = active.fusion.refine(depth, utime, T_c_guess)
         if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
             self._lost_in_a_row = 0
             T_c_cam = result.T_world_cam
@@ -144,6 +164,7 @@ class SubmapChain:
                 step = T_c_cam[:3, 3] - active.keyframes[-1][1][:3, 3]
                 active.path_m += float(np.linalg.norm(step))
             active.keyframes.append((utime, T_c_cam))
+            self._recent.append((utime, depth, T_c_cam))
             return result, C @ T_c_cam
         self._lost_in_a_row += 1
         if self._lost_in_a_row < self.params.new_after_lost:
@@ -151,23 +172,42 @@ class SubmapChain:
         # The map no longer fits where the drone is: begin again at its pose, with this
         # keyframe, where it has depth to begin with.
         count = len(self.submaps)
-        began = self._begin(depth, utime, np.linalg.inv(C) @ T_world_guess, after_loss=True)
+        began = self._begin(depth, utime, T_c_guess, after_loss=True)
         if len(self.submaps) == count:
             return result, None
         self._lost_in_a_row = 0
         return began, C @ began.T_world_cam
 
+    @property
+    def num_blocks(self) -> int:
+        """Blocks allocated in every submap's volume (closed ones' as they closed)."""
+        return sum(s.fusion.num_blocks if s.fusion is not None else s.snapshot.num_blocks
+                   for s in self.submaps)
+
+    @property
+    def memory_bytes(self) -> int:
+        """The open submap's volume and the closed ones' volumes as they closed: a closed
+        volume is freed, but its blocks live on in its snapshot until meshed."""
+        return sum(s.fusion.memory_bytes if s.fusion is not None else s.closed_memory_bytes
+                   for s in self.submaps)
+
     def close_if_due(self, depth: np.ndarray, utime: int) -> Submap | None:
         """After the keyframe's correction has gone out: where the active submap has travelled
         or lasted long enough, closes it and begins the next with the same keyframe at its
-        refined pose. Returns the closed submap (for the loop search), else None."""
+        refined pose, its map overlapping the closed one's last `overlap_keyframes`. Returns the
+        closed submap (for the loop search), else None."""
         active = self.active
         if active is None or active.keyframes[-1][0] != utime:
             return None
         age_s = (utime - active.first_utime) * 1e-6
         if active.path_m < self.params.max_distance_m and age_s < self.params.max_duration_s:
             return None
+        overlap = [kf for kf in self._recent if kf[0] != utime]
         self._begin(depth, utime, active.keyframes[-1][1], after_loss=False)
+        if self.active is active:  # too little depth to begin a map with: it stays open
+            return None
+        for kf_utime, kf_depth, T_c_cam in overlap:
+            self.active.fusion.fuse_at(kf_depth, kf_utime, T_c_cam)
         return active
 
     def _begin(self, depth: np.ndarray, utime: int, T_c_cam: np.ndarray, after_loss: bool) -> Any:
@@ -178,11 +218,14 @@ class SubmapChain:
         if result.status is not TrackingStatus.FIRST_FRAME:
             return result
         anchor = result.T_world_cam
+        self._recent.clear()
+        self._recent.append((utime, depth, anchor))
         submap = Submap(len(self.submaps), anchor, utime, fusion, keyframes=[(utime, anchor)],
                         began_after_loss=after_loss)
         previous = self.active
         if previous is not None:
             previous.snapshot = previous.fusion.snapshot()
+            previous.closed_memory_bytes = previous.fusion.memory_bytes
             previous.fusion = None
         with self._lock:
             if previous is not None:
@@ -220,11 +263,16 @@ class SubmapChain:
         nearest = sorted(found, key=lambda pair: pair[0])[: self.params.max_loop_candidates]
         return [candidate for _, candidate in nearest]
 
+    def check_arguments(self, candidate: LoopCandidate
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, RegistrationParams]:
+        """registration.check_loop's arguments for CANDIDATE: the two submaps' surfaces
+        (meshing a closed submap the first time: tenths of a second, the GIL released)."""
+        return (self.submaps[candidate.older].points(), self.submaps[candidate.newer].points(),
+                candidate.T_older_newer_guess, self.params.registration)
+
     def check(self, candidate: LoopCandidate) -> LoopCheck:
-        """Registers the two submaps' surfaces (seconds: off the keyframe path)."""
-        return check_loop(self.submaps[candidate.older].points(),
-                          self.submaps[candidate.newer].points(),
-                          candidate.T_older_newer_guess, self.params.registration)
+        """Registers the two submaps' surfaces in this thread (seconds, the GIL held)."""
+        return check_loop(*self.check_arguments(candidate))
 
     def add_loops(self, checked: list[tuple[LoopCandidate, LoopCheck]]) -> list[LoopOutcome]:
         """Adds the loops that passed their check to the graph, optimises it and swaps every

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from ._native import (DroneStatus, FlightStatus, Fusion, Keyframe, LinkQuality, MapSnapshot,
-                      Signer)
+from ._native import DroneStatus, FlightStatus, Keyframe, LinkQuality, Signer
+from .submaps import SubmapChain
 from .viewer import VehicleView
 
 StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4 T_world_cam)
@@ -33,12 +33,21 @@ class VehicleCounters:
     corrections_unsigned: int = 0  # not sent: no key for this vehicle
     resets: int = 0                # corrections beyond the jump threshold
     failed: int = 0                # keyframes whose handling raised (logged): the station goes on
+    submaps_closed: int = 0        # by distance or time; a new one begins with the same keyframe
+    submaps_after_loss: int = 0    # begun at the drone's pose after keyframes that did not register
+    loop_candidates: int = 0       # closed submaps near an earlier one, checked (loops.py)
+    loops_refused_by_check: int = 0  # too little overlap, residual or constraint (registration.py)
+    loops_refused_by_graph: int = 0  # passed the check, inconsistent with the rest (posegraph.py)
+    loops_accepted: int = 0
+    loop_checks_failed: int = 0    # the check raised (logged): no loop
 
 
 @dataclasses.dataclass
 class Segment:
-    """One odometry frame's map and trajectories: a drone restart starts a new segment."""
-    fusion: Fusion | None = None
+    """One odometry frame's map (a chain of submaps) and trajectories: a drone restart starts a
+    new segment. `corrected` holds the poses as corrected when each keyframe came; the chain's
+    trajectory() is where the optimised graph puts them now."""
+    chain: SubmapChain | None = None
     camera: tuple[Any, ...] | None = None
     onboard: list[StampedPose] = dataclasses.field(default_factory=list)
     corrected: list[StampedPose] = dataclasses.field(default_factory=list)
@@ -47,7 +56,8 @@ class Segment:
     # how many of its poses have been drawn.
     T_map_truth: np.ndarray | None = None
     truth_drawn: int = 0
-    snapshot: MapSnapshot | None = None  # the final map, meshed once for viewer and file
+    # The final map (vertices, triangles, normals), meshed once for viewer and file.
+    final_mesh: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     # The final ATE of each trajectory (outputs.evaluate), made once for viewer and summary.
     evaluation: dict[str, dict[str, Any]] | None = None
 

@@ -11,7 +11,8 @@ when serving several):
   world/drone/setpoint             ... the setpoint its position loop follows (flight_status_t,
                                    in the map's frame by the estimator's alignment)
   world/trajectory/<name>/<block>  onboard, corrected, ground_truth (see _Trajectory)
-  world/map/mesh                   Mesh3D
+  world/map/submap/<k>             Transform3D C_k: where the pose graph puts submap k
+  world/map/submap/<k>/mesh        Mesh3D, in the frame the submap was fused in
   health/<group>/<name>            Scalars, names from the caller ("link/latency_ms")
   autopilot/<name>                 Scalars, MAVLink telemetry
   flight/<name>                    Scalars, the flight stack's (flight.metrics)
@@ -212,15 +213,35 @@ class VehicleView:
         self._stamp(utime)
         self._rec.log(f"{self._prefix}world/drone/camera/render", rr.Image(image, color_model="L"))
 
-    def mesh(self, utime: int, vertices: np.ndarray, triangles: np.ndarray,
+    def mesh(self, utime: int, submap: int, vertices: np.ndarray, triangles: np.ndarray,
              normals: np.ndarray | None) -> None:
-        """VERTICES float32 Nx3 in `world`, TRIANGLES int32 Mx3, NORMALS float32 Nx3 or None."""
+        """Submap SUBMAP's mesh: VERTICES float32 Nx3 in the frame it was fused in (the
+        drone's odometry), TRIANGLES int32 Mx3, NORMALS float32 Nx3 or None. submap_poses puts
+        it in `world`."""
         if self._rec is None:
             return
         self._stamp(utime)
-        self._rec.log(f"{self._prefix}world/map/mesh",
+        self._rec.log(f"{self._prefix}world/map/submap/{submap}/mesh",
                       rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
                                 vertex_normals=normals))
+
+    def submap_poses(self, utime: int, corrections: dict[int, np.ndarray]) -> None:
+        """Where the pose graph puts each submap: CORRECTIONS maps a submap's index to the 4x4
+        transform of its content into `world` (submaps.py's C_k)."""
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        for submap, C in corrections.items():
+            self._rec.log(f"{self._prefix}world/map/submap/{submap}",
+                          rr.Transform3D(translation=C[:3, 3], mat3x3=C[:3, :3]))
+
+    def optimised(self, utime: int, positions: np.ndarray) -> None:
+        """After a loop closure, the corrected trajectory drawn again from UTIME on as the
+        optimised graph places its keyframes (POSITIONS Nx3 in `world`)."""
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        self._trajectories["corrected"].replace(positions)
 
     def health(self, utime: int, metrics: dict[str, float]) -> None:
         """METRICS: "group/name" -> value, each its own series health/group/name."""

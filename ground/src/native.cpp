@@ -41,6 +41,16 @@ namespace {
 using GrayOut = nb::ndarray<nb::numpy, uint8_t, nb::ndim<2>>;
 using Rows3f = nb::ndarray<nb::numpy, float, nb::ndim<2>>;
 using Rows3i = nb::ndarray<nb::numpy, int32_t, nb::ndim<2>>;
+template <typename T>
+using RowsIn = nb::ndarray<const T, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+
+// Rows of three as Eigen 3-vectors, for a mesh assembled in Python (the submaps' meshes, moved).
+template <typename Vec, typename T>
+std::vector<Vec> vectorsOf(const RowsIn<T>& rows) {
+  static_assert(sizeof(Vec) == 3 * sizeof(T));
+  const Vec* first = reinterpret_cast<const Vec*>(rows.data());
+  return std::vector<Vec>(first, first + rows.shape(0));
+}
 
 // Arrays handed to Python own a heap object through a capsule.
 template <typename T>
@@ -234,6 +244,22 @@ class PyFusion {
       omp_set_num_threads(threads_);  // per calling thread: the worker, not the caller's others
       r = pipeline_->processFrameFromGuess(viewOf(depth), utime, guess);
     }
+    return resultOf(r);
+  }
+
+  RefineResult fuseAt(DepthIn depth, int64_t utime, PoseIn T_world_cam) {
+    checkSize(depth);
+    const kinfly::Pose pose = poseOf(T_world_cam);
+    kinfly::FrameResult r;
+    {
+      nb::gil_scoped_release unlocked;
+      omp_set_num_threads(threads_);
+      r = pipeline_->processFrameAtPose(viewOf(depth), utime, pose);
+    }
+    return resultOf(r);
+  }
+
+  static RefineResult resultOf(const kinfly::FrameResult& r) {
     RefineResult out{r.status, r.T_world_cam};
     out.inlier_fraction = r.inlier_fraction;
     out.rmse_m = r.rmse_m;
@@ -396,6 +422,31 @@ NB_MODULE(_native, m) {
         [](PoseIn T) { return kinfly::rotationAngleRad(poseOf(T)); }, nb::arg("T"),
         "Rotation angle of a 4x4 rigid transform in [0, pi] (se3.h's atan2 form: exact for small "
         "angles, unlike acos of the trace)");
+  m.def(
+      "write_ply",
+      [](const std::string& path, RowsIn<float> vertices, RowsIn<int32_t> triangles,
+         RowsIn<float> normals) {
+        if (normals.shape(0) != vertices.shape(0)) {
+          throw nb::value_error("write_ply: one normal per vertex");
+        }
+        kinfly::TriangleMesh mesh;
+        mesh.vertices = vectorsOf<Eigen::Vector3f>(vertices);
+        mesh.normals = vectorsOf<Eigen::Vector3f>(normals);
+        mesh.triangles = vectorsOf<Eigen::Vector3i>(triangles);
+        kinfly::Status written;
+        {
+          nb::gil_scoped_release unlocked;
+          written = kinfly::writePly(mesh, path);
+        }
+        if (!written.ok()) {
+          PyErr_SetString(PyExc_OSError, written.message().c_str());
+          throw nb::python_error();
+        }
+        return mesh.triangles.size();
+      },
+      nb::arg("path"), nb::arg("vertices"), nb::arg("triangles"), nb::arg("normals"),
+      "Writes a mesh (float32 Nx3 vertices [m], int32 Mx3 triangles, float32 Nx3 normals) as "
+      "MapSnapshot.write_ply does; returns the triangle count");
   const DepthCodec::Params defaults;
   nb::class_<PyDepthCodec>(m, "DepthCodec",
                            "Lossless depth codec (RVL family, docs/wire.md); keeps its buffers.")
@@ -448,6 +499,10 @@ NB_MODULE(_native, m) {
       .def("refine", &PyFusion::refine, nb::arg("depth").noconvert(), nb::arg("utime"),
            nb::arg("T_world_cam_guess"),
            "Tracks a uint16 depth image frame-to-model from a guessed 4x4 pose, then fuses it")
+      .def("fuse_at", &PyFusion::fuseAt, nb::arg("depth").noconvert(), nb::arg("utime"),
+           nb::arg("T_world_cam"),
+           "Fuses a uint16 depth image at a given 4x4 pose, without tracking (a keyframe already "
+           "registered elsewhere)")
       .def("render", &PyFusion::render, nb::arg("full") = false,
            "The map shaded from the last fused pose (uint8): full=True raycasts every pixel, "
            "otherwise only where the last keyframe measured depth (no extra raycast)")

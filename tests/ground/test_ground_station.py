@@ -24,8 +24,10 @@ from kinfly_ground._native import (Channel, CorrectionReceiver, DepthCodec, Sign
                                    key_id)
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
                                    write_atomically, write_tum)
+from kinfly_ground.export import export
 from kinfly_ground.mapping import truth_anchor
 from kinfly_ground.station import Station, StationParams
+from kinfly_ground.submaps import SubmapParams
 from kinfly_ground.viewer import Viewer
 
 VEHICLE = 7
@@ -229,6 +231,68 @@ def test_a_correction_beyond_the_threshold_counts_a_reset_and_it_stays(sample) -
     assert_near(corrected_pose(corrections[displaced]), T_truth)
 
 
+# --- submaps and loops -----------------------------------------------------------------------
+
+# The sample's way out (19 keyframes, 0.75 m) and back: a submap every 0.2 m closes four each way,
+# and the way back's revisit the way out's (tests/ground/test_submaps.py measures the chain alone).
+LOOP_SUBMAP_DISTANCE_M = 0.2
+LOOP_MIN_SUBMAPS = 6
+LOOP_KEYFRAMES_OUT = 19
+KEYFRAME_INTERVAL_US = 100_000  # the way back's capture times go on from the way out's
+
+
+def test_the_way_back_closes_loops_and_the_outputs_hold_the_optimised_map(
+        sample, tmp_path: Path) -> None:
+    out = flight(sample, LOOP_KEYFRAMES_OUT)
+    last = out[-1][0]
+    back = [(keyframe(last.utime + KEYFRAME_INTERVAL_US * (k + 1),
+                      sample[(LOOP_KEYFRAMES_OUT - 2 - k) * FRAME_STEP][1],
+                      LOOP_KEYFRAMES_OUT + k, T_truth), T_truth)
+            for k, (_, T_truth) in enumerate(reversed(out[:-1]))]
+    params = StationParams(mesh_interval_s=0,
+                           submaps=SubmapParams(max_distance_m=LOOP_SUBMAP_DISTANCE_M))
+    rig = Rig(params)
+    for message, _ in out + back:
+        rig.send(message)
+    rig.station.stop()
+    rig.station.show_final(None)
+
+    state = rig.state()
+    c, chain = state.counters, state.segment.chain
+    assert c.submaps_closed + 1 == len(chain.submaps) >= LOOP_MIN_SUBMAPS
+    assert c.submaps_after_loss == 0 and c.loop_checks_failed == 0
+    # Every candidate checked has one verdict, and the way back found the way out.
+    assert c.loop_candidates == (c.loops_accepted + c.loops_refused_by_check
+                                 + c.loops_refused_by_graph) > 0
+    assert c.loops_accepted >= 1, rig.logs
+    assert sum("loop between submaps" in line for line in rig.logs) == c.loop_candidates
+    # One correction per keyframe, each near the truth, loops or not (decoded without the
+    # drone's freshness check: the flight and its checks took longer than the drone waits).
+    corrections = [pose_correction_t.decode(signed_t.decode(data).payload)
+                   for channel, data in rig.published
+                   if channel == channel_name(Channel.CORRECTION, VEHICLE)]
+    assert len(corrections) == len(out + back)
+    for correction, (_, T_truth) in zip(corrections, out + back):
+        assert_near(corrected_pose(correction), T_truth)
+
+    print(f"[station loops] {len(chain.submaps)} submaps, {c.loop_candidates} loops checked: "
+          f"{c.loops_accepted} accepted, {c.loops_refused_by_check} refused by the check, "
+          f"{c.loops_refused_by_graph} by the graph; {c.resets} resets")
+    summary = export(rig.station, tmp_path, "replay", time.monotonic(), None, {})
+    vehicle = summary["vehicles"][str(VEHICLE)]
+    assert vehicle["submaps"] == len(chain.submaps)
+    assert vehicle["keyframes"]["loops_accepted"] == c.loops_accepted
+    optimised = read_tum(tmp_path / vehicle["files"]["trajectory_optimised"])
+    assert [u for u, _ in optimised] == [m.utime for m, _ in out + back]
+    for (_, T), (_, T_truth) in zip(optimised, out + back):
+        assert_near(T, T_truth)
+    # The mesh file is every submap's mesh, moved by its correction: all their triangles.
+    triangles = sum(len((s.snapshot or s.fusion.snapshot()).mesh()[1]) for s in chain.submaps)
+    assert vehicle["mesh_triangles"] == triangles > 0
+    header = (tmp_path / "mesh.ply").read_bytes().split(b"end_header\n")[0].decode()
+    assert f"element face {triangles}" in header
+
+
 # --- what arrives out of the ordinary -------------------------------------------------------
 
 def test_duplicates_and_late_keyframes_are_counted_not_fused(sample) -> None:
@@ -262,7 +326,7 @@ def test_a_drone_restart_finishes_the_segment(sample) -> None:
     assert [u for u, _ in old.onboard] == [u for u, _ in old.corrected] == \
         [m.utime for m, _ in before]
     new = state.segment
-    assert new.fusion is not old.fusion
+    assert new.chain is not old.chain
     assert [u for u, _ in new.corrected] == [m.utime for m, _ in after]
     assert np.allclose(new.corrected[0][1], np.eye(4), rtol=0, atol=ROUNDOFF)  # a new map frame
     corrections = rig.corrections()
@@ -438,7 +502,7 @@ def test_serving_every_vehicle_keeps_one_map_each(sample) -> None:
 
     assert set(rig.station.vehicles) == {VEHICLE, OTHER_VEHICLE}
     one, other = rig.state(VEHICLE), rig.state(OTHER_VEHICLE)
-    assert one.segment.fusion is not other.segment.fusion
+    assert one.segment.chain is not other.segment.chain
     for state, keyframes in ((one, first), (other, second)):
         assert state.counters.keyframes_fused == 3
         assert [u for u, _ in state.segment.corrected] == [m.utime for m, _ in keyframes]

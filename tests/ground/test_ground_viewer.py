@@ -32,6 +32,10 @@ DEPTH_SCALE_M = 1 / 5000
 TRANSLATION_TOL_M = 1e-6
 # The ground's refinement, as a fixed small offset: enough to tell corrected from onboard.
 CORRECTION_M = np.array([0.01, -0.02, 0.005])
+# Where a loop closure put the mesh's submap: its content moved 3 cm and turned a little.
+SUBMAP_CORRECTION = np.eye(4)
+SUBMAP_CORRECTION[:3, :3] = Rotation.from_euler("z", 0.02).as_matrix()
+SUBMAP_CORRECTION[:3, 3] = [0.03, 0.0, -0.01]
 
 
 def pose(t_s: float) -> np.ndarray:
@@ -93,8 +97,9 @@ def run_session(viewer: Viewer) -> dict[str, Any]:
         utimes.add(utime)
     mesh_utime = T0_US + KEYFRAMES * KEYFRAME_PERIOD_US
     tetrahedron = np.array([[0, 0, 2], [1, 0, 2], [0, 1, 2], [0, 0, 3]], dtype=np.float32)
-    view.mesh(mesh_utime, tetrahedron,
+    view.mesh(mesh_utime, 0, tetrahedron,
               np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int32), None)
+    view.submap_poses(mesh_utime, {0: SUBMAP_CORRECTION})
     utimes.add(mesh_utime)
     return {"utimes": utimes, "last_T_world_cam": last_T_world_cam, "last_flight": last_flight,
             "onboard_since_restart": np.array(onboard_since_restart),
@@ -118,7 +123,7 @@ def test_session_recorded_and_read_back(tmp_path: Path) -> None:
     rows = read_rows(path)
     entities = {r.entity for r in rows}
     for expected in ["world", "world/drone/camera", "world/drone/camera/depth",
-                     "world/drone/camera/render", "world/map/mesh",
+                     "world/drone/camera/render", "world/map/submap/0/mesh",
                      "world/trajectory/onboard/0", "world/trajectory/corrected/0",
                      "world/trajectory/ground_truth/0", "health/link/latency_ms",
                      "health/link/received", "health/tracking/inlier_fraction",
@@ -148,6 +153,9 @@ def test_session_recorded_and_read_back(tmp_path: Path) -> None:
     strip = latest(rows, "world/trajectory/onboard/0", "LineStrips3D:strips")[0]
     np.testing.assert_allclose(strip, logged["onboard_since_restart"], atol=TRANSLATION_TOL_M)
 
+    # The submap's mesh stays in its own frame; the pose graph's correction moves it.
+    np.testing.assert_allclose(latest(rows, "world/map/submap/0", "Transform3D:translation")[0],
+                               SUBMAP_CORRECTION[:3, 3], atol=TRANSLATION_TOL_M)
     assert latest(rows, "world/drone/camera/depth", "DepthImage:meter") == [
         pytest.approx(1 / DEPTH_SCALE_M)]
     assert latest(rows, "health/link/latency_ms", "Scalars:scalars") == [12.0 + KEYFRAMES - 1]
@@ -202,7 +210,9 @@ def test_no_sink_viewer_is_a_no_op(tmp_path: Path, monkeypatch: pytest.MonkeyPat
                   np.eye(4), None)
     view.ground_truth(T0_US, np.eye(4))
     view.render(T0_US, np.zeros((HEIGHT, WIDTH), np.uint8))
-    view.mesh(T0_US, np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), None)
+    view.mesh(T0_US, 0, np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), None)
+    view.submap_poses(T0_US, {0: np.eye(4)})
+    view.optimised(T0_US, np.zeros((2, 3)))
     view.health(T0_US, {"link/latency_ms": 1.0})
     view.telemetry(T0_US, {"altitude_m": 1.0})
     view.restarted(T0_US)

@@ -220,7 +220,7 @@ def record_session(path: Path, prefixes: list[str]) -> int:
                 "link/received": k + 1.0, "link/fused": k + 1.0, "link/not_refined": 0.0,
                 "link/dropped": 0.0, "link/latency_ms": 20.0 + rng.normal(0.0, 2.0),
                 "tracking/inlier_fraction": 0.9, "tracking/rmse_mm": 4.0 + rng.normal(0.0, 0.5)})
-        view.mesh(last_utime, vertices.reshape(-1, 3).astype(np.float32),
+        view.mesh(last_utime, 0, vertices.reshape(-1, 3).astype(np.float32),
                   triangles.astype(np.int32), None)
     viewer.close()
     return last_utime

@@ -41,8 +41,8 @@ BUSY_CORES = 2
 # The ground's LCM in the unicast test: another port than the drone's default, so that nothing
 # but the unicast link joins the two.
 UNICAST_GROUND_LCM_URL = "udpm://239.255.76.67:7671?ttl=0"
-OUTPUTS = ("mesh.ply", "trajectory_onboard.tum", "trajectory_corrected.tum", "session.rrd",
-           "summary.json", "ate.png")
+OUTPUTS = ("mesh.ply", "trajectory_onboard.tum", "trajectory_corrected.tum",
+           "trajectory_optimised.tum", "session.rrd", "summary.json", "ate.png")
 
 
 def read_summary(out: Path) -> dict:
@@ -143,7 +143,7 @@ def test_demo_flies_the_sample_end_to_end(demo_run: Path) -> None:
                 for row in rows}
     assert {"world/drone/camera", "world/drone/camera/depth", "world/drone/camera/render",
             "world/trajectory/onboard", "world/trajectory/corrected",
-            "world/trajectory/ground_truth", "world/map/mesh",
+            "world/trajectory/ground_truth", "world/map/submap/0/mesh",
             "health/link/received", "health/link/lost_on_link", "health/link/fused",
             "health/link/not_refined", "health/link/dropped", "health/link/latency_ms",
             "health/tracking/inlier_fraction", "health/tracking/rmse_mm"} <= entities

@@ -1,0 +1,105 @@
+"""Loop checks off the keyframe path (issue 17 §2). When a submap closes, the fusion thread hands
+its loop candidates here; a thread meshes the two submaps (marching cubes, the GIL released) and
+registers them in a process of its own, because small_gicp holds the GIL for the whole
+registration (a 1 ms thread waited 1.9 s beside 12 checks in-process; 25 ms beside a process:
+docs/ground.md). The outcomes wait until the fusion thread takes them (`take_done`) and adds them
+to its chain's graph between keyframes, so the chain only ever changes on that thread."""
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import multiprocessing
+import os
+import threading
+from collections.abc import Callable
+
+from .registration import LoopCheck, check_loop
+from .submaps import LoopCandidate, SubmapChain
+
+
+def _lower_priority() -> None:
+    # The check process runs beside fusion: the keyframes keep the cores.
+    os.nice(19)
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckedLoop:
+    chain: SubmapChain
+    candidate: LoopCandidate
+    check: LoopCheck | None   # None where the check failed (`error` says why)
+    error: str = ""
+
+
+class LoopCloser:
+    """One thread and, from the first candidate on, one process. LOG reports a failed check."""
+
+    def __init__(self, log: Callable[[str], None]) -> None:
+        self._log = log
+        self._cv = threading.Condition()
+        self._waiting: list[tuple[SubmapChain, LoopCandidate]] = []
+        self._done: list[CheckedLoop] = []
+        self._busy = False
+        self._closing = False
+        self._executor: concurrent.futures.ProcessPoolExecutor | None = None
+        self._thread: threading.Thread | None = None
+
+    def submit(self, chain: SubmapChain, candidates: list[LoopCandidate]) -> None:
+        if not candidates:
+            return
+        with self._cv:
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="kground-loops",
+                                                daemon=True)
+                self._thread.start()
+            self._waiting.extend((chain, candidate) for candidate in candidates)
+            self._cv.notify_all()
+
+    def take_done(self, chain: SubmapChain) -> list[CheckedLoop]:
+        """The checks of CHAIN that finished since the last call."""
+        with self._cv:
+            mine = [done for done in self._done if done.chain is chain]
+            self._done = [done for done in self._done if done.chain is not chain]
+        return mine
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Waits until every submitted check finished; False when TIMEOUT_S passed first."""
+        with self._cv:
+            return self._cv.wait_for(lambda: not self._waiting and not self._busy, timeout_s)
+
+    def close(self) -> None:
+        """Stops the thread (a check under way finishes first) and the process."""
+        with self._cv:
+            self._closing = True
+            self._cv.notify_all()
+            thread = self._thread
+        if thread is not None:
+            thread.join()
+        if self._executor is not None:
+            self._executor.shutdown(cancel_futures=True)
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._waiting or self._closing)
+                if self._closing:
+                    return
+                chain, candidate = self._waiting.pop(0)
+                self._busy = True
+            try:
+                outcome = CheckedLoop(chain, candidate, self._check(chain, candidate))
+            except Exception as error:  # noqa: BLE001 - a failed check is no loop; fusion goes on
+                outcome = CheckedLoop(chain, candidate, None, f"{type(error).__name__}: {error}")
+                self._log(f"loop check of submaps {candidate.older} and {candidate.newer} "
+                          f"failed: {outcome.error}")
+            with self._cv:
+                self._done.append(outcome)
+                self._busy = False
+                self._cv.notify_all()
+
+    def _check(self, chain: SubmapChain, candidate: LoopCandidate) -> LoopCheck:
+        if self._executor is None:
+            # Spawned, not forked: the station's process has threads (LCM, fusion, rerun).
+            self._executor = concurrent.futures.ProcessPoolExecutor(
+                max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_lower_priority)
+        return self._executor.submit(check_loop, *chain.check_arguments(candidate)).result()

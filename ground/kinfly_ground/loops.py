@@ -17,9 +17,18 @@ from .registration import LoopCheck, check_loop
 from .submaps import LoopCandidate, SubmapChain
 
 
+# The check process runs beside fusion, which should keep most of the cores, but not at the
+# lowest priority: beside a CI run's busy processes a check at niceness 19 got so little of a
+# core that 4 of a replayed flight's 6 checks were still running a minute after its last
+# keyframe, and at 10 the teddy chain's 12 checks took over a minute (a check is about a second
+# of one core). At 5 (a third of a normal process's weight) beside two busy processes a check
+# gets about a seventh of a core: a 5 minute flight's checks (3 per closed submap, one every
+# 30 s) keep up.
+CHECK_NICENESS = 5
+
+
 def _lower_priority() -> None:
-    # The check process runs beside fusion: the keyframes keep the cores.
-    os.nice(19)
+    os.nice(CHECK_NICENESS)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -143,7 +143,6 @@ def check_loop(target_points: np.ndarray, source_points: np.ndarray,
                               max_iterations=params.max_iterations, num_threads=params.threads)
     T = np.asarray(result.T_target_source)
     overlap, rms, conditioning = _fit(target_cloud, source_cloud, T, params)
-    guess_overlap, guess_rms, _ = _fit(target_cloud, source_cloud, guess, params)
     # The place first (does the fit put the surfaces together at all), then whether they can
     # slide, then whether GICP settled: a fit in the wrong place is reported as that, and
     # sliding surfaces seldom converge, but the sliding is the reason.

@@ -239,6 +239,7 @@ LOOP_SUBMAP_DISTANCE_M = 0.2
 LOOP_MIN_SUBMAPS = 6
 LOOP_KEYFRAMES_OUT = 19
 KEYFRAME_INTERVAL_US = 100_000  # the way back's capture times go on from the way out's
+LOOP_CHECKS_TIMEOUT_S = 600.0
 
 
 def test_the_way_back_closes_loops_and_the_outputs_hold_the_optimised_map(
@@ -249,7 +250,9 @@ def test_the_way_back_closes_loops_and_the_outputs_hold_the_optimised_map(
                       sample[(LOOP_KEYFRAMES_OUT - 2 - k) * FRAME_STEP][1],
                       LOOP_KEYFRAMES_OUT + k, T_truth), T_truth)
             for k, (_, T_truth) in enumerate(reversed(out[:-1]))]
-    params = StationParams(mesh_interval_s=0,
+    # Every check's verdict is waited for (a bound, not a wait: on a busy machine the checks'
+    # process gets a fraction of a core).
+    params = StationParams(mesh_interval_s=0, final_loops_timeout_s=LOOP_CHECKS_TIMEOUT_S,
                            submaps=SubmapParams(max_distance_m=LOOP_SUBMAP_DISTANCE_M))
     rig = Rig(params)
     for message, _ in out + back:

@@ -2,10 +2,12 @@
 then backwards so that the way back revisits where the way out mapped: submaps close by distance
 and each begins where the last ended, loops between the two passes are found, registered and
 accepted, and the optimised trajectory and map stay on the ground truth; a wrong loop that passed
-its check is rejected by the graph and moves nothing; keyframes that stop registering begin a new
+its check is rejected by the graph and moves nothing; a registration that moved further from the
+graph's guess than its uncertainty allows is refused; keyframes that stop registering begin a new
 submap at the drone's pose; the whole mesh is the submaps' meshes, moved."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,7 @@ from kinfly_ground._native import (Fusion, FusionPipelineParams, HashedVolumePar
                                    TrackingStatus)
 from kinfly_ground.outputs import read_tum
 from kinfly_ground.registration import LoopCheck
+from kinfly_ground.posegraph import EdgeSigma
 from kinfly_ground.submaps import LoopCandidate, SubmapChain, SubmapParams
 
 WIDTH, HEIGHT = 640, 480
@@ -36,6 +39,11 @@ ATE_WORSENING_MAX_M = 0.002
 # The issue's bound for a wrong loop: none accepted, or none that moves the map more than 1 cm.
 WRONG_LOOP_MOVE_MAX_M = 0.01
 WRONG_LOOP_OFFSET_M = 0.3
+# The gate on a registration's move from the graph's guess: with sigmas of 2 cm and 1 degree
+# (and 6 degrees of freedom at 0.99: chi-square 16.8, 8.2 cm along one axis alone), 2 cm is
+# inside and 10 cm outside.
+GATE_SIGMA_M, GATE_SIGMA_DEG = 0.02, 1.0
+GATE_INSIDE_M, GATE_OUTSIDE_M = 0.02, 0.10
 LOST_GUESS_OFFSET_M = 1.0  # beyond ICP's 10 cm correspondence gate: the keyframe cannot register
 
 
@@ -142,6 +150,25 @@ def test_a_wrong_loop_that_passed_its_check_is_rejected_by_the_graph(keyframes) 
           f"map moved {1000 * moved:.2f} mm")
     assert not outcome.accepted_by_graph
     assert moved <= WRONG_LOOP_MOVE_MAX_M
+
+
+def test_a_registration_beyond_the_guess_uncertainty_is_refused(keyframes) -> None:
+    chain = SubmapChain(SubmapParams(max_distance_m=SUBMAP_DISTANCE_M), _fusion)
+    _fly(chain, keyframes)
+    older, newer = 0, len(chain.submaps) - 2
+    guess = np.linalg.inv(chain.correction(older)) @ chain.correction(newer)
+    sigma = EdgeSigma(translation_m=GATE_SIGMA_M, rotation_rad=math.radians(GATE_SIGMA_DEG))
+    outcomes = []
+    for move_m in (GATE_INSIDE_M, GATE_OUTSIDE_M):
+        registered = guess.copy()
+        registered[:3, 3] += [move_m, 0.0, 0.0]
+        passed = LoopCheck(True, registered, 0.9, 0.002, 0.2, "")
+        [outcome] = chain.add_loops([(LoopCandidate(older, newer, guess, sigma), passed)])
+        outcomes.append(outcome)
+    inside, outside = outcomes
+    assert inside.check.accepted and inside.check.reason == ""
+    assert not outside.check.accepted and not outside.accepted_by_graph
+    assert "beyond its uncertainty" in outside.check.reason, outside.check.reason
 
 
 def test_keyframes_that_stop_registering_begin_a_new_submap(keyframes) -> None:

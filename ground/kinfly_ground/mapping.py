@@ -281,8 +281,8 @@ class Mapper:
         """Adds the loops still being checked (waiting up to LOOPS_TIMEOUT_S), then sends every
         vehicle's map to the viewer as it is at the end, stamped with its last keyframe (the
         periodic meshes miss whatever came after the last one), and its ground truth (TRUTH,
-        else what the drone sent) as the ATE aligns it with the corrected trajectory: the frame
-        the evaluation compares them in. Call after stop()."""
+        else what the drone sent) as the ATE aligns it with the optimised trajectory: the frame
+        the map is drawn in. Call after stop()."""
         if not self.loops.wait_idle(loops_timeout_s):
             self._log(f"loop checks still running after {loops_timeout_s:g} s: left out")
         for state in self.vehicles.values():

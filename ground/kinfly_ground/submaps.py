@@ -299,7 +299,8 @@ class SubmapChain:
         translation_m = float(np.linalg.norm(move[:3, 3]))
         rotation_rad = rotation_angle_rad(move)
         # Isotropic sigmas: three translation and three rotation components.
-        chi_square = (translation_m / sigma.translation_m)**2 + (rotation_rad / sigma.rotation_rad)**2
+        chi_square = ((translation_m / sigma.translation_m)**2
+                      + (rotation_rad / sigma.rotation_rad)**2)
         limit = float(scipy.stats.chi2.ppf(self.params.guess_gate_probability, 6))
         if chi_square <= limit:
             return check

@@ -12,6 +12,7 @@ import multiprocessing
 import os
 import threading
 from collections.abc import Callable
+from concurrent.futures.process import BrokenProcessPool
 
 from .registration import LoopCheck, check_loop
 from .submaps import LoopCandidate, SubmapChain
@@ -25,6 +26,8 @@ from .submaps import LoopCandidate, SubmapChain
 # gets about a seventh of a core: a 5 minute flight's checks (3 per closed submap, one every
 # 30 s) keep up.
 CHECK_NICENESS = 5
+# How soon close() stops the thread while a check runs.
+CLOSE_POLL_S = 0.2
 
 
 def _lower_priority() -> None:
@@ -76,7 +79,8 @@ class LoopCloser:
             return self._cv.wait_for(lambda: not self._waiting and not self._busy, timeout_s)
 
     def close(self) -> None:
-        """Stops the thread (a check under way finishes first) and the process."""
+        """Stops the thread at once (a check under way is abandoned) and lets the process go
+        when its check ends."""
         with self._cv:
             self._closing = True
             self._cv.notify_all()
@@ -84,7 +88,7 @@ class LoopCloser:
         if thread is not None:
             thread.join()
         if self._executor is not None:
-            self._executor.shutdown(cancel_futures=True)
+            self._executor.shutdown(wait=False, cancel_futures=True)
 
     def _run(self) -> None:
         while True:
@@ -95,7 +99,10 @@ class LoopCloser:
                 chain, candidate = self._waiting.pop(0)
                 self._busy = True
             try:
-                outcome = CheckedLoop(chain, candidate, self._check(chain, candidate))
+                check = self._check(chain, candidate)
+                if check is None:  # closing
+                    return
+                outcome = CheckedLoop(chain, candidate, check)
             except Exception as error:  # noqa: BLE001 - a failed check is no loop; fusion goes on
                 outcome = CheckedLoop(chain, candidate, None, f"{type(error).__name__}: {error}")
                 self._log(f"loop check of submaps {candidate.older} and {candidate.newer} "
@@ -105,10 +112,22 @@ class LoopCloser:
                 self._busy = False
                 self._cv.notify_all()
 
-    def _check(self, chain: SubmapChain, candidate: LoopCandidate) -> LoopCheck:
+    def _check(self, chain: SubmapChain, candidate: LoopCandidate) -> LoopCheck | None:
+        """The check's outcome, or None when close() came first."""
         if self._executor is None:
             # Spawned, not forked: the station's process has threads (LCM, fusion, rerun).
             self._executor = concurrent.futures.ProcessPoolExecutor(
                 max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                 initializer=_lower_priority)
-        return self._executor.submit(check_loop, *chain.check_arguments(candidate)).result()
+        future = self._executor.submit(check_loop, *chain.check_arguments(candidate))
+        while True:
+            try:
+                return future.result(timeout=CLOSE_POLL_S)
+            except concurrent.futures.TimeoutError:
+                with self._cv:
+                    if self._closing:
+                        return None
+            except BrokenProcessPool:
+                # The process died (killed for memory, say): the next check starts another.
+                self._executor = None
+                raise

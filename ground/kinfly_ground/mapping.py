@@ -99,13 +99,11 @@ class Mapper:
         if has_onboard:
             T_onboard = m.T_world_cam
         else:
-            # No onboard pose (its fields are meaningless): start from the last refined one, in
-            # the chain's frame.
-            T_onboard = chain.active.keyframes[-1][1] if chain.active else np.eye(4)
+            # No onboard pose (its fields are meaningless): start from the last corrected one.
+            T_onboard = segment.corrected[-1][1] if segment.corrected else np.eye(4)
         depth = m.depth
-        submaps_before = len(chain.submaps)
-        result, T_corrected = chain.refine(depth, m.utime, T_onboard)
-        if submaps_before and len(chain.submaps) > submaps_before:
+        result, T_corrected, closed = chain.refine(depth, m.utime, T_onboard)
+        if closed is not None:
             state.counters.submaps_after_loss += 1
             self._log(f"vehicle {state.vehicle_id}: keyframe {m.keyframe_id} begins submap "
                       f"{chain.active.index} at the drone's pose: "
@@ -127,7 +125,7 @@ class Mapper:
         self._show(state, m, depth, T_onboard, T_corrected, result)
         # After the correction went out and the viewer has the keyframe: closing a submap
         # snapshots it and begins the next with this keyframe.
-        closed = chain.close_if_due(depth, m.utime)
+        closed = closed or chain.close_if_due(depth, m.utime)
         if closed is not None:
             self._closed(state, chain, closed, m.utime)
 
@@ -145,15 +143,24 @@ class Mapper:
         state.counters.loop_candidates += len(candidates)
         self.loops.submit(chain, candidates)
 
-    def _add_loops(self, state: VehicleState, chain: SubmapChain, utime: int) -> None:
+    def _add_loops(self, state: VehicleState, chain: SubmapChain, utime: int,
+                   draw: bool = True) -> None:
         """Adds the loops checked since the last keyframe to the graph: the submaps move, and
-        the next correction carries the open submap's move to the drone."""
+        the next correction carries the open submap's move to the drone. DRAW: the chain is the
+        one the viewer shows."""
         done = self.loops.take_done(chain)
         state.counters.loop_checks_failed += sum(1 for d in done if d.check is None)
         checked = [(d.candidate, d.check) for d in done if d.check is not None]
         if not checked:
             return
-        for outcome in chain.add_loops(checked):
+        try:
+            outcomes = chain.add_loops(checked)
+        except Exception as error:  # a graph that cannot be optimised: the keyframe goes on
+            state.counters.loop_checks_failed += len(checked)
+            self._log(f"vehicle {state.vehicle_id}: {len(checked)} loops not added: "
+                      f"{type(error).__name__}: {error}")
+            return
+        for outcome in outcomes:
             c, check = outcome.candidate, outcome.check
             if outcome.accepted_by_graph:
                 state.counters.loops_accepted += 1
@@ -166,7 +173,7 @@ class Mapper:
                 verdict = f"refused ({check.reason})"
             self._log(f"vehicle {state.vehicle_id}: loop between submaps {c.older} and "
                       f"{c.newer} {verdict}")
-        if state.segment.chain is chain:
+        if draw:
             state.view.submap_poses(utime, chain.corrections())
             state.view.optimised(utime, np.array([T[:3, 3] for _, T in chain.trajectory()]))
 
@@ -190,11 +197,12 @@ class Mapper:
         state.view.keyframe(m.utime, depth, m.depth_scale_m, (c.fx, c.fy, c.cx, c.cy), T_onboard,
                             T_corrected)
         chain = state.segment.chain
-        fusion = chain.active.fusion
+        # None while no keyframe had the depth to begin a map.
+        active = chain.active
         if result.status is TrackingStatus.OK:
             # The map as raycast for this keyframe's registration, from its onboard pose (a few
             # mm from the refined one) where it measured depth; a map's first keyframe has none.
-            state.view.render(m.utime, fusion.render())
+            state.view.render(m.utime, active.fusion.render())
         # What the viewer's two plots show (viewer._layout): the keyframes' fate as the progress
         # line counts it, and how well the ground registered them. The other counters are in
         # summary.json; a first keyframe is not registered, so it has no tracking figures.
@@ -225,13 +233,12 @@ class Mapper:
         # By capture time, which runs at the wall clock's pace in flight and at the log's in a
         # replay.
         interval_us = self.params.mesh_interval_s * 1e6
-        if interval_us > 0 and (state.mesh_utime is None
-                                or m.utime - state.mesh_utime >= interval_us):
+        if active is not None and interval_us > 0 and (
+                state.mesh_utime is None or m.utime - state.mesh_utime >= interval_us):
             state.mesh_utime = m.utime
             # A submap begun after a loop continues its predecessor's correction.
-            state.view.submap_poses(m.utime, {chain.active.index:
-                                              chain.correction(chain.active.index)})
-            self._mesh(state, m.utime, chain.active.index, fusion.snapshot())
+            state.view.submap_poses(m.utime, {active.index: chain.correction(active.index)})
+            self._mesh(state, m.utime, active.index, active.fusion.snapshot())
 
     def _draw_flight(self, state: VehicleState) -> None:
         """The flight stack's newest state with each keyframe: the estimate and the setpoint in
@@ -283,9 +290,19 @@ class Mapper:
         periodic meshes miss whatever came after the last one), and its ground truth (TRUTH,
         else what the drone sent) as the ATE aligns it with the optimised trajectory: the frame
         the map is drawn in. Call after stop()."""
+        try:
+            self._show_final(truth, loops_timeout_s)
+        finally:
+            self.loops.close()
+
+    def _show_final(self, truth: list[StampedPose] | None, loops_timeout_s: float) -> None:
         if not self.loops.wait_idle(loops_timeout_s):
             self._log(f"loop checks still running after {loops_timeout_s:g} s: left out")
         for state in self.vehicles.values():
+            # Checks that finished after their drone restarted still belong to its old map.
+            for finished in state.finished_segments:
+                if finished.corrected:
+                    self._add_loops(state, finished.chain, finished.corrected[-1][0], draw=False)
             segment = state.segment
             if segment.chain is None or not segment.corrected:
                 continue
@@ -310,4 +327,3 @@ class Mapper:
                 state.view.ground_truth_aligned(
                     max(last_utime, drawn),
                     np.array([(T_map_truth @ T)[:3, 3] for _, T in segment_truth]))
-        self.loops.close()

@@ -3,15 +3,15 @@ a hashed volume of its own, fused from consecutive keyframes and closed after a 
 or keyframes that failed to register; the submaps are the nodes of a pose graph, and a loop
 closure moves whole submaps (their meshes with them) instead of integrating anything again.
 
-Frames. Every submap is fused in the chain's frame `c`, the drone's odometry frame the first
-keyframe was fused in (as a single map was), starting at the pose the chain had reached:
+Frames. Every submap is fused in the chain's frame `c`, the world the first keyframe was fused
+in (as a single map was), starting at the pose the chain had reached:
 submap k's anchor A_k = T_c_anchor is its first keyframe's pose there. The optimised graph places
 the anchors at O_k = T_world_anchor; submap k's correction C_k = O_k A_k⁻¹ takes its content
 (and its keyframes' poses) from `c` into the optimised world. Before any loop every C_k is the
 identity and the chain is the single map of before.
 
 Threads. `refine`, `close_if_due`, `loop_candidates` and `add_loops` (a graph of tens of nodes:
-milliseconds) run on the fusion thread. `check_arguments` meshes closed submaps, whose snapshots do
+milliseconds) run on the fusion thread, the only one that changes the chain. `check_arguments` meshes closed submaps, whose snapshots do
 not change, and may run anywhere (loops.py checks them off the keyframe path); `correction`,
 `trajectory` and `mesh` read the corrections under a lock."""
 from __future__ import annotations
@@ -101,6 +101,9 @@ class Submap:
     path_m: float = 0.0
     began_after_loss: bool = False
     closed_memory_bytes: int = 0
+    # Capture times of every keyframe fused into it, the overlap's included: two submaps that
+    # share one are not a loop (their registration would count the odometry twice).
+    fused_utimes: set[int] = dataclasses.field(default_factory=set)
     _points: np.ndarray | None = None
 
     def points(self) -> np.ndarray:
@@ -143,6 +146,7 @@ class SubmapChain:
         self._corrections: list[np.ndarray] = []  # C_k, swapped whole under the lock
         self._lock = threading.Lock()
         self._lost_in_a_row = 0
+        self._C_sent = np.eye(4)  # the C of the last pose refine() returned
         # The open submap's last registered keyframes (utime, depth, T_c_cam), the overlap of
         # the next.
         self._recent: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(
@@ -161,16 +165,22 @@ class SubmapChain:
         with self._lock:
             return dict(enumerate(self._corrections))
 
-    def refine(self, depth: np.ndarray, utime: int, T_c_guess: np.ndarray
-               ) -> tuple[Any, np.ndarray | None]:
-        """Registers a keyframe in the active submap from a guess in the chain's frame (the
-        drone's odometry pose, which corrections never move) and fuses it; the first keyframe
-        begins the chain, fused at the guess. Returns the engine's result and the keyframe's
-        pose in the optimised world, None when it did not register."""
+    def refine(self, depth: np.ndarray, utime: int, T_world_guess: np.ndarray
+               ) -> tuple[Any, np.ndarray | None, Submap | None]:
+        """Registers a keyframe in the active submap and fuses it. T_WORLD_GUESS is the drone's
+        published pose, which it moves with every correction it applies (docs/firmware.md,
+        "Corrections"): in the world of the last correction sent, taken back into the chain's
+        frame by that correction's C. The first keyframe begins the chain, fused at the guess.
+        Returns the engine's result, the keyframe's pose in the optimised world (None when it
+        did not register), and the submap that closed because keyframes stopped registering
+        (None otherwise)."""
         active = self.active
         if active is None:
-            result = self._begin(depth, utime, T_c_guess, after_loss=False)
-            return result, (result.T_world_cam if self.submaps else None)
+            result = self._begin(depth, utime, T_world_guess, after_loss=False)
+            return result, (result.T_world_cam if self.submaps else None), None
+        # A keyframe captured before the drone applied the correction that followed a loop is
+        # guessed off by the loop's move: once, as the next correction brings the drone over.
+        T_c_guess = np.linalg.inv(self._C_sent) @ T_world_guess
         C = self.correction(active.index)
         result = active.fusion.refine(depth, utime, T_c_guess)
         if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
@@ -180,19 +190,22 @@ class SubmapChain:
                 step = T_c_cam[:3, 3] - active.keyframes[-1][1][:3, 3]
                 active.path_m += float(np.linalg.norm(step))
             active.keyframes.append((utime, T_c_cam))
+            active.fused_utimes.add(utime)
             self._recent.append((utime, depth, T_c_cam))
-            return result, C @ T_c_cam
+            self._C_sent = C
+            return result, C @ T_c_cam, None
         self._lost_in_a_row += 1
         if self._lost_in_a_row < self.params.new_after_lost:
-            return result, None
+            return result, None, None
         # The map no longer fits where the drone is: begin again at its pose, with this
         # keyframe, where it has depth to begin with.
         count = len(self.submaps)
         began = self._begin(depth, utime, T_c_guess, after_loss=True)
         if len(self.submaps) == count:
-            return result, None
+            return result, None, None
         self._lost_in_a_row = 0
-        return began, C @ began.T_world_cam
+        self._C_sent = C
+        return began, C @ began.T_world_cam, active
 
     @property
     def num_blocks(self) -> int:
@@ -224,6 +237,7 @@ class SubmapChain:
             return None
         for kf_utime, kf_depth, T_c_cam in overlap:
             self.active.fusion.fuse_at(kf_depth, kf_utime, T_c_cam)
+            self.active.fused_utimes.add(kf_utime)
         return active
 
     def _begin(self, depth: np.ndarray, utime: int, T_c_cam: np.ndarray, after_loss: bool) -> Any:
@@ -237,7 +251,7 @@ class SubmapChain:
         self._recent.clear()
         self._recent.append((utime, depth, anchor))
         submap = Submap(len(self.submaps), anchor, utime, fusion, keyframes=[(utime, anchor)],
-                        began_after_loss=after_loss)
+                        began_after_loss=after_loss, fused_utimes={utime})
         previous = self.active
         if previous is not None:
             previous.snapshot = previous.fusion.snapshot()
@@ -269,7 +283,7 @@ class SubmapChain:
         with self._lock:
             earlier = self.submaps[: max(0, closed.index - self.params.min_loop_separation + 1)]
         for other in earlier:
-            if other.snapshot is None:
+            if other.snapshot is None or other.fused_utimes & closed.fused_utimes:
                 continue
             distance = np.linalg.norm((corrections[other.index] @ other.T_c_anchor)[:3, 3]
                                       - position)
@@ -295,7 +309,10 @@ class SubmapChain:
         sigma = candidate.guess_sigma
         if not check.accepted or sigma is None:
             return check
-        move = np.linalg.inv(candidate.T_older_newer_guess) @ check.T_target_source
+        # The edge as registered against the edge as guessed, in the newer anchor's frame, as
+        # the sigmas are: in the chain's frame a turn would count its lever arm to the origin.
+        move = (np.linalg.inv(self._loop_edge(candidate, candidate.T_older_newer_guess))
+                @ self._loop_edge(candidate, check.T_target_source))
         translation_m = float(np.linalg.norm(move[:3, 3]))
         rotation_rad = rotation_angle_rad(move)
         # Isotropic sigmas: three translation and three rotation components.
@@ -324,37 +341,37 @@ class SubmapChain:
     def add_loops(self, checked: list[tuple[LoopCandidate, LoopCheck]]) -> list[LoopOutcome]:
         """Adds the loops that passed their check to the graph, optimises it and swaps every
         submap's correction. Returns each loop's outcome (also kept in `outcomes`). A check that
-        moved its candidate further than the graph's uncertainty allows is refused first."""
+        moved its candidate further than the graph's uncertainty allows is refused first. Where
+        the optimisation raises, nothing is kept: the graph stays as it was."""
         checked = [(candidate, self._within_guess(candidate, check))
                    for candidate, check in checked]
-        for candidate, check in checked:
-            if check.accepted:
-                older = self.submaps[candidate.older].T_c_anchor
-                newer = self.submaps[candidate.newer].T_c_anchor
-                self._loops.append((candidate, np.linalg.inv(older) @ check.T_target_source
-                                    @ newer))
+        loops = self._loops + [(candidate, self._loop_edge(candidate, check.T_target_source))
+                               for candidate, check in checked if check.accepted]
         graph = PoseGraph()
         with self._lock:
-            submaps, edges = list(self.submaps), list(self._edges)
             corrections = list(self._corrections)
-        for submap in submaps:
+        for submap in self.submaps:
             graph.add_node(submap.index, corrections[submap.index] @ submap.T_c_anchor)
-        for i, j, T, sigma in edges:
+        for i, j, T, sigma in self._edges:
             graph.add_odometry(i, j, T, sigma)
-        for candidate, T in self._loops:
+        for candidate, T in loops:
             graph.add_loop(candidate.older, candidate.newer, T, self.params.loop)
         result = graph.optimise()
-        accepted = {(c.older, c.newer): ok for (c, _), ok in zip(self._loops, result.loop_accepted)}
-        optimised = [result.poses[s.index] @ np.linalg.inv(s.T_c_anchor) for s in submaps]
+        self._loops = loops
+        accepted = {(c.older, c.newer): ok for (c, _), ok in zip(loops, result.loop_accepted)}
         with self._lock:
-            # Submaps begun meanwhile continue the last one's frame: they move with it.
-            while len(optimised) < len(self._corrections):
-                optimised.append(optimised[-1])
-            self._corrections = optimised
+            self._corrections = [result.poses[s.index] @ np.linalg.inv(s.T_c_anchor)
+                                 for s in self.submaps]
         outcomes = [LoopOutcome(c, check, check.accepted and accepted[(c.older, c.newer)])
                     for c, check in checked]
         self.outcomes.extend(outcomes)
         return outcomes
+
+    def _loop_edge(self, candidate: LoopCandidate, T_older_newer: np.ndarray) -> np.ndarray:
+        """The graph's edge from the older submap's anchor to the newer's, of a registration
+        T_OLDER_NEWER of their content (both in the chain's frame)."""
+        return (np.linalg.inv(self.submaps[candidate.older].T_c_anchor) @ T_older_newer
+                @ self.submaps[candidate.newer].T_c_anchor)
 
     def trajectory(self) -> list[StampedPose]:
         """Every registered keyframe's pose in the optimised world, by capture time (a keyframe

@@ -9,6 +9,7 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <cstring>
 #include <memory>
@@ -168,7 +169,7 @@ class PyMapSnapshot {
 
   // How the mesh was brought up to date (None before mesh() or write_ply()).
   nb::object update() const {
-    if (!extracted_) return nb::none();
+    if (!extracted_.load()) return nb::none();
     nb::dict d;
     d["map_blocks"] = update_.map_blocks;
     d["blocks_changed"] = update_.blocks_changed;
@@ -180,8 +181,11 @@ class PyMapSnapshot {
   }
 
  private:
+  // Once, whichever thread asks first: the station's mesher and its loop checks may mesh one
+  // closed submap's snapshot at the same time, and both read mesh_ afterwards.
   void extract() {
-    if (extracted_) return;
+    std::lock_guard<std::mutex> once(extract_mutex_);
+    if (extracted_.load()) return;
     kinfly::MeshDelta delta;
     std::lock_guard<std::mutex> meshing(state_->mesh_mutex);
     {
@@ -198,7 +202,8 @@ class PyMapSnapshot {
   size_t num_blocks_;
   kinfly::TriangleMesh mesh_;
   kinfly::MeshUpdateResult update_;
-  bool extracted_ = false;
+  std::mutex extract_mutex_;
+  std::atomic<bool> extracted_{false};
 };
 
 struct RefineResult {

@@ -81,7 +81,7 @@ def _fly(chain: SubmapChain, keyframes) -> list[list]:
     as the station will; returns the outcomes of each closure's loops."""
     closures = []
     for utime, depth, T in keyframes:
-        result, T_world = chain.refine(depth, utime, T)
+        result, T_world, _ = chain.refine(depth, utime, T)
         assert T_world is not None, result.lost_reason
         closed = chain.close_if_due(depth, utime)
         if closed is not None:
@@ -178,16 +178,17 @@ def test_keyframes_that_stop_registering_begin_a_new_submap(keyframes) -> None:
     offset[0, 3] = LOST_GUESS_OFFSET_M
     for k, (utime, depth, T) in enumerate(keyframes[: 4 + params.new_after_lost]):
         lost = k >= 4
-        result, T_world = chain.refine(depth, utime, T @ offset if lost else T)
+        result, T_world, closed = chain.refine(depth, utime, T @ offset if lost else T)
         if not lost:
-            assert T_world is not None
+            assert T_world is not None and closed is None
         elif k < 4 + params.new_after_lost - 1:
             assert result.status is TrackingStatus.LOST and T_world is None
-            assert len(chain.submaps) == 1
+            assert len(chain.submaps) == 1 and closed is None
         else:
-            # The last one begins the next submap at the drone's pose.
+            # The last one begins the next submap at the drone's pose, and says which closed.
             assert result.status is TrackingStatus.FIRST_FRAME
             np.testing.assert_allclose(T_world, T @ offset, atol=1e-6)
+            assert closed is chain.submaps[0]
     assert len(chain.submaps) == 2
     assert chain.submaps[1].began_after_loss
     assert chain.submaps[0].snapshot is not None and chain.submaps[0].fusion is None

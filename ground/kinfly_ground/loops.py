@@ -98,17 +98,18 @@ class LoopCloser:
                     return
                 chain, candidate = self._waiting.pop(0)
                 self._busy = True
+            outcome = None
             try:
                 check = self._check(chain, candidate)
-                if check is None:  # closing
-                    return
-                outcome = CheckedLoop(chain, candidate, check)
+                if check is not None:  # None: closing
+                    outcome = CheckedLoop(chain, candidate, check)
             except Exception as error:  # noqa: BLE001 - a failed check is no loop; fusion goes on
                 outcome = CheckedLoop(chain, candidate, None, f"{type(error).__name__}: {error}")
                 self._log(f"loop check of submaps {candidate.older} and {candidate.newer} "
                           f"failed: {outcome.error}")
             with self._cv:
-                self._done.append(outcome)
+                if outcome is not None:
+                    self._done.append(outcome)
                 self._busy = False
                 self._cv.notify_all()
 
@@ -119,15 +120,20 @@ class LoopCloser:
             self._executor = concurrent.futures.ProcessPoolExecutor(
                 max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                 initializer=_lower_priority)
-        future = self._executor.submit(check_loop, *chain.check_arguments(candidate))
-        while True:
-            try:
-                return future.result(timeout=CLOSE_POLL_S)
-            except concurrent.futures.TimeoutError:
+        arguments = chain.check_arguments(candidate)  # meshing: tenths of a second
+        with self._cv:
+            if self._closing:
+                return None
+        try:
+            future = self._executor.submit(check_loop, *arguments)
+            while not future.done():
+                concurrent.futures.wait([future], timeout=CLOSE_POLL_S)
                 with self._cv:
                     if self._closing:
                         return None
-            except BrokenProcessPool:
-                # The process died (killed for memory, say): the next check starts another.
-                self._executor = None
-                raise
+            return future.result()
+        except BrokenProcessPool:
+            # The process died (killed for memory, say): the next check starts another.
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+            raise

@@ -117,7 +117,8 @@ class Mapper:
             segment.corrected.append((m.utime, T_corrected))
             state.counters.keyframes_fused += 1
             state.rates["fused"].tick(time.monotonic())
-            self._correct(state, m, T_onboard, T_corrected, job.arrival_ns)
+            if self._correct(state, m, T_onboard, T_corrected, job.arrival_ns):
+                chain.correction_sent()
         else:
             state.counters.keyframes_lost += 1
             self._log(f"vehicle {state.vehicle_id}: keyframe {m.keyframe_id} not refined "
@@ -178,8 +179,8 @@ class Mapper:
             state.view.optimised(utime, np.array([T[:3, 3] for _, T in chain.trajectory()]))
 
     def _correct(self, state: VehicleState, m: Keyframe, T_onboard: np.ndarray,
-                 T_corrected: np.ndarray, arrival_ns: int) -> None:
-        """The correction policy, then the uplink."""
+                 T_corrected: np.ndarray, arrival_ns: int) -> bool:
+        """The correction policy, then the uplink: whether the correction went out."""
         # The move in the camera's own frame: its translation is the distance between the two
         # poses, however far from the origin the drone is.
         if jump_exceeds(np.linalg.inv(T_onboard) @ T_corrected, self.params.reset_translation_m,
@@ -187,7 +188,7 @@ class Mapper:
             state.reset_counter += 1
             state.counters.resets += 1
         state.T_map_onboard = T_corrected @ np.linalg.inv(T_onboard)
-        self._uplink.send(state, m, T_corrected, arrival_ns)
+        return self._uplink.send(state, m, T_corrected, arrival_ns)
 
     def _show(self, state: VehicleState, m: Keyframe, depth: np.ndarray,
               T_onboard: np.ndarray, T_corrected: np.ndarray | None, result: Any) -> None:

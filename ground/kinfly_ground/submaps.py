@@ -146,7 +146,12 @@ class SubmapChain:
         self._corrections: list[np.ndarray] = []  # C_k, swapped whole under the lock
         self._lock = threading.Lock()
         self._lost_in_a_row = 0
-        self._C_sent = np.eye(4)  # the C of the last pose refine() returned
+        # The world the drone's published pose is in: the C of the last correction it was sent
+        # (correction_sent), and the one before, for keyframes it captured before that arrived.
+        # The identity while it was sent none (a replay, a vehicle without a key).
+        self._C_returned = np.eye(4)  # of the last pose refine() returned
+        self._C_sent = np.eye(4)
+        self._C_sent_before = np.eye(4)
         # The open submap's last registered keyframes (utime, depth, T_c_cam), the overlap of
         # the next.
         self._recent: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(
@@ -169,8 +174,11 @@ class SubmapChain:
                ) -> tuple[Any, np.ndarray | None, Submap | None]:
         """Registers a keyframe in the active submap and fuses it. T_WORLD_GUESS is the drone's
         published pose, which it moves with every correction it applies (docs/firmware.md,
-        "Corrections"): in the world of the last correction sent, taken back into the chain's
-        frame by that correction's C. The first keyframe begins the chain, fused at the guess.
+        "Corrections"): in the world of the last correction sent (correction_sent), taken back
+        into the chain's frame by that correction's C; where that fails and the correction
+        before had another C (a loop came between), from that one, as a keyframe captured
+        before the last correction arrived is. The first keyframe begins the chain, fused at
+        the guess.
         Returns the engine's result, the keyframe's pose in the optimised world (None when it
         did not register), and the submap that closed because keyframes stopped registering
         (None otherwise)."""
@@ -178,11 +186,15 @@ class SubmapChain:
         if active is None:
             result = self._begin(depth, utime, T_world_guess, after_loss=False)
             return result, (result.T_world_cam if self.submaps else None), None
-        # A keyframe captured before the drone applied the correction that followed a loop is
-        # guessed off by the loop's move: once, as the next correction brings the drone over.
         T_c_guess = np.linalg.inv(self._C_sent) @ T_world_guess
         C = self.correction(active.index)
         result = active.fusion.refine(depth, utime, T_c_guess)
+        if (result.status is TrackingStatus.LOST
+                and not np.array_equal(self._C_sent_before, self._C_sent)):
+            retry = active.fusion.refine(depth, utime,
+                                         np.linalg.inv(self._C_sent_before) @ T_world_guess)
+            if retry.status is not TrackingStatus.LOST:
+                result = retry
         if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
             self._lost_in_a_row = 0
             T_c_cam = result.T_world_cam
@@ -192,7 +204,7 @@ class SubmapChain:
             active.keyframes.append((utime, T_c_cam))
             active.fused_utimes.add(utime)
             self._recent.append((utime, depth, T_c_cam))
-            self._C_sent = C
+            self._C_returned = C
             return result, C @ T_c_cam, None
         self._lost_in_a_row += 1
         if self._lost_in_a_row < self.params.new_after_lost:
@@ -204,8 +216,14 @@ class SubmapChain:
         if len(self.submaps) == count:
             return result, None, None
         self._lost_in_a_row = 0
-        self._C_sent = C
+        self._C_returned = C
         return began, C @ began.T_world_cam, active
+
+    def correction_sent(self) -> None:
+        """The pose refine() last returned went to the drone as a correction: its published
+        poses move into that pose's world."""
+        if not np.array_equal(self._C_returned, self._C_sent):
+            self._C_sent_before, self._C_sent = self._C_sent, self._C_returned
 
     @property
     def num_blocks(self) -> int:

@@ -29,11 +29,12 @@ class Uplink:
         self._lock = threading.Lock()
 
     def send(self, state: VehicleState, m: Keyframe, T_corrected: np.ndarray,
-             arrival_ns: int) -> None:
-        """Sends the correction of keyframe M; the latency is counted from ARRIVAL_NS."""
+             arrival_ns: int) -> bool:
+        """Sends the correction of keyframe M; the latency is counted from ARRIVAL_NS. Whether
+        it went out (not in a replay, nor to a vehicle without a key)."""
         if self._publish is not None and state.signer is None:
             state.counters.corrections_unsigned += 1
-            return
+            return False
         if self._publish is not None:
             envelope = state.signer.sign_correction(m.keyframe_id, m.utime, T_corrected,
                                                     state.reset_counter)
@@ -47,6 +48,7 @@ class Uplink:
             state.rates["corrections"].tick(time.monotonic())
         # Replay has nothing to send: its latency is the time to refine and fuse.
         state.latencies_ms.append((time.monotonic_ns() - arrival_ns) / 1e6)
+        return self._publish is not None
 
     def send_copies(self, now_s: float) -> None:
         """The copies due by NOW_S (monotonic), each once; the LCM thread's loop calls this

@@ -102,11 +102,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    f"(default {math.degrees(d.reset_rotation_rad):g})")
     p.add_argument("--submap-distance", type=float, default=d.submaps.max_distance_m,
                    metavar="M", help="a submap closes after the camera travelled this far in it, "
-                   "and is checked for loops with the earlier ones near it "
-                   f"[m] (default {d.submaps.max_distance_m:g})")
+                   "and is checked for loops with the earlier ones near it, 3 for a flight "
+                   "through several rooms [m] (default: never; one map, a new submap only where "
+                   "keyframes stop registering)")
     p.add_argument("--submap-duration", type=float, default=d.submaps.max_duration_s,
-                   metavar="S", help="... or after this long in capture time "
-                   f"[s] (default {d.submaps.max_duration_s:g})")
+                   metavar="S", help="... or after this long in capture time, 30 with "
+                   "--submap-distance 3 [s] (default: never)")
 
 
 def parser() -> argparse.ArgumentParser:

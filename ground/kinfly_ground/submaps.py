@@ -35,11 +35,17 @@ StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4)
 
 @dataclasses.dataclass(frozen=True)
 class SubmapParams:
-    # A submap closes once the camera travelled this far in it, or this long in capture time:
-    # long enough to hold a room's worth of surface for registration, short enough that its own
-    # drift stays under the loop check's residual gate.
-    max_distance_m: float = 3.0
-    max_duration_s: float = 30.0
+    # A submap closes once the camera travelled this far in it, or this long in capture time
+    # (3 m and 30 s hold a room's worth of surface for registration, and keep a submap's own
+    # drift under the loop check's residual gate). Off unless asked for: in a room the drone
+    # keeps in view, registering every keyframe against one map already closes the loop, and a
+    # chain closed by distance or time maps the room again and again (`make sim`'s room tour
+    # replayed: 0.11 cm ATE and 398 MB as one map, 0.17 cm and 789 MB with 3 m and 30 s; the
+    # five-minute three laps: 0.17 cm both, 396 against 2306 MB; docs/ground.md). Until a close
+    # rule that keeps a room one map is measured, a submap closes on its own only where
+    # keyframes stop registering (new_after_lost).
+    max_distance_m: float = math.inf
+    max_duration_s: float = math.inf
     # A submap begun at a close also holds the closed one's last keyframes, fused at their
     # refined poses: a map of one keyframe is too thin for the next to register against
     # (`make sim`'s room tour, replayed: inlier fractions of 0.07-0.10 after each close, 0.1

@@ -116,6 +116,8 @@ def test_demo_flies_the_sample_end_to_end(demo_run: Path) -> None:
     k = vehicle["keyframes"]
     assert k["keyframes_received"] >= 5  # 2 s of flight; a keyframe at least every second
     check_every_keyframe_fused(vehicle)
+    # Every keyframe registered, and submaps close by default only where they stop: one map.
+    assert vehicle["submaps"] == 1 and k["submaps_closed"] == 0, k
     # The drone waits for the ground's last corrections before it exits, so it applied all.
     applied = int(re.search(r"the drone applied (\d+) of the ground's corrections",
                             (demo_run / "demo.txt").read_text()).group(1))

@@ -1,18 +1,21 @@
 """The submap chain (kinfly_ground.submaps) on the committed TUM teddy sample, played forwards and
 then backwards so that the way back revisits where the way out mapped: submaps close by distance
 and each begins where the last ended, loops between the two passes are found, registered and
-accepted, and the optimised trajectory and map stay on the ground truth; a wrong loop that passed
-its check is rejected by the graph and moves nothing; a registration that moved further from the
+accepted, and the optimised trajectory and map stay on the ground truth; 20 wrong candidates
+through the check, the gate and the graph move the map no more than 1 cm, and a wrong loop that
+passed its check is rejected by the graph and moves nothing; a registration that moved further from the
 graph's guess than its uncertainty allows is refused; keyframes that stop registering begin a new
 submap at the drone's pose; the whole mesh is the submaps' meshes, moved."""
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from kinfly_ground._native import (Fusion, FusionPipelineParams, HashedVolumeParams, PinholeCamera,
                                    TrackingStatus)
@@ -39,6 +42,14 @@ ATE_WORSENING_MAX_M = 0.002
 # The issue's bound for a wrong loop: none accepted, or none that moves the map more than 1 cm.
 WRONG_LOOP_MOVE_MAX_M = 0.01
 WRONG_LOOP_OFFSET_M = 0.3
+# The issue's wrong candidates: 20 of them, the chain's own pairs guessed wrong in four ways (a
+# place 1-2 m along, the same place turned 90 or 180 degrees, 30 cm and 15 degrees off), each
+# through the registration check, the guess's gate and the graph as a real candidate goes.
+WRONG_CANDIDATES = 20
+WRONG_SEED = 20261206
+WRONG_PLACE_M = (1.0, 2.0)
+WRONG_TURNS_DEG = (90.0, 180.0)
+WRONG_SMALL_M, WRONG_SMALL_DEG = 0.3, 15.0
 # The gate on a registration's move from the graph's guess: with sigmas of 2 cm and 1 degree
 # (and 6 degrees of freedom at 0.99: chi-square 16.8, 8.2 cm along one axis alone), 2 cm is
 # inside and 10 cm outside.
@@ -134,18 +145,57 @@ def test_the_way_back_closes_loops_with_the_way_out(keyframes) -> None:
     assert vertices.shape == normals.shape and triangles.max() < len(vertices)
 
 
-def test_a_wrong_loop_that_passed_its_check_is_rejected_by_the_graph(keyframes) -> None:
+def _wrong_offset(kind: int, rng: np.random.Generator) -> np.ndarray:
+    """A motion that makes a right guess wrong, of one of the four kinds."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    offset = np.eye(4)
+    if kind == 0:
+        offset[:3, 3] = rng.uniform(*WRONG_PLACE_M) * axis
+    elif kind in (1, 2):
+        offset[:3, :3] = Rotation.from_rotvec(math.radians(WRONG_TURNS_DEG[kind - 1]) * axis
+                                              ).as_matrix()
+    else:
+        offset[:3, 3] = WRONG_SMALL_M * axis
+        offset[:3, :3] = Rotation.from_rotvec(math.radians(WRONG_SMALL_DEG) * axis).as_matrix()
+    return offset
+
+
+def _map_move_m(chain: SubmapChain, reference) -> float:
+    return max(np.linalg.norm(T[:3, 3] - T_ref[:3, 3])
+               for (_, T), (_, T_ref) in zip(chain.trajectory(), reference))
+
+
+def test_wrong_candidates_and_a_wrong_loop_do_not_move_the_map(keyframes) -> None:
     chain = SubmapChain(SubmapParams(max_distance_m=SUBMAP_DISTANCE_M), _fusion)
     _fly(chain, keyframes)
     reference = chain.trajectory()
+    rng = np.random.default_rng(WRONG_SEED)
+    # The chain's own candidates, each closed submap's as the station hands them to loops.py.
+    pairs = [c for submap in chain.submaps[:-1] for c in chain.loop_candidates(submap)]
+    assert pairs
+    verdicts = {"check": 0, "graph": 0, "accepted": 0}
+    for k in range(WRONG_CANDIDATES):
+        right = pairs[k % len(pairs)]
+        wrong = dataclasses.replace(right, T_older_newer_guess=right.T_older_newer_guess
+                                    @ _wrong_offset(k % 4, rng))
+        [outcome] = chain.add_loops([(wrong, chain.check(wrong))])
+        verdicts["accepted" if outcome.accepted_by_graph
+                 else "check" if not outcome.check.accepted else "graph"] += 1
+        moved = _map_move_m(chain, reference)
+        assert moved <= WRONG_LOOP_MOVE_MAX_M, (k, outcome.check)
+    print(f"{WRONG_CANDIDATES} wrong candidates: {verdicts['check']} refused by the check or the "
+          f"guess's gate, {verdicts['graph']} by the graph, {verdicts['accepted']} accepted; the "
+          f"map moved {1000 * _map_move_m(chain, reference):.2f} mm")
+
     # A registration 30 cm off that the check let through (a twin room, say).
+    reference = chain.trajectory()
     older, newer = 0, len(chain.submaps) - 2
     wrong = np.linalg.inv(chain.correction(older)) @ chain.correction(newer)
     wrong[:3, 3] += [WRONG_LOOP_OFFSET_M, 0.0, 0.0]
     passed = LoopCheck(True, wrong, 0.9, 0.002, 0.2, "")
     [outcome] = chain.add_loops([(LoopCandidate(older, newer, wrong), passed)])
-    moved = max(np.linalg.norm(T[:3, 3] - T_ref[:3, 3])
-                for (_, T), (_, T_ref) in zip(chain.trajectory(), reference))
+    moved = _map_move_m(chain, reference)
     print(f"a wrong loop {WRONG_LOOP_OFFSET_M} m off: accepted {outcome.accepted_by_graph}, the "
           f"map moved {1000 * moved:.2f} mm")
     assert not outcome.accepted_by_graph

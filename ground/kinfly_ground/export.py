@@ -195,10 +195,14 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
         if line := format_link(v.get("link"), drone):
             print(f"    {line}")
         if v.get("submaps", 0) > 1:
+            verdicts = (k['loops_accepted'], k['loops_refused_by_check'],
+                        k['loops_refused_by_graph'], k['loop_checks_failed'])
+            unchecked = k['loop_candidates'] - sum(verdicts)
             print(f"    {v['submaps']} submaps ({k['submaps_after_loss']} begun after lost "
-                  f"keyframes); {k['loop_candidates']} loops checked: {k['loops_accepted']} "
-                  f"accepted, {k['loops_refused_by_check']} refused by the check, "
-                  f"{k['loops_refused_by_graph']} by the graph")
+                  f"keyframes); {k['loop_candidates']} loop candidates: {verdicts[0]} "
+                  f"accepted, {verdicts[1]} refused by the check, {verdicts[2]} by the graph, "
+                  f"{verdicts[3]} checks failed"
+                  + (f", {unchecked} not checked before the end" if unchecked else ""))
         a = v["ate"]
         if a["available"]:
             parts = [f"{n} {a[n]['rmse_m'] * 100:.2f} cm ({a[n]['matched_poses']} poses)"

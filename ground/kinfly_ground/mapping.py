@@ -99,8 +99,9 @@ class Mapper:
         if has_onboard:
             T_onboard = m.T_world_cam
         else:
-            # No onboard pose (its fields are meaningless): start from the last corrected one.
-            T_onboard = segment.corrected[-1][1] if segment.corrected else np.eye(4)
+            # No onboard pose (its fields are meaningless): start from the last refined one, in
+            # the world the drone's poses are in.
+            T_onboard = chain.last_pose_published()
         depth = m.depth
         result, T_corrected, closed = chain.refine(depth, m.utime, T_onboard)
         if closed is not None:
@@ -126,13 +127,15 @@ class Mapper:
         self._show(state, m, depth, T_onboard, T_corrected, result)
         # After the correction went out and the viewer has the keyframe: closing a submap
         # snapshots it and begins the next with this keyframe.
-        closed = closed or chain.close_if_due(depth, m.utime)
+        if closed is None:
+            closed = chain.close_if_due(depth, m.utime)
+            if closed is not None:
+                state.counters.submaps_closed += 1
         if closed is not None:
             self._closed(state, chain, closed, m.utime)
 
     def _closed(self, state: VehicleState, chain: SubmapChain, closed: Submap,
                 utime: int) -> None:
-        state.counters.submaps_closed += 1
         self._log(f"vehicle {state.vehicle_id}: submap {closed.index} closed after "
                   f"{closed.path_m:.1f} m, {(utime - closed.first_utime) * 1e-6:.0f} s, "
                   f"{len(closed.keyframes)} keyframes")

@@ -6,6 +6,7 @@ last and lists the files it vouches for."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from collections.abc import Callable, Iterable
@@ -70,8 +71,21 @@ def write_tum(path: Path, poses: Iterable[StampedPose]) -> None:
     write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
+def _json_safe(value: Any) -> Any:
+    """VALUE with every non-finite number as None: JSON has no infinity or NaN (Python writes
+    `Infinity`, which strict parsers refuse), and a setting that is off is infinite (a submap's
+    distance and duration)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {key: _json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(item) for item in value]
+    return value
+
+
 def write_json(path: Path, value: Any) -> None:
-    text = json.dumps(value, indent=2) + "\n"
+    text = json.dumps(_json_safe(value), indent=2, allow_nan=False) + "\n"
     write_atomically(path, lambda tmp: tmp.write_text(text))
 
 

@@ -231,6 +231,15 @@ class SubmapChain:
         if not np.array_equal(self._C_returned, self._C_sent):
             self._C_sent_before, self._C_sent = self._C_sent, self._C_returned
 
+    def last_pose_published(self) -> np.ndarray:
+        """The last registered keyframe's pose in the world the drone's published poses are in
+        (the last correction sent), the guess for a keyframe without an onboard pose; the
+        identity before the first."""
+        active = self.active
+        if active is None:
+            return np.eye(4)
+        return self._C_sent @ active.keyframes[-1][1]
+
     @property
     def num_blocks(self) -> int:
         """Blocks allocated in every submap's volume (closed ones' as they closed)."""

@@ -5,6 +5,8 @@ corridor and a round room are refused, each for its own reason; bad inputs are r
 name."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import trimesh
@@ -115,6 +117,23 @@ def test_a_guess_a_metre_off_is_refused() -> None:
     translation_m, _ = _error(check.T_target_source, T_TARGET_SOURCE)
     print(f"a metre off: {check.reason or 'accepted'}, {translation_m:.2f} m from the truth")
     assert not check.accepted, "a loop a metre wrong"
+
+
+def test_a_guess_too_far_off_to_register_is_refused_before_registering() -> None:
+    """The same room, the guess 2 m off and turned a quarter turn: too few points lie within
+    GICP's partner distance of the other submap for it to reach min_overlap, so nothing is
+    registered (it cost up to 16 s of a core, docs/ground.md) and the guess comes back as it
+    was."""
+    rng = np.random.default_rng(SEED)
+    room = _room(rng)
+    turned = T_TARGET_SOURCE @ _pose(math.pi / 2, (2.0, 0.0, 0.0))
+    check = check_loop(_submap(room, T_WORLD_TARGET, rng), _submap(room, T_WORLD_SOURCE, rng),
+                       turned)
+    print(f"2 m and a quarter turn off: {check.reason}")
+    assert not check.accepted
+    assert check.reason.startswith("at the guess only"), check.reason
+    assert check.overlap < RegistrationParams().min_overlap
+    np.testing.assert_array_equal(check.T_target_source, turned)
 
 
 @pytest.mark.parametrize("scene", ["wall", "corridor", "round room"])

@@ -45,8 +45,13 @@ OUTPUTS = ("mesh.ply", "trajectory_onboard.tum", "trajectory_corrected.tum",
            "trajectory_optimised.tum", "session.rrd", "summary.json", "ate.png")
 
 
+def _not_json(constant: str) -> None:
+    raise ValueError(f"summary.json holds {constant}, which is not JSON (RFC 8259)")
+
+
 def read_summary(out: Path) -> dict:
-    return json.loads((out / "summary.json").read_text())
+    """summary.json, parsed strictly: Python would take Infinity and NaN, other readers not."""
+    return json.loads((out / "summary.json").read_text(), parse_constant=_not_json)
 
 
 def check_accuracy(vehicle: dict) -> None:

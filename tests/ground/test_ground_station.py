@@ -137,11 +137,17 @@ class Rig:
     def __init__(self, params: StationParams = QUIET, *, vehicle_id: int | None = VEHICLE,
                  signed: tuple[int, ...] = (VEHICLE,), inline: bool = True) -> None:
         self.published: list[tuple[str, bytes]] = []
+        # When each was published [us]: the drone's receiver checks a correction's age at its
+        # arrival, which here is then (on a loaded machine a test's end can be seconds later).
+        self.published_us: list[int] = []
         self.logs: list[str] = []
         signers = {v: Signer(KEYS[v], v, first_sequence=FIRST_SEQUENCE) for v in signed}
         self.station = Station(params, Viewer(), vehicle_id=vehicle_id, signers=signers,
-                               publish=lambda channel, data: self.published.append((channel, data)),
-                               inline=inline, log=self.logs.append)
+                               publish=self._publish, inline=inline, log=self.logs.append)
+
+    def _publish(self, channel: str, data: bytes) -> None:
+        self.published_us.append(time.time_ns() // 1000)
+        self.published.append((channel, data))
 
     def send(self, message: depth_keyframe_t) -> None:
         self.send_bytes(message.encode(), message.vehicle_id)
@@ -156,13 +162,13 @@ class Rig:
         channel = channel_name(Channel.CORRECTION, vehicle)
         sequences = []
         drone = CorrectionReceiver(KEYS[vehicle], vehicle)
-        for published_on, data in self.published:
+        for (published_on, data), arrival_us in zip(self.published, self.published_us):
             if published_on != channel:
                 continue
             envelope = signed_t.decode(data)
             assert envelope.vehicle_id == vehicle
             assert envelope.key_id & 0xFFFFFFFF == key_id(KEYS[vehicle])
-            assert drone.receive(data, time.time_ns() // 1000) is not None
+            assert drone.receive(data, arrival_us) is not None
             sequences.append(envelope.sequence)
             correction = pose_correction_t.decode(envelope.payload)
             assert correction.vehicle_id == vehicle

@@ -150,24 +150,9 @@ class PyMapSnapshot {
                           rowsOf<Rows3f>(mesh_.normals, self));
   }
 
-  // Binary PLY; OSError naming the file when it cannot be written.
-  size_t writePly(const std::string& path) {
-    kinfly::Status written;
-    {
-      nb::gil_scoped_release unlocked;
-      extract();
-      written = kinfly::writePly(mesh_, path);
-    }
-    if (!written.ok()) {
-      PyErr_SetString(PyExc_OSError, written.message().c_str());
-      throw nb::python_error();
-    }
-    return mesh_.triangles.size();
-  }
-
   size_t numBlocks() const { return num_blocks_; }
 
-  // How the mesh was brought up to date (None before mesh() or write_ply()).
+  // How the mesh was brought up to date (None before mesh()).
   nb::object update() const {
     if (!extracted_.load()) return nb::none();
     nb::dict d;
@@ -451,7 +436,7 @@ NB_MODULE(_native, m) {
       },
       nb::arg("path"), nb::arg("vertices"), nb::arg("triangles"), nb::arg("normals"),
       "Writes a mesh (float32 Nx3 vertices [m], int32 Mx3 triangles, float32 Nx3 normals) as "
-      "MapSnapshot.write_ply does; returns the triangle count");
+      "binary PLY; returns the triangle count; OSError naming the file where it cannot be written");
   const DepthCodec::Params defaults;
   nb::class_<PyDepthCodec>(m, "DepthCodec",
                            "Lossless depth codec (RVL family, docs/wire.md); keeps its buffers.")
@@ -469,8 +454,6 @@ NB_MODULE(_native, m) {
       .def("mesh", [](nb::handle self) { return nb::cast<PyMapSnapshot&>(self).mesh(self); },
            "Marching cubes: (vertices float32 Nx3 [m], triangles int32 Mx3, normals float32 Nx3), "
            "views that keep the snapshot alive")
-      .def("write_ply", &PyMapSnapshot::writePly, nb::arg("path"),
-           "Meshes the map and writes binary PLY; returns the triangle count")
       .def_prop_ro("num_blocks", &PyMapSnapshot::numBlocks)
       .def_prop_ro("update", &PyMapSnapshot::update,
                    "How mesh() brought the kept mesh up to date: map_blocks, blocks_changed, "

@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from kinfly_ground._native import (Fusion, FusionPipelineParams, HashedVolumeParams, PinholeCamera,
-                                   TrackingStatus)
+                                   TrackingStatus, write_ply)
 from kinfly_ground.outputs import ate, read_tum
 
 WIDTH, HEIGHT = 640, 480
@@ -224,11 +224,11 @@ def test_write_ply(frames, tmp_path: Path) -> None:
 
     missing = tmp_path / "no_such_directory" / "map.ply"
     with pytest.raises(OSError, match=str(missing)):
-        snapshot.write_ply(str(missing))
+        write_ply(str(missing), *snapshot.mesh())
     assert not missing.parent.exists()
 
     path = tmp_path / "map.ply"
-    triangles_written = snapshot.write_ply(str(path))
+    triangles_written = write_ply(str(path), *snapshot.mesh())
     vertices, triangles, _ = snapshot.mesh()
     data = path.read_bytes()
     end = data.index(b"end_header\n") + len(b"end_header\n")

@@ -283,7 +283,10 @@ FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_dep
   // A given pose is fused whatever the depth holds: the caller vouches for it.
   result.status = TrackingStatus::kGivenPose;
   result.lost_reason.clear();
-  return fuse(result, /*predict_from_pose=*/true);
+  // No prediction: a frame tracked next raycasts the model from this pose first (processFrame)
+  // or from its own guess (processFrameFromGuess). Frames fused only at given poses (mapping
+  // with known poses, the ground's overlap of a new submap: 8 keyframes) raycast nothing.
+  return fuse(result, /*predict_from_pose=*/false);
 }
 
 FrameResult FusionPipeline::fuse(FrameResult result, bool predict_from_pose) {

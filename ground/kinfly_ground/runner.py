@@ -37,9 +37,11 @@ class Runner(Generic[Job]):
         self._cv = threading.Condition()
         self._stopping = False
         self._idle = True
-        # (vehicle state, capture time, submap index, snapshot) by (vehicle, submap): only each
-        # submap's latest waits, and a closed submap's last mesh is never replaced.
-        self._mesh_jobs: dict[tuple[int, int], tuple[Any, int, int, Any]] = {}
+        # (vehicle state, capture time, submap index, snapshot) by (vehicle, map, submap), the
+        # map being the vehicle's count of maps it restarted from: only each submap's latest
+        # waits, and a closed submap's last mesh is never replaced, not even by the submap of
+        # that index in the map a restarted drone begins.
+        self._mesh_jobs: dict[tuple[int, int, int], tuple[Any, int, int, Any]] = {}
         self._mesh_cv = threading.Condition()
         self._threads: list[threading.Thread] = []
         self._export_requests: list[Callable[[], None]] = []
@@ -68,7 +70,7 @@ class Runner(Generic[Job]):
             state.view.mesh(utime, submap, *snapshot.mesh())
             return
         with self._mesh_cv:
-            key = (state.vehicle_id, submap)
+            key = (state.vehicle_id, len(state.finished_segments), submap)
             self._mesh_jobs.pop(key, None)  # the newer goes last, in the order asked
             self._mesh_jobs[key] = (state, utime, submap, snapshot)
             self._mesh_cv.notify()

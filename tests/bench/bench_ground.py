@@ -2,7 +2,7 @@
 """The ground station's figures (issue 5, "Targets"), on the shared TUM freiburg3_teddy sequence.
 
     .venv/bin/python tests/bench/bench_ground.py [--data SHARED_DATA] [--out out/bench]
-        [--repeats 3]
+        [--repeats 3] [--config NAME ...]
 
 Each run flies the whole 200-frame sequence end to end as `make demo` does: kinfly-fw replays it
 (converted with kinfly-tum-to-log) in real time and kinfly-ground serves it, over LCM multicast
@@ -16,6 +16,12 @@ is fused, resident at exit after the final mesh and the evaluation, and the peak
 one JSON object with the targets beside the figures, the median over `--repeats` runs. A
 benchmark: it reports and never fails on a figure (a non-zero exit means something could not
 run).
+
+The cost of loop closure (issue 17, "ground cost of loop closure"): the sequence flown out and
+back (its frames again in reverse, the capture times mirrored, so the way back revisits the way
+out), once with the station's default of one map and once with a submap every 0.5 m (four or
+five each way), whose loop candidates are checked while the keyframes arrive. Both report the
+latency beside the loops found and the ATE of the optimised trajectory.
 """
 from __future__ import annotations
 
@@ -40,16 +46,49 @@ from netns import network_namespace  # noqa: E402
 # Issue 5, "Targets".
 TARGETS = {"latency_ms_median": 50.0, "latency_ms_p99": 150.0, "ate_corrected_m": 0.03,
            "ate_corrected_vs_onboard": "<="}
-CONFIGS = {
-    "keyframes_5hz": ["--keyframe.max_interval_s", "0.15"],
-    "default_thresholds": [],
+KEYFRAMES_5HZ = ["--keyframe.max_interval_s", "0.15"]
+# Name: (sequence, the drone's arguments, the ground's).
+CONFIGS: dict[str, tuple[str, list[str], list[str]]] = {
+    "keyframes_5hz": ("forward", KEYFRAMES_5HZ, []),
+    "default_thresholds": ("forward", [], []),
+    "out_and_back_one_map": ("out_and_back", KEYFRAMES_5HZ, []),
+    "out_and_back_submaps_0.5m": ("out_and_back", KEYFRAMES_5HZ, ["--submap-distance", "0.5"]),
 }
 
 
-def one_run(netns: list[str], log: Path, work: Path, drone_args: list[str]) -> dict[str, Any]:
+def _tum_lines(path: Path) -> list[tuple[float, str]]:
+    """(timestamp, the rest of the line) of a TUM list, comments left out."""
+    rows = []
+    for line in path.read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            stamp, rest = line.split(maxsplit=1)
+            rows.append((float(stamp), rest))
+    return rows
+
+
+def out_and_back(tum: Path, dest: Path) -> Path:
+    """DEST made a TUM folder of TUM's frames, then the same frames in reverse, each at its time
+    mirrored about the last frame's; the ground truth mirrored the same way."""
+    frames = _tum_lines(tum / "depth.txt")
+    truth = _tum_lines(tum / "groundtruth.txt")
+    first, last = frames[0][0], frames[-1][0]
+    dest.mkdir()
+    (dest / "depth").symlink_to((tum / "depth").resolve())
+    back = [(2 * last - t, rest) for t, rest in reversed(frames[:-1])]
+    (dest / "depth.txt").write_text("".join(f"{t:.6f} {rest}\n" for t, rest in frames + back))
+    # The truth from a little before the first frame (the evaluation matches within 20 ms).
+    out = [(t, rest) for t, rest in truth if first - 0.1 <= t <= last]
+    mirrored = [(2 * last - t, rest) for t, rest in reversed(out) if t < last]
+    (dest / "groundtruth.txt").write_text("".join(f"{t:.6f} {rest}\n"
+                                                  for t, rest in out + mirrored))
+    return dest
+
+
+def one_run(netns: list[str], log: Path, work: Path, drone_args: list[str],
+            ground_args: list[str]) -> dict[str, Any]:
     key = demo.make_key(work / "vehicle.key")
     out = work / "out"
-    flight = demo.fly(netns, demo.ground_command(out, key=key),
+    flight = demo.fly(netns, demo.ground_command(out, key=key) + ground_args,
                       [demo.drone_command(log, key=key) + drone_args], quiet=True)
     # The machine's load over the flight, with it: a latency means little without it.
     load = os.getloadavg()[0]
@@ -60,6 +99,7 @@ def one_run(netns: list[str], log: Path, work: Path, drone_args: list[str]) -> d
               (out / "trajectory_onboard.tum").read_text().splitlines()]
     v = summary["vehicles"]["1"]
     corrected, onboard = v["ate"]["corrected"], v["ate"]["onboard"]
+    keyframes = v["keyframes"]
     return {
         "load_average_1min": load,
         "keyframes_sent": v["drone_reported"]["keyframes_sent"],
@@ -74,7 +114,12 @@ def one_run(netns: list[str], log: Path, work: Path, drone_args: list[str]) -> d
         "refine_ms_median": v["refine_ms"]["median"],
         "ate_onboard_m": onboard["rmse_m"],
         "ate_corrected_m": corrected["rmse_m"],
+        "ate_optimised_m": v["ate"]["optimised"]["rmse_m"],
         "matched_poses": corrected["matched_poses"],
+        "submaps": v["submaps"],
+        "loop_candidates": keyframes["loop_candidates"],
+        "loops_accepted": keyframes["loops_accepted"],
+        "loops_refused": keyframes["loops_refused_by_check"] + keyframes["loops_refused_by_graph"],
         "rss_mb_after_fusion": summary["memory_after_fusion"]["rss_mb"],
         "rss_mb_at_exit": summary["memory"]["rss_mb"],
         "peak_rss_mb": summary["memory"]["peak_rss_mb"],
@@ -92,7 +137,10 @@ def main() -> int:
     p.add_argument("--data", type=Path, default=kinfly_eval.data_root(REPO_ROOT))
     p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "bench")
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--config", action="append", choices=list(CONFIGS),
+                   help="fly only this configuration (again for more; default: all)")
     args = p.parse_args()
+    configs = {name: CONFIGS[name] for name in args.config or CONFIGS}
     tum = args.data / kinfly_eval.TUM_SEQUENCE_SUBDIR
     if not tum.is_dir():
         print(f"bench_ground: no TUM sequence at {tum}", file=sys.stderr)
@@ -100,16 +148,19 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     result: dict[str, Any] = {"targets": TARGETS, "sequence": str(tum), "repeats": args.repeats}
     with tempfile.TemporaryDirectory(prefix="kinfly-bench-ground-") as tmp:
-        log = Path(tmp) / "teddy200.lcmlog"
-        subprocess.run([demo.BUILD / "kinfly-tum-to-log", "--tum", tum, "--out", log],
-                       check=True, capture_output=True)
-        for name, drone_args in CONFIGS.items():
+        logs = {"forward": Path(tmp) / "teddy200.lcmlog",
+                "out_and_back": Path(tmp) / "teddy200_out_and_back.lcmlog"}
+        sequences = {"forward": tum, "out_and_back": out_and_back(tum, Path(tmp) / "back")}
+        for name, log in logs.items():
+            subprocess.run([demo.BUILD / "kinfly-tum-to-log", "--tum", sequences[name],
+                            "--out", log], check=True, capture_output=True)
+        for name, (sequence, drone_args, ground_args) in configs.items():
             runs = []
             for i in range(args.repeats):
                 work = Path(tmp) / f"{name}-{i}"
                 work.mkdir()
                 with network_namespace("bench") as netns:
-                    runs.append(one_run(netns, log, work, drone_args))
+                    runs.append(one_run(netns, logs[sequence], work, drone_args, ground_args))
                 print(f"bench_ground: {name} run {i + 1}/{args.repeats}: "
                       f"{json.dumps(runs[-1])}", file=sys.stderr)
             result[name] = {"median": median_of(runs), "runs": runs}

@@ -12,6 +12,11 @@ Runs, in one go, on the shared TUM freiburg3_teddy sequence (200 frames, 640x480
 Prints one JSON object: per-frame medians, ATEs (kinfly_eval.ate, same association and alignment
 for both), the speed ratio and the budgets from DESIGN.md next to them. It is a benchmark: it
 reports figures and never fails on them (a non-zero exit means something could not run at all).
+
+Then the mesh figure's anchor (issue 17): the shared Replica office0 frames fused at their known
+poses into 1 cm voxels, by kinfly-fuse as `make eval` does (truncation 4 voxels) and by Open3D's
+ScalableTSDFVolume with the same voxel size, truncation and frames (no depth cap), both meshes
+measured against the ground-truth surface by kinfly_eval.mesh_accuracy.
 """
 from __future__ import annotations
 
@@ -39,6 +44,11 @@ GROUND_BUDGET_MS = 33.0
 GROUND_MIN_SPEEDUP_VS_OPEN3D = 4.0
 ONBOARD_BUDGET_MS = 8.0
 GROUND_ARGS = ["--threads", "2"]
+
+# kinfly-fuse's default truncation (--truncation), given to Open3D too; Replica's depth reaches
+# 3.6 m and nothing of it is left out.
+REPLICA_TRUNCATION_VOXELS = 4.0
+REPLICA_NO_DEPTH_CAP_M = 100.0
 
 # TUM freiburg3 (data README) and the sequence's depth units.
 TUM_FR3_INTRINSICS = np.array([[535.4, 0.0, 320.1], [0.0, 539.2, 247.6], [0.0, 0.0, 1.0]])
@@ -130,6 +140,57 @@ def run_open3d(tum_dir: Path, out_dir: Path, max_frames: int | None) -> dict[str
     }
 
 
+def replica_mesh_open3d(tum_dir: Path, poses: Path, truth: Path, out_dir: Path
+                        ) -> dict[str, Any]:
+    """TUM_DIR: the Replica frames as kinfly_eval.replica_to_tum converted them; POSES their
+    camera-to-world poses (TUM format); TRUTH the ground-truth mesh."""
+    import open3d as o3d
+
+    T_world_cam = {}
+    for line in poses.read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            t, x, y, z, qx, qy, qz, qw = map(float, line.split())
+            T = np.identity(4)
+            T[:3, :3] = o3d.geometry.get_rotation_matrix_from_quaternion([qw, qx, qy, qz])
+            T[:3, 3] = (x, y, z)
+            T_world_cam[t] = T
+    fx, fy, cx, cy = map(float, kinfly_eval.REPLICA_INTRINSICS.split(","))
+    frames = read_tum_list(tum_dir / "depth.txt")
+    first = o3d.io.read_image(str(tum_dir / frames[0][1]))
+    height, width = np.asarray(first).shape
+    intrinsic = o3d.camera.PinholeCameraIntrinsic(width, height, fx, fy, cx, cy)
+    voxel = kinfly_eval.REPLICA_VOXEL_SIZE_M
+    volume = o3d.pipelines.integration.ScalableTSDFVolume(
+        voxel_length=voxel, sdf_trunc=REPLICA_TRUNCATION_VOXELS * voxel,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.NoColor)
+    for t, relative in frames:
+        depth = o3d.io.read_image(str(tum_dir / relative))
+        no_color = o3d.geometry.Image(np.zeros((height, width, 3), np.uint8))
+        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            no_color, depth, depth_scale=kinfly_eval.REPLICA_DEPTH_SCALE,
+            depth_trunc=REPLICA_NO_DEPTH_CAP_M, convert_rgb_to_intensity=False)
+        volume.integrate(rgbd, intrinsic, np.linalg.inv(T_world_cam[t]))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mesh_path = out_dir / "mesh.ply"
+    o3d.io.write_triangle_mesh(str(mesh_path), volume.extract_triangle_mesh())
+    return {"mesh_accuracy": kinfly_eval.mesh_accuracy(mesh_path, truth),
+            "open3d_version": o3d.__version__}
+
+
+def replica_mesh(fuse: Path, data: Path, out_dir: Path) -> dict[str, Any]:
+    replica = data / kinfly_eval.REPLICA_SUBDIR
+    kinfly = kinfly_eval.eval_replica(fuse, replica, out_dir / "kinfly")
+    tum_dir = out_dir / "kinfly" / "replica_tum"
+    open3d = replica_mesh_open3d(tum_dir, tum_dir / "poses.tum", replica / "office0_mesh.ply",
+                                 out_dir / "open3d")
+    return {"voxel_size_m": kinfly_eval.REPLICA_VOXEL_SIZE_M,
+            "truncation_voxels": REPLICA_TRUNCATION_VOXELS,
+            "kinfly_mean_m": kinfly["mesh_accuracy"]["mean_m"],
+            "open3d_mean_m": open3d["mesh_accuracy"]["mean_m"],
+            "kinfly": kinfly["mesh_accuracy"], "open3d": open3d["mesh_accuracy"],
+            "open3d_version": open3d["open3d_version"]}
+
+
 def run_kinfly(fuse: Path, tum_dir: Path, out_dir: Path, args: list[str],
                max_frames: int | None) -> dict[str, Any]:
     extra = [*args, *(["--max-frames", str(max_frames)] if max_frames else [])]
@@ -171,7 +232,8 @@ def main() -> int:
     parser.add_argument("--max-frames", type=int, default=None, help="for a quick try only")
     args = parser.parse_args()
 
-    tum_dir = (args.data or kinfly_eval.data_root(REPO_ROOT)) / kinfly_eval.TUM_SEQUENCE_SUBDIR
+    data = args.data or kinfly_eval.data_root(REPO_ROOT)
+    tum_dir = data / kinfly_eval.TUM_SEQUENCE_SUBDIR
     if not (tum_dir / "depth.txt").is_file():
         sys.exit(f"bench_vs_open3d: no TUM sequence at {tum_dir} (set KINFLY_DATA or --data)")
     if not os.access(args.fuse, os.X_OK):
@@ -190,6 +252,7 @@ def main() -> int:
         "open3d": open3d,
         "speed_ratio_open3d_over_kinfly_ground": round(speedup, 2),
         "budgets": budgets(ground, onboard, speedup),
+        "replica_mesh": replica_mesh(args.fuse, data, args.out / "replica"),
     }
     print(json.dumps(report, indent=2))
     (args.out / "bench.json").write_text(json.dumps(report, indent=2) + "\n")

@@ -10,9 +10,11 @@ import concurrent.futures
 import dataclasses
 import multiprocessing
 import os
+import signal
 import threading
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
+from typing import Any
 
 from .registration import LoopCheck, check_loop
 from .submaps import LoopCandidate, SubmapChain
@@ -43,16 +45,21 @@ class CheckedLoop:
 
 
 class LoopCloser:
-    """One thread and, from the first candidate on, one process. LOG reports a failed check."""
+    """One thread and, from the first candidate on, one process. LOG reports a failed check;
+    CHECK registers a candidate from the chain's check_arguments (a module-level function: the
+    process imports it by name)."""
 
-    def __init__(self, log: Callable[[str], None]) -> None:
+    def __init__(self, log: Callable[[str], None],
+                 check: Callable[..., LoopCheck] = check_loop) -> None:
         self._log = log
+        self._check_fn = check
         self._cv = threading.Condition()
         self._waiting: list[tuple[SubmapChain, LoopCandidate]] = []
         self._done: list[CheckedLoop] = []
         self._busy = False
         self._closing = False
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
+        self._worker_pid: int | None = None  # the executor's one process
         self._thread: threading.Thread | None = None
 
     def submit(self, chain: SubmapChain, candidates: list[LoopCandidate]) -> None:
@@ -79,8 +86,9 @@ class LoopCloser:
             return self._cv.wait_for(lambda: not self._waiting and not self._busy, timeout_s)
 
     def close(self) -> None:
-        """Stops the thread at once (a check under way is abandoned) and lets the process go
-        when its check ends."""
+        """Stops the thread at once and ends the process: a check under way is abandoned. Left to
+        finish it, the process would hold the station's exit until then (the executor's exit
+        handler joins it): seconds, on a busy machine tens of seconds, after a Ctrl-C."""
         with self._cv:
             self._closing = True
             self._cv.notify_all()
@@ -89,6 +97,10 @@ class LoopCloser:
             thread.join()
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
+            try:
+                os.kill(self._worker_pid, signal.SIGTERM)
+            except ProcessLookupError:  # it had ended already
+                pass
 
     def _run(self) -> None:
         while True:
@@ -120,12 +132,14 @@ class LoopCloser:
             self._executor = concurrent.futures.ProcessPoolExecutor(
                 max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                 initializer=_lower_priority)
-        arguments = chain.check_arguments(candidate)  # meshing: tenths of a second
+            # One worker, never replaced while the executor lives: close() ends it by its pid.
+            self._worker_pid = self._executor.submit(os.getpid).result()
+        arguments: tuple[Any, ...] = chain.check_arguments(candidate)  # meshing: tenths of a second
         with self._cv:
             if self._closing:
                 return None
         try:
-            future = self._executor.submit(check_loop, *arguments)
+            future = self._executor.submit(self._check_fn, *arguments)
             while not future.done():
                 concurrent.futures.wait([future], timeout=CLOSE_POLL_S)
                 with self._cv:

@@ -94,6 +94,8 @@ aarch64_packages=(
 image_packages=(
   qemu-user-static binfmt-support arch-test
   dosfstools mtools fdisk e2fsprogs grub-common
+  # the image booted in a test (tests/packaging/test_image_boot.py): a virt board, UEFI firmware
+  qemu-system-arm qemu-efi-aarch64
 )
 
 # bench (make bench): callgrind for the drone's instructions per frame

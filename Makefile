@@ -269,8 +269,9 @@ package-aarch64: firmware-aarch64
 	cd $(AARCH64_BUILD) && cpack -G DEB -B $(AARCH64_PKG)
 	rm -rf $(AARCH64_PKG)/_CPack_Packages
 
+BUILD_IMAGE = $(REPO_ROOT)/scripts/build-image.sh --deb $(AARCH64_DEB) --out $(IMAGE)
 image: deps-image package-aarch64
-	$(REPO_ROOT)/scripts/build-image.sh --deb $(AARCH64_DEB) --out $(IMAGE)
+	$(BUILD_IMAGE)
 
 # The native build makes the replay's flight log and the trajectory the emulated one must match;
 # pytest runs from .venv, whose kinfly-ground is the ground station in the loop.
@@ -281,15 +282,21 @@ image: deps-image package-aarch64
 # given-pose, refinement and degenerate-wall scenarios, the relocaliser's own tests and the
 # replays against the native build (docs/aarch64.md).
 AARCH64_NATIVE_ONLY := PipelineFixture\.(ASecond|OnlyARealGap|LostFramesWithoutAPrior|AKidnapped|AfterEveryTryFails)
-# The unit tests under qemu run while the image is made: that is mostly downloads and one dpkg at
-# a time under emulation, so the two share two cores well (in a row they took 12 and 6 minutes of
-# a CI run). The package groups are installed first, so that the two never run apt at once.
-test-aarch64: deps-demo deps-unit deps-aarch64 deps-image build
-	$(MAKE) --no-print-directory -j 2 --output-sync=line image aarch64-unit-tests
+AARCH64_CTEST = ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS) \
+                -E '$(AARCH64_NATIVE_ONLY)'
+# The unit tests under qemu run while the image is made (in the background, this Makefile being
+# .NOTPARALLEL): that is mostly downloads and one dpkg at a time under emulation, so the two
+# share two cores well (in a row they took 12 and 6 minutes of a CI run). Either failing fails
+# the target, once both have ended.
+test-aarch64: deps-demo deps-unit deps-image build package-aarch64
+	$(BUILD_IMAGE) & image=$$!; status=0; \
+	  $(AARCH64_CTEST) || status=$$?; \
+	  wait $$image || status=$$?; \
+	  exit $$status
 	$(PY) -m pytest $(REPO_ROOT)/tests -v -m aarch64
 
 aarch64-unit-tests: firmware-aarch64
-	ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS) -E '$(AARCH64_NATIVE_ONLY)'
+	$(AARCH64_CTEST)
 
 flash:
 	@test -n "$(DEVICE)" || { echo "make flash IMAGE=... DEVICE=/dev/sdX CONFIRM=yes"; exit 2; }

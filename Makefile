@@ -287,9 +287,11 @@ AARCH64_CTEST = ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS)
 # The unit tests under qemu run while the image is made (in the background, this Makefile being
 # .NOTPARALLEL): that is mostly downloads and one dpkg at a time under emulation, so the two
 # share two cores well (in a row they took 12 and 6 minutes of a CI run). Either failing fails
-# the target, once both have ended.
+# the target, once both have ended. The image is made in a session of its own, ended with the
+# recipe: a background job ignores Ctrl-C, and mmdebstrap would go on as root without it.
 test-aarch64: deps-demo deps-unit deps-image build package-aarch64
-	$(BUILD_IMAGE) & image=$$!; status=0; \
+	setsid $(BUILD_IMAGE) & image=$$!; \
+	  trap 'kill -TERM -- -$$image 2>/dev/null || true' EXIT; status=0; \
 	  $(AARCH64_CTEST) || status=$$?; \
 	  wait $$image || status=$$?; \
 	  exit $$status

@@ -94,7 +94,7 @@ aarch64_packages=(
 image_packages=(
   qemu-user-static binfmt-support arch-test
   dosfstools mtools fdisk e2fsprogs grub-common
-  # the image booted in a test (tests/packaging/test_image_boot.py): a virt board, UEFI firmware
+  # the image booted in a test (tests/packaging/test_image.py): a virt board, UEFI firmware
   qemu-system-arm qemu-efi-aarch64
 )
 

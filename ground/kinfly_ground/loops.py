@@ -95,12 +95,14 @@ class LoopCloser:
             thread = self._thread
         if thread is not None:
             thread.join()
-        if self._executor is not None:
-            self._executor.shutdown(wait=False, cancel_futures=True)
+        if self._executor is not None and self._worker_pid is not None:
+            # Ended before the executor lets it go: once reaped, its pid could be another's.
             try:
                 os.kill(self._worker_pid, signal.SIGTERM)
             except ProcessLookupError:  # it had ended already
                 pass
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
 
     def _run(self) -> None:
         while True:
@@ -125,29 +127,49 @@ class LoopCloser:
                 self._busy = False
                 self._cv.notify_all()
 
+    def _until_done(self, future: concurrent.futures.Future) -> bool:
+        """Waits for FUTURE; False when close() came first."""
+        while not future.done():
+            concurrent.futures.wait([future], timeout=CLOSE_POLL_S)
+            with self._cv:
+                if self._closing:
+                    return False
+        return True
+
+    def _start_process(self) -> bool:
+        """The check process, started; False when close() came first."""
+        # Spawned, not forked: the station's process has threads (LCM, fusion, rerun).
+        executor = concurrent.futures.ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+            initializer=_lower_priority)
+        try:
+            # One worker, never replaced while the executor lives: close() ends it by its pid.
+            started = executor.submit(os.getpid)
+            if not self._until_done(started):
+                executor.shutdown(wait=False, cancel_futures=True)
+                return False
+            self._worker_pid = started.result()
+        except BrokenProcessPool:
+            executor.shutdown(wait=False, cancel_futures=True)
+            raise
+        self._executor = executor
+        return True
+
     def _check(self, chain: SubmapChain, candidate: LoopCandidate) -> LoopCheck | None:
         """The check's outcome, or None when close() came first."""
-        if self._executor is None:
-            # Spawned, not forked: the station's process has threads (LCM, fusion, rerun).
-            self._executor = concurrent.futures.ProcessPoolExecutor(
-                max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_lower_priority)
-            # One worker, never replaced while the executor lives: close() ends it by its pid.
-            self._worker_pid = self._executor.submit(os.getpid).result()
+        if self._executor is None and not self._start_process():
+            return None
+        assert self._executor is not None
         arguments: tuple[Any, ...] = chain.check_arguments(candidate)  # meshing: tenths of a second
         with self._cv:
             if self._closing:
                 return None
         try:
             future = self._executor.submit(self._check_fn, *arguments)
-            while not future.done():
-                concurrent.futures.wait([future], timeout=CLOSE_POLL_S)
-                with self._cv:
-                    if self._closing:
-                        return None
-            return future.result()
+            return future.result() if self._until_done(future) else None
         except BrokenProcessPool:
             # The process died (killed for memory, say): the next check starts another.
             self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = None
+            self._worker_pid = None
             raise

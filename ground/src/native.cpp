@@ -264,7 +264,7 @@ class PyFusion {
   }
 
   // full: a raycast of every pixel (slow at full resolution); otherwise the per-frame model
-  // maps shaded, where the last keyframe measured depth.
+  // maps shaded, where the last refined keyframe measured depth (fuse_at raycasts nothing).
   GrayOut render(bool full) {
     const kinfly::PinholeCamera& camera = pipeline_->camera();
     auto* image = new kinfly::Image<uint8_t>(camera.width, camera.height, 0);

@@ -58,7 +58,7 @@ CONFIGS: dict[str, tuple[str, list[str], list[str]]] = {
 
 def _tum_lines(path: Path) -> list[tuple[float, str]]:
     """(timestamp, the rest of the line) of a TUM list, comments left out."""
-    rows = []
+    rows: list[tuple[float, str]] = []
     for line in path.read_text().splitlines():
         if line.strip() and not line.startswith("#"):
             stamp, rest = line.split(maxsplit=1)
@@ -148,12 +148,12 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     result: dict[str, Any] = {"targets": TARGETS, "sequence": str(tum), "repeats": args.repeats}
     with tempfile.TemporaryDirectory(prefix="kinfly-bench-ground-") as tmp:
-        logs = {"forward": Path(tmp) / "teddy200.lcmlog",
-                "out_and_back": Path(tmp) / "teddy200_out_and_back.lcmlog"}
-        sequences = {"forward": tum, "out_and_back": out_and_back(tum, Path(tmp) / "back")}
-        for name, log in logs.items():
-            subprocess.run([demo.BUILD / "kinfly-tum-to-log", "--tum", sequences[name],
-                            "--out", log], check=True, capture_output=True)
+        logs: dict[str, Path] = {}
+        for sequence in sorted({sequence for sequence, _, _ in configs.values()}):
+            folder = tum if sequence == "forward" else out_and_back(tum, Path(tmp) / sequence)
+            logs[sequence] = Path(tmp) / f"teddy200_{sequence}.lcmlog"
+            subprocess.run([demo.BUILD / "kinfly-tum-to-log", "--tum", folder,
+                            "--out", logs[sequence]], check=True, capture_output=True)
         for name, (sequence, drone_args, ground_args) in configs.items():
             runs = []
             for i in range(args.repeats):

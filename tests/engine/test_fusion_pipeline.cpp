@@ -125,6 +125,8 @@ TEST_F(PipelineFixture, ProcessFrameAtPoseKeepsGivenPose) {
   const Pose given = groundTruth(3);
   const FrameResult r = pipeline.processFrameAtPose(raw, utimeOf(3), given);
   EXPECT_EQ(r.status, TrackingStatus::kGivenPose);
+  // Fused without a prediction: the frame tracked next raycasts the model as it needs.
+  EXPECT_EQ(r.ms.raycast, 0.0);
   EXPECT_EQ(r.utime, utimeOf(3));
   EXPECT_TRUE(r.T_world_cam.matrix() == given.matrix());
   EXPECT_TRUE(pipeline.pose().matrix() == given.matrix());

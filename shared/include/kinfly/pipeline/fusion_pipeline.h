@@ -122,7 +122,8 @@ class FusionPipeline {
   void renderShaded(ImageView<uint8_t> out);
   // The same from the per-frame model maps, only where the latest frame measured depth but
   // without another raycast. After processFrameFromGuess these maps are the prediction from
-  // that frame's guess, which the frame was registered against.
+  // that frame's guess, which the frame was registered against; processFrameAtPose leaves them
+  // as the last prediction made (empty where only given poses were fused).
   void shadeModel(ImageView<uint8_t> out) const;
 
  private:

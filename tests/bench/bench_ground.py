@@ -56,21 +56,11 @@ CONFIGS: dict[str, tuple[str, list[str], list[str]]] = {
 }
 
 
-def _tum_lines(path: Path) -> list[tuple[float, str]]:
-    """(timestamp, the rest of the line) of a TUM list, comments left out."""
-    rows: list[tuple[float, str]] = []
-    for line in path.read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            stamp, rest = line.split(maxsplit=1)
-            rows.append((float(stamp), rest))
-    return rows
-
-
 def out_and_back(tum: Path, dest: Path) -> Path:
     """DEST made a TUM folder of TUM's frames, then the same frames in reverse, each at its time
     mirrored about the last frame's; the ground truth mirrored the same way."""
-    frames = _tum_lines(tum / "depth.txt")
-    truth = _tum_lines(tum / "groundtruth.txt")
+    frames = kinfly_eval.tum_rows(tum / "depth.txt")
+    truth = kinfly_eval.tum_rows(tum / "groundtruth.txt")
     first, last = frames[0][0], frames[-1][0]
     dest.mkdir()
     (dest / "depth").symlink_to((tum / "depth").resolve())

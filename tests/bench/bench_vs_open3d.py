@@ -67,16 +67,6 @@ class Open3dConfig:
     trunc_voxel_multiplier = 8.0
 
 
-def read_tum_list(path: Path) -> list[tuple[float, str]]:
-    """(timestamp, relative file) pairs of a TUM rgb.txt / depth.txt."""
-    out = []
-    for line in path.read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            stamp, rel = line.split()[:2]
-            out.append((float(stamp), rel))
-    return out
-
-
 def nearest_rgb(depth_stamps: list[float], rgb: list[tuple[float, str]]) -> list[str]:
     """For each depth frame the rgb image nearest in time (Open3D's Model integrates colour too;
     TUM's colour and depth are not captured at the same instant)."""
@@ -95,9 +85,9 @@ def run_open3d(tum_dir: Path, out_dir: Path, max_frames: int | None) -> dict[str
     import open3d.core as o3c
 
     cfg = Open3dConfig
-    depth_list = read_tum_list(tum_dir / "depth.txt")[:max_frames]
+    depth_list = kinfly_eval.tum_rows(tum_dir / "depth.txt")[:max_frames]
     stamps = [t for t, _ in depth_list]
-    rgb_files = nearest_rgb(stamps, read_tum_list(tum_dir / "rgb.txt"))
+    rgb_files = nearest_rgb(stamps, kinfly_eval.tum_rows(tum_dir / "rgb.txt"))
     device = o3c.Device("CPU:0")
     # Frames are read before timing: kinfly's frame_ms excludes file I/O too.
     depths = [o3d.t.io.read_image(str(tum_dir / rel)).to(device) for _, rel in depth_list]
@@ -155,7 +145,7 @@ def replica_mesh_open3d(tum_dir: Path, poses: Path, truth: Path, out_dir: Path
             T[:3, 3] = (x, y, z)
             T_world_cam[t] = T
     fx, fy, cx, cy = map(float, kinfly_eval.REPLICA_INTRINSICS.split(","))
-    frames = read_tum_list(tum_dir / "depth.txt")
+    frames = kinfly_eval.tum_rows(tum_dir / "depth.txt")
     first = o3d.io.read_image(str(tum_dir / frames[0][1]))
     height, width = np.asarray(first).shape
     intrinsic = o3d.camera.PinholeCameraIntrinsic(width, height, fx, fy, cx, cy)

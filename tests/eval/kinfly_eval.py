@@ -83,6 +83,17 @@ def ate(traj_path: str | Path, gt_path: str | Path) -> dict[str, float | int]:
     return outputs.ate_figures(result)
 
 
+def tum_rows(path: str | Path) -> list[tuple[float, str]]:
+    """(timestamp, the rest of the line) of a TUM list (depth.txt, rgb.txt: the file;
+    groundtruth.txt: the pose), comments and blank lines left out."""
+    rows: list[tuple[float, str]] = []
+    for line in Path(path).read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            stamp, rest = line.split(maxsplit=1)
+            rows.append((float(stamp), rest.strip()))
+    return rows
+
+
 def depth_frame_count(tum_dir: str | Path) -> int:
     """Frames listed in a TUM folder's depth.txt (comment lines start with '#')."""
     lines = (Path(tum_dir) / "depth.txt").read_text().splitlines()

@@ -50,13 +50,14 @@
 #                   at 320x240 and 640x480 (out/bench/sim.json); prints, never fails on timings
 #   make firmware-aarch64  deps aarch64; kinfly-fw, the link tools and the unit tests for aarch64
 #                   (cross compiler + Debian arm64 sysroot, build-aarch64/)
-#   make test-aarch64  deps demo, unit, image; the above + the image; unit tests (while the image
-#                   is made) and a replay under qemu-aarch64, alone and against the native
-#                   kinfly-ground (hardware in the loop, a network namespace: root or sudo), the
-#                   image test
+#   make test-aarch64  deps demo, unit, image; the above + both boards' images; unit tests (while
+#                   the images are made) and a replay under qemu-aarch64, alone and against the
+#                   native kinfly-ground (hardware in the loop, a network namespace: root or
+#                   sudo), the image tests (the uefi image booted, the rpi4 image checked)
 #   make aarch64-unit-tests  the above's unit tests under qemu-aarch64 alone
 #   make package-aarch64  the kinfly-fw .deb (arm64) in build-aarch64/pkg/
-#   make image      deps image; flashable arm64 disk image build-aarch64/kinfly-arm64.img (root)
+#   make image [BOARD=uefi|rpi4]  deps image; flashable arm64 disk image for a UEFI board or a
+#                   Raspberry Pi 4, build-aarch64/kinfly-BOARD-arm64.img (root)
 #   make flash IMAGE=... DEVICE=/dev/sdX CONFIRM=yes  write the image to an SD card (checked)
 #   make deploy HOST=user@drone  install the .deb on a running drone over ssh
 #   make deps       every package group; `make deps-GROUP` one of them
@@ -99,7 +100,8 @@ AARCH64_BUILD := $(AARCH64_DIR)/build
 AARCH64_PKG := $(AARCH64_DIR)/pkg
 # Whatever version CMakeLists.txt gives (a shell glob: package-aarch64 leaves exactly one).
 AARCH64_DEB := $(AARCH64_PKG)/kinfly-fw_*_arm64.deb
-IMAGE ?= $(AARCH64_DIR)/kinfly-arm64.img
+BOARD ?= uefi
+IMAGE ?= $(AARCH64_DIR)/kinfly-$(BOARD)-arm64.img
 
 # Steps run in the order written; ninja and ctest do the parallel work.
 .NOTPARALLEL:
@@ -269,9 +271,9 @@ package-aarch64: firmware-aarch64
 	cd $(AARCH64_BUILD) && cpack -G DEB -B $(AARCH64_PKG)
 	rm -rf $(AARCH64_PKG)/_CPack_Packages
 
-BUILD_IMAGE = $(REPO_ROOT)/scripts/build-image.sh --deb $(AARCH64_DEB) --out $(IMAGE)
+BUILD_IMAGE = $(REPO_ROOT)/scripts/build-image.sh --deb $(AARCH64_DEB)
 image: deps-image package-aarch64
-	$(BUILD_IMAGE)
+	$(BUILD_IMAGE) --image $(BOARD)=$(IMAGE)
 
 # The native build makes the replay's flight log and the trajectory the emulated one must match;
 # pytest runs from .venv, whose kinfly-ground is the ground station in the loop.
@@ -284,13 +286,15 @@ image: deps-image package-aarch64
 AARCH64_NATIVE_ONLY := PipelineFixture\.(ASecond|OnlyARealGap|LostFramesWithoutAPrior|AKidnapped|AfterEveryTryFails)
 AARCH64_CTEST = ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS) \
                 -E '$(AARCH64_NATIVE_ONLY)'
-# The unit tests under qemu run while the image is made (in the background, this Makefile being
+# The unit tests under qemu run while the images are made (in the background, this Makefile being
 # .NOTPARALLEL): that is mostly downloads and one dpkg at a time under emulation, so the two
-# share two cores well (in a row they took 12 and 6 minutes of a CI run). Either failing fails
-# the target, once both have ended. The image is made in a session of its own, ended with the
-# recipe: a background job ignores Ctrl-C, and mmdebstrap would go on as root without it.
+# share two cores well (in a row they took 12 and 6 minutes of a CI run). Both boards' images
+# share one root file system, made once. Either failing fails the target, once both have ended.
+# The images are made in a session of their own, ended with the recipe: a background job ignores
+# Ctrl-C, and mmdebstrap would go on as root without it.
 test-aarch64: deps-demo deps-unit deps-image build package-aarch64
-	setsid $(BUILD_IMAGE) & image=$$!; \
+	setsid $(BUILD_IMAGE) --image uefi=$(AARCH64_DIR)/kinfly-uefi-arm64.img \
+	  --image rpi4=$(AARCH64_DIR)/kinfly-rpi4-arm64.img & image=$$!; \
 	  trap 'kill -TERM -- -$$image 2>/dev/null || true' EXIT; status=0; \
 	  $(AARCH64_CTEST) || status=$$?; \
 	  wait $$image || status=$$?; \

@@ -31,9 +31,11 @@ main() {
   local dir="$1"
   local stamp="$dir/.kinfly-sysroot.sha256"
   local want
+  local -a sources
+  mapfile -t sources < <(kinfly_debian_sources main)
   # This script and its sources list: a changed package list or layout rebuilds the sysroot.
   want="$(cat "${BASH_SOURCE[0]}" "$repo_root/scripts/aarch64-common.sh" |
-          cat - <(printf '%s\n' "${KINFLY_DEBIAN_MIRRORS[@]}") | sha256sum | cut -d' ' -f1)"
+          cat - <(printf '%s\n' "${sources[@]}") | sha256sum | cut -d' ' -f1)"
   if [[ -f "$stamp" && "$(cat "$stamp")" == "$want" ]]; then
     log "$dir: up to date"
     return
@@ -51,7 +53,7 @@ main() {
     --extract-hook='for deb in "$1"/var/cache/apt/archives/*.deb; do
                       dpkg-deb --info "$deb" shlibs 2>/dev/null || true
                     done | grep -v "^udeb:" >"$1/.kinfly-shlibs"' \
-    "$KINFLY_DEBIAN_SUITE" "$dir.tmp" "${KINFLY_DEBIAN_MIRRORS[@]}"
+    "$KINFLY_DEBIAN_SUITE" "$dir.tmp" "${sources[@]}"
   # Absolute symlinks inside the sysroot (e.g. lib*.so -> /lib/...) would point at the build
   # host's files; the linker and qemu need them relative to the sysroot.
   relativize_symlinks "$dir.tmp"

@@ -123,8 +123,10 @@ main() {
   trap cleanup EXIT
 
   log "making a fresh Debian 12 ($KINFLY_DEBIAN_SUITE minbase + git make ca-certificates) in $root"
+  local -a sources
+  mapfile -t sources < <(kinfly_debian_sources main)
   mmdebstrap --quiet --variant=minbase --include=git,make,ca-certificates \
-    "$KINFLY_DEBIAN_SUITE" "$root" "${KINFLY_DEBIAN_MIRRORS[@]}"
+    "$KINFLY_DEBIAN_SUITE" "$root" "${sources[@]}"
 
   if compgen -G "/usr/local/share/ca-certificates/*.crt" >/dev/null; then
     log "this machine trusts extra CAs (/usr/local/share/ca-certificates): copied into the root," \

@@ -1,12 +1,15 @@
-"""The kinfly-fw .deb (make package-aarch64) and the flashable image (make image), read without
-mounting anything: the partition table, both file systems, the files that make it a kinfly drone,
-and kinfly-fw --version run from the image's own root tree under qemu-aarch64. Then a copy of
-the image boots under qemu-system-aarch64 (UEFI, a Cortex-A72 virt board) with no network, as a
-drone does whose Wi-Fi is not up yet.
+"""The kinfly-fw .deb (make package-aarch64) and the flashable images (make image BOARD=uefi|rpi4),
+read without mounting anything: the partition table, both file systems, the files that make it a
+kinfly drone, and kinfly-fw --version run from the image's own root tree under qemu-aarch64.
+Then a copy of the uefi image boots under qemu-system-aarch64 (UEFI, a Cortex-A72 virt board)
+with no network, as a drone does whose Wi-Fi is not up yet. The rpi4 image is only checked, not
+booted (Debian 12's QEMU emulates no Raspberry Pi 4): its boot partition holds what the Pi 4's
+firmware loads, and its root file system is the uefi image's.
 
 Missing package or image: skipped on a developer's machine, a failure under CI."""
 from __future__ import annotations
 
+import filecmp
 import json
 import os
 import re
@@ -39,17 +42,27 @@ def deb() -> Path:
                          "package-aarch64")
 
 
+def board_image(board: str) -> Path:
+    """make image BOARD=board's image, or $KINFLY_<BOARD>_IMAGE."""
+    default = AARCH64_DIR / f"kinfly-{board}-arm64.img"
+    return require_built(Path(os.environ.get(f"KINFLY_{board.upper()}_IMAGE", default)),
+                         f"image BOARD={board}")
+
+
+def partition_table(image: Path) -> list[dict]:
+    table = json.loads(run("sfdisk", "--json", image))["partitiontable"]
+    assert table["label"] == "dos"  # the Raspberry Pi's firmware reads MBR only
+    return table["partitions"]
+
+
 @pytest.fixture(scope="module")
 def image() -> Path:
-    return require_built(Path(os.environ.get("KINFLY_IMAGE", AARCH64_DIR / "kinfly-arm64.img")),
-                         "image")
+    return board_image("uefi")
 
 
 @pytest.fixture(scope="module")
 def partitions(image: Path) -> list[dict]:
-    table = json.loads(run("sfdisk", "--json", image))["partitiontable"]
-    assert table["label"] == "dos"
-    return table["partitions"]
+    return partition_table(image)
 
 
 def extract(image: Path, partition: dict, out: Path) -> Path:
@@ -99,7 +112,9 @@ def test_package_holds_the_firmware_config_and_unit(deb: Path) -> None:
         shutil.rmtree(control)
 
 
-def test_partition_table_has_boot_and_root(partitions: list[dict]) -> None:
+@pytest.mark.parametrize("board", ["uefi", "rpi4"])
+def test_partition_table_has_boot_and_root(board: str) -> None:
+    partitions = partition_table(board_image(board))
     assert [p["type"] for p in partitions] == ["c", "83"]  # FAT32 (LBA), Linux
     assert partitions[0].get("bootable") is True
     assert partitions[0]["start"] % 2048 == 0 and partitions[1]["start"] % 2048 == 0  # 1 MiB
@@ -121,13 +136,18 @@ def test_file_systems_are_clean_and_referenced_by_uuid(boot_fs: Path, root_fs: P
     assert re.findall(r"console=(\S+)", grub_cfg)[-1] == "ttyAMA0,115200", grub_cfg
 
 
-def test_boot_partition_has_the_loader_and_provisioning_file(boot_fs: Path) -> None:
+def fat_listing(fs: Path) -> list[str]:
+    """Every path in the FAT file system FS, as ::/PATH."""
     env = {**os.environ, "MTOOLS_SKIP_CHECK": "1"}
-    listing = subprocess.run(["mdir", "-b", "-/", "-i", boot_fs, "::/"], check=True,
-                             capture_output=True, text=True, env=env).stdout
+    return subprocess.run(["mdir", "-b", "-/", "-i", fs, "::/"], check=True, capture_output=True,
+                          text=True, env=env).stdout.splitlines()
+
+
+def test_boot_partition_has_the_loader_and_provisioning_file(boot_fs: Path) -> None:
+    listing = fat_listing(boot_fs)
     for name in ("::/EFI/BOOT/BOOTAA64.EFI", "::/EFI/BOOT/grub.cfg", "::/kinfly.conf",
                  "::/kinfly.conf.example"):
-        assert name in listing.splitlines(), listing
+        assert name in listing, listing
     assert "wifi_ssid" in run("mtype", "-i", boot_fs, "::/kinfly.conf")
 
 
@@ -145,8 +165,15 @@ def test_root_has_firmware_config_units_and_first_boot(root_fs: Path) -> None:
                  "/etc/systemd/network/10-kinfly-multicast.network", "/vmlinuz", "/initrd.img",
                  # The Wi-Fi's regulatory database (wireless-regdb; its postinst links it), or
                  # the kernel says "failed to load regulatory.db" and wifi_country does nothing.
-                 "/usr/lib/firmware/regulatory.db-debian", "/usr/lib/firmware/regulatory.db"):
+                 "/usr/lib/firmware/regulatory.db-debian", "/usr/lib/firmware/regulatory.db",
+                 # The Raspberry Pi 4's Wi-Fi chip (CYW43455): its firmware and the board's
+                 # settings for it (firmware-brcm80211).
+                 "/usr/lib/firmware/cypress/cyfmac43455-sdio.bin",
+                 "/usr/lib/firmware/brcm/brcmfmac43455-sdio.bin",
+                 "/usr/lib/firmware/brcm/brcmfmac43455-sdio.raspberrypi,4-model-b.txt"):
         stat(root_fs, path)
+    # Upgrades on the drone reach the Pi's boot firmware and the Wi-Fi's, which Debian keeps there.
+    assert "non-free-firmware" in debugfs(root_fs, "cat /etc/apt/sources.list")
     assert "Mode:  0755" in stat(root_fs, "/usr/libexec/kinfly/kinfly-firstboot")
     # The multicast route comes and goes with the Wi-Fi (systemd-networkd), so kinfly-fw, which
     # waits for it, links whenever the Wi-Fi is up.
@@ -193,6 +220,115 @@ def test_firmware_runs_from_the_image_root_under_qemu(root_fs: Path, tmp_path: P
                           capture_output=True, text=True, timeout=60)
     assert run_.returncode == 0, run_.stderr
     assert run_.stdout.startswith("kinfly-fw "), run_.stdout
+
+
+# --- the Raspberry Pi 4 image: checked, not booted --------------------------------------------
+
+# What the Pi 4's firmware loads from the FAT partition (its boot ROM and EEPROM hold the stage
+# before), and the Pi 4 family's device trees under the upstream names (upstream_kernel=1).
+PI4_BOOT_FILES = ("start4.elf", "fixup4.dat", "config.txt", "cmdline.txt", "bcm2711-rpi-4-b.dtb",
+                  "bcm2711-rpi-400.dtb", "bcm2711-rpi-cm4-io.dtb")
+# The Pi 4's SD card controller (an Arasan SDHCI behind Broadcom's iProc glue): without it in the
+# initramfs the kernel never finds the root file system.
+PI4_SD_DRIVER = "sdhci-iproc.ko"
+
+
+@pytest.fixture(scope="module")
+def rpi4_image() -> Path:
+    return board_image("rpi4")
+
+
+@pytest.fixture(scope="module")
+def rpi4_partitions(rpi4_image: Path) -> list[dict]:
+    return partition_table(rpi4_image)
+
+
+@pytest.fixture(scope="module")
+def rpi4_boot_fs(rpi4_image: Path, rpi4_partitions: list[dict],
+                 tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return extract(rpi4_image, rpi4_partitions[0], tmp_path_factory.mktemp("rpi4") / "boot.vfat")
+
+
+@pytest.fixture(scope="module")
+def rpi4_root_fs(rpi4_image: Path, rpi4_partitions: list[dict],
+                 tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return extract(rpi4_image, rpi4_partitions[1], tmp_path_factory.mktemp("rpi4") / "root.ext4")
+
+
+def fat_copy(fs: Path, name: str, out: Path) -> Path:
+    run("mcopy", "-n", "-i", fs, f"::/{name}", out)
+    return out
+
+
+def test_rpi4_image_has_the_uefi_images_root_file_system(root_fs: Path,
+                                                         rpi4_root_fs: Path) -> None:
+    """build-image.sh makes one root file system for every board: everything the uefi image's
+    root is checked for above holds for the Pi's."""
+    if fs_uuid(root_fs) != fs_uuid(rpi4_root_fs):  # each build gives its root a new UUID
+        message = ("the uefi and rpi4 images come from different builds "
+                   "(make test-aarch64 builds both at once)")
+        if os.environ.get("CI"):
+            pytest.fail(message, pytrace=False)
+        pytest.skip(message)
+    assert filecmp.cmp(root_fs, rpi4_root_fs, shallow=False)
+
+
+def test_rpi4_boot_partition_has_the_firmware_kernel_and_device_trees(
+        rpi4_boot_fs: Path, rpi4_root_fs: Path, tmp_path: Path) -> None:
+    files = fat_listing(rpi4_boot_fs)
+    for name in (*PI4_BOOT_FILES, "kinfly.conf", "kinfly.conf.example"):
+        assert f"::/{name}" in files, files
+    config = run("mtype", "-i", rpi4_boot_fs, "::/config.txt")
+    settings = [line.strip() for line in config.splitlines()
+                if line.strip() and not line.startswith("#")]
+    for setting in ("arm_64bit=1", "enable_uart=1", "upstream_kernel=1"):
+        assert setting in settings, config
+    # The serial console's clock held for the Pi 4 family only.
+    assert settings[settings.index("[pi4]") + 1] == "core_freq=360", config
+    kernel = re.search(r"^kernel=(vmlinuz-\S+)$", config, re.M)
+    initramfs = re.search(r"^initramfs (initrd\.img-\S+)$", config, re.M)
+    assert kernel and initramfs, config
+    # The FAT partition's kernel, initramfs and device tree are the root file system's own (the
+    # ones its kernel hook copies again on every upgrade).
+    version = kernel.group(1).removeprefix("vmlinuz-")
+    for fat_name, root_path in ((kernel.group(1), f"/boot/{kernel.group(1)}"),
+                                (initramfs.group(1), f"/boot/{initramfs.group(1)}"),
+                                ("bcm2711-rpi-4-b.dtb",
+                                 f"/usr/lib/linux-image-{version}/broadcom/bcm2711-rpi-4-b.dtb")):
+        assert f"::/{fat_name}" in files, files
+        from_root = tmp_path / f"root-{fat_name}"
+        debugfs(rpi4_root_fs, f'dump "{root_path}" "{from_root}"')
+        assert from_root.stat().st_size > 0, f"{root_path} not in the root file system"
+        assert fat_copy(rpi4_boot_fs, fat_name, tmp_path / fat_name).read_bytes() == \
+            from_root.read_bytes(), fat_name
+    compatible = run("fdtget", "-t", "s", tmp_path / "bcm2711-rpi-4-b.dtb", "/", "compatible")
+    assert compatible.split()[:2] == ["raspberrypi,4-model-b", "brcm,bcm2711"], compatible
+
+
+def test_rpi4_kernel_command_line_finds_root_and_the_serial_console(
+        rpi4_boot_fs: Path, rpi4_root_fs: Path) -> None:
+    arguments = run("mtype", "-i", rpi4_boot_fs, "::/cmdline.txt").split()
+    assert f"root=UUID={fs_uuid(rpi4_root_fs)}" in arguments, arguments
+    # The last console is /dev/console: systemd's and the first boot's messages reach the serial
+    # line on GPIO 14/15 (the Pi 4's mini UART).
+    consoles = [a.removeprefix("console=") for a in arguments if a.startswith("console=")]
+    assert consoles[-1] == "ttyS1,115200", arguments
+    assert "net.ifnames=0" in arguments and "rootwait" in arguments, arguments
+    assert not [a for a in arguments if a.startswith("cma=")], arguments
+    fstab = debugfs(rpi4_root_fs, "cat /etc/fstab")
+    assert f"UUID={fs_uuid(rpi4_boot_fs)}\t/boot/firmware\t" in fstab
+
+
+def test_rpi4_initramfs_has_the_sd_card_driver(rpi4_boot_fs: Path, tmp_path: Path) -> None:
+    config = run("mtype", "-i", rpi4_boot_fs, "::/config.txt")
+    name = re.search(r"^initramfs (\S+)$", config, re.M).group(1)
+    packed = fat_copy(rpi4_boot_fs, name, tmp_path / name)
+    unpacked = subprocess.run(["zstd", "-dc", packed], check=True, capture_output=True,
+                              timeout=120).stdout
+    listing = subprocess.run(["cpio", "-it", "--quiet"], input=unpacked, check=True,
+                             capture_output=True, timeout=120).stdout.decode().splitlines()
+    modules = {Path(path).name for path in listing}
+    assert PI4_SD_DRIVER in modules, sorted(m for m in modules if m.endswith(".ko"))
 
 
 # --- booted -----------------------------------------------------------------------------------

@@ -35,10 +35,12 @@
 #                   uncounted drop or a stall (tests/system/soak.py); out/soak/soak.json. Not
 #                   part of make test, which flies a 2-minute soak (tests/system/test_soak.py)
 #   make eval       deps demo; accuracy on the shared data: TUM ATE (ground + onboard), Replica mesh
-#   make bench      deps bench; depth codec and keyframe delivery over LCM on the TUM sequence; the
-#                   drone's figures (kinfly-fw: odometry time, memory, ATE, keyframes, instructions
-#                   per frame); kinfly-fw and kinfly-ground flying 3 minutes each uncapped and
-#                   through 2 and 0.3 Mbit/s caps: the drone's send budget, keyframe sizes and
+#   make bench      deps bench, the aarch64 build; depth codec and keyframe delivery over LCM on the
+#                   TUM sequence; the drone's figures (kinfly-fw: odometry time, memory, ATE,
+#                   keyframes, instructions per frame of the native build by callgrind and of the
+#                   aarch64 build under qemu-aarch64, with NEON's share); kinfly-fw and
+#                   kinfly-ground flying 3 minutes each uncapped and through 2 and 0.3 Mbit/s
+#                   caps: the drone's send budget, keyframe sizes and
 #                   age at the ground, odometry rate (out/bench/fw_link.json); incremental
 #                   meshing against a full re-mesh (out/bench/mesh.json); the flight stack's
 #                   body-rate and attitude step responses, geometric and LQR, on the test plant
@@ -238,7 +240,7 @@ eval: deps-demo
 # codec bench runs on one thread and fails only if a frame does not come back bit for bit. The
 # link benches need root (or sudo) for their network namespaces, nft for the lossy links and tc
 # for the caps; bench_fw_link fails only if kinfly-fw or kinfly-ground does.
-bench: deps-bench
+bench: deps-bench firmware-aarch64
 	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release -DKINFLY_BUILD_SIM=ON \
 	  $(if $(wildcard $(BUILD_DIR)/CMakeCache.txt),,-DKINFLY_BUILD_TESTS=OFF)
 	cmake --build $(BUILD_DIR) -j $(JOBS) --target $(BENCH_PROGRAMS) kinfly-sim-bench
@@ -252,7 +254,8 @@ bench: deps-bench
 	  --flight-bench $(BUILD_DIR)/bin/kinfly-flight-bench --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_link.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	$(PY) $(REPO_ROOT)/tests/bench/bench_fw_link.py --out $(REPO_ROOT)/out/bench
-	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
+	$(PY) $(REPO_ROOT)/tests/bench/bench_onboard.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench \
+	  --aarch64 $(AARCH64_DIR)
 	$(PY) $(REPO_ROOT)/tests/bench/bench_ground.py --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench
 	OMP_NUM_THREADS=2 $(BENCH_PY) $(REPO_ROOT)/tests/bench/bench_vs_open3d.py --fuse $(FUSE) \
 	  --data $(KINFLY_DATA) --out $(REPO_ROOT)/out/bench

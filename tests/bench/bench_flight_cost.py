@@ -11,7 +11,7 @@ on the sensors of one figure-eight flight (replayStack):
   - instructions per tick: the same binary with `--repeats 1` (and `--ticks N`: the flight's
     first N ticks; by default all of it) under
     `valgrind --tool=callgrind`, counting only inside replayStack, and from them the share of
-    one Cortex-A72 core at 1 kHz by the odometry's estimate (a72.py: 1.5 GHz, IPC 0.8-1.2).
+    one Cortex-A72 core at 1 kHz by the odometry's estimate (arm_cores.py: 1.5 GHz, IPC 0.8-1.2).
 Prints one JSON object (and writes flight_cost.json with --out). A benchmark: it never fails on
 a figure.
 """
@@ -24,7 +24,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from a72 import A72_HZ, A72_IPC_RANGE, a72_seconds, callgrind_instructions
+from arm_cores import A72_HZ, A72_IPC_RANGE, a72_seconds, callgrind_instructions
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TICK_HZ = 1000.0

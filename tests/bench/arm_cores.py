@@ -1,7 +1,8 @@
-"""The Cortex-A72 estimate the benchmarks share (docs/firmware.md, "Measured"): instructions
-counted by `valgrind --tool=callgrind` inside one function on the native build (a proxy for the
-aarch64 build: same source, same compiler), turned into A72 time at 1.5 GHz and an assumed IPC.
-One definition, for the odometry (bench_onboard.py) and the flight stack (bench_flight_cost.py).
+"""The Arm core estimates the benchmarks share (docs/firmware.md, "Measured"): instructions
+counted inside one function, by `valgrind --tool=callgrind` on the native build or by a QEMU
+plugin on the aarch64 build (qemu_count.py), turned into time on a Cortex-A72 (Raspberry Pi 4)
+and a Cortex-A76 (Raspberry Pi 5) at their clocks and an assumed IPC. One definition, for the
+odometry (bench_onboard.py) and the flight stack (bench_flight_cost.py).
 """
 from __future__ import annotations
 
@@ -15,6 +16,10 @@ from typing import Sequence
 # stack's small matrices stay in L1, so for it the same range errs on the slow side.
 A72_HZ = 1.5e9
 A72_IPC_RANGE = (0.8, 1.2)
+# A Cortex-A76 (Raspberry Pi 5) decodes four a cycle with a deeper out-of-order window that hides
+# more of those misses, and has a 2 MB L3 besides: assumed 1.2-1.8, not measured (no A76 here).
+A76_HZ = 2.4e9
+A76_IPC_RANGE = (1.2, 1.8)
 
 
 def callgrind_instructions(command: Sequence[str | Path], toggle_collect: str,
@@ -26,6 +31,15 @@ def callgrind_instructions(command: Sequence[str | Path], toggle_collect: str,
                    check=True, capture_output=True)
     text = Path(out_file).read_text(errors="replace")
     return int(re.search(r"^summary:\s+(\d+)", text, re.MULTILINE).group(1))
+
+
+def core_estimate(instructions: float, hz: float,
+                  ipc_range: tuple[float, float]) -> dict[str, list[float]]:
+    """Frames a second and milliseconds a frame at this many instructions a frame, slowest IPC
+    first for the rate, fastest first for the time."""
+    fps = [hz * ipc / instructions for ipc in ipc_range]
+    return {"fps_estimate": [round(f, 1) for f in fps],
+            "ms_per_frame_estimate": [round(1e3 / f, 1) for f in reversed(fps)]}
 
 
 def a72_seconds(instructions: float) -> tuple[float, float]:

@@ -158,25 +158,34 @@ class Mapper:
         if not checked:
             return
         try:
-            outcomes = chain.add_loops(checked)
+            added = chain.add_loops(checked)
         except Exception as error:  # a graph that cannot be optimised: the keyframe goes on
             state.counters.loop_checks_failed += len(checked)
             self._log(f"vehicle {state.vehicle_id}: {len(checked)} loops not added: "
                       f"{type(error).__name__}: {error}")
             return
-        for outcome in outcomes:
+        counters = state.counters
+        for outcome in added.new:
             c, check = outcome.candidate, outcome.check
             if outcome.accepted_by_graph:
-                state.counters.loops_accepted += 1
+                counters.loops_accepted += 1
                 verdict = "accepted"
             elif check.accepted:
-                state.counters.loops_refused_by_graph += 1
+                counters.loops_refused_by_graph += 1
                 verdict = "refused by the graph"
             else:
-                state.counters.loops_refused_by_check += 1
+                counters.loops_refused_by_check += 1
                 verdict = f"refused ({check.reason})"
             self._log(f"vehicle {state.vehicle_id}: loop between submaps {c.older} and "
                       f"{c.newer} {verdict}")
+        # The counters say what the graph holds now: a loop it took may be out-voted later.
+        for outcome in added.revised:
+            c, step = outcome.candidate, 1 if outcome.accepted_by_graph else -1
+            counters.loops_accepted += step
+            counters.loops_refused_by_graph -= step
+            self._log(f"vehicle {state.vehicle_id}: loop between submaps {c.older} and "
+                      f"{c.newer} now {'accepted' if step > 0 else 'refused'} by the graph, "
+                      "with the loops added since")
         if draw:
             state.view.submap_poses(utime, chain.corrections())
             state.view.optimised(utime, np.array([T[:3, 3] for _, T in chain.trajectory()]))

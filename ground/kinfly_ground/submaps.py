@@ -139,6 +139,15 @@ class LoopOutcome:
     accepted_by_graph: bool  # False where the check refused it, or the graph did
 
 
+@dataclasses.dataclass(frozen=True)
+class LoopsAdded:
+    new: list[LoopOutcome]      # the checks just added, with the graph's verdicts
+    # Earlier loops whose verdict this optimisation changed, as they now stand: the graph weighs
+    # every loop again each time, and loops added since can out-vote one it took (or vouch for
+    # one it refused).
+    revised: list[LoopOutcome]
+
+
 class SubmapChain:
     """MAKE_FUSION makes an empty map for a new submap (the station's camera and parameters)."""
 
@@ -371,11 +380,12 @@ class SubmapChain:
         """Registers the two submaps' surfaces in this thread (seconds, the GIL held)."""
         return check_loop(*self.check_arguments(candidate))
 
-    def add_loops(self, checked: list[tuple[LoopCandidate, LoopCheck]]) -> list[LoopOutcome]:
+    def add_loops(self, checked: list[tuple[LoopCandidate, LoopCheck]]) -> LoopsAdded:
         """Adds the loops that passed their check to the graph, optimises it and swaps every
-        submap's correction. Returns each loop's outcome (also kept in `outcomes`). A check that
-        moved its candidate further than the graph's uncertainty allows is refused first. Where
-        the optimisation raises, nothing is kept: the graph stays as it was."""
+        submap's correction. Returns each new loop's outcome and the earlier ones whose verdict
+        changed; `outcomes` keeps every loop's as it now stands. A check that moved its
+        candidate further than the graph's uncertainty allows is refused first. Where the
+        optimisation raises, nothing is kept: the graph stays as it was."""
         checked = [(candidate, self._within_guess(candidate, check))
                    for candidate, check in checked]
         loops = self._loops + [(candidate, self._loop_edge(candidate, check.T_target_source))
@@ -391,14 +401,21 @@ class SubmapChain:
             graph.add_loop(candidate.older, candidate.newer, T, self.params.loop)
         result = graph.optimise()
         self._loops = loops
-        accepted = {(c.older, c.newer): ok for (c, _), ok in zip(loops, result.loop_accepted)}
         with self._lock:
             self._corrections = [result.poses[s.index] @ np.linalg.inv(s.T_c_anchor)
                                  for s in self.submaps]
-        outcomes = [LoopOutcome(c, check, check.accepted and accepted[(c.older, c.newer)])
-                    for c, check in checked]
-        self.outcomes.extend(outcomes)
-        return outcomes
+        # The graph's verdicts follow its loops' order, which is the order of the outcomes whose
+        # check passed, the earlier ones first (a pair of submaps may be tried more than once).
+        verdicts = iter(result.loop_accepted)
+        revised = []
+        for k, outcome in enumerate(self.outcomes):
+            now = outcome.check.accepted and next(verdicts)
+            if now != outcome.accepted_by_graph:
+                self.outcomes[k] = dataclasses.replace(outcome, accepted_by_graph=now)
+                revised.append(self.outcomes[k])
+        new = [LoopOutcome(c, check, check.accepted and next(verdicts)) for c, check in checked]
+        self.outcomes.extend(new)
+        return LoopsAdded(new, revised)
 
     def _loop_edge(self, candidate: LoopCandidate, T_older_newer: np.ndarray) -> np.ndarray:
         """The graph's edge from the older submap's anchor to the newer's, of a registration

@@ -42,6 +42,10 @@ ATE_WORSENING_MAX_M = 0.002
 # The issue's bound for a wrong loop: none accepted, or none that moves the map more than 1 cm.
 WRONG_LOOP_MOVE_MAX_M = 0.01
 WRONG_LOOP_OFFSET_M = 0.3
+# Inside the odometry's uncertainty between the first submap and the last but one (their edges'
+# sigmas summed: about 4 cm), far outside a loop's own (1 cm): taken alone, out-voted by the
+# true loops.
+OUTVOTED_LOOP_OFFSET_M = 0.06
 # The issue's wrong candidates: 20 of them, the chain's own pairs guessed wrong in four ways (a
 # place 1-2 m along, the same place turned 90 or 180 degrees, 30 cm and 15 degrees off), each
 # through the registration check, the guess's gate and the graph as a real candidate goes.
@@ -87,9 +91,10 @@ def keyframes(sample_dir: Path) -> list[tuple[int, np.ndarray, np.ndarray]]:
     return out + back
 
 
-def _fly(chain: SubmapChain, keyframes) -> list[list]:
+def _fly(chain: SubmapChain, keyframes, add_loops: bool = True) -> list[list]:
     """Feeds every keyframe from its true pose, closes submaps when due and checks their loops
-    as the station will; returns the outcomes of each closure's loops."""
+    as the station will; returns the outcomes of each closure's loops (without ADD_LOOPS: the
+    candidates of each closure, neither checked nor added)."""
     closures = []
     for utime, depth, T in keyframes:
         result, T_world, _ = chain.refine(depth, utime, T)
@@ -97,7 +102,8 @@ def _fly(chain: SubmapChain, keyframes) -> list[list]:
         closed = chain.close_if_due(depth, utime)
         if closed is not None:
             candidates = chain.loop_candidates(closed)
-            closures.append(chain.add_loops([(c, chain.check(c)) for c in candidates]))
+            closures.append(chain.add_loops([(c, chain.check(c)) for c in candidates]).new
+                            if add_loops else candidates)
     return closures
 
 
@@ -183,7 +189,7 @@ def test_wrong_candidates_and_a_wrong_loop_do_not_move_the_map(keyframes) -> Non
         right = pairs[k % len(pairs)]
         wrong = dataclasses.replace(right, T_older_newer_guess=right.T_older_newer_guess
                                     @ _wrong_offset(k % 4, rng))
-        [outcome] = chain.add_loops([(wrong, chain.check(wrong))])
+        [outcome] = chain.add_loops([(wrong, chain.check(wrong))]).new
         verdicts["accepted" if outcome.accepted_by_graph
                  else "check" if not outcome.check.accepted else "graph"] += 1
         moved = _map_move_m(chain, reference)
@@ -200,7 +206,7 @@ def test_wrong_candidates_and_a_wrong_loop_do_not_move_the_map(keyframes) -> Non
     wrong = np.linalg.inv(chain.correction(older)) @ chain.correction(newer)
     wrong[:3, 3] += [WRONG_LOOP_OFFSET_M, 0.0, 0.0]
     passed = LoopCheck(True, wrong, 0.9, 0.002, 0.2, "")
-    [outcome] = chain.add_loops([(LoopCandidate(older, newer, wrong), passed)])
+    [outcome] = chain.add_loops([(LoopCandidate(older, newer, wrong), passed)]).new
     moved = _map_move_m(chain, reference)
     print(f"a wrong loop {WRONG_LOOP_OFFSET_M} m off: accepted {outcome.accepted_by_graph}, the "
           f"map moved {1000 * moved:.2f} mm")
@@ -219,12 +225,34 @@ def test_a_registration_beyond_the_guess_uncertainty_is_refused(keyframes) -> No
         registered = guess.copy()
         registered[:3, 3] += [move_m, 0.0, 0.0]
         passed = LoopCheck(True, registered, 0.9, 0.002, 0.2, "")
-        [outcome] = chain.add_loops([(LoopCandidate(older, newer, guess, sigma), passed)])
+        [outcome] = chain.add_loops([(LoopCandidate(older, newer, guess, sigma), passed)]).new
         outcomes.append(outcome)
     inside, outside = outcomes
     assert inside.check.accepted and inside.check.reason == ""
     assert not outside.check.accepted and not outside.accepted_by_graph
     assert "beyond its uncertainty" in outside.check.reason, outside.check.reason
+
+
+def test_a_loop_the_graph_took_alone_is_refused_once_true_loops_outvote_it(keyframes) -> None:
+    """The graph weighs every loop again with each optimisation: a wrong loop the odometry alone
+    could not disprove is taken, then refused once the true loops of the way back arrive, and
+    its outcome says so."""
+    chain = SubmapChain(SubmapParams(max_distance_m=SUBMAP_DISTANCE_M), _fusion)
+    candidates = [c for closure in _fly(chain, keyframes, add_loops=False) for c in closure]
+    assert candidates
+    older, newer = 0, len(chain.submaps) - 2
+    wrong = np.linalg.inv(chain.correction(older)) @ chain.correction(newer)
+    wrong[:3, 3] += [OUTVOTED_LOOP_OFFSET_M, 0.0, 0.0]
+    passed = LoopCheck(True, wrong, 0.9, 0.002, 0.2, "")
+    [alone] = chain.add_loops([(LoopCandidate(older, newer, wrong), passed)]).new
+    assert alone.accepted_by_graph, "the odometry's uncertainty alone should admit it"
+    added = chain.add_loops([(c, chain.check(c)) for c in candidates])
+    assert any(o.accepted_by_graph for o in added.new), added.new
+    assert [o.candidate for o in added.revised] == [alone.candidate]
+    assert not added.revised[0].accepted_by_graph
+    assert chain.outcomes[0].candidate is alone.candidate
+    assert not chain.outcomes[0].accepted_by_graph
+    assert chain.outcomes[1:] == added.new
 
 
 def test_keyframes_that_stop_registering_begin_a_new_submap(keyframes) -> None:

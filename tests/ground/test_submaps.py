@@ -60,6 +60,11 @@ WRONG_SMALL_M, WRONG_SMALL_DEG = 0.3, 15.0
 GATE_SIGMA_M, GATE_SIGMA_DEG = 0.02, 1.0
 GATE_INSIDE_M, GATE_OUTSIDE_M = 0.02, 0.10
 LOST_GUESS_OFFSET_M = 1.0  # beyond ICP's 10 cm correspondence gate: the keyframe cannot register
+ICP_GATE_M = 0.1
+# Odometry between submaps trusted so little that a loop may move the chain's end by decimetres:
+# a correction that moves the drone's world beyond ICP's reach.
+LOOSE_ODOMETRY_M, LOOSE_ODOMETRY_DEG = 1.0, 20.0
+MAP_MOVE_M = 0.4
 
 
 def _fusion() -> Fusion:
@@ -276,6 +281,40 @@ def test_keyframes_that_stop_registering_begin_a_new_submap(keyframes) -> None:
     assert len(chain.submaps) == 2
     assert chain.submaps[1].began_after_loss
     assert chain.submaps[0].snapshot is not None and chain.submaps[0].fusion is None
+
+
+def test_a_keyframe_captured_before_a_loops_correction_arrived_still_registers(keyframes) -> None:
+    """Once a loop moved the map and that correction went to the drone, its published poses are
+    in the new world; a keyframe it captured before the correction arrived carries a pose in the
+    old one. The chain tries the newest world first, then the one before."""
+    loose = EdgeSigma(translation_m=LOOSE_ODOMETRY_M, rotation_rad=math.radians(LOOSE_ODOMETRY_DEG))
+    chain = SubmapChain(SubmapParams(max_distance_m=SUBMAP_DISTANCE_M, drift_per_m=loose), _fusion)
+    way_out = keyframes[: (len(keyframes) + 1) // 2]
+    _fly(chain, way_out[:-3], add_loops=False)
+    # A loop that moves the newest submaps by decimetres, which the loose odometry admits.
+    older, newer = 0, len(chain.submaps) - 2
+    moved = np.linalg.inv(chain.correction(older)) @ chain.correction(newer)
+    moved[:3, 3] += [MAP_MOVE_M, 0.0, 0.0]
+    [loop] = chain.add_loops([(LoopCandidate(older, newer, moved),
+                               LoopCheck(True, moved, 0.9, 0.002, 0.2, ""))]).new
+    assert loop.accepted_by_graph
+    C = chain.correction(chain.active.index)
+    assert np.linalg.norm(C[:3, 3]) > 2 * ICP_GATE_M, "the move must be beyond ICP's reach"
+
+    (u1, d1, T1), (u2, d2, T2), (u3, d3, T3) = way_out[-3:]
+    # The drone still publishes in the chain's frame; the pose returned goes out as a correction.
+    _, T_world, _ = chain.refine(d1, u1, T1)
+    np.testing.assert_allclose(T_world[:3, 3], (C @ T1)[:3, 3], atol=TRAJECTORY_TOLERANCE_M)
+    chain.correction_sent()
+    # Captured before that correction arrived: in the old world, which the retry finds.
+    result, T_world, _ = chain.refine(d2, u2, T2)
+    assert result.status is TrackingStatus.OK, result.lost_reason
+    np.testing.assert_allclose(T_world[:3, 3], (C @ T2)[:3, 3], atol=TRAJECTORY_TOLERANCE_M)
+    # Captured after: in the new world, where it registers at once.
+    result, T_world, _ = chain.refine(d3, u3, C @ T3)
+    assert result.status is TrackingStatus.OK, result.lost_reason
+    np.testing.assert_allclose(T_world[:3, 3], (C @ T3)[:3, 3], atol=TRAJECTORY_TOLERANCE_M)
+    np.testing.assert_allclose(chain.last_pose_published(), T_world, atol=1e-9)
 
 
 def test_bad_settings_are_refused_by_name() -> None:

@@ -142,6 +142,7 @@ class Mapper:
         # Its whole mesh once, so the viewer keeps it complete (meshing it also serves the
         # loop check, which reads the same snapshot).
         state.view.submap_poses(utime, {closed.index: chain.correction(closed.index)})
+        state.view.pose_graph(utime, *chain.graph())
         self._mesh(state, utime, closed.index, closed.snapshot)
         candidates = chain.loop_candidates(closed)
         state.counters.loop_candidates += len(candidates)
@@ -188,6 +189,7 @@ class Mapper:
                       "with the loops added since")
         if draw:
             state.view.submap_poses(utime, chain.corrections())
+            state.view.pose_graph(utime, *chain.graph())
             state.view.optimised(utime, np.array([T[:3, 3] for _, T in chain.trajectory()]))
 
     def _correct(self, state: VehicleState, m: Keyframe, T_onboard: np.ndarray,
@@ -324,6 +326,7 @@ class Mapper:
             self._add_loops(state, chain, last_utime)
             active = chain.active
             state.view.submap_poses(last_utime, chain.corrections())
+            state.view.pose_graph(last_utime, *chain.graph())
             state.view.mesh(last_utime, active.index, *active.fusion.snapshot().mesh())
             segment.final_mesh = chain.mesh()
             segment_truth = truth if truth is not None else segment.ground_truth

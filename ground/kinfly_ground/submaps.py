@@ -423,6 +423,19 @@ class SubmapChain:
         return (np.linalg.inv(self.submaps[candidate.older].T_c_anchor) @ T_older_newer
                 @ self.submaps[candidate.newer].T_c_anchor)
 
+    def graph(self) -> tuple[dict[int, np.ndarray], list[tuple[int, int]],
+                             list[tuple[int, int, bool]]]:
+        """The pose graph as the viewer draws it: each submap's anchor position in the optimised
+        world, the odometry edges, and the loop edges (older, newer, accepted by the graph)."""
+        with self._lock:
+            corrections = list(self._corrections)
+            edges = [(i, j) for i, j, _, _ in self._edges]
+            submaps = list(self.submaps)
+        nodes = {s.index: (corrections[s.index] @ s.T_c_anchor)[:3, 3] for s in submaps}
+        loops = [(o.candidate.older, o.candidate.newer, o.accepted_by_graph)
+                 for o in self.outcomes if o.check.accepted]
+        return nodes, edges, loops
+
     def trajectory(self) -> list[StampedPose]:
         """Every registered keyframe's pose in the optimised world, by capture time (a keyframe
         that began a submap is in both; the newer submap's is kept)."""

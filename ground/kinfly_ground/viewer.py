@@ -13,6 +13,12 @@ when serving several):
   world/trajectory/<name>/<block>  onboard, corrected, ground_truth (see _Trajectory)
   world/map/submap/<k>             Transform3D C_k: where the pose graph puts submap k
   world/map/submap/<k>/mesh        Mesh3D, in the frame the submap was fused in
+  world/map/graph/nodes            Points3D: the pose graph's nodes, each submap's anchor where
+                                   the graph puts it (labelled by submap index)
+  world/map/graph/odometry         LineStrips3D: its odometry edges, submap to submap
+  world/map/graph/loops/accepted   LineStrips3D: loop edges the graph took, and ...
+  world/map/graph/loops/refused    ... those it refused (a loop refused by its check never
+                                   reaches the graph and is not drawn)
   health/<group>/<name>            Scalars, names from the caller ("link/latency_ms")
   autopilot/<name>                 Scalars, MAVLink telemetry
   flight/<name>                    Scalars, the flight stack's (flight.metrics)
@@ -52,6 +58,9 @@ _TRAJECTORY_COLORS = {
 # their own (the trajectories' are orange, green and grey).
 _FLIGHT_RADIUS = rr.Radius.ui_points(6.0)
 _FLIGHT_COLORS = {"estimate": (60, 120, 255), "setpoint": (230, 0, 200)}
+_GRAPH_RADIUS = rr.Radius.ui_points(4.0)
+_GRAPH_COLORS = {"nodes": (255, 200, 0), "odometry": (160, 160, 160),
+                 "accepted": (0, 200, 80), "refused": (230, 40, 40)}
 # The map's column against the side column (camera over the two plots): the map is what a
 # person flies by, and the side views stay readable at a laptop's 1600 px.
 _MAP_COLUMN_SHARES = [2.0, 1.0]
@@ -234,6 +243,27 @@ class VehicleView:
         for submap, C in corrections.items():
             self._rec.log(f"{self._prefix}world/map/submap/{submap}",
                           rr.Transform3D(translation=C[:3, 3], mat3x3=C[:3, :3]))
+
+    def pose_graph(self, utime: int, nodes: dict[int, np.ndarray],
+                   odometry: list[tuple[int, int]], loops: list[tuple[int, int, bool]]) -> None:
+        """The pose graph as it now stands: NODES maps a submap's index to its anchor's position
+        in `world`, ODOMETRY lists the edges between consecutive submaps, LOOPS the loop edges
+        (older, newer, accepted by the graph)."""
+        if self._rec is None:
+            return
+        self._stamp(utime)
+        root = f"{self._prefix}world/map/graph"
+        indices = sorted(nodes)
+        self._rec.log(f"{root}/nodes", rr.Points3D(
+            [nodes[k] for k in indices], labels=[str(k) for k in indices],
+            colors=[_GRAPH_COLORS["nodes"]] * len(indices), radii=_GRAPH_RADIUS))
+        edges = {"odometry": [(i, j) for i, j in odometry],
+                 "loops/accepted": [(i, j) for i, j, taken in loops if taken],
+                 "loops/refused": [(i, j) for i, j, taken in loops if not taken]}
+        for name, pairs in edges.items():
+            color = _GRAPH_COLORS[name.rpartition("/")[2]]
+            self._rec.log(f"{root}/{name}", rr.LineStrips3D(
+                [[nodes[i], nodes[j]] for i, j in pairs], colors=[color] * len(pairs)))
 
     def optimised(self, utime: int, positions: np.ndarray) -> None:
         """After a loop closure, the corrected trajectory drawn again from UTIME on as the

@@ -38,6 +38,13 @@ SUBMAP_CORRECTION[:3, :3] = Rotation.from_euler("z", 0.02).as_matrix()
 SUBMAP_CORRECTION[:3, 3] = [0.03, 0.0, -0.01]
 
 
+# A pose graph of three submaps: two odometry edges, a loop taken and one refused.
+GRAPH_NODES = {0: np.array([0.0, 0.0, 0.0]), 1: np.array([1.0, 0.0, 0.5]),
+               2: np.array([0.1, 0.0, 0.05])}
+GRAPH_ODOMETRY = [(0, 1), (1, 2)]
+GRAPH_LOOPS = [(0, 2, True), (1, 2, False)]
+
+
 def pose(t_s: float) -> np.ndarray:
     """T_world_cam along a known curve: forward and sideways, slowly yawing."""
     T = np.eye(4)
@@ -100,6 +107,7 @@ def run_session(viewer: Viewer) -> dict[str, Any]:
     view.mesh(mesh_utime, 0, tetrahedron,
               np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=np.int32), None)
     view.submap_poses(mesh_utime, {0: SUBMAP_CORRECTION})
+    view.pose_graph(mesh_utime, GRAPH_NODES, GRAPH_ODOMETRY, GRAPH_LOOPS)
     utimes.add(mesh_utime)
     return {"utimes": utimes, "last_T_world_cam": last_T_world_cam, "last_flight": last_flight,
             "onboard_since_restart": np.array(onboard_since_restart),
@@ -156,6 +164,17 @@ def test_session_recorded_and_read_back(tmp_path: Path) -> None:
     # The submap's mesh stays in its own frame; the pose graph's correction moves it.
     np.testing.assert_allclose(latest(rows, "world/map/submap/0", "Transform3D:translation")[0],
                                SUBMAP_CORRECTION[:3, 3], atol=TRANSLATION_TOL_M)
+    # The pose graph: its nodes labelled by submap, each edge between its two nodes.
+    nodes = latest(rows, "world/map/graph/nodes", "Points3D:positions")
+    np.testing.assert_allclose(nodes, [GRAPH_NODES[k] for k in sorted(GRAPH_NODES)],
+                               atol=TRANSLATION_TOL_M)
+    assert latest(rows, "world/map/graph/nodes", "Points3D:labels") == ["0", "1", "2"]
+    for entity, pairs in (("odometry", GRAPH_ODOMETRY),
+                          ("loops/accepted", [(i, j) for i, j, taken in GRAPH_LOOPS if taken]),
+                          ("loops/refused", [(i, j) for i, j, taken in GRAPH_LOOPS if not taken])):
+        strips = latest(rows, f"world/map/graph/{entity}", "LineStrips3D:strips")
+        np.testing.assert_allclose(strips, [[GRAPH_NODES[i], GRAPH_NODES[j]] for i, j in pairs],
+                                   atol=TRANSLATION_TOL_M)
     assert latest(rows, "world/drone/camera/depth", "DepthImage:meter") == [
         pytest.approx(1 / DEPTH_SCALE_M)]
     assert latest(rows, "health/link/latency_ms", "Scalars:scalars") == [12.0 + KEYFRAMES - 1]
@@ -212,6 +231,7 @@ def test_no_sink_viewer_is_a_no_op(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     view.render(T0_US, np.zeros((HEIGHT, WIDTH), np.uint8))
     view.mesh(T0_US, 0, np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), None)
     view.submap_poses(T0_US, {0: np.eye(4)})
+    view.pose_graph(T0_US, GRAPH_NODES, GRAPH_ODOMETRY, GRAPH_LOOPS)
     view.optimised(T0_US, np.zeros((2, 3)))
     view.health(T0_US, {"link/latency_ms": 1.0})
     view.telemetry(T0_US, {"altitude_m": 1.0})

@@ -153,6 +153,16 @@ def test_the_way_back_closes_loops_with_the_way_out(keyframes) -> None:
     print(f"ATE {100 * unoptimised:.2f} cm before loop closure, {100 * ate:.2f} cm after")
     assert ate <= TRAJECTORY_TOLERANCE_M
     assert ate <= unoptimised + ATE_WORSENING_MAX_M
+    # The graph as drawn: a node per submap where its correction puts its anchor, the chain's
+    # odometry, and every loop that reached the graph with its verdict.
+    nodes, odometry, loops = chain.graph()
+    for s in chain.submaps:
+        np.testing.assert_allclose(nodes[s.index],
+                                   (chain.correction(s.index) @ s.T_c_anchor)[:3, 3])
+    assert odometry == [(k, k + 1) for k in range(len(chain.submaps) - 1)]
+    assert loops == [(o.candidate.older, o.candidate.newer, o.accepted_by_graph)
+                     for o in outcomes if o.check.accepted]
+    assert any(taken for _, _, taken in loops)
     vertices, triangles, normals = chain.mesh()
     submap_triangles = [len(s.snapshot.mesh()[1]) for s in chain.submaps[:-1]]
     submap_triangles.append(len(chain.submaps[-1].fusion.snapshot().mesh()[1]))

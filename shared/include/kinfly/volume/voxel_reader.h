@@ -50,25 +50,8 @@ class VoxelReader {
       edge[1] = lanes::load<Floats>(&v0[kDy].tsdf);
       edge[2] = lanes::load<Floats>(&v0[kDz].tsdf);
       edge[3] = lanes::load<Floats>(&v0[kDz + kDy].tsdf);
-    } else {
-      // Corner i lies in the block displaced by (i & cross): each block is looked up once,
-      // instead of once per corner.
-      std::array<const VoxelBlock*, 8> blocks;
-      blocks[0] = base;
-      for (int d = 1; d < 8; ++d) {
-        if ((d & cross) != d) continue;
-        blocks[d] = block(bx + (d & 1), by + ((d >> 1) & 1), bz + (d >> 2));
-        if (blocks[d] == nullptr) return false;
-      }
-      const int xs[2] = {lx, (lx + 1) & 7}, ys[2] = {ly, (ly + 1) & 7}, zs[2] = {lz, (lz + 1) & 7};
-      for (int e = 0; e < 4; ++e) {
-        const int i = 2 * e;  // the edge's near corner; i + 1 is its far one along x
-        const Voxel& near = blocks[i & cross]->voxels[VoxelBlock::linear(
-            xs[0], ys[(i >> 1) & 1], zs[i >> 2])];
-        const Voxel& far = blocks[(i + 1) & cross]->voxels[VoxelBlock::linear(
-            xs[1], ys[(i >> 1) & 1], zs[i >> 2])];
-        edge[e] = Floats{near.tsdf, near.weight, far.tsdf, far.weight};
-      }
+    } else if (!edgesAcrossBlocks(base, bx, by, bz, lx, ly, lz, cross, edge)) {
+      return false;
     }
     // Transposed: a = corners c0, c2, c4, c6 (x near), b = c1, c3, c5, c7 (x far).
     const Floats lo01 = shuffle<0, 4, 1, 5>(edge[0], edge[1]);
@@ -99,6 +82,31 @@ class VoxelReader {
   }
 
  private:
+  // The edges of a cell whose far corners lie in the next block along the axes set in `cross`:
+  // corner i lies in the block displaced by (i & cross), each looked up once, instead of once
+  // per corner. Out of line, so that the common cell inside one block keeps its registers.
+  [[gnu::noinline]] bool edgesAcrossBlocks(const VoxelBlock* base, int bx, int by, int bz,
+                                           int lx, int ly, int lz, int cross,
+                                           lanes::Floats edge[4]) {
+    std::array<const VoxelBlock*, 8> blocks;
+    blocks[0] = base;
+    for (int d = 1; d < 8; ++d) {
+      if ((d & cross) != d) continue;
+      blocks[d] = block(bx + (d & 1), by + ((d >> 1) & 1), bz + (d >> 2));
+      if (blocks[d] == nullptr) return false;
+    }
+    const int xs[2] = {lx, (lx + 1) & 7}, ys[2] = {ly, (ly + 1) & 7}, zs[2] = {lz, (lz + 1) & 7};
+    for (int e = 0; e < 4; ++e) {
+      const int i = 2 * e;  // the edge's near corner; i + 1 is its far one along x
+      const Voxel& near =
+          blocks[i & cross]->voxels[VoxelBlock::linear(xs[0], ys[(i >> 1) & 1], zs[i >> 2])];
+      const Voxel& far =
+          blocks[(i + 1) & cross]->voxels[VoxelBlock::linear(xs[1], ys[(i >> 1) & 1], zs[i >> 2])];
+      edge[e] = lanes::Floats{near.tsdf, near.weight, far.tsdf, far.weight};
+    }
+    return true;
+  }
+
   // The block at block coordinates b; nullptr if unallocated.
   const VoxelBlock* block(int bx, int by, int bz) {
     const BlockIndex b(bx, by, bz);

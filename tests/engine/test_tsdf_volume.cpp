@@ -1,13 +1,16 @@
 // TSDF storage: the hashed volume finds every block it allocated and grows with surface, not
-// extent; the dense volume holds a window of blocks that moves with the camera.
+// extent; the dense volume holds a window of blocks that moves with the camera; VoxelReader's
+// trilinear sample is the per-corner definition, inside blocks and across their faces.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <random>
 #include <set>
 #include <tuple>
 #include <vector>
 
 #include "kinfly/volume/tsdf_volume.h"
+#include "kinfly/volume/voxel_reader.h"
 #include "test_util.h"
 
 namespace kinfly {
@@ -213,6 +216,95 @@ TEST(DenseVolume, FollowCameraShiftsOnlyBeyondThreshold) {
   EXPECT_TRUE(inWindow(volume, volume.blockOf(look.cast<float>())));
   const Eigen::Vector3d cam = far.translation();
   EXPECT_TRUE(inWindow(volume, volume.blockOf(cam.cast<float>())));
+}
+
+// The trilinear TSDF and its gradient as defined, one corner at a time through
+// TsdfVolume::findBlock: false where a corner's block is unallocated or the corner unobserved.
+bool trilinearReference(const TsdfVolume& volume, const Eigen::Vector3f& p_vox, float* tsdf,
+                        Eigen::Vector3f* gradient) {
+  const int gx = static_cast<int>(std::floor(p_vox.x()));
+  const int gy = static_cast<int>(std::floor(p_vox.y()));
+  const int gz = static_cast<int>(std::floor(p_vox.z()));
+  float c[8];
+  for (int i = 0; i < 8; ++i) {
+    const int x = gx + (i & 1), y = gy + ((i >> 1) & 1), z = gz + (i >> 2);
+    const VoxelBlock* blk = volume.findBlock(BlockIndex(x >> 3, y >> 3, z >> 3));
+    if (blk == nullptr) return false;
+    const Voxel& v = blk->voxels[VoxelBlock::linear(x & 7, y & 7, z & 7)];
+    if (!(v.weight > 0.f)) return false;
+    c[i] = v.tsdf;
+  }
+  const float ax = p_vox.x() - static_cast<float>(gx), ay = p_vox.y() - static_cast<float>(gy),
+              az = p_vox.z() - static_cast<float>(gz);
+  const float c00 = c[0] + (c[1] - c[0]) * ax, c10 = c[2] + (c[3] - c[2]) * ax;
+  const float c01 = c[4] + (c[5] - c[4]) * ax, c11 = c[6] + (c[7] - c[6]) * ax;
+  const float c0 = c00 + (c10 - c00) * ay, c1 = c01 + (c11 - c01) * ay;
+  *tsdf = c0 + (c1 - c0) * az;
+  const float dx0 = (c[1] - c[0]) + ((c[3] - c[2]) - (c[1] - c[0])) * ay;
+  const float dx1 = (c[5] - c[4]) + ((c[7] - c[6]) - (c[5] - c[4])) * ay;
+  *gradient << dx0 + (dx1 - dx0) * az, (c10 - c00) + ((c11 - c01) - (c10 - c00)) * az, c1 - c0;
+  return true;
+}
+
+// Random TSDF values in a 2x2x2 group of blocks with one block of the 3x3x3 around them left
+// unallocated and a few voxels unobserved, sampled at random points and at every kind of cell:
+// inside a block, across one, two and three block faces, next to the missing block. The reader
+// looks blocks up once per cell rather than once per corner and interpolates four lanes at a
+// time; it must give the definition's values to the bit, and fail exactly where it does.
+template <typename Volume>
+void expectTrilinearAsDefined(Volume* volume) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> tsdf(-1.f, 1.f);
+  std::uniform_int_distribution<int> percent(0, 99);
+  for (int b = 0; b < 27; ++b) {
+    const BlockIndex index(b % 3 - 1, (b / 3) % 3 - 1, b / 9 - 1);
+    if (index == BlockIndex(1, 1, 0)) continue;  // never allocated
+    VoxelBlock* blk = volume->allocateBlock(index);
+    ASSERT_NE(blk, nullptr);
+    for (Voxel& v : blk->voxels) {
+      v.tsdf = tsdf(rng);
+      v.weight = percent(rng) < 3 ? 0.f : 1.f + static_cast<float>(percent(rng));
+    }
+  }
+  std::uniform_real_distribution<float> coord(-9.f, 16.f);  // voxel units, about the blocks
+  std::vector<Eigen::Vector3f> points;
+  for (int i = 0; i < 20000; ++i) points.emplace_back(coord(rng), coord(rng), coord(rng));
+  // Cells whose far corners cross block faces: local index 7 along one, two or three axes.
+  for (const float x : {3.25f, 7.5f, 15.75f, -0.5f})
+    for (const float y : {2.5f, 7.25f, 15.5f, -1.f + 0.125f})
+      for (const float z : {6.75f, 7.75f, -0.25f}) points.emplace_back(x, y, z);
+  VoxelReader reader(*volume);
+  int found = 0, crossing = 0;
+  for (const Eigen::Vector3f& p : points) {
+    float expected = 0.f, got = 0.f;
+    Eigen::Vector3f expected_gradient, got_gradient;
+    const bool defined = trilinearReference(*volume, p, &expected, &expected_gradient);
+    ASSERT_EQ(reader.trilinear(p, &got, &got_gradient), defined) << p.transpose();
+    if (!defined) continue;
+    ++found;
+    const Eigen::Vector3i g = p.array().floor().cast<int>();
+    crossing += (g.x() & 7) == 7 || (g.y() & 7) == 7 || (g.z() & 7) == 7;
+    // Bit for bit: the raycast's output must not depend on how the corners were gathered.
+    EXPECT_EQ(got, expected) << p.transpose();
+    EXPECT_EQ(got_gradient, expected_gradient) << p.transpose();
+    float without_gradient = 0.f;
+    ASSERT_TRUE(reader.trilinear(p, &without_gradient, nullptr));
+    EXPECT_EQ(without_gradient, expected);
+  }
+  EXPECT_GT(found, 1000);
+  EXPECT_GT(crossing, 300) << "cells across block faces must be exercised";
+}
+
+TEST(VoxelReader, TrilinearIsTheDefinitionInDenseVolume) {
+  DenseVolume volume(smallDense());
+  expectTrilinearAsDefined(&volume);
+}
+
+TEST(VoxelReader, TrilinearIsTheDefinitionInHashedVolume) {
+  HashedVolume::Params params;
+  params.voxel_size_m = 0.05f;
+  HashedVolume volume(params);
+  expectTrilinearAsDefined(&volume);
 }
 
 }  // namespace

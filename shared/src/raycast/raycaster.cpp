@@ -256,10 +256,13 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
   const int hits = sumDynamic(camera_.height, 4, [&](int y) {
     VoxelReader reader(volume);
     int row_hits = 0;
+    Eigen::Vector3f* vertex_row = vmap.row(y);
+    Eigen::Vector3f* normal_row = nmap.row(y);
+    const float* hint_row = use_hint ? depth_hint_m.row(y) : nullptr;
     for (int x = 0; x < camera_.width; ++x) {
-      vmap(x, y) = invalidVector();
-      nmap(x, y) = invalidVector();
-      const float hint = use_hint ? depth_hint_m(x, y) : 0.f;
+      vertex_row[x] = invalidVector();
+      normal_row[x] = invalidVector();
+      const float hint = use_hint ? hint_row[x] : 0.f;
       if (use_hint && !(hint > 0.f)) continue;
       const Eigen::Vector2f range = use_hint ? Eigen::Vector2f(hint - params_.hint_margin_m,
                                                                hint + params_.hint_margin_m)
@@ -281,8 +284,8 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
                        (newton == Newton::kGaveUp &&
                         ray.march(&reader, ray_vox, z_begin, z_end, &z_hit, &grad));
       if (hit) {
-        vmap(x, y) = ray_cam * z_hit;
-        nmap(x, y) = (R_cw * grad).normalized();
+        vertex_row[x] = ray_cam * z_hit;
+        normal_row[x] = (R_cw * grad).normalized();
         ++row_hits;
       }
     }

@@ -1,5 +1,5 @@
-// Four-lane helpers for the per-pixel and per-voxel kernels of preprocessing, tracking and
-// integration.
+// Four-lane helpers for the per-pixel and per-voxel kernels of preprocessing, tracking,
+// integration and the raycaster's trilinear samples.
 #pragma once
 
 #include <cmath>

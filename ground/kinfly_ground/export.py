@@ -194,11 +194,17 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
               f"p99 {format_ms(lat['p99'])} ms")
         if line := format_link(v.get("link"), drone):
             print(f"    {line}")
-        if v.get("submaps", 0) > 1:
+        # The counters are the vehicle's, over every odometry frame (segment) it flew: so are
+        # the submaps counted here. More submaps than segments: some map was split.
+        segments = len(v["earlier_segments"]) + 1
+        submaps = v.get("submaps", 0) + sum(s.get("submaps", 0) for s in v["earlier_segments"])
+        if submaps > segments:
             verdicts = (k['loops_accepted'], k['loops_refused_by_check'],
                         k['loops_refused_by_graph'], k['loop_checks_failed'])
             unchecked = k['loop_candidates'] - sum(verdicts)
-            print(f"    {v['submaps']} submaps ({k['submaps_after_loss']} begun after lost "
+            print(f"    {submaps} submaps"
+                  + (f" in {segments} odometry frames" if segments > 1 else "")
+                  + f" ({k['submaps_after_loss']} begun after lost "
                   f"keyframes); {k['loop_candidates']} loop candidates: {verdicts[0]} "
                   f"accepted, {verdicts[1]} refused by the check, {verdicts[2]} by the graph, "
                   f"{verdicts[3]} checks failed"

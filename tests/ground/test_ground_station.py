@@ -24,7 +24,7 @@ from kinfly_ground._native import (Channel, CorrectionReceiver, DepthCodec, Sign
                                    key_id)
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
                                    write_atomically, write_tum)
-from kinfly_ground.export import export
+from kinfly_ground.export import export, print_summary
 from kinfly_ground.mapping import truth_anchor
 from kinfly_ground.station import Station, StationParams
 from kinfly_ground.submaps import SubmapParams
@@ -249,7 +249,7 @@ LOOP_CHECKS_TIMEOUT_S = 600.0
 
 
 def test_the_way_back_closes_loops_and_the_outputs_hold_the_optimised_map(
-        sample, tmp_path: Path) -> None:
+        sample, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = flight(sample, LOOP_KEYFRAMES_OUT)
     last = out[-1][0]
     back = [(keyframe(last.utime + KEYFRAME_INTERVAL_US * (k + 1),
@@ -300,6 +300,11 @@ def test_the_way_back_closes_loops_and_the_outputs_hold_the_optimised_map(
     assert vehicle["mesh_triangles"] == triangles > 0
     header = (tmp_path / "mesh.ply").read_bytes().split(b"end_header\n")[0].decode()
     assert f"element face {triangles}" in header
+    capsys.readouterr()
+    print_summary(summary, tmp_path, None)
+    printed = capsys.readouterr().out
+    assert (f"{len(chain.submaps)} submaps (0 begun after lost keyframes); "
+            f"{c.loop_candidates} loop candidates: {c.loops_accepted} accepted") in printed, printed
 
 
 # --- what arrives out of the ordinary -------------------------------------------------------

@@ -57,6 +57,8 @@
 #                   native kinfly-ground (hardware in the loop, a network namespace: root or
 #                   sudo), the image tests (the uefi image booted, the rpi4 image checked)
 #   make aarch64-unit-tests  the above's unit tests under qemu-aarch64 alone
+#   make qemu-plugin  the QEMU plugin counting the aarch64 build's instructions (make bench),
+#                   built against the installed qemu-user's own source (fetched from Debian once)
 #   make package-aarch64  the kinfly-fw .deb (arm64) in build-aarch64/pkg/
 #   make image [BOARD=uefi|rpi4]  deps image; flashable arm64 disk image for a UEFI board or a
 #                   Raspberry Pi 4, build-aarch64/kinfly-BOARD-arm64.img (root)
@@ -114,7 +116,8 @@ DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
 
 .PHONY: deps $(DEPS_TARGETS) build test unit-test python-test test-asan fuzz fuzz-corpus demo sim \
         sim-programs bench-sim \
-        demo-runs test-runs soak eval bench clean distclean firmware-aarch64 test-aarch64 aarch64-unit-tests package-aarch64 image \
+        demo-runs test-runs soak eval bench clean distclean firmware-aarch64 test-aarch64 \
+        aarch64-unit-tests qemu-plugin package-aarch64 image \
         flash deploy
 
 deps:
@@ -240,7 +243,7 @@ eval: deps-demo
 # codec bench runs on one thread and fails only if a frame does not come back bit for bit. The
 # link benches need root (or sudo) for their network namespaces, nft for the lossy links and tc
 # for the caps; bench_fw_link fails only if kinfly-fw or kinfly-ground does.
-bench: deps-bench firmware-aarch64
+bench: deps-bench firmware-aarch64 qemu-plugin
 	cmake -S $(REPO_ROOT) -B $(BUILD_DIR) -G Ninja -DCMAKE_BUILD_TYPE=Release -DKINFLY_BUILD_SIM=ON \
 	  $(if $(wildcard $(BUILD_DIR)/CMakeCache.txt),,-DKINFLY_BUILD_TESTS=OFF)
 	cmake --build $(BUILD_DIR) -j $(JOBS) --target $(BENCH_PROGRAMS) kinfly-sim-bench
@@ -295,7 +298,7 @@ AARCH64_CTEST = ctest --test-dir $(AARCH64_BUILD) --output-on-failure -j $(JOBS)
 # share one root file system, made once. Either failing fails the target, once both have ended.
 # The images are made in a session of their own, ended with the recipe: a background job ignores
 # Ctrl-C, and mmdebstrap would go on as root without it.
-test-aarch64: deps-demo deps-unit deps-image build package-aarch64
+test-aarch64: deps-demo deps-unit deps-image build package-aarch64 qemu-plugin
 	setsid $(BUILD_IMAGE) --image uefi=$(AARCH64_DIR)/kinfly-uefi-arm64.img \
 	  --image rpi4=$(AARCH64_DIR)/kinfly-rpi4-arm64.img & image=$$!; \
 	  trap 'kill -TERM -- -$$image 2>/dev/null || true' EXIT; status=0; \
@@ -306,6 +309,13 @@ test-aarch64: deps-demo deps-unit deps-image build package-aarch64
 
 aarch64-unit-tests: firmware-aarch64
 	$(AARCH64_CTEST)
+
+# The QEMU plugin that counts the aarch64 build's instructions (make bench, its test in
+# test-aarch64), built against the header of the installed qemu-user's source package, which
+# is fetched from the Debian archive once (tests/bench/qemu_count.py: the standard library only,
+# so the system's Python).
+qemu-plugin: deps-aarch64
+	python3 $(REPO_ROOT)/tests/bench/qemu_count.py $(AARCH64_DIR)/qemu-plugin
 
 flash:
 	@test -n "$(DEVICE)" || { echo "make flash IMAGE=... DEVICE=/dev/sdX CONFIRM=yes"; exit 2; }

@@ -43,7 +43,6 @@ image_packages=(
   wpasupplicant wireless-regdb firmware-brcm80211 iproute2 openssh-server chrony
   fdisk dosfstools zstd
 )
-boards=(uefi rpi4)
 boot_mib=256
 # Free space left in the root file system before the first boot grows it.
 root_headroom_mib=256
@@ -85,6 +84,11 @@ EOF
 #   - the consoles, the serial port last: /dev/console, where systemd and the first boot write,
 #     since a drone's board runs headless (the Pi 4's GPIO 14/15 UART is the mini UART, ttyS1);
 #   - no cma= (off a Pi 4 it writes cma=64M, which its own note says can stop a Pi 4 booting).
+# The hook sources that file, so the file also ends the hook on a board that is not a Pi (every
+# board's image has the same root): a UEFI drone's kernel upgrades leave its EFI partition alone.
+# While the image is built (KINFLY_IMAGE_BUILD, set for the one update-initramfs run below) no
+# board is there to ask. The file is a conffile: dpkg would ask about it only if a raspi-firmware
+# upgrade changed it, and Debian 12 keeps 1.20220830+ds-1.
 # The mini UART's baud rate follows the VPU's clock, which Debian's note says must stay at 360 MHz
 # on a Pi 4 for a readable console: raspi-firmware-custom is appended to config.txt on every run,
 # and [pi4] keeps the setting to that family.
@@ -94,7 +98,10 @@ raspi_firmware_hook() {
 set -e
 cat >>"\$1/etc/default/raspi-firmware" <<'SETTINGS'
 
-# kinfly (scripts/build-image.sh): what the hook cannot detect while the image is built.
+# kinfly (scripts/build-image.sh): what the hook cannot detect while the image is built, and
+# nothing to do on a board that is not a Raspberry Pi.
+[ -n "\${KINFLY_IMAGE_BUILD:-}" ] ||
+  grep -q 'Raspberry Pi' /sys/firmware/devicetree/base/model 2>/dev/null || exit 0
 ROOTPART="UUID=$root_uuid"
 CONSOLES="tty0 ttyS1,115200"
 CMA=0
@@ -253,19 +260,25 @@ EOF
 }
 
 main() {
-  local deb="" work="" first_image="" board
+  local deb="" work="" first_image="" board other
   local -A images=()
   while (($#)); do
     case "$1" in
       --deb) deb="$2"; shift 2 ;;
       --image)
-        [[ "$2" == *=?* ]] || die "--image wants BOARD=IMAGE, not '$2'"
+        (($# >= 2)) && [[ "$2" == *=?* ]] || die "--image wants BOARD=IMAGE, not '${2:-}'"
         board="${2%%=*}"
-        [[ " ${boards[*]} " == *" $board "* ]] ||
-          die "unknown board '$board' (boards: ${boards[*]}; the Raspberry Pi 5 is not offered," \
-              "see --help)"
+        case "$board" in
+          uefi | rpi4) ;;
+          *) die "unknown board '$board' (boards: uefi rpi4; the Raspberry Pi 5 is not" \
+                 "offered, see --help)" ;;
+        esac
         [[ -z "${images[$board]:-}" ]] || die "board '$board' given twice"
         images[$board]="$(realpath -m "${2#*=}")"
+        for other in "${!images[@]}"; do
+          [[ "$other" == "$board" || "${images[$other]}" != "${images[$board]}" ]] ||
+            die "boards '$other' and '$board' would both be written to ${images[$board]}"
+        done
         first_image="${first_image:-${images[$board]}}"
         shift 2 ;;
       --work) work="$2"; shift 2 ;;
@@ -316,7 +329,7 @@ main() {
     --customize-hook='chroot "$1" dpkg-divert --quiet --local --rename \
                         --remove /usr/sbin/update-initramfs' \
     --customize-hook="$(raspi_firmware_hook "$root_uuid")" \
-    --customize-hook='chroot "$1" update-initramfs -c -k all' \
+    --customize-hook='chroot "$1" env KINFLY_IMAGE_BUILD=1 update-initramfs -c -k all' \
     --dpkgopt='path-exclude=/usr/share/man/*' \
     --dpkgopt='path-exclude=/usr/share/locale/*' \
     --dpkgopt='path-include=/usr/share/locale/locale.alias' \

@@ -95,8 +95,8 @@ image_packages=(
   qemu-user-static binfmt-support arch-test
   dosfstools mtools fdisk e2fsprogs grub-common
   # the uefi image booted in a test (tests/packaging/test_image.py): a virt board, UEFI firmware;
-  # the rpi4 image read: its initramfs's file list, its device trees' properties
-  qemu-system-arm qemu-efi-aarch64 cpio device-tree-compiler
+  # the rpi4 image read: its initramfs unpacked and listed, its device trees' properties
+  qemu-system-arm qemu-efi-aarch64 zstd cpio device-tree-compiler
 )
 
 # bench (make bench): callgrind for the drone's instructions per frame

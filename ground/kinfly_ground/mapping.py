@@ -188,9 +188,14 @@ class Mapper:
                       f"{c.newer} now {'accepted' if step > 0 else 'refused'} by the graph, "
                       "with the loops added since")
         if draw:
-            state.view.submap_poses(utime, chain.corrections())
-            state.view.pose_graph(utime, *chain.graph())
+            self._draw_map(state, chain, utime)
             state.view.optimised(utime, np.array([T[:3, 3] for _, T in chain.trajectory()]))
+
+    @staticmethod
+    def _draw_map(state: VehicleState, chain: SubmapChain, utime: int) -> None:
+        """Every submap where the graph now puts it, and the graph."""
+        state.view.submap_poses(utime, chain.corrections())
+        state.view.pose_graph(utime, *chain.graph())
 
     def _correct(self, state: VehicleState, m: Keyframe, T_onboard: np.ndarray,
                  T_corrected: np.ndarray, arrival_ns: int) -> bool:
@@ -325,8 +330,7 @@ class Mapper:
             last_utime = segment.corrected[-1][0]
             self._add_loops(state, chain, last_utime)
             active = chain.active
-            state.view.submap_poses(last_utime, chain.corrections())
-            state.view.pose_graph(last_utime, *chain.graph())
+            self._draw_map(state, chain, last_utime)
             state.view.mesh(last_utime, active.index, *active.fusion.snapshot().mesh())
             segment.final_mesh = chain.mesh()
             segment_truth = truth if truth is not None else segment.ground_truth

@@ -400,21 +400,22 @@ class SubmapChain:
         for candidate, T in loops:
             graph.add_loop(candidate.older, candidate.newer, T, self.params.loop)
         result = graph.optimise()
-        self._loops = loops
-        with self._lock:
-            self._corrections = [result.poses[s.index] @ np.linalg.inv(s.T_c_anchor)
-                                 for s in self.submaps]
+        if len(result.loop_accepted) != len(loops):
+            raise ValueError(f"the graph judged {len(result.loop_accepted)} loops of "
+                             f"{len(loops)}")
         # The graph's verdicts follow its loops' order, which is the order of the outcomes whose
         # check passed, the earlier ones first (a pair of submaps may be tried more than once).
         verdicts = iter(result.loop_accepted)
-        revised = []
-        for k, outcome in enumerate(self.outcomes):
-            now = outcome.check.accepted and next(verdicts)
-            if now != outcome.accepted_by_graph:
-                self.outcomes[k] = dataclasses.replace(outcome, accepted_by_graph=now)
-                revised.append(self.outcomes[k])
+        outcomes = [dataclasses.replace(o, accepted_by_graph=o.check.accepted and next(verdicts))
+                    for o in self.outcomes]
+        revised = [now for now, before in zip(outcomes, self.outcomes)
+                   if now.accepted_by_graph != before.accepted_by_graph]
         new = [LoopOutcome(c, check, check.accepted and next(verdicts)) for c, check in checked]
-        self.outcomes.extend(new)
+        self._loops = loops
+        self.outcomes = outcomes + new
+        with self._lock:
+            self._corrections = [result.poses[s.index] @ np.linalg.inv(s.T_c_anchor)
+                                 for s in self.submaps]
         return LoopsAdded(new, revised)
 
     def _loop_edge(self, candidate: LoopCandidate, T_older_newer: np.ndarray) -> np.ndarray:

@@ -55,7 +55,8 @@ BUILD = REPO_ROOT / "build"
 ONBOARD_ARGS = ["--downsample", "2", "--volume", "dense", "--threads", "1"]
 # Issue 4, "Targets".
 TARGETS = {"frame_ms_median": 8.0, "frame_ms_p99": 15.0, "ate_m": 0.04, "peak_rss_mb": 64.0,
-           # Issue 18: 30 frames a second on one A72 core at IPC 0.8.
+           # Issue 18's: 30 frames a second on one A72 core at IPC 0.8 would allow 40 M; the
+           # issue asks 35 M, a margin kept as it is.
            "aarch64_instructions_per_frame": 35e6}
 
 

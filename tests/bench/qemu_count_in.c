@@ -4,9 +4,10 @@
  *
  *   qemu-aarch64 -plugin ./libcount_in.so,enter=SYMBOL,leave=SYMBOL -d plugin -D LOG PROGRAM
  *
- * Counting starts each time execution reaches ENTER's first instruction and stops when it next
- * reaches code of LEAVE (its caller): exact for a function that never runs its caller's code,
- * on one guest thread (kinfly-fuse --threads 1). Symbols are the ELF symbol table's (mangled)
+ * Counting starts each time execution reaches ENTER's first instruction from outside it and
+ * stops when it next reaches code of LEAVE (its caller): exact for a function that never runs
+ * its caller's code, on one guest thread (kinfly-fuse --threads 1); a branch back to its entry
+ * is not another call. Symbols are the ELF symbol table's (mangled)
  * names of the main program. Of those instructions it also counts the Advanced SIMD (NEON) ones,
  * those with a vector register operand (v0.4s, q0), to show whether the 4-lane kernels became
  * NEON. The counts are printed at exit. */
@@ -22,7 +23,11 @@
 
 QEMU_PLUGIN_EXPORT int qemu_plugin_version = QEMU_PLUGIN_VERSION;
 
+/* A block's kind, instruction count and SIMD instruction count, packed into the pointer-sized
+ * user data of its callback. */
 enum { kOutside = 0, kEnter = 1, kLeave = 2, kKindBits = 2, kCountBits = 31 };
+_Static_assert(sizeof(void *) * 8 >= kKindBits + 2 * kCountBits,
+               "the counts need 64-bit pointers");
 
 static const char *enter_symbol;
 static const char *leave_symbol;
@@ -35,15 +40,13 @@ static uint64_t instructions;
 static uint64_t simd_instructions;
 static uint64_t calls;
 
-/* Each translation block's kind, instruction count and SIMD instruction count ride in its
- * callback's user data. */
 static void block_executed(unsigned int vcpu, void *data)
 {
     const uint64_t packed = (uintptr_t)data;
     const uint64_t count_mask = (UINT64_C(1) << kCountBits) - 1;
     const unsigned kind = packed & ((1u << kKindBits) - 1);
     (void)vcpu;
-    if (kind == kEnter) {
+    if (kind == kEnter && !inside) {
         inside = true;
         ++calls;
     } else if (kind == kLeave) {

@@ -246,6 +246,8 @@ LOOP_MIN_SUBMAPS = 6
 LOOP_KEYFRAMES_OUT = 19
 KEYFRAME_INTERVAL_US = 100_000  # the way back's capture times go on from the way out's
 LOOP_CHECKS_TIMEOUT_S = 600.0
+# Each of two odometry frames flies 9 keyframes, about 0.35 m: a submap closes in each.
+SUMMARY_KEYFRAMES = 9
 
 
 def test_the_way_back_closes_loops_and_the_outputs_hold_the_optimised_map(
@@ -347,6 +349,31 @@ def test_a_drone_restart_finishes_the_segment(sample) -> None:
     assert [c.keyframe_id for c in corrections] == [0, 1, 2, 3, 0, 1, 2]
     for correction, (_, T_truth) in zip(corrections[4:], after):
         assert_near(corrected_pose(correction), T_truth)
+
+
+def test_the_summary_counts_the_submaps_of_every_odometry_frame(
+        sample, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Loop counters are the vehicle's, over every odometry frame it flew: so is the summary's
+    count of submaps beside them, not the last frame's alone."""
+    before = flight(sample, SUMMARY_KEYFRAMES)
+    after = flight(sample, SUMMARY_KEYFRAMES, start=SUMMARY_KEYFRAMES * FRAME_STEP)
+    rig = Rig(StationParams(mesh_interval_s=0, final_loops_timeout_s=LOOP_CHECKS_TIMEOUT_S,
+                            submaps=SubmapParams(max_distance_m=LOOP_SUBMAP_DISTANCE_M)))
+    for message, _ in before + after:
+        rig.send(message)
+    rig.station.stop()
+    rig.station.show_final(None)
+    state = rig.state()
+    c = state.counters
+    assert c.drone_restarts == 1
+    submaps = len(state.finished_segments[0].chain.submaps) + len(state.segment.chain.submaps)
+    assert submaps > 2, "each odometry frame must have closed a submap"
+    capsys.readouterr()
+    print_summary(export(rig.station, tmp_path, "replay", time.monotonic(), None, {}),
+                  tmp_path, None)
+    printed = capsys.readouterr().out
+    assert (f"{submaps} submaps in 2 odometry frames ({c.submaps_after_loss} begun after lost "
+            f"keyframes); {c.loop_candidates} loop candidates") in printed, printed
 
 
 def test_a_camera_change_starts_a_new_segment(sample) -> None:

@@ -275,6 +275,7 @@ def test_rpi4_image_has_the_uefi_images_root_file_system(root_fs: Path,
 
 def test_rpi4_boot_partition_has_the_firmware_kernel_and_device_trees(
         rpi4_boot_fs: Path, rpi4_root_fs: Path, tmp_path: Path) -> None:
+    subprocess.run(["fsck.vfat", "-n", rpi4_boot_fs], check=True, capture_output=True, timeout=60)
     files = fat_listing(rpi4_boot_fs)
     for name in (*PI4_BOOT_FILES, "kinfly.conf", "kinfly.conf.example"):
         assert f"::/{name}" in files, files

@@ -29,6 +29,14 @@ inline Floats shuffle(Floats a, Floats b) {
 }
 // One bit per lane of a mask, lane 0 in bit 0.
 inline int bits(Ints mask) { return (mask[0] & 1) | (mask[1] & 2) | (mask[2] & 4) | (mask[3] & 8); }
+// No lane true: one instruction on SSE (the lanes' sign bits).
+inline bool none(Ints mask) {
+#if defined(__SSE__)
+  return __builtin_ia32_movmskps(reinterpret_cast<Floats>(mask)) == 0;
+#else
+  return (mask[0] | mask[1] | mask[2] | mask[3]) == 0;
+#endif
+}
 
 // One value, or four consecutive ones.
 template <typename T>

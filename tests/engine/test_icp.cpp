@@ -434,13 +434,23 @@ TEST_F(IcpFixture, RejectedGroupsChangeNoSumToTheBit) {
       const int at = n / 8 * 4;  // mid-row, on a group boundary
       for (int x = 0; x < n; ++x) copy(x, y, &b, x < at ? x : x + 4, 1.f);
       for (int l = 0; l < 4; ++l) {
-        if (y % 2 == 0) {
+        if (y % 3 == 0) {
           // Behind the camera: projected nowhere.
           copy(l, y, &b, at + l, 1.f);
           b.vz(at + l, y) = -b.vz(at + l, y);
-        } else {
+        } else if (y % 3 == 1) {
           // On the model where the row's first points are, facing away: the normal gate rejects.
           copy(l, y, &b, at + l, -1.f);
+        } else {
+          // Onto model pixels without a point (for both frames).
+          copy(l, y, &b, at + l, 1.f);
+          const Eigen::Vector3f v_cur(from.vx(l, y), from.vy(l, y), from.vz(l, y));
+          const Eigen::Vector3f p = R * v_cur + t;
+          const PinholeCamera& cam = model.camera[c.level];
+          const int u = roundToInt(cam.fx * p.x() / p.z() + cam.cx);
+          const int v = roundToInt(cam.fy * p.y() / p.z() + cam.cy);
+          if (u >= 0 && v >= 0 && u < cam.width && v < cam.height)
+            model.vertex_ref[c.level](u, v) = invalidVector();
         }
       }
       b.row_count[y] += 4;

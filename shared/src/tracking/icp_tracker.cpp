@@ -261,6 +261,7 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
           // Padding past the row's last point takes part in nothing; NaN marks no model point.
           const Ints found =
               (i + Ints{0, 1, 2, 3} < count) & inside[g] & (q.x == q.x) & (nq.x == nq.x);
+          if (lanes::none(found)) continue;
           Floats row[kColumns];
           const Ints inlier = pointToPlane(
               p[g], load<Floats>(vz + i),

@@ -1,7 +1,8 @@
 // IcpTracker: recovers known 6-DoF offsets on a well-constrained synthetic scene; in degenerate
 // scenes (a plane, a corridor) names the weak directions and keeps the guess along them; reports
 // empty input as lost without touching the pose; its serial and threaded system
-// builders agree, and the vectorised builder matches a per-pixel reference.
+// builders agree, the vectorised builder matches a per-pixel reference, and rejected pairs add
+// nothing to it.
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -401,6 +402,70 @@ TEST_F(IcpFixture, SystemMatchesPerPixelReference) {
     // Jacobian on even 1% of the pairs moves the sums by ~1e-2.
     constexpr double kRelSumTol = 1e-6;
     expectSystemsNear(fast, ref, kRelSumTol, c.level);
+  }
+}
+
+// Groups of four rejected pairs, wherever they fall in a row, leave every sum as it is to the
+// bit: the builder drops them instead of adding their zero rows. Rows are cut to a few groups so
+// that the inserted group moves no other point to another lane or another of the builder's blocks.
+TEST_F(IcpFixture, RejectedGroupsChangeNoSumToTheBit) {
+  Eigen::Matrix3f R;
+  Eigen::Vector3f t;
+  buildOffsetPair(11, &R, &t);
+  constexpr int kCutRow = 24;  // points kept per row, a multiple of four
+  for (const SystemConfig& c : systemConfigs()) {
+    const PackedPoints& from = current.points[c.level];
+    const int h = static_cast<int>(from.row_count.size());
+    DepthFrame cut(camera), with_rejected(camera);
+    cut.points[c.level] = PackedPoints(kCutRow, h);
+    with_rejected.points[c.level] = PackedPoints(kCutRow + 4, h);
+    PackedPoints &a = cut.points[c.level], &b = with_rejected.points[c.level];
+    auto copy = [&](int x, int y, PackedPoints* to, int tx, float normal_sign) {
+      to->vx(tx, y) = from.vx(x, y), to->vy(tx, y) = from.vy(x, y), to->vz(tx, y) = from.vz(x, y);
+      to->nx(tx, y) = normal_sign * from.nx(x, y), to->ny(tx, y) = normal_sign * from.ny(x, y),
+      to->nz(tx, y) = normal_sign * from.nz(x, y);
+    };
+    int inserted = 0;
+    for (int y = 0; y < h; ++y) {
+      const int n = std::min(from.row_count[y], kCutRow);
+      for (int x = 0; x < n; ++x) copy(x, y, &a, x, 1.f);
+      a.row_count[y] = b.row_count[y] = n;
+      if (n < 4) continue;
+      const int at = n / 8 * 4;  // mid-row, on a group boundary
+      for (int x = 0; x < n; ++x) copy(x, y, &b, x < at ? x : x + 4, 1.f);
+      for (int l = 0; l < 4; ++l) {
+        if (y % 3 == 0) {
+          // Behind the camera: projected nowhere.
+          copy(l, y, &b, at + l, 1.f);
+          b.vz(at + l, y) = -b.vz(at + l, y);
+        } else if (y % 3 == 1) {
+          // On the model where the row's first points are, facing away: the normal gate rejects.
+          copy(l, y, &b, at + l, -1.f);
+        } else {
+          // Onto model pixels without a point (for both frames).
+          copy(l, y, &b, at + l, 1.f);
+          const Eigen::Vector3f v_cur(from.vx(l, y), from.vy(l, y), from.vz(l, y));
+          const Eigen::Vector3f p = R * v_cur + t;
+          const PinholeCamera& cam = model.camera[c.level];
+          const int u = roundToInt(cam.fx * p.x() / p.z() + cam.cx);
+          const int v = roundToInt(cam.fy * p.y() / p.z() + cam.cy);
+          if (u >= 0 && v >= 0 && u < cam.width && v < cam.height)
+            model.vertex_ref[c.level](u, v) = invalidVector();
+        }
+      }
+      b.row_count[y] += 4;
+      inserted += 4;
+    }
+    const IcpSystem expected = IcpTracker::buildSystem(cut, model, c.level, R, t, c.system);
+    const IcpSystem actual = IcpTracker::buildSystem(with_rejected, model, c.level, R, t, c.system);
+    ASSERT_GT(expected.inliers, 100) << "level " << c.level;
+    ASSERT_GT(inserted, 100) << "level " << c.level;
+    EXPECT_EQ(actual.valid_points, expected.valid_points + inserted);
+    EXPECT_EQ(actual.inliers, expected.inliers) << "level " << c.level;
+    EXPECT_TRUE(actual.ata == expected.ata) << "level " << c.level;
+    EXPECT_TRUE(actual.atb == expected.atb) << "level " << c.level;
+    EXPECT_EQ(actual.error_sq, expected.error_sq) << "level " << c.level;
+    EXPECT_EQ(actual.noise_sq, expected.noise_sq) << "level " << c.level;
   }
 }
 

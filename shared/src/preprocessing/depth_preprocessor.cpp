@@ -93,12 +93,20 @@ void bilateralBand(ImageView<const float> depth_m, int y_begin, int y_end,
     return dy == 0 ? dx - 1 : r + (dy - 1) * side + dx + r;
   };
   auto spatial = [&](int dx, int dy) { return k.spatial[(dy + r) * side + dx + r]; };
+  constexpr int kMaxR = BilateralKernel::kMaxRadius;
+  // Each forward offset's spatial weight times the range table, so that weighing a pair is one
+  // lookup: the same product, to the bit, as multiplying after the lookup.
+  constexpr int kBins = BilateralKernel::kRangeSteps + 1;
+  float forward_weights[kMaxR * (2 * kMaxR + 2)][kBins];
+  for (int dy = 0; dy <= r; ++dy)
+    for (int dx = dy == 0 ? 1 : -r; dx <= r; ++dx)
+      for (int i = 0; i < kBins; ++i)
+        forward_weights[forwardIndex(dx, dy)][i] = spatial(dx, dy) * k.range[i];
   // Rows are kept in rings whose sizes are powers of two, so that a row's slot is a mask of its
   // index. The weights kept for r + 1 rows fill a fixed buffer; the tile width follows from it.
   auto powerOfTwo = [](int n) { int p = 1; while (p < n) p *= 2; return p; };
   const int ring_rows = powerOfTwo(r + 1), depth_rows = powerOfTwo(side);
   constexpr int kRingFloats = 16384, kMaxTile = 128;
-  constexpr int kMaxR = BilateralKernel::kMaxRadius;
   static_assert(kMaxR <= 7, "the rings of kept rows have at most 8 and 16 slots");
   static_assert(kRingFloats / (8 * kMaxR * (2 * kMaxR + 2)) - 2 * kMaxR - kWidth >= kWidth,
                 "the largest radius needs a tile of at least four pixels");
@@ -138,11 +146,14 @@ void bilateralBand(ImageView<const float> depth_m, int y_begin, int y_end,
         for (int dx = dy == 0 ? 1 : -r; dx <= r; ++dx) {
           const float* there = depthRow(y + dy) + r + dx;
           float* weights = ringRow(y, forwardIndex(dx, dy));
-          for (int i = 0; i < tile + 2 * r; i += kWidth) {
-            const auto bin =
-                rangeBin(lanes::load<Floats>(there + i), lanes::load<Floats>(here + i), k);
-            lanes::store(weights + i, spatial(dx, dy) * lanes::lookup(k.range.data(), bin));
-          }
+          const float* table = forward_weights[forwardIndex(dx, dy)];
+          // All of the row's bins first, so that the lookups read their indices from memory.
+          int bins[kMaxTile + 2 * kMaxR + kWidth];
+          for (int i = 0; i < tile + 2 * r; i += kWidth)
+            lanes::store(bins + i, rangeBin(lanes::load<Floats>(there + i),
+                                            lanes::load<Floats>(here + i), k));
+          for (int i = 0; i < tile + 2 * r; i += kWidth)
+            lanes::store(weights + i, lanes::lookup(table, bins + i));
         }
       if (y < y_begin) continue;
       // Row y of the output: where each tap, in scan order, reads its depth and weight.

@@ -5,6 +5,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <sstream>
 
@@ -77,11 +78,21 @@ inline Vec3s rotate(const Eigen::Matrix3f& R, const Vec3s& v) {
           R(1, 0) * v.x + (R(1, 1) * v.y + R(1, 2) * v.z),
           R(2, 0) * v.x + (R(2, 1) * v.y + R(2, 2) * v.z)};
 }
+// x and y of a point travel together as one 8-byte lane, two points to a register, and are then
+// split by one shuffle each; four separate loads per coordinate would cost twice the instructions.
 inline Vec3s gather(const Eigen::Vector3f* map, Ints pixel) {
-  const Eigen::Vector3f &p0 = map[pixel[0]], &p1 = map[pixel[1]], &p2 = map[pixel[2]],
-                        &p3 = map[pixel[3]];
-  return {Floats{p0.x(), p1.x(), p2.x(), p3.x()}, Floats{p0.y(), p1.y(), p2.y(), p3.y()},
-          Floats{p0.z(), p1.z(), p2.z(), p3.z()}};
+  typedef double Pairs __attribute__((vector_size(16)));
+  const float *p0 = map[pixel[0]].data(), *p1 = map[pixel[1]].data(), *p2 = map[pixel[2]].data(),
+              *p3 = map[pixel[3]].data();
+  auto pair = [](const float* p) {
+    double xy;
+    std::memcpy(&xy, p, sizeof xy);
+    return xy;
+  };
+  const Floats xy01 = reinterpret_cast<Floats>(Pairs{pair(p0), pair(p1)});
+  const Floats xy23 = reinterpret_cast<Floats>(Pairs{pair(p2), pair(p3)});
+  return {lanes::shuffle<0, 2, 4, 6>(xy01, xy23), lanes::shuffle<1, 3, 5, 7>(xy01, xy23),
+          Floats{p0[2], p1[2], p2[2], p3[2]}};
 }
 
 // Everything the kernels need that is fixed for one system.
@@ -229,29 +240,37 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
       Ints inliers = {};
       Columns cols;
       for (int b = 0; b < count; b += kWidth * kBlockGroups) {
-        cols.groups = (std::min(count - b, kWidth * kBlockGroups) + kWidth - 1) / kWidth;
+        const int groups = (std::min(count - b, kWidth * kBlockGroups) + kWidth - 1) / kWidth;
         // All of the block's projections first, so that the lookups do not wait on each one.
         Vec3s p[kBlockGroups];
         Ints pixel[kBlockGroups], inside[kBlockGroups];
-        for (int g = 0; g < cols.groups; ++g) {
+        for (int g = 0; g < groups; ++g) {
           const int i = b + kWidth * g;
           p[g] = transform(assoc,
                            {load<Floats>(vx + i), load<Floats>(vy + i), load<Floats>(vz + i)});
           pixel[g] = modelPixel(p[g], assoc, &inside[g]);
         }
-        for (int g = 0; g < cols.groups; ++g) {
+        // A group of four rejected pairs would add only +0 rows, which change no sum (the sums
+        // start at +0 and so are never -0): it is left out of the columns, and the groups kept
+        // keep their lanes and their order.
+        cols.groups = 0;
+        for (int g = 0; g < groups; ++g) {
+          if (lanes::none(inside[g])) continue;
           const int i = b + kWidth * g;
           const Vec3s q = gather(vmodel, pixel[g]), nq = gather(nmodel, pixel[g]);
           // Padding past the row's last point takes part in nothing; NaN marks no model point.
           const Ints found =
               (i + Ints{0, 1, 2, 3} < count) & inside[g] & (q.x == q.x) & (nq.x == nq.x);
+          if (lanes::none(found)) continue;
           Floats row[kColumns];
           const Ints inlier = pointToPlane(
               p[g], load<Floats>(vz + i),
               {load<Floats>(nx + i), load<Floats>(ny + i), load<Floats>(nz + i)}, q, nq, found,
               assoc, row);
+          if (lanes::none(inlier)) continue;
           inliers -= inlier;  // true lanes are -1
-          for (int k = 0; k < kColumns; ++k) cols.c[k][g] = row[k];
+          for (int k = 0; k < kColumns; ++k) cols.c[k][cols.groups] = row[k];
+          ++cols.groups;
         }
         accumulate(cols, sums);
       }

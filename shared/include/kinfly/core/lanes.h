@@ -29,6 +29,14 @@ inline Floats shuffle(Floats a, Floats b) {
 }
 // One bit per lane of a mask, lane 0 in bit 0.
 inline int bits(Ints mask) { return (mask[0] & 1) | (mask[1] & 2) | (mask[2] & 4) | (mask[3] & 8); }
+// No lane true: one instruction on SSE (the lanes' sign bits).
+inline bool none(Ints mask) {
+#if defined(__SSE__)
+  return __builtin_ia32_movmskps(reinterpret_cast<Floats>(mask)) == 0;
+#else
+  return (mask[0] | mask[1] | mask[2] | mask[3]) == 0;
+#endif
+}
 
 // One value, or four consecutive ones.
 template <typename T>
@@ -56,6 +64,7 @@ inline Floats loadEveryOther<Floats>(const float* p) {
 }
 inline void store(float* p, float v) { *p = v; }
 inline void store(float* p, Floats v) { std::memcpy(p, &v, sizeof v); }
+inline void store(int* p, Ints v) { std::memcpy(p, &v, sizeof v); }
 // Pixel coordinate x, or x .. x + 3.
 template <typename T>
 T coordinate(int x);
@@ -92,10 +101,10 @@ inline Ints truncate(Floats x) { return __builtin_convertvector(x, Ints); }
 inline float toFloat(int x) { return static_cast<float>(x); }
 inline Floats toFloat(Ints x) { return __builtin_convertvector(x, Floats); }
 inline float lookup(const float* table, int i) { return table[i]; }
-inline Floats lookup(const float* table, Ints i) {
-  typedef unsigned Indices __attribute__((vector_size(16)));  // spares sign-extending each lane
-  const Indices u = reinterpret_cast<Indices>(i);
-  return Floats{table[u[0]], table[u[1]], table[u[2]], table[u[3]]};
+// table[i[0]] .. table[i[3]], with the indices in memory: SSE2 has no gather, and moving each
+// index out of a register takes more instructions than storing all four and loading each.
+inline Floats lookup(const float* table, const int* i) {
+  return Floats{table[i[0]], table[i[1]], table[i[2]], table[i[3]]};
 }
 // A scalar function applied lane by lane; for short functions the compiler vectorises it.
 template <typename F>

@@ -33,16 +33,21 @@ def callgrind_instructions(command: Sequence[str | Path], toggle_collect: str,
     return int(re.search(r"^summary:\s+(\d+)", text, re.MULTILINE).group(1))
 
 
+def core_seconds(instructions: float, hz: float,
+                 ipc_range: tuple[float, float]) -> tuple[float, float]:
+    """[s] (fastest, slowest) time for this many instructions on a core at HZ, over IPC_RANGE."""
+    return instructions / (hz * ipc_range[1]), instructions / (hz * ipc_range[0])
+
+
 def core_estimate(instructions: float, hz: float,
                   ipc_range: tuple[float, float]) -> dict[str, list[float]]:
     """Frames a second and milliseconds a frame at this many instructions a frame, slowest IPC
     first for the rate, fastest first for the time."""
-    fps = [hz * ipc / instructions for ipc in ipc_range]
-    return {"fps_estimate": [round(f, 1) for f in fps],
-            "ms_per_frame_estimate": [round(1e3 / f, 1) for f in reversed(fps)]}
+    seconds = core_seconds(instructions, hz, ipc_range)
+    return {"fps_estimate": [round(1 / s, 1) for s in reversed(seconds)],
+            "ms_per_frame_estimate": [round(1e3 * s, 1) for s in seconds]}
 
 
 def a72_seconds(instructions: float) -> tuple[float, float]:
     """[s] (fastest, slowest) A72 time for this many instructions, over A72_IPC_RANGE."""
-    return (instructions / (A72_HZ * A72_IPC_RANGE[1]),
-            instructions / (A72_HZ * A72_IPC_RANGE[0]))
+    return core_seconds(instructions, A72_HZ, A72_IPC_RANGE)

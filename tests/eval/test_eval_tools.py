@@ -109,3 +109,24 @@ def test_mesh_accuracy_measures_distance_to_the_surface_not_vertices(tmp_path: P
     assert result["mean_m"] == pytest.approx(0.003, abs=1e-4)
     assert result["p90_m"] == pytest.approx(0.003, abs=1e-4)
     assert result["outlier_fraction"] == 0.0
+
+
+def test_depth_floor_is_the_data_s_own_distance_where_the_mesh_lies(tmp_path: Path) -> None:
+    # GT: the square z = 0. Depth points 1 mm above it on the left half (x < 0) and 2 mm above it
+    # on the right, every 5 mm. Our mesh: 3 mm above it, on the left half only. The floor is the
+    # left half's 1 mm, not the 1.5 mm of all the data, nor our 3 mm.
+    gt = trimesh.Trimesh(vertices=[[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]],
+                         faces=[[0, 1, 2], [0, 2, 3]], process=False)
+    x, y = np.meshgrid(np.arange(-0.5, 0.5, 0.005), np.arange(-0.5, 0.5, 0.005))
+    x, y = x.ravel(), y.ravel()
+    points = np.stack([x, y, np.where(x < 0, 0.001, 0.002)], axis=1)
+    grid = trimesh.creation.box(extents=[0.4, 0.8, 1e-4]).subdivide().subdivide()
+    ours = trimesh.Trimesh(vertices=grid.vertices + [-0.25, 0, 0.003], faces=grid.faces,
+                           process=False)
+    gt.export(tmp_path / "gt.ply")
+    ours.export(tmp_path / "ours.ply")
+    floor = kinfly_eval.depth_floor(tmp_path / "ours.ply", points, tmp_path / "gt.ply")
+    assert floor["points"] == len(ours.vertices)
+    assert floor["mean_m"] == pytest.approx(0.001, abs=1e-6)
+    accuracy = kinfly_eval.mesh_accuracy(tmp_path / "ours.ply", tmp_path / "gt.ply")
+    assert accuracy["mean_m"] == pytest.approx(0.003, abs=1e-4)

@@ -316,6 +316,27 @@ TriangleMesh MarchingCubes::extract(const TsdfVolume& volume) const {
 
 namespace detail {
 
+namespace {
+
+// A zero crossing is a surface only where the TSDF changes between the two voxels by no more
+// than the truncation band (1 in TSDF units). A surface seen at angle theta from its normal
+// changes the projective distance by at most a voxel over cos(theta) per voxel: within the band
+// wherever cos(theta) >= voxel / truncation, i.e. up to 75 degrees at four voxels. A larger step
+// is a depth discontinuity's: behind a foreground edge a voxel inside the edge's band borders one
+// that the pixels beside the silhouette saw as free space (1), and the crossing between them is
+// the classic TSDF "curtain", up to a band deep behind the silhouette. A triangle with a vertex on
+// such a crossing is left out; the decision is the edge's alone, so the neighbouring cube that
+// shares the edge leaves out its side too and the mesh stays consistent. On Replica office0 the
+// curtains were 5 % of the mesh's vertices; what goes with them are surfaces seen only more
+// obliquely than that (docs/engine.md, "Depth discontinuities").
+constexpr float kMaxSurfaceStep = 1.f;
+
+bool isDiscontinuity(const CubeEdge& edge, const std::array<float, 8>& corner_tsdf) {
+  return std::abs(corner_tsdf[edge.lo] - corner_tsdf[edge.hi]) > kMaxSurfaceStep;
+}
+
+}  // namespace
+
 void meshBlock(const TsdfVolume& volume, const VoxelBlock& block, float min_weight,
                BlockMesherScratch* scratch, BlockMesh* out) {
   const CaseTable& table = caseTable();
@@ -384,6 +405,10 @@ void meshBlock(const TsdfVolume& volume, const VoxelBlock& block, float min_weig
         const Eigen::Vector3i cube(x, y, z);
         const auto& tris = table.triangles[mask];
         for (int k = 0; tris[k] >= 0; k += 3) {
+          if (isDiscontinuity(table.edges[tris[k]], corner_tsdf) ||
+              isDiscontinuity(table.edges[tris[k + 1]], corner_tsdf) ||
+              isDiscontinuity(table.edges[tris[k + 2]], corner_tsdf))
+            continue;
           out->triangles.emplace_back(vertexOn(cube, tris[k], corner_tsdf),
                                       vertexOn(cube, tris[k + 1], corner_tsdf),
                                       vertexOn(cube, tris[k + 2], corner_tsdf));

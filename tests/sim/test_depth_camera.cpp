@@ -292,14 +292,39 @@ TEST(RayScene, TouchesWhatIsWithinTheBodysRadius) {
   EXPECT_FALSE(rays.value()->touches({0, 0, 0.1}, kRadius));  // beneath it, too
 }
 
-TEST(Scenes, RoomAndCorridorAreClosedAroundTheStart) {
+TEST(Scenes, RoomCorridorAndRingAreClosedAroundTheStart) {
   expectClosedAroundTheStart(furnishedRoom());
   expectClosedAroundTheStart(corridor());
+  expectClosedAroundTheStart(ringCorridor());
+}
+
+// sim/missions/ring_loop.toml flies along the ring's corridors' middles, a metre above the floor:
+// every point of that line keeps the body's sphere clear of the partitions, crates and walls.
+TEST(Scenes, TheRingsMiddleLineIsClear) {
+  constexpr double kBodyRadiusM = 0.27;  // the body's sphere (RayScene::touches)
+  constexpr double kHeightM = 1.0;
+  constexpr double kStepM = 0.05;
+  const Scene ring = ringCorridor();
+  auto rays = RayScene::create(ring);
+  ASSERT_TRUE(rays.ok());
+  const Eigen::Vector2d corners[] = {{-5.5, -4.5}, {5.5, -4.5}, {5.5, 4.5}, {-5.5, 4.5}, {-5.5, -4.5}};
+  int probed = 0;
+  for (int leg = 0; leg < 4; ++leg) {
+    const Eigen::Vector2d a = corners[leg], b = corners[leg + 1];
+    const int steps = static_cast<int>((b - a).norm() / kStepM);
+    for (int i = 0; i <= steps; ++i, ++probed) {
+      const Eigen::Vector2d xy = a + (b - a) * (static_cast<double>(i) / steps);
+      ASSERT_FALSE(rays.value()->touches({xy.x(), xy.y(), ring.floor_z_m - kHeightM}, kBodyRadiusM))
+          << xy.transpose();
+    }
+  }
+  EXPECT_EQ(probed, 4 + static_cast<int>(2 * (11.0 + 9.0) / kStepM));
+  EXPECT_EQ(ring.start_xy_m, corners[0]);
 }
 
 TEST(Scenes, FacesLookIntoTheFreeSpace) {
   // Each vertex normal of the room agrees with its triangle's winding, and the floor looks up.
-  for (const Scene& scene : {furnishedRoom(), corridor()}) {
+  for (const Scene& scene : {furnishedRoom(), corridor(), ringCorridor()}) {
     const TriangleMesh& mesh = scene.mesh;
     for (const Eigen::Vector3i& t : mesh.triangles) {
       const Eigen::Vector3f wound =
@@ -310,7 +335,7 @@ TEST(Scenes, FacesLookIntoTheFreeSpace) {
       EXPECT_LT(mesh.normals[mesh.triangles[i][0]].z(), -0.99f);
     }
   }
-  EXPECT_EQ(makeScene("hall").status().message(), "scene 'hall' is unknown (known: room, corridor)");
+  EXPECT_EQ(makeScene("hall").status().message(), "scene 'hall' is unknown (known: room, corridor, ring)");
 }
 
 // A file in the temporary folder, removed however the test ends.

@@ -37,6 +37,14 @@ Scene furnishedRoom();
 // at x = -2, heading down the corridor; the far end is beyond the camera's range.
 Scene corridor();
 
+// A ring of corridors round a block, the kind of loop a drone flies round a building's floor:
+// 14 m x 12 m x 2.5 m outside (x in [-7, 7], y in [-6, 6]), the block 8 m x 6 m in the middle,
+// so each corridor is 3 m wide and a lap along their middles is 40 m. Partitions from alternate
+// walls every few metres and crates between them give ICP structure along each corridor. The
+// drone starts in the south-west corner (-5.5, -4.5), heading +x down the south corridor; a lap
+// is long enough for the odometry to drift before it comes back (docs/sim.md, "Scenes").
+Scene ringCorridor();
+
 // A scene from a mesh file (PLY, OBJ, OFF or STL: readMeshFile), in metres with z up, as
 // Replica's and most scans' are; a half turn about x puts it in the simulator's world (z down:
 // a point (x, y, z) of the file is at (x, -y, -z)). Its floor: each 1 cm band of heights weighed
@@ -48,7 +56,7 @@ Scene corridor();
 StatusOr<Scene> loadMeshScene(const std::string& path, const Eigen::Vector2d& start_xy_m,
                               double start_heading_rad);
 
-// The scenes by name: room, corridor. An error names the name and the known ones.
+// The scenes by name: room, corridor, ring. An error names the name and the known ones.
 StatusOr<Scene> makeScene(const std::string& name);
 // The names makeScene knows, for --help.
 const std::vector<std::string>& sceneNames();

@@ -186,7 +186,7 @@ def main() -> int:
     parser.add_argument("--aarch64", type=Path, default=None,
                         help="the aarch64 build folder (make firmware-aarch64): count there too")
     args = parser.parse_args()
-    tum = kinfly_eval.data_root(Path(args.data) if args.data else None) / \
+    tum = (Path(args.data) if args.data else kinfly_eval.data_root()) / \
         kinfly_eval.TUM_SEQUENCE_SUBDIR
     if not tum.is_dir():
         print(f"bench_onboard: no TUM sequence at {tum} (--data)", file=sys.stderr)

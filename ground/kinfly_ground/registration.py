@@ -3,8 +3,10 @@ generalised ICP (Segal et al. 2009; Koide's small_gicp, a kept library) from the
 guess, then tests before the loop reaches the pose graph: it converged, the surfaces overlap,
 they agree closely where they do, and the overlap fixes every direction of motion (a single wall
 or a corridor lets one submap slide along the other, a round room lets it turn, so the
-registration there says nothing about that direction). The pose graph's robust kernel is the second line: what passes here can still be
-rejected there if the rest of the graph disagrees."""
+registration there says nothing about that direction), and registered the other way round,
+target onto source, it lands where it did (partial overlap pulls the two directions apart). The
+pose graph's robust kernel is the second line: what passes here can still be rejected there if
+the rest of the graph disagrees."""
 from __future__ import annotations
 
 import dataclasses
@@ -187,11 +189,6 @@ def check_loop(target_points: np.ndarray, source_points: np.ndarray,
                               max_iterations=params.max_iterations, num_threads=params.threads)
     T = np.asarray(result.T_target_source)
     overlap, rms, conditioning = _fit(target_cloud, source_cloud, T, params)
-    back = small_gicp.align(source_cloud, target_cloud, source_tree, np.linalg.inv(guess),
-                            registration_type="GICP",
-                            max_correspondence_distance=params.max_correspondence_m,
-                            max_iterations=params.max_iterations, num_threads=params.threads)
-    cycle = _cycle_m(target_cloud, source_cloud, T, np.asarray(back.T_target_source))
     # The place first (does the fit put the surfaces together at all), then whether they can
     # slide, then whether GICP settled: a fit in the wrong place is reported as that, and
     # sliding surfaces seldom converge, but the sliding is the reason.
@@ -205,7 +202,18 @@ def check_loop(target_points: np.ndarray, source_points: np.ndarray,
                   "(the surfaces can slide or turn)")
     elif not result.converged:
         reason = f"GICP did not converge in {result.iterations} iterations"
-    elif cycle > params.max_cycle_m:
-        reason = (f"registered the other way round it lands {100 * cycle:.1f} cm away, beyond "
-                  f"max_cycle_m {100 * params.max_cycle_m:g} cm (the fit is not unique)")
+    else:
+        # Last, as it costs a second registration: only a fit that passed everything else.
+        back = small_gicp.align(source_cloud, target_cloud, source_tree, np.linalg.inv(guess),
+                                registration_type="GICP",
+                                max_correspondence_distance=params.max_correspondence_m,
+                                max_iterations=params.max_iterations, num_threads=params.threads)
+        cycle = _cycle_m(target_cloud, source_cloud, T, np.asarray(back.T_target_source))
+        if not back.converged:
+            reason = (f"registered the other way round GICP did not converge in "
+                      f"{back.iterations} iterations")
+        elif cycle > params.max_cycle_m:
+            reason = (f"registered the other way round it lands {100 * cycle:.1f} cm away, "
+                      f"beyond max_cycle_m {100 * params.max_cycle_m:g} cm (the fit is not "
+                      "unique)")
     return LoopCheck(reason == "", T, overlap, rms, conditioning, reason)

@@ -793,7 +793,7 @@ int main(int argc, char** argv) {
       "(docs/sim.md). Exit status: "
       "0 landed, 1 the flight failed (a collision, a hard landing, kinfly-fw gone), 2 bad input."};
   app.add_option("--scene", o.scene,
-                 "room | corridor | a mesh file (PLY, OBJ, OFF or STL: metres, z up, as Replica's "
+                 "room | corridor | ring | a mesh file (PLY, OBJ, OFF or STL: metres, z up, as Replica's "
                  "office0_mesh.ply), which needs --scene-start")
       ->capture_default_str();
   app.add_option("--scene-start", o.scene_start,

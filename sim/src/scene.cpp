@@ -284,7 +284,7 @@ Scene ringCorridor() {
   addBox(&mesh, {-4.0f, -3.0f, -2.5f}, {4.0f, 3.0f, 0.0f});
   // Down a corridor its floor, walls and ceiling all run along it, and ICP could not tell motion
   // along it (the corridor scene): partitions stand out from alternate walls every few metres,
-  // 0.2 m thick and 0.9 m into the 3 m corridor (1.2 m left on the far side, the flight line along
+  // 0.2 m thick and 0.9 m into the 3 m corridor (2.1 m left beside them, the flight line along
   // its middle 0.6 m from their ends), their faces square to the corridor. Crates between them,
   // of different sizes, keep one stretch from looking like the next. Each is
   // {x0, y0, x1, y1, height}.
@@ -292,22 +292,22 @@ Scene ringCorridor() {
     float x0, y0, x1, y1, h;
   };
   static const Part parts[] = {
-      // South corridor (y in [-6, -3]): partitions, then crates.
+      // The first corridor (y in [-6, -3]): partitions, then crates.
       {-3.1f, -6.0f, -2.9f, -5.1f, 2.5f}, {-0.1f, -3.9f, 0.1f, -3.0f, 2.5f},
       {2.9f, -6.0f, 3.1f, -5.1f, 2.5f},
       {-1.8f, -6.0f, -1.0f, -5.5f, 1.2f}, {1.2f, -3.5f, 2.2f, -3.0f, 0.9f},
-      // East corridor (x in [4, 7]). The camera looks +x all the lap, so here it faces the
-      // outer wall, 1.5 m off: shallower partitions on that wall, closer together, keep one in
-      // every view.
+      // The second (x in [4, 7]). The camera looks +x all the lap, so here it faces the outer
+      // wall, 1.5 m off: shallower partitions (0.5 m) on that wall only, closer together, keep
+      // one in every view.
       {6.5f, -3.1f, 7.0f, -2.9f, 2.5f}, {6.5f, -1.7f, 7.0f, -1.5f, 1.8f},
       {6.5f, -0.2f, 7.0f, 0.0f, 2.5f}, {6.5f, 1.2f, 7.0f, 1.4f, 2.2f},
       {6.5f, 2.7f, 7.0f, 2.9f, 2.5f},
       {6.7f, -4.2f, 7.0f, -3.6f, 0.8f}, {6.6f, 0.4f, 7.0f, 1.0f, 1.2f},
-      // North corridor (y in [3, 6]).
+      // The third (y in [3, 6]).
       {2.4f, 5.1f, 2.6f, 6.0f, 2.5f}, {-0.6f, 3.0f, -0.4f, 3.9f, 2.5f},
       {-3.1f, 5.1f, -2.9f, 6.0f, 2.2f},
       {0.8f, 5.6f, 1.6f, 6.0f, 0.7f}, {-2.3f, 3.0f, -1.3f, 3.4f, 1.4f},
-      // West corridor (x in [-7, -4]): the camera faces the block, 1.5 m off.
+      // The fourth (x in [-7, -4]): the camera faces the block, 1.5 m off; the same there.
       {-4.5f, 2.3f, -4.0f, 2.5f, 2.5f}, {-4.5f, 0.9f, -4.0f, 1.1f, 2.0f},
       {-4.5f, -0.6f, -4.0f, -0.4f, 2.5f}, {-4.5f, -2.0f, -4.0f, -1.8f, 2.2f},
       {-4.4f, -1.4f, -4.0f, -0.9f, 0.6f}, {-4.3f, 1.5f, -4.0f, 2.0f, 1.3f},

@@ -173,8 +173,8 @@ def replica_mesh(fuse: Path, data: Path, out_dir: Path) -> dict[str, Any]:
     tum_dir = out_dir / "kinfly" / "replica_tum"
     open3d = replica_mesh_open3d(tum_dir, tum_dir / "poses.tum", replica / "office0_mesh.ply",
                                  out_dir / "open3d")
-    # Each mesh beside the depth data's own distance to the truth where that mesh lies: the
-    # figure neither can go below.
+    # Each mesh beside the depth data's own distance to the truth where that mesh lies: what a
+    # mesh that reproduced the depth exactly would score.
     open3d_floor = kinfly_eval.depth_floor(out_dir / "open3d" / "mesh.ply",
                                            kinfly_eval.replica_depth_points(replica),
                                            replica / "office0_mesh.ply")

@@ -207,7 +207,8 @@ def depth_floor(mesh_ply: str | Path, depth_points: np.ndarray,
                 gt_ply: str | Path) -> dict[str, float | int]:
     """How far the depth data itself lies from the ground-truth surface where our mesh lies: for
     each of our vertices, the nearest depth point's distance to the surface. A mesh that
-    reproduced the depth exactly would score this, so mesh accuracy cannot be asked to beat it.
+    reproduced the depth exactly would score this: a reference, not a strict bound (a mesh that
+    leaves out where the two disagree, or smooths towards the decimated surface, can score less).
     (The Replica depth is rendered from the full scan, the GT mesh is that scan decimated.)"""
     from scipy.spatial import cKDTree
 

@@ -14,6 +14,7 @@
 #include <unistd.h>
 
 #include "kinfly/core/noise_model.h"
+#include "kinfly/sim/multirotor.h"
 #include "kinfly/sim/depth_camera.h"
 
 namespace kinfly::sim {
@@ -301,24 +302,22 @@ TEST(Scenes, RoomCorridorAndRingAreClosedAroundTheStart) {
 // sim/missions/ring_loop.toml flies along the ring's corridors' middles, a metre above the floor:
 // every point of that line keeps the body's sphere clear of the partitions, crates and walls.
 TEST(Scenes, TheRingsMiddleLineIsClear) {
-  constexpr double kBodyRadiusM = 0.27;  // the body's sphere (RayScene::touches)
+  const double body_radius_m = MultirotorParams().body_radius_m;
   constexpr double kHeightM = 1.0;
   constexpr double kStepM = 0.05;
   const Scene ring = ringCorridor();
   auto rays = RayScene::create(ring);
   ASSERT_TRUE(rays.ok());
   const Eigen::Vector2d corners[] = {{-5.5, -4.5}, {5.5, -4.5}, {5.5, 4.5}, {-5.5, 4.5}, {-5.5, -4.5}};
-  int probed = 0;
   for (int leg = 0; leg < 4; ++leg) {
     const Eigen::Vector2d a = corners[leg], b = corners[leg + 1];
     const int steps = static_cast<int>((b - a).norm() / kStepM);
-    for (int i = 0; i <= steps; ++i, ++probed) {
+    for (int i = 0; i <= steps; ++i) {
       const Eigen::Vector2d xy = a + (b - a) * (static_cast<double>(i) / steps);
-      ASSERT_FALSE(rays.value()->touches({xy.x(), xy.y(), ring.floor_z_m - kHeightM}, kBodyRadiusM))
+      ASSERT_FALSE(rays.value()->touches({xy.x(), xy.y(), ring.floor_z_m - kHeightM}, body_radius_m))
           << xy.transpose();
     }
   }
-  EXPECT_EQ(probed, 4 + static_cast<int>(2 * (11.0 + 9.0) / kStepM));
   EXPECT_EQ(ring.start_xy_m, corners[0]);
 }
 

@@ -242,7 +242,7 @@ def test_says_when_kinfly_fw_is_not_there(netns: list[str], tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize(("args", "message"), [
-    (["--scene", "hall"], "--scene: 'hall' is neither a scene (room, corridor) nor a mesh file"),
+    (["--scene", "hall"], "--scene: 'hall' is neither a scene (room, corridor, ring) nor a mesh file"),
     (["--scene", "room", "--scene-start", "0", "0", "0"],
      "--scene-start: scene 'room' has its own start; it is for scenes from mesh files"),
     (["--mass-error", "0.9"], "--mass-error must be in [-0.5, 0.5] (got 0.9)"),

@@ -19,7 +19,9 @@ class MarchingCubes {
   };
   explicit MarchingCubes(const Params& params);
 
-  // Vertices on shared cube edges are merged, so a closed surface gives a watertight mesh.
+  // Vertices on shared cube edges are merged, so a closed surface gives a watertight mesh;
+  // where a zero crossing steps by more than the truncation band (a depth discontinuity,
+  // docs/engine.md item 13) its triangles are left out, and the mesh has a hole there.
   TriangleMesh extract(const TsdfVolume& volume) const;
 
  private:

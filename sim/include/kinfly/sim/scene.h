@@ -39,9 +39,10 @@ Scene corridor();
 
 // A ring of corridors round a block, the kind of loop a drone flies round a building's floor:
 // 14 m x 12 m x 2.5 m outside (x in [-7, 7], y in [-6, 6]), the block 8 m x 6 m in the middle,
-// so each corridor is 3 m wide and a lap along their middles is 40 m. Partitions from alternate
-// walls every few metres and crates between them give ICP structure along each corridor. The
-// drone starts in the south-west corner (-5.5, -4.5), heading +x down the south corridor; a lap
+// so each corridor is 3 m wide and a lap along their middles is 40 m. Partitions from the walls
+// every few metres (alternate walls along the x corridors, the wall the +x camera faces along
+// the y ones) and crates between them give ICP structure along each corridor. The drone
+// starts in the corner at (-5.5, -4.5), heading +x down the corridor at y in [-6, -3]; a lap
 // is long enough for the odometry to drift before it comes back (docs/sim.md, "Scenes").
 Scene ringCorridor();
 

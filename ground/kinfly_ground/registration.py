@@ -104,18 +104,23 @@ def _conditioning(points: np.ndarray, normals: np.ndarray) -> float:
     return float(max(eigenvalues[0], 0.0) / eigenvalues[-1]) if eigenvalues[-1] > 0 else 0.0
 
 
-def _partners(target_cloud, source_cloud, T: np.ndarray, radius_m: float
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """SOURCE_CLOUD moved by T against TARGET_CLOUD, seen from the smaller of the two (a submap
-    wholly inside a larger one overlaps fully): the smaller's points, the larger's points and
-    normals, and each smaller point's distance to its nearest partner within RADIUS_M (inf
-    where none) and that partner's index."""
+def _in_target(target_cloud, source_cloud, T: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """SOURCE_CLOUD moved by T beside TARGET_CLOUD, in the target's frame, seen from the smaller
+    of the two (a submap wholly inside a larger one overlaps fully): the smaller's points, the
+    larger's points and the larger's normals."""
     source_in_target = (T[:3, :3] @ source_cloud.points()[:, :3].T).T + T[:3, 3]
     target_xyz = target_cloud.points()[:, :3]
-    small, large, large_normals = source_in_target, target_xyz, target_cloud.normals()[:, :3]
     if len(target_xyz) < len(source_in_target):
-        small, large = target_xyz, source_in_target
-        large_normals = (T[:3, :3] @ source_cloud.normals()[:, :3].T).T
+        return target_xyz, source_in_target, (T[:3, :3] @ source_cloud.normals()[:, :3].T).T
+    return source_in_target, target_xyz, target_cloud.normals()[:, :3]
+
+
+def _partners(target_cloud, source_cloud, T: np.ndarray, radius_m: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """_in_target's three, and each smaller point's distance to its nearest partner within
+    RADIUS_M (inf where none) and that partner's index."""
+    small, large, large_normals = _in_target(target_cloud, source_cloud, T)
     distances, nearest = cKDTree(large).query(small, distance_upper_bound=radius_m)
     return small, large, large_normals, distances, nearest
 
@@ -123,9 +128,7 @@ def _partners(target_cloud, source_cloud, T: np.ndarray, radius_m: float
 def _cycle_m(target_cloud, source_cloud, T: np.ndarray, T_back: np.ndarray) -> float:
     """How far the forward registration T composed with the backward one T_BACK (identity
     where the two agree) moves the smaller cloud's points, RMS, in the target's frame."""
-    xyz = target_cloud.points()[:, :3]
-    if source_cloud.size() < target_cloud.size():
-        xyz = (T[:3, :3] @ source_cloud.points()[:, :3].T).T + T[:3, 3]
+    xyz, _, _ = _in_target(target_cloud, source_cloud, T)
     cycle = T @ T_back
     moved = (cycle[:3, :3] @ xyz.T).T + cycle[:3, 3]
     return float(np.sqrt(np.mean(np.sum((moved - xyz) ** 2, axis=1))))

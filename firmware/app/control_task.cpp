@@ -186,6 +186,13 @@ void ControlTask::serveAutopilot() {
   autopilot_->send(autopilot_setpoint_, steadySeconds());
 }
 
+Pose ControlTask::cameraPose(const flight::EstimatorState& state) const {
+  Pose T_world_body = Pose::Identity();
+  T_world_body.linear() = state.q_world_body.toRotationMatrix();
+  T_world_body.translation() = state.p_world_body_m;
+  return T_world_body * stack_->params().estimator.T_body_cam;
+}
+
 void ControlTask::onImu(const lcm_recv_buf_t* message, const char*, void* self) {
   static_cast<ControlTask*>(self)->handleImu(message);
 }
@@ -206,6 +213,9 @@ void ControlTask::handleImu(const lcm_recv_buf_t* message) {
 }
 
 void ControlTask::takeImu(const flight::ImuSample& sample) {
+  const flight::Estimator& estimator = stack_->estimator();
+  const std::optional<Pose> before =
+      estimator.initialised() ? std::optional<Pose>(cameraPose(estimator.state())) : std::nullopt;
   if (!stack_->addImu(sample)) {
     ++summary_.imu_rejected;
     return;
@@ -217,26 +227,18 @@ void ControlTask::takeImu(const flight::ImuSample& sample) {
   last_imu_utime_ = sample.utime;
   last_imu_arrival_ = Clock::now();
   // Before the tick, whose rotor command a lockstep simulator waits for before it sends the next
-  // depth frame: the odometry then finds this sample's pose for the frame's prior.
-  const flight::Estimator& estimator = stack_->estimator();
-  if (pose_history_ != nullptr && estimator.initialised()) {
-    const flight::EstimatorState state = estimator.state();
-    const flight::EstimatorHealth health = estimator.health();
-    Pose T_world_body = Pose::Identity();
-    T_world_body.linear() = state.q_world_body.toRotationMatrix();
-    T_world_body.translation() = state.p_world_body_m;
+  // depth frame: the odometry then finds this sample's pose for the frame's prior. The track
+  // takes the sample's prediction only: the tick's fusions and resets move the estimate, not
+  // the camera.
+  if (pose_history_ != nullptr && before) {
+    const Pose& T_track_cam = predicted_.step(*before, cameraPose(estimator.state()));
     // Never waits for the odometry, which holds the lock for a lookup: a sample it meets held
     // is left out (the history interpolates across it). A lockstep flight's odometry runs
     // beside this task (flight.lockstep_pose_age_s): there every sample waits its turn, so that
-    // the history, and the prior, are the same on any machine. Both kinds of reset jump the
-    // estimate: the odometry takes no motion across one.
+    // the history, and the prior, are the same on any machine.
     std::unique_lock<std::mutex> lock(pose_history_->mutex, std::defer_lock);
     if (config_.flight.lockstep) lock.lock(); else static_cast<void>(lock.try_lock());
-    if (lock.owns_lock()) {
-      pose_history_->history.add(state.utime,
-                                 T_world_body * stack_->params().estimator.T_body_cam,
-                                 health.pose_resets + health.resets);
-    }
+    if (lock.owns_lock()) pose_history_->history.add(sample.utime, T_track_cam);
   }
   tick(sample.utime);
 }

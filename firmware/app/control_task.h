@@ -71,6 +71,8 @@ class ControlTask {
   void handleImu(const lcm_recv_buf_t* message);
   // A sample from either source: into the estimator, then one tick.
   void takeImu(const flight::ImuSample& sample);
+  // The estimate's camera pose (T_body_cam applied).
+  Pose cameraPose(const flight::EstimatorState& state) const;
   // The mavlink backend's loop body: the autopilot's bytes, then what we send it.
   void serveAutopilot();
   void sendToBackend(const flight::TickOutput& out, int64_t utime);
@@ -88,6 +90,7 @@ class ControlTask {
   LatestValue<CommandMail>* commands_;
   LatestValue<flight_status_t>* flight_status_;
   SharedPoseHistory* pose_history_;
+  flight::PredictedTrack predicted_;  // what pose_history_ holds
   const StopToken* stop_;
   const int64_t pose_age_us_;  // flight.lockstep_pose_age_s
   bool pose_held_ = false;     // poses_->front() fetched, not fused yet

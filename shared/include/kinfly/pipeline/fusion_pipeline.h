@@ -68,8 +68,9 @@ class FusionPipeline {
     float min_valid_depth_fraction = 0.05f;  // [0, 1)
     // After missed frames (lost, or never delivered: a gap in the frames' times) ICP's gates
     // widen by one per frame missed, up to this factor (IcpTracker::track's gate_scale): without
-    // a prior the camera has moved that many frames' worth since the last tracked one; with
-    // one, the prior's error has grown with them.
+    // a prior the camera has moved that many frames' worth since the last tracked one. With
+    // one, ICP searches as wide, but the pose it finds must lie within the normal gates of the
+    // prior (processFrame).
     float max_recovery_gate_scale = 3.f;  // >= 1
     // Where neither the prior nor the last pose tracks a frame after missed ones, the frame is
     // tracked from the poses of the keyframes most like it (processFrame keeps them).
@@ -134,16 +135,15 @@ class FusionPipeline {
   void predict(const Pose& T_world_cam, FrameResult* result);
   // ICP against model_, which was raycast from T_world_ref, from a guess of the pose relative to
   // it (a prior: IcpTracker::track); fuses on success.
-  // With `T_world_cam_near`, a pose farther from it than the jump gates times `near_scale` is
-  // lost, before anything is fused.
+  // With `T_world_cam_near`, a pose farther from it than the (unwidened) jump gates is lost,
+  // before anything is fused.
   FrameResult trackAndFuse(FrameResult result, const Pose& T_world_ref,
                            const Pose& T_ref_cur_guess, bool prior, bool predict_from_pose,
-                           float gate_scale = 1.f, const Pose* T_world_cam_near = nullptr,
-                           float near_scale = 1.f);
+                           float gate_scale = 1.f, const Pose* T_world_cam_near = nullptr);
   // After every other try lost the frame (`lost` says why): tracks from the poses of the
   // keyframes most like it; with a prior, only to a pose that agrees with it within the jump
-  // gates times `gate_scale`.
-  FrameResult relocalise(FrameResult lost, const Pose* T_world_cam_prior, float gate_scale);
+  // gates.
+  FrameResult relocalise(FrameResult lost, const Pose* T_world_cam_prior);
   // Counts a lost frame with depth; the one that reaches new_map_after_failed_frames, with a
   // prior, begins a new map at it instead of being lost.
   FrameResult failedOrNewMap(FrameResult lost, const Pose* T_world_cam_prior);

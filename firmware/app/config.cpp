@@ -165,6 +165,9 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--odometry.threads", o.threads,
                   "engine threads (1: no OpenMP region at all, no allocation per frame)")
       ->capture_default_str();
+  app->add_option("--odometry.icp_fine_iterations", o.icp_fine_iterations,
+                  "ICP iterations at the finest level (the engine's default: 4)")
+      ->capture_default_str();
   app->add_option("--odometry.capture_queue", o.capture_queue, "frames queued before odometry")
       ->capture_default_str();
   KeyframeSelector::Params& k = c->keyframe;
@@ -365,6 +368,7 @@ Status OdometryConfig::validate() const {
                                                      {"shift_threshold_blocks",
                                                       "odometry.shift_blocks"}}),
                       outOfRange("odometry.threads", threads, 1, 64),
+                      outOfRange("odometry.icp_fine_iterations", icp_fine_iterations, 1, 20),
                       outOfRange("odometry.capture_queue", capture_queue, 1, 64));
 }
 

@@ -66,6 +66,9 @@ struct OdometryConfig {                          // [odometry]
   // (shift_threshold_blocks): the volume that follows the drone.
   DenseVolume::Params volume;
   int threads = 1;               // threads [1, 64]: the engine's OpenMP threads
+  // icp_fine_iterations [1, 20]: ICP iterations at the finest level. The engine's 4 (docs/engine.md
+  // item 2) cost 4 M instructions each at 320x240; after the coarser levels 2 track as well.
+  int icp_fine_iterations = 2;
   int capture_queue = 4;         // capture_queue [1, 64]: frames between capture and odometry
   Status validate() const;
 };

@@ -22,6 +22,7 @@ Status OdometryTask::engineParams(const FirmwareConfig& config, const PinholeCam
   pipeline->preprocess.depth_scale_m = depth_scale_m;
   pipeline->preprocess.downsample = config.odometry.downsample;
   pipeline->integrate.truncation_m = 4.f * volume->voxel_size_m;
+  pipeline->icp.iterations_coarse_to_fine.back() = config.odometry.icp_fine_iterations;
   if (Status valid = volume->validate(); !valid.ok()) return valid;
   return pipeline->validate(volume->voxel_size_m);
 }

@@ -44,6 +44,7 @@ struct Options {
   int threads = 2;
   int max_frames = 0;
   int downsample = 1;
+  int icp_fine_iterations = kinfly::IcpTracker::Params().iterations_coarse_to_fine.back();
   double pose_max_dt_s = 0.02;
   bool verbose = false;
 };
@@ -93,6 +94,9 @@ int main(int argc, char** argv) {
       ->capture_default_str()->check(CLI::PositiveNumber);
   app.add_option("--downsample", opt.downsample, "run the whole pipeline at 1/N resolution (2: 320x240, as the drone does)")
       ->capture_default_str()->check(CLI::IsMember({1, 2, 4}));
+  app.add_option("--icp-fine-iterations", opt.icp_fine_iterations,
+                 "ICP iterations at the finest level (the drone's kinfly-fw runs 2: odometry.icp_fine_iterations)")
+      ->capture_default_str()->check(CLI::Range(1, 20));
   app.add_flag("--verbose", opt.verbose, "progress line for every frame (default: every 20th and every lost frame)");
   CLI11_PARSE(app, argc, argv);
 
@@ -133,6 +137,7 @@ int main(int argc, char** argv) {
   kinfly::FusionPipeline::Params params;
   params.preprocess.depth_scale_m = 1.0 / opt.depth_scale;
   params.preprocess.downsample = opt.downsample;
+  params.icp.iterations_coarse_to_fine.back() = opt.icp_fine_iterations;
   params.integrate.truncation_m = opt.truncation_m > 0.f ? opt.truncation_m : 4.f * voxel_m;
   if (const kinfly::Status status = params.validate(voxel_m); !status.ok()) return fail(status.message());
 

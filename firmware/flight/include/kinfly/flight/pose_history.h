@@ -46,9 +46,9 @@ class PoseHistory {
 // The estimate's camera pose moved by the estimator's predictions alone: each IMU sample's
 // prediction is composed on, and what moves the estimate between samples is left out: a pose
 // fused (which moves it by the innovation times the gain: the prior of one frame in the ring's
-// corridor moved the camera 10 cm back, docs/flight.md) and a reset (to a pose, or the ground's correction). Its motion over a
-// few frames is the IMU's, from the velocity the filter holds; its pose drifts from the estimate,
-// which no motion between two of its times sees.
+// corridor moved the camera 10 cm back, docs/flight.md) and a reset (to a pose, or the
+// ground's correction). Its motion over a few frames is the IMU's, from the velocity the filter
+// holds; its pose drifts from the estimate, which no motion between two of its times sees.
 class PredictedTrack {
  public:
   // The estimate's camera pose before a sample's prediction and after it; returns the track's

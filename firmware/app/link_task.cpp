@@ -233,6 +233,7 @@ void LinkTask::onCommand(const lcm_recv_buf_t* rbuf) {
   const auto received = receiveSigned(command_receiver_, rbuf, "command", secondsSince(began_));
   if (!received) return;
   const flight_command_t& m = *received;
+  if (!recent_commands_.first(m.command_id)) return;  // answered, or being answered
   if (commands_ == nullptr) {
     ++commands_dropped_;
     spdlog::warn("link: command {} ignored: no control task (flight.backend = none)",

@@ -53,6 +53,8 @@ class LinkTask {
   // task, a mission that makes no trajectory).
   int64_t commandsPassed() const { return commands_passed_; }
   int64_t commandsDropped() const { return commands_dropped_; }
+  // Commands sent again by a sender that heard no answer: already taken, not passed again.
+  int64_t commandsRepeated() const { return recent_commands_.repeats(); }
   int64_t sensorStalls() const { return watch_.stalls(); }
 
  private:
@@ -126,6 +128,7 @@ class LinkTask {
   LatestValue<CommandMail>* commands_ = nullptr;  // to the control task; nullptr without one
   // From the control task, sent with each status; nullptr without one.
   LatestValue<flight_status_t>* flight_status_ = nullptr;
+  link::RecentCommands recent_commands_;
   int64_t commands_passed_ = 0, commands_dropped_ = 0;
   link::RejectCounters rejects_;
   SensorWatch watch_;

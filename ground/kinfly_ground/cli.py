@@ -26,7 +26,8 @@ from kinfly import ground_status_t
 from . import __version__
 from ._native import (DEFAULT_PEER_PORT, MAX_VEHICLE_ID, Channel, KeyFileError, PeerLink, Signer,
                       channel_name, ground_subscriptions, load_key_file, parse_channel)
-from .command import KINDS, AnswerWatch, CommandError, read_waypoints, send
+from .command import (KINDS, RESEND_PERIOD_S, AnswerWatch, CommandError, read_waypoints, send,
+                      send_until_answered)
 from .flight import ACCEPTED, answer, mode_name
 from .command import build as build_command
 from .export import export, format_ms, print_summary
@@ -162,7 +163,9 @@ def parser() -> argparse.ArgumentParser:
                     "(the drone takes the first). Positions are in the flight stack's world: "
                     "gravity-aligned, z down, so heights are negative z (docs/flight.md). It "
                     "then waits for the drone's answer (its flight_status_t on "
-                    "KINFLY_<vid>_FLIGHT) and prints it. Exit status: 0 accepted, 1 refused or "
+                    "KINFLY_<vid>_FLIGHT), sending the command again, signed anew, every "
+                    f"{RESEND_PERIOD_S:g} s while unanswered (the drone acts on it once), "
+                    "and prints it. Exit status: 0 accepted, 1 refused or "
                     "no answer within --wait, 2 a bad command line.")
     command.add_argument("action", choices=sorted(KINDS), help="what the drone is to do")
     command.add_argument("values", nargs="*", metavar="VALUE",
@@ -175,7 +178,7 @@ def parser() -> argparse.ArgumentParser:
                          help="mission: its peak speed (default: the drone's "
                               "flight.max_speed_m_s)")
     command.add_argument("--copies", type=int, default=3,
-                         help="copies sent, 20 ms apart (default 3)")
+                         help="copies sent each time, 20 ms apart (default 3)")
     command.add_argument("--wait", type=float, default=5.0, metavar="S",
                          help="how long to wait for the drone's answer (default 5; 0: do not "
                               "wait, exit 0 once sent)")
@@ -566,18 +569,27 @@ def send_command(args: argparse.Namespace) -> int:
 
     lc = lcm.LCM(args.lcm_url or DEFAULT_LCM_URL)
     answers = AnswerWatch(lc, args.vehicle, command_id)  # before sending: never miss it
-    send(lc, signer, message, args.copies)
-    log(f"command {command_id} ({args.action}) sent to vehicle {args.vehicle}, "
-        f"{args.copies} copies")
+    name = f"command {command_id} ({args.action})"
     if args.wait == 0.0:
+        send(lc, signer, message, args.copies)
+        log(f"{name} sent to vehicle {args.vehicle}, {args.copies} copies")
         return 0
-    status = answers.wait(args.wait)
+
+    def sent_log(times: int) -> None:
+        log(f"{name} sent to vehicle {args.vehicle}, {args.copies} copies; again every "
+            f"{RESEND_PERIOD_S:g} s until answered" if times == 1 else
+            f"{name}: no answer yet, sent again ({times} times)")
+
+    status, sent = send_until_answered(lc, signer, message, args.copies, answers, args.wait,
+                                       sent_log)
     if status is None:
         log(f"command {command_id} ({args.action}): no answer from vehicle {args.vehicle} "
-            f"within {args.wait:g} s (is its flight backend on, and the link up?)")
+            f"within {args.wait:g} s, sent {sent} times (is its flight backend on, and the "
+            "link up?)")
         return 1
     log(f"command {command_id} ({args.action}) {answer(status.command_result)}; vehicle "
-        f"{args.vehicle} is in {mode_name(status.mode)}")
+        f"{args.vehicle} is in {mode_name(status.mode)}" +
+        (f" (sent {sent} times)" if sent > 1 else ""))
     return 0 if status.command_result == ACCEPTED else 1
 
 

@@ -2,11 +2,13 @@
 "Commands"): a flight_command_t inside a signed_t on KINFLY_<vid>_COMMAND, with the vehicle's
 key, the same HMAC, window and replay rules as the ground's corrections. Multicast on Wi-Fi is
 never retransmitted, so the same envelope goes out several times; the drone takes the first copy
-and counts the rest as copies."""
+and counts the rest as copies. A loss can still take every copy (a burst on the Wi-Fi, a socket
+buffer full on a busy drone), so a command not answered within RESEND_PERIOD_S is sent again,
+signed anew, until answered or the wait ends; the drone acts on each command_id once."""
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from kinfly import flight_command_t
@@ -18,6 +20,9 @@ KINDS = {"arm": flight_command_t.ARM, "disarm": flight_command_t.DISARM,
          "goto": flight_command_t.GO_TO, "mission": flight_command_t.MISSION,
          "land": flight_command_t.LAND}
 COPY_PERIOD_S = 0.02  # the copies of one command: apart, so one burst of loss does not take all
+# The drone answers within a status period (0.1 s) of taking a command; five of them without an
+# answer mean the command, or its answer, was lost.
+RESEND_PERIOD_S = 0.5
 
 
 class CommandError(Exception):
@@ -108,3 +113,22 @@ def send(lc, signer: Signer, command: flight_command_t, copies: int) -> bytes:
             time.sleep(COPY_PERIOD_S)
         lc.publish(channel, envelope)
     return envelope
+
+
+def send_until_answered(lc, signer: Signer, command: flight_command_t, copies: int,
+                        answers: AnswerWatch, wait_s: float,
+                        on_sent: Callable[[int], None]) -> tuple[FlightStatus | None, int]:
+    """Sends the command (COPIES of it), again every RESEND_PERIOD_S while unanswered, until
+    the answer comes or WAIT_S ends; returns the answer (None: none) and how often it was sent
+    (ON_SENT is told each time). Each round is signed anew: the drone's Verifier takes only
+    sequence numbers above the last and signing times within its window, which a copy of the
+    first envelope would leave."""
+    deadline = time.monotonic() + wait_s
+    sent = 0
+    while True:
+        send(lc, signer, command, copies)
+        sent += 1
+        on_sent(sent)
+        left_s = deadline - time.monotonic()
+        if left_s <= 0 or answers.wait(min(RESEND_PERIOD_S, left_s)) is not None:
+            return answers.answer, sent

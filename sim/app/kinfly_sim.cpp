@@ -189,19 +189,33 @@ class Link {
   }
   Answers& answers() { return answers_; }
 
-  // Handles messages until done() or wait_s of wall time; false on the timeout.
-  template <class Done>
-  bool waitFor(Done done) {
+  // Handles messages until done() or wait_s of wall time; false on the timeout. again() is
+  // called every kAgainPeriod of the wait: what was sent and is not yet answered is sent again
+  // (a datagram lost to a socket buffer full on a busy machine is never retransmitted).
+  template <class Done, class Again>
+  bool waitFor(Done done, Again again) {
+    constexpr auto kAgainPeriod = std::chrono::milliseconds(500);
+    const Clock::time_point start = Clock::now();
     const Clock::time_point deadline =
-        Clock::now() + std::chrono::duration_cast<Clock::duration>(
-                           std::chrono::duration<double>(o_.wait_s));
+        start + std::chrono::duration_cast<Clock::duration>(
+                    std::chrono::duration<double>(o_.wait_s));
+    Clock::time_point next_again = start + kAgainPeriod;
     while (!done()) {
+      const Clock::time_point now = Clock::now();
       const auto left =
-          std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count();
+          std::chrono::duration_cast<std::chrono::milliseconds>(deadline - now).count();
       if (left <= 0) return false;
+      if (now >= next_again) {
+        again();
+        next_again = now + kAgainPeriod;
+      }
       lcm_->handleTimeout(static_cast<int>(std::min<int64_t>(left, 100)));
     }
     return true;
+  }
+  template <class Done>
+  bool waitFor(Done done) {
+    return waitFor(done, [] {});
   }
 
  private:
@@ -518,14 +532,20 @@ int run(const Options& o) {
       const flight_command_t c = commandOf(step, o.vehicle_id, ++command_id);
       std::vector<uint8_t> inner(static_cast<size_t>(c.getEncodedSize()));
       c.encode(inner.data(), 0, static_cast<int>(inner.size()));
-      signed_t envelope;
-      signer.sign(inner.data(), inner.size(), link::wallClockUtime(), &envelope);
-      lcm.publish(command_channel, &envelope);
+      // Signed anew each time it is sent: the drone's Verifier takes only sequence numbers above
+      // the last and signing times within its window; its link acts on a command_id once.
+      const auto send_command = [&] {
+        signed_t envelope;
+        signer.sign(inner.data(), inner.size(), link::wallClockUtime(), &envelope);
+        lcm.publish(command_channel, &envelope);
+      };
+      send_command();
       std::printf("kinfly-sim: t=%.2f s: %s\n", t_s, step.name.c_str());
       std::fflush(stdout);
       // Held until the drone says the command is its flight stack's, so that the next sample's
       // tick takes it, on any machine (the link hands it over on its own thread).
-      if (!link_io.waitFor([&] { return answers.commands_passed >= command_id; })) {
+      if (!link_io.waitFor([&] { return answers.commands_passed >= command_id; },
+                           send_command)) {
         std::fprintf(stderr, "kinfly-sim: kinfly-fw did not take the %s command within %.0f s "
                              "(its log says why: the key, the clock window, a mission it cannot "
                              "fly)\n",

@@ -701,5 +701,18 @@ TEST(CommandReceiver, TakesASignedCommandOnceAndRejectsTheRest) {
   EXPECT_EQ(receiver.rejects().malformed, 1);
 }
 
+TEST(RecentCommands, ACommandSentAgainIsTakenOnce) {
+  RecentCommands recent;
+  EXPECT_TRUE(recent.first(100));
+  EXPECT_FALSE(recent.first(100));  // resent, signed anew: unanswered at the sender
+  EXPECT_TRUE(recent.first(101));
+  EXPECT_FALSE(recent.first(100));  // another sender's command came between its resends
+  EXPECT_EQ(recent.repeats(), 2);
+  // Its memory is bounded: an id long gone is taken again (a sender stops within --wait).
+  for (int64_t id = 200; id < 300; ++id) ASSERT_TRUE(recent.first(id));
+  EXPECT_TRUE(recent.first(100));
+  EXPECT_EQ(recent.repeats(), 2);
+}
+
 }  // namespace
 }  // namespace kinfly::link

@@ -99,7 +99,8 @@ _CONTROL = re.compile(
     r"failsafes: (?P<vision_lost>\d+) vision lost, (?P<estimator_diverged>\d+) estimator "
     r"diverged, (?P<attitude_limit>\d+) attitude limit, (?P<imu_lost>\d+) IMU lost, "
     r"(?P<geofence>\d+) geofence; (?P<sent>\d+) rotor commands sent, (?P<unsent>\d+) not; "
-    r"(?P<passed>\d+) signed commands passed by the link, (?P<dropped>\d+) dropped")
+    r"(?P<passed>\d+) signed commands passed by the link, (?P<dropped>\d+) dropped, "
+    r"(?P<repeated>\d+) repeats ignored")
 
 
 _MAVLINK = re.compile(

@@ -1,5 +1,7 @@
 #include "kinfly/link/uplink.h"
 
+#include <algorithm>
+
 namespace kinfly::link {
 
 template <class Inner>
@@ -38,6 +40,19 @@ std::optional<Inner> SignedReceiver<Inner>::receive(const void* data, size_t siz
   }
   ++accepted_;
   return inner;
+}
+
+bool RecentCommands::first(int64_t command_id) {
+  for (size_t i = 0; i < held_; ++i) {
+    if (ids_[i] == command_id) {
+      ++repeats_;
+      return false;
+    }
+  }
+  ids_[next_] = command_id;
+  next_ = (next_ + 1) % kKept;
+  held_ = std::min(held_ + 1, kKept);
+  return true;
 }
 
 template class SignedReceiver<pose_correction_t>;

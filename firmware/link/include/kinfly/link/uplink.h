@@ -4,6 +4,7 @@
 // sender and the ground station each number their messages), and counts each rejection.
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <optional>
@@ -43,5 +44,23 @@ class SignedReceiver {
 
 using CorrectionReceiver = SignedReceiver<pose_correction_t>;
 using CommandReceiver = SignedReceiver<flight_command_t>;
+
+// The commands taken lately, by command_id. A sender that hears no answer sends its command
+// again, signed anew: to the Verifier that is a new message, not a copy. Acting on it twice
+// would be wrong: a take-off taken twice is refused the second time, and that refusal would
+// replace, in the flight status, the answer the sender waits for.
+class RecentCommands {
+ public:
+  // True the first time COMMAND_ID comes among the last kKept ids; false for a repeat.
+  bool first(int64_t command_id);
+  int64_t repeats() const { return repeats_; }
+
+ private:
+  // Two operators' resends may interleave; a handful of ids covers them.
+  static constexpr size_t kKept = 16;
+  std::array<int64_t, kKept> ids_{};
+  size_t held_ = 0, next_ = 0;
+  int64_t repeats_ = 0;
+};
 
 }  // namespace kinfly::link

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <optional>
 #include <sstream>
 
 #include "kinfly/core/noise_model.h"
@@ -36,6 +37,10 @@ Status IcpTracker::Params::validate() const {
     why << "weak_direction_fraction must be in [0, 1/6); ";
   if (max_weak_directions < 0 || max_weak_directions > 5)
     why << "max_weak_directions must be in [0, 5]; ";
+  if (!(suspect_direction_fraction >= weak_direction_fraction &&
+        suspect_direction_fraction < 1.0 / 6.0))
+    why << "suspect_direction_fraction must be in [weak_direction_fraction, 1/6); ";
+  if (!(facing_cosine > 0.0 && facing_cosine < 1.0)) why << "facing_cosine must be in (0, 1); ";
   if (!(max_translation_m > 0.f)) why << "max_translation_m must be > 0; ";
   if (!(max_rotation_rad > 0.f)) why << "max_rotation_rad must be > 0; ";
   if (!(max_rmse_m > 0.f)) why << "max_rmse_m must be > 0; ";
@@ -105,6 +110,9 @@ struct Association {
   float cos_gate;
   bool noise_weighting;
   float huber_k;  // Huber threshold in noise sigmas; infinite when the robust weight is off
+  // SystemParams::facing: the unit direction, and the squared cosine a normal must reach.
+  Eigen::Vector3f facing;
+  float facing_cos_sq;
 };
 
 // Current points in the reference frame.
@@ -138,12 +146,23 @@ constexpr int kErrorSum = 27, kNoiseSum = 28;  // after 21 upper-triangle A and 
 constexpr int kSums = 29;
 
 // The rows of current points (p in the reference frame, depth z_cur, normal n_cur) against model
-// points (q, nq) where `found`; rejected pairs give zero rows. Returns the inlier mask.
+// points (q, nq) where `found`; rejected pairs give zero rows. Returns the inlier mask. kFacing:
+// only the rows that face SystemParams::facing are inliers.
+template <bool kFacing>
 inline Ints pointToPlane(const Vec3s& p, Floats z_cur, const Vec3s& n_cur, const Vec3s& q,
                          const Vec3s& nq, Ints found, const Association& a, Floats row[kColumns]) {
   const Vec3s d{p.x - q.x, p.y - q.y, p.z - q.z};
-  const Ints inlier =
-      found & ~(dot(d, d) > a.gate_sq) & ~(dot(rotate(a.R, n_cur), nq) < a.cos_gate);
+  const Vec3s n_ref = rotate(a.R, n_cur);
+  Ints inlier = found & ~(dot(d, d) > a.gate_sq) & ~(dot(n_ref, nq) < a.cos_gate);
+  // Both normals must face it: the model's normal of a surface seen edge-on is the TSDF's
+  // gradient, which the projective distances of grazing rays tilt towards the view, while the
+  // frame's, from its own neighbouring points, is not.
+  if constexpr (kFacing) {
+    const Floats along = a.facing.x() * nq.x + a.facing.y() * nq.y + a.facing.z() * nq.z;
+    const Floats along_cur =
+        a.facing.x() * n_ref.x + a.facing.y() * n_ref.y + a.facing.z() * n_ref.z;
+    inlier &= (along * along >= a.facing_cos_sq) & (along_cur * along_cur >= a.facing_cos_sq);
+  }
   const Floats e = dot(nq, d);
   // Noise weight (sigma_1m / sigma)^2, normalised to 1 at 1 m, times the Huber weight k / |r|
   // beyond k sigmas. Using the weight itself, not its square root on both factors, saves a
@@ -208,21 +227,14 @@ constexpr int kChunks = 64;
 
 }  // namespace
 
-IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& model, int level,
-                                  const Eigen::Matrix3f& R_ref_cur,
-                                  const Eigen::Vector3f& t_ref_cur,
-                                  const SystemParams& params) {
-  const float distance_gate_m = params.distance_gate_m, cos_angle_gate = params.cos_angle_gate,
-              huber_sigmas = params.huber_sigmas;
-  const bool noise_weighting = params.noise_weighting, parallel = params.parallel;
+namespace {
+
+template <bool kFacing>
+IcpSystem build(const DepthFrame& current, const ModelMaps& model, int level,
+                const Association& assoc, bool parallel) {
   const PackedPoints& points = current.points[level];
   const Eigen::Vector3f* vmodel = model.vertex_ref[level].data();
   const Eigen::Vector3f* nmodel = model.normal_ref[level].data();
-  const PinholeCamera& cam = model.camera[level];
-  const float huber_k = huber_sigmas > 0.f ? huber_sigmas : std::numeric_limits<float>::infinity();
-  const Association assoc{R_ref_cur, t_ref_cur, cam.fx, cam.fy, cam.cx, cam.cy, cam.width,
-                          cam.height, distance_gate_m * distance_gate_m, cos_angle_gate,
-                          noise_weighting, huber_k};
   const int h = points.vx.height();
   std::array<IcpSystem, kChunks> chunks;
   forEachDynamic(kChunks, 1, parallel, [&](int c) {
@@ -263,7 +275,7 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
               (i + Ints{0, 1, 2, 3} < count) & inside[g] & (q.x == q.x) & (nq.x == nq.x);
           if (lanes::none(found)) continue;
           Floats row[kColumns];
-          const Ints inlier = pointToPlane(
+          const Ints inlier = pointToPlane<kFacing>(
               p[g], load<Floats>(vz + i),
               {load<Floats>(nx + i), load<Floats>(ny + i), load<Floats>(nz + i)}, q, nq, found,
               assoc, row);
@@ -293,32 +305,78 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
   return total;
 }
 
+}  // namespace
+
+IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& model, int level,
+                                  const Eigen::Matrix3f& R_ref_cur,
+                                  const Eigen::Vector3f& t_ref_cur,
+                                  const SystemParams& params) {
+  const PinholeCamera& cam = model.camera[level];
+  const float huber_k =
+      params.huber_sigmas > 0.f ? params.huber_sigmas : std::numeric_limits<float>::infinity();
+  Association assoc{R_ref_cur, t_ref_cur, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height,
+                    params.distance_gate_m * params.distance_gate_m, params.cos_angle_gate,
+                    params.noise_weighting, huber_k, {}, 0.f};
+  if (!params.facing) return build<false>(current, model, level, assoc, params.parallel);
+  assoc.facing = params.facing->direction.normalized().cast<float>();
+  assoc.facing_cos_sq = static_cast<float>(params.facing->cosine * params.facing->cosine);
+  return build<true>(current, model, level, assoc, params.parallel);
+}
+
 namespace {
 
 // Below this (weak_direction_fraction's units) a direction is numerically singular: rounding,
 // not the scene.
 constexpr double kSingularFraction = 1e-9;
+// A scaled unit direction with at least this squared translation part is mostly a translation.
+constexpr double kMostlyTranslation = 0.5;
+
+using Matrix6d = Eigen::Matrix<double, 6, 6>;
+using Vector6d = Eigen::Matrix<double, 6, 1>;
+
+Matrix6d unpack(const IcpSystem& system) {
+  Matrix6d A;
+  int k = 0;
+  for (int i = 0; i < 6; ++i)
+    for (int j = i; j < 6; ++j) A(i, j) = A(j, i) = system.ata[k++];
+  return A;
+}
+
+// A system in units of y = S^-1 xi (rotations times the lever arm), divided by its weight: S A S
+// / weight, whose eigenvalues are the shares of its eigen-directions (weak_direction_fraction's
+// units).
+struct Scaled {
+  double weight;   // sum of w |n|^2 = sum of w
+  Vector6d s;      // S's diagonal: 1 / the lever arm for the rotations, 1 for the translations
+  Eigen::SelfAdjointEigenSolver<Matrix6d> eig;
+};
+std::optional<Scaled> scaled(const Matrix6d& A) {
+  const double weight = A.bottomRightCorner<3, 3>().trace();
+  const double rotation = A.topLeftCorner<3, 3>().trace();  // sum of w |p x n|^2
+  if (!(weight > 0.0) || !(rotation > 0.0) || !A.allFinite()) return std::nullopt;
+  Scaled out;
+  out.weight = weight;
+  const double inv_lever = std::sqrt(weight / rotation);
+  out.s << inv_lever, inv_lever, inv_lever, 1.0, 1.0, 1.0;
+  out.eig.compute(out.s.asDiagonal() * A * out.s.asDiagonal() / weight);
+  if (out.eig.info() != Eigen::Success) return std::nullopt;
+  return out;
+}
 
 // Lists the weak directions in *result and solves A xi = b: by Cholesky, or, where some are weak
 // and `keep_weak`, in the directions the system constrains only, leaving xi zero along the weak
 // ones. False when the system is empty, not finite or not positive definite.
-bool solve(const Eigen::Matrix<double, 6, 6>& A, const Eigen::Matrix<double, 6, 1>& b,
-           double weak_fraction, bool keep_weak, Eigen::Matrix<double, 6, 1>* xi,
-           IcpResult* result) {
+bool solve(const Matrix6d& A, const Vector6d& b, double weak_fraction, bool keep_weak,
+           Vector6d* xi, IcpResult* result) {
   result->weak_directions = 0;
-  const double weight = A.bottomRightCorner<3, 3>().trace();  // sum of w |n|^2 = sum of w
-  const double rotation = A.topLeftCorner<3, 3>().trace();    // sum of w |p x n|^2
-  if (!(weight > 0.0) || !(rotation > 0.0) || !A.allFinite() || !b.allFinite()) {
+  const std::optional<Scaled> scaled_system = b.allFinite() ? scaled(A) : std::nullopt;
+  if (!scaled_system) {
     result->weak_directions = 6;
     return false;
   }
-  // In units of y = S^-1 xi (rotations times the lever arm), the system is S A S y = S b.
-  const double lever_m = std::sqrt(rotation / weight);
-  Eigen::Matrix<double, 6, 1> s;
-  s << 1.0 / lever_m, 1.0 / lever_m, 1.0 / lever_m, 1.0, 1.0, 1.0;
-  const Eigen::Matrix<double, 6, 6> As = s.asDiagonal() * A * s.asDiagonal() / weight;
-  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eig(As);
-  if (eig.info() != Eigen::Success) return false;
+  const double weight = scaled_system->weight;
+  const Vector6d& s = scaled_system->s;
+  const auto& eig = scaled_system->eig;
   result->weakest_fraction = eig.eigenvalues()(0);
   for (int i = 0; i < 6 && eig.eigenvalues()(i) < weak_fraction; ++i) {  // ascending
     result->weak[result->weak_directions++] =
@@ -335,10 +393,10 @@ bool solve(const Eigen::Matrix<double, 6, 6>& A, const Eigen::Matrix<double, 6, 
   }
   if (result->weak_directions == 6) return false;
   // Zhang et al.'s solution remapping: the update within the span of the strong directions.
-  const Eigen::Matrix<double, 6, 1> sb = s.cwiseProduct(b) / weight;
-  Eigen::Matrix<double, 6, 1> y = Eigen::Matrix<double, 6, 1>::Zero();
+  const Vector6d sb = s.cwiseProduct(b) / weight;
+  Vector6d y = Vector6d::Zero();
   for (int i = result->weak_directions; i < 6; ++i) {
-    const Eigen::Matrix<double, 6, 1> v = eig.eigenvectors().col(i);
+    const Vector6d v = eig.eigenvectors().col(i);
     y += v * (v.dot(sb) / eig.eigenvalues()(i));
   }
   *xi = s.cwiseProduct(y);
@@ -346,6 +404,41 @@ bool solve(const Eigen::Matrix<double, 6, 6>& A, const Eigen::Matrix<double, 6, 
 }
 
 }  // namespace
+
+bool IcpTracker::keepPriorAlongScatter(const DepthFrame& current, const ModelMaps& model,
+                                       const IcpSystem& last, int level, const Pose& T_prior,
+                                       Pose* T, IcpResult* result) const {
+  const std::optional<Scaled> system = scaled(unpack(last));
+  if (!system) return true;  // solve() refused it already
+  const Vector6d& s = system->s;
+  SystemParams facing_params = systemParams();
+  // The motion since the prior, in the scaled units: T = expTwist(S y) * T_prior.
+  const Pose moved = *T * T_prior.inverse();
+  const Eigen::AngleAxisd rotation(moved.linear());
+  Vector6d xi;
+  xi << rotation.angle() * rotation.axis(), moved.translation();
+  Vector6d y = xi.cwiseQuotient(s);
+  bool scatter = false;
+  // The directions solve() left to ICP (its weak ones come first, in ascending share). Only a
+  // motion mostly of translation: a rotation's information comes from its levers, many rows'
+  // small parts, which no surface faces (the roll about a corridor's axis).
+  for (int i = result->weak_directions;
+       i < 6 && system->eig.eigenvalues()(i) < params_.suspect_direction_fraction; ++i) {
+    const Vector6d v = system->eig.eigenvectors().col(i);
+    if (v.tail<3>().squaredNorm() < kMostlyTranslation) continue;
+    facing_params.facing = Facing{v.tail<3>(), params_.facing_cosine};
+    const Pose& pose = *T;
+    const Matrix6d F = unpack(buildSystem(current, model, level, pose.linear().cast<float>(),
+                                          pose.translation().cast<float>(), facing_params));
+    const Vector6d d = s.cwiseProduct(v);
+    if (d.dot(F * d) / system->weight >= params_.weak_direction_fraction) continue;
+    result->weak[result->weak_directions++] = d.normalized();
+    y -= v * v.dot(y);
+    scatter = true;
+  }
+  if (scatter) *T = orthonormalized(expTwist(s.cwiseProduct(y)) * T_prior);
+  return result->weak_directions <= params_.max_weak_directions;
+}
 
 IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
                             const Pose& T_ref_cur_guess, bool prior, float gate_scale) const {
@@ -364,6 +457,7 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
 
   Pose T = T_ref_cur_guess;
   IcpSystem last;
+  int last_level = kPyramidLevels - 1;
   for (int step = 0; step < kPyramidLevels; ++step) {
     const int level = kPyramidLevels - 1 - step;
     const int iterations = params_.iterations_coarse_to_fine[step];
@@ -371,18 +465,16 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
       const Eigen::Matrix3f R = T.linear().cast<float>();
       const Eigen::Vector3f t = T.translation().cast<float>();
       last = buildSystem(current, model, level, R, t, system);
+      last_level = level;
       ++result.iterations;
       if (last.inliers < params_.min_inliers) {
         std::ostringstream why;
         why << "too few correspondences at level " << level << " (" << last.inliers << ")";
         return fail(why.str());
       }
-      Eigen::Matrix<double, 6, 6> A;
-      int k = 0;
-      for (int i = 0; i < 6; ++i)
-        for (int j = i; j < 6; ++j) A(i, j) = A(j, i) = last.ata[k++];
-      const Eigen::Matrix<double, 6, 1> b(last.atb.data());
-      Eigen::Matrix<double, 6, 1> xi;
+      const Matrix6d A = unpack(last);
+      const Vector6d b(last.atb.data());
+      Vector6d xi;
       if (!solve(A, b, params_.weak_direction_fraction, prior, &xi, &result))
         return fail("degenerate geometry: the ICP system is singular");
       // Coarse levels see fewer pixels and often more weak directions: the finest one decides.
@@ -399,6 +491,15 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
     }
   }
   if (!isFinite(T)) return fail("non-finite pose");
+  if (prior && !keepPriorAlongScatter(current, model, last, last_level, T_ref_cur_guess, &T,
+                                      &result)) {
+    std::ostringstream why;
+    why << "degenerate geometry: " << result.weak_directions
+        << " of the six directions of motion are weak, or constrained by scatter alone "
+           "(max_weak_directions "
+        << params_.max_weak_directions << ")";
+    return fail(why.str());
+  }
 
   // Statistics of the finest level from its last iteration (one update before the final pose,
   // which after convergence differs by less than the update tolerance).

@@ -6,6 +6,7 @@
 
 #include <Eigen/Core>
 #include <array>
+#include <optional>
 #include <string>
 
 #include "kinfly/core/se3.h"
@@ -72,6 +73,17 @@ class IcpTracker {
     // More weak directions than this at the finest level and the frame is lost; a lone plane
     // leaves three, the most it allows.
     int max_weak_directions = 3;             // [0, 5]
+    // Scatter is not information. Beyond 2 m the model's normals of a wall or floor seen edge-on
+    // scatter by 0.06-0.1 (the simulated ring, docs/sim.md), and in a corridor that scatter
+    // alone gave the motion along it a share of 0.0024, above weak_direction_fraction: ICP then
+    // followed the scatter and pulled the pose back by the prior's whole step. So, from a prior,
+    // a direction whose share is below suspect_direction_fraction is measured again on the
+    // pairs that face it only (Facing, at facing_cosine), and is weak if that share is below
+    // weak_direction_fraction; the pose then keeps the prior along it. Scatter of at most 0.1
+    // gives a share of at most 0.01; a surface within 73 degrees of the direction (cosine 0.3,
+    // three scatters of 0.1) is information, not scatter (docs/engine.md, departure 8).
+    double suspect_direction_fraction = 0.01;  // [weak_direction_fraction, 1/6)
+    double facing_cosine = 0.3;                // (0, 1)
     float max_translation_m = 0.20f;      // [m] per frame: a larger jump is a divergence -> lost
     float max_rotation_rad = 0.35f;       // [rad] per frame (20 degrees)
     // The finest level's RMS residual is compared with the larger of max_rmse_m and
@@ -96,6 +108,13 @@ class IcpTracker {
     Status validate() const;
   };
 
+  // A system of only the pairs that face a direction of translation (Params::facing_cosine):
+  // whose model normal makes an angle with `direction` whose cosine's magnitude is at least
+  // `cosine`.
+  struct Facing {
+    Eigen::Vector3d direction = Eigen::Vector3d::UnitZ();  // any length but zero
+    double cosine = 0.3;                                   // (0, 1)
+  };
   // How buildSystem associates and weighs one level's pairs: the part of Params the system
   // needs, with the angle gate as its cosine. Defaults are Params' defaults.
   struct SystemParams {
@@ -104,6 +123,7 @@ class IcpTracker {
     bool noise_weighting = true;
     float huber_sigmas = 3.f;             // >= 0; 0 disables the robust weight
     bool parallel = true;                 // threads over fixed row chunks: the same result
+    std::optional<Facing> facing;         // set: only the pairs that face it
   };
 
   explicit IcpTracker(const Params& params);
@@ -126,6 +146,14 @@ class IcpTracker {
                                const SystemParams& params);
 
  private:
+  // From a prior: each direction ICP moved along (not weak in `last`, the finest system solved,
+  // at LEVEL) whose share is below suspect_direction_fraction and whose facing pairs' share is
+  // below weak_direction_fraction is weak too: added to *result, and *T keeps T_prior along it.
+  // False when that makes more than max_weak_directions.
+  bool keepPriorAlongScatter(const DepthFrame& current, const ModelMaps& model,
+                             const IcpSystem& last, int level, const Pose& T_prior, Pose* T,
+                             IcpResult* result) const;
+
   Params params_;
 };
 

@@ -424,6 +424,7 @@ IcpSystem referenceSystem(const DepthFrame& current, const ModelMaps& model, int
       const Eigen::Vector3f& q = model.vertex_ref[level](u, w);
       const Eigen::Vector3f& nq = model.normal_ref[level](u, w);
       if (!isValid(q) || !isValid(nq)) continue;
+      ++s.matched;
       const Eigen::Vector3f d = p - q;
       if (d.squaredNorm() > gate_m * gate_m || (R * n).dot(nq) < cos_gate) continue;
       if (params.facing) {
@@ -462,6 +463,7 @@ TEST_F(IcpFixture, SystemMatchesPerPixelReference) {
     ASSERT_GT(ref.inliers, 100);
     EXPECT_EQ(fast.valid_points, ref.valid_points) << "level " << c.level;
     EXPECT_EQ(fast.inliers, ref.inliers) << "level " << c.level;
+    EXPECT_EQ(fast.matched, ref.matched) << "level " << c.level;
     // The builder sums each image row in float before the double chunk sums: ~2e-9 of the
     // largest entry here. 1e-6 leaves room for other compilers' rounding; a wrong weight or
     // Jacobian on even 1% of the pairs moves the sums by ~1e-2.

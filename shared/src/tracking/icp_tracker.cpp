@@ -21,6 +21,7 @@ void IcpSystem::add(const IcpSystem& other) {
   error_sq += other.error_sq;
   noise_sq += other.noise_sq;
   inliers += other.inliers;
+  matched += other.matched;
   valid_points += other.valid_points;
 }
 
@@ -249,7 +250,7 @@ IcpSystem build(const DepthFrame& current, const ModelMaps& model, int level,
       s.valid_points += count;
       // A row sums in float (at most a few thousand terms of similar size), the chunk in double.
       Floats sums[kSums] = {};
-      Ints inliers = {};
+      Ints inliers = {}, matched = {};
       Columns cols;
       for (int b = 0; b < count; b += kWidth * kBlockGroups) {
         const int groups = (std::min(count - b, kWidth * kBlockGroups) + kWidth - 1) / kWidth;
@@ -274,6 +275,7 @@ IcpSystem build(const DepthFrame& current, const ModelMaps& model, int level,
           const Ints found =
               (i + Ints{0, 1, 2, 3} < count) & inside[g] & (q.x == q.x) & (nq.x == nq.x);
           if (lanes::none(found)) continue;
+          matched -= found;  // true lanes are -1
           Floats row[kColumns];
           const Ints inlier = pointToPlane<kFacing>(
               p[g], load<Floats>(vz + i),
@@ -287,6 +289,7 @@ IcpSystem build(const DepthFrame& current, const ModelMaps& model, int level,
         accumulate(cols, sums);
       }
       s.inliers += (inliers[0] + inliers[1]) + (inliers[2] + inliers[3]);
+      s.matched += (matched[0] + matched[1]) + (matched[2] + matched[3]);
       std::array<float, kSums> row;
       for (int k = 0; k < kSums; ++k)
         row[k] = (sums[k][0] + sums[k][1]) + (sums[k][2] + sums[k][3]);
@@ -523,7 +526,8 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
     why << "rotation of " << rotationAngleRad(jump) << " rad exceeds max_rotation_rad";
     widened(why);
   } else if (result.inlier_fraction < params_.min_inlier_fraction) {
-    why << "inlier fraction " << result.inlier_fraction << " below min_inlier_fraction";
+    why << "inlier fraction " << result.inlier_fraction << " below min_inlier_fraction ("
+        << last.matched << " of " << last.valid_points << " points have a model point)";
   } else if (result.rmse_m > result.max_rmse_m) {
     why << "residual " << result.rmse_m << " m exceeds the gate of " << result.max_rmse_m
         << " m (max_rmse_m " << params_.max_rmse_m << ", or max_rmse_sigmas "

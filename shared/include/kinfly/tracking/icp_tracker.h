@@ -48,6 +48,7 @@ struct IcpSystem {
   double error_sq = 0.0;   // [m^2] sum of squared point-to-plane residuals over inliers
   double noise_sq = 0.0;   // [m^2] sum of the sensor noise's variance at the inliers' depths
   int inliers = 0;
+  int matched = 0;         // current pixels projected onto a model pixel with a point
   int valid_points = 0;    // current pixels with a vertex and a normal
   void add(const IcpSystem& other);
 };

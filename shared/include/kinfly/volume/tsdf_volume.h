@@ -99,7 +99,7 @@ class DenseVolume final : public TsdfVolume {
     int resolution_vox = 128;     // voxels per edge, multiple of 8 in [16, 512]
     float voxel_size_m = 0.03f;   // [m] (0, 0.2]; 128 x 3 cm = 3.84 m cube
     // The volume is kept centred this far in front of the camera, along its optical axis.
-    float lookahead_m = 1.5f;     // [m] [0, 10]
+    float lookahead_m = 2.0f;     // [m] [0, 10]
     // Re-centre only when the wanted centre has moved this many blocks, so shifts are rare.
     int shift_threshold_blocks = 2;  // [1, 64]
     Status validate() const;

@@ -353,10 +353,13 @@ struct Scaled {
   Vector6d s;      // S's diagonal: 1 / the lever arm for the rotations, 1 for the translations
   Eigen::SelfAdjointEigenSolver<Matrix6d> eig;
 };
-std::optional<Scaled> scaled(const Matrix6d& A) {
+
+// Empty when the system has no weight, no lever or is not finite.
+std::optional<Scaled> scaled(const Matrix6d& A, const Vector6d& b) {
   const double weight = A.bottomRightCorner<3, 3>().trace();
   const double rotation = A.topLeftCorner<3, 3>().trace();  // sum of w |p x n|^2
-  if (!(weight > 0.0) || !(rotation > 0.0) || !A.allFinite()) return std::nullopt;
+  if (!(weight > 0.0) || !(rotation > 0.0) || !A.allFinite() || !b.allFinite())
+    return std::nullopt;
   Scaled out;
   out.weight = weight;
   const double inv_lever = std::sqrt(weight / rotation);
@@ -366,13 +369,13 @@ std::optional<Scaled> scaled(const Matrix6d& A) {
   return out;
 }
 
-// Lists the weak directions in *result and solves A xi = b: by Cholesky, or, where some are weak
-// and `keep_weak`, in the directions the system constrains only, leaving xi zero along the weak
-// ones. False when the system is empty, not finite or not positive definite.
-bool solve(const Matrix6d& A, const Vector6d& b, double weak_fraction, bool keep_weak,
-           Vector6d* xi, IcpResult* result) {
+// Lists the weak directions in *result and solves A xi = b (`scaled_system` is scaled(A, b)): by
+// Cholesky, or, where some are weak and `keep_weak`, in the directions the system constrains
+// only, leaving xi zero along the weak ones. False when the system is empty, not finite or not
+// positive definite.
+bool solve(const Matrix6d& A, const Vector6d& b, const std::optional<Scaled>& scaled_system,
+           double weak_fraction, bool keep_weak, Vector6d* xi, IcpResult* result) {
   result->weak_directions = 0;
-  const std::optional<Scaled> scaled_system = b.allFinite() ? scaled(A) : std::nullopt;
   if (!scaled_system) {
     result->weak_directions = 6;
     return false;
@@ -406,15 +409,15 @@ bool solve(const Matrix6d& A, const Vector6d& b, double weak_fraction, bool keep
   return true;
 }
 
-}  // namespace
-
-bool IcpTracker::keepPriorAlongScatter(const DepthFrame& current, const ModelMaps& model,
-                                       const IcpSystem& last, int level, const Pose& T_prior,
-                                       Pose* T, IcpResult* result) const {
-  const std::optional<Scaled> system = scaled(unpack(last));
-  if (!system) return true;  // solve() refused it already
-  const Vector6d& s = system->s;
-  SystemParams facing_params = systemParams();
+// From a prior: each direction ICP moved along (not weak in *result; `system` is the finest one
+// solved, at LEVEL) whose share is below suspect_direction_fraction and whose facing pairs' share
+// is below weak_direction_fraction is weak too: added to *result, and *T keeps T_prior along it.
+// False when that makes more than max_weak_directions.
+bool keepPriorAlongScatter(const IcpTracker::Params& params,
+                           IcpTracker::SystemParams facing_params,
+                           const DepthFrame& current, const ModelMaps& model, const Scaled& system,
+                           int level, const Pose& T_prior, Pose* T, IcpResult* result) {
+  const Vector6d& s = system.s;
   // The motion since the prior, in the scaled units: T = expTwist(S y) * T_prior.
   const Pose moved = *T * T_prior.inverse();
   const Eigen::AngleAxisd rotation(moved.linear());
@@ -426,22 +429,23 @@ bool IcpTracker::keepPriorAlongScatter(const DepthFrame& current, const ModelMap
   // motion mostly of translation: a rotation's information comes from its levers, many rows'
   // small parts, which no surface faces (the roll about a corridor's axis).
   for (int i = result->weak_directions;
-       i < 6 && system->eig.eigenvalues()(i) < params_.suspect_direction_fraction; ++i) {
-    const Vector6d v = system->eig.eigenvectors().col(i);
+       i < 6 && system.eig.eigenvalues()(i) < params.suspect_direction_fraction; ++i) {
+    const Vector6d v = system.eig.eigenvectors().col(i);
     if (v.tail<3>().squaredNorm() < kMostlyTranslation) continue;
-    facing_params.facing = Facing{v.tail<3>(), params_.facing_cosine};
-    const Pose& pose = *T;
-    const Matrix6d F = unpack(buildSystem(current, model, level, pose.linear().cast<float>(),
-                                          pose.translation().cast<float>(), facing_params));
+    facing_params.facing = IcpTracker::Facing{v.tail<3>(), params.facing_cosine};
+    const Matrix6d F = unpack(IcpTracker::buildSystem(current, model, level, T->linear().cast<float>(),
+                                          T->translation().cast<float>(), facing_params));
     const Vector6d d = s.cwiseProduct(v);
-    if (d.dot(F * d) / system->weight >= params_.weak_direction_fraction) continue;
+    if (d.dot(F * d) / system.weight >= params.weak_direction_fraction) continue;
     result->weak[result->weak_directions++] = d.normalized();
     y -= v * v.dot(y);
     scatter = true;
   }
   if (scatter) *T = orthonormalized(expTwist(s.cwiseProduct(y)) * T_prior);
-  return result->weak_directions <= params_.max_weak_directions;
+  return result->weak_directions <= params.max_weak_directions;
 }
+
+}  // namespace
 
 IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
                             const Pose& T_ref_cur_guess, bool prior, float gate_scale) const {
@@ -458,8 +462,17 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
     return result;
   };
 
+  const auto degenerate = [&](const char* weak_how) {
+    std::ostringstream why;
+    why << "degenerate geometry: " << result.weak_directions
+        << " of the six directions of motion are " << weak_how << " (max_weak_directions "
+        << params_.max_weak_directions << ")";
+    return fail(why.str());
+  };
+
   Pose T = T_ref_cur_guess;
   IcpSystem last;
+  std::optional<Scaled> last_scaled;
   int last_level = kPyramidLevels - 1;
   for (int step = 0; step < kPyramidLevels; ++step) {
     const int level = kPyramidLevels - 1 - step;
@@ -477,32 +490,24 @@ IcpResult IcpTracker::track(const DepthFrame& current, const ModelMaps& model,
       }
       const Matrix6d A = unpack(last);
       const Vector6d b(last.atb.data());
+      last_scaled = scaled(A, b);
       Vector6d xi;
-      if (!solve(A, b, params_.weak_direction_fraction, prior, &xi, &result))
+      if (!solve(A, b, last_scaled, params_.weak_direction_fraction, prior, &xi, &result))
         return fail("degenerate geometry: the ICP system is singular");
       // Coarse levels see fewer pixels and often more weak directions: the finest one decides.
-      if (level == 0 && result.weak_directions > params_.max_weak_directions) {
-        std::ostringstream why;
-        why << "degenerate geometry: " << result.weak_directions
-            << " of the six directions of motion are weak (max_weak_directions "
-            << params_.max_weak_directions << ")";
-        return fail(why.str());
-      }
+      if (level == 0 && result.weak_directions > params_.max_weak_directions)
+        return degenerate("weak");
       if (!xi.allFinite()) return fail("non-finite ICP update");
       T = orthonormalized(expTwist(xi) * T);
       if (xi.norm() < params_.convergence_epsilon) break;
     }
   }
   if (!isFinite(T)) return fail("non-finite pose");
-  if (prior && !keepPriorAlongScatter(current, model, last, last_level, T_ref_cur_guess, &T,
-                                      &result)) {
-    std::ostringstream why;
-    why << "degenerate geometry: " << result.weak_directions
-        << " of the six directions of motion are weak, or constrained by scatter alone "
-           "(max_weak_directions "
-        << params_.max_weak_directions << ")";
-    return fail(why.str());
-  }
+  // No system when every level's iterations are 0: the guess is kept as it is.
+  if (prior && last_scaled &&
+      !keepPriorAlongScatter(params_, systemParams(), current, model, *last_scaled, last_level,
+                             T_ref_cur_guess, &T, &result))
+    return degenerate("weak, or constrained by scatter alone");
 
   // Statistics of the finest level from its last iteration (one update before the final pose,
   // which after convergence differs by less than the update tolerance).

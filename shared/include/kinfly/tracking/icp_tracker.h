@@ -147,14 +147,6 @@ class IcpTracker {
                                const SystemParams& params);
 
  private:
-  // From a prior: each direction ICP moved along (not weak in `last`, the finest system solved,
-  // at LEVEL) whose share is below suspect_direction_fraction and whose facing pairs' share is
-  // below weak_direction_fraction is weak too: added to *result, and *T keeps T_prior along it.
-  // False when that makes more than max_weak_directions.
-  bool keepPriorAlongScatter(const DepthFrame& current, const ModelMaps& model,
-                             const IcpSystem& last, int level, const Pose& T_prior, Pose* T,
-                             IcpResult* result) const;
-
   Params params_;
 };
 

@@ -321,6 +321,9 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "peak jerk of the same: how fast the tilt asked for turns, about jerk / g "
                   "[m/s^3]")
       ->capture_default_str();
+  app->add_option("--flight.max_yaw_rate_rad_s", st.trajectory.max_yaw_rate_rad_s,
+                  "peak yaw rate of a go-to's turn to its heading [rad/s]")
+      ->capture_default_str();
   app->add_option("--flight.land_speed_m_s", st.modes.land_speed_m_s, "landing descent [m/s]")
       ->capture_default_str();
   app->add_option("--flight.vision_lost_s", st.modes.vision_lost_s,
@@ -447,6 +450,7 @@ Status FlightConfig::validate() const {
                                 {"trajectory.max_speed_m_s", "flight.max_speed_m_s"},
                                 {"trajectory.max_accel_m_s2", "flight.max_accel_m_s2"},
                                 {"trajectory.max_jerk_m_s3", "flight.max_jerk_m_s3"},
+                                {"trajectory.max_yaw_rate_rad_s", "flight.max_yaw_rate_rad_s"},
                                 {"modes.land_speed_m_s", "flight.land_speed_m_s"},
                                 {"modes.vision_lost_s", "flight.vision_lost_s"}}));
 }

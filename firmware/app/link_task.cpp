@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "kinfly/link/channels.h"
 #include "kinfly/link/conversions.h"
@@ -242,9 +243,10 @@ void LinkTask::onCommand(const lcm_recv_buf_t* rbuf) {
   }
   CommandMail& mail = commands_->back();
   mail.command_id = m.command_id;
-  mail.command = flight::FlightCommand{commandKind(m.kind), m.height_m,
-                                       Eigen::Vector3d(m.target_world_m[0], m.target_world_m[1],
-                                                       m.target_world_m[2])};
+  mail.command = flight::FlightCommand{
+      commandKind(m.kind), m.height_m,
+      Eigen::Vector3d(m.target_world_m[0], m.target_world_m[1], m.target_world_m[2]),
+      m.has_yaw ? m.yaw_rad : std::numeric_limits<double>::quiet_NaN()};
   mail.mission.reset();
   if (m.kind == flight_command_t::MISSION) {
     std::vector<Eigen::Vector3d> waypoints;

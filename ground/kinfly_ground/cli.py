@@ -174,6 +174,11 @@ def parser() -> argparse.ArgumentParser:
     command.add_argument("--vehicle", type=int, required=True, help="the drone's vehicle id")
     command.add_argument("--key", type=Path, required=True, metavar="FILE",
                          help="the vehicle's 32-byte signing key (kinfly-keygen)")
+    command.add_argument("--yaw", type=float, default=None, metavar="DEG",
+                         help="goto: the heading to turn to on the way, degrees about world z "
+                              "(down) from world x towards world y, in [-360, 360] (default: "
+                              "keep the drone's); a goto to where the drone holds turns it in "
+                              "place")
     command.add_argument("--max-speed", type=float, default=0.0, metavar="M/S",
                          help="mission: its peak speed (default: the drone's "
                               "flight.max_speed_m_s)")
@@ -556,11 +561,14 @@ def send_command(args: argparse.Namespace) -> int:
         numbers = [float(v) for v in values] if args.action in ("takeoff", "goto") else []
     except ValueError:
         raise UsageError(f"{args.action}: not a number in {' '.join(values)}")
+    if args.yaw is not None and (args.action != "goto" or not -360.0 <= args.yaw <= 360.0):
+        raise UsageError(f"--yaw {args.yaw:g}: for goto only, in [-360, 360] degrees")
     waypoints = read_waypoints(Path(values[0])) if args.action == "mission" else []
     command_id = time.time_ns() // 1000
     message = build_command(args.vehicle, args.action, command_id,
                             height_m=numbers[0] if args.action == "takeoff" else 0.0,
                             target=numbers if args.action == "goto" else (0.0, 0.0, 0.0),
+                            yaw_rad=None if args.yaw is None else math.radians(args.yaw),
                             waypoints=waypoints, max_speed_m_s=args.max_speed)
     if not 0.0 <= args.wait <= 600.0:
         raise UsageError(f"--wait {args.wait:g} outside [0, 600] s")

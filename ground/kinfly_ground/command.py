@@ -53,9 +53,10 @@ def read_waypoints(path: Path) -> list[tuple[float, float, float]]:
 
 
 def build(vehicle: int, kind: str, command_id: int, *, height_m: float = 0.0,
-          target: Sequence[float] = (0.0, 0.0, 0.0),
+          target: Sequence[float] = (0.0, 0.0, 0.0), yaw_rad: float | None = None,
           waypoints: Sequence[tuple[float, float, float]] = (),
           max_speed_m_s: float = 0.0) -> flight_command_t:
+    """YAW_RAD: a go-to's heading (flight_command_t.yaw_rad); None keeps the drone's."""
     if kind not in KINDS:
         raise CommandError(f"unknown command {kind!r} (one of {', '.join(KINDS)})")
     m = flight_command_t()
@@ -65,6 +66,8 @@ def build(vehicle: int, kind: str, command_id: int, *, height_m: float = 0.0,
     m.kind = KINDS[kind]
     m.height_m = float(height_m)
     m.target_world_m = [float(v) for v in target]
+    m.has_yaw = yaw_rad is not None
+    m.yaw_rad = float(yaw_rad) if yaw_rad is not None else 0.0
     m.max_speed_m_s = float(max_speed_m_s)
     m.waypoint_count = len(waypoints)
     m.waypoints_world_m = [[float(v) for v in w] for w in waypoints]

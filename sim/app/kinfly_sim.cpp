@@ -259,6 +259,8 @@ flight_command_t commandOf(const MissionCommand& step, int vehicle_id, int64_t c
   c.command_id = command_id;
   c.height_m = step.height_m;
   for (int i = 0; i < 3; ++i) c.target_world_m[i] = step.target_world_m[i];
+  c.has_yaw = !std::isnan(step.yaw_rad);
+  c.yaw_rad = c.has_yaw ? step.yaw_rad : 0.0;
   c.max_speed_m_s = step.max_speed_m_s;
   c.waypoint_count = 0;
   switch (step.kind) {

@@ -116,8 +116,14 @@ StatusOr<MissionCommand> readCommand(const Reader& r, const toml::table& t) {
     KINFLY_TRY_ASSIGN(c.height_m, r.number(t, "height_m", 0.2, 50.0));
   } else if (*kind == "go_to") {
     c.kind = MissionCommand::Kind::kGoTo;
-    if (Status s = r.onlyKnown(t, {"kind", "at_s", "target_m"}, *kind); !s.ok()) return s;
+    if (Status s = r.onlyKnown(t, {"kind", "at_s", "target_m", "yaw_deg"}, *kind); !s.ok())
+      return s;
     KINFLY_TRY_ASSIGN(c.target_world_m, r.vector3(t, "target_m", kMaxPositionM));
+    if (t.get("yaw_deg") != nullptr) {
+      double yaw_deg = 0.0;
+      KINFLY_TRY_ASSIGN(yaw_deg, r.number(t, "yaw_deg", -360.0, 360.0));
+      c.yaw_rad = yaw_deg * M_PI / 180.0;
+    }
   } else if (*kind == "waypoints") {
     c.kind = MissionCommand::Kind::kWaypoints;
     if (Status s = r.onlyKnown(t, {"kind", "at_s", "waypoints_m", "max_speed_m_s"}, *kind);

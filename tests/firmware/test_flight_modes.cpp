@@ -185,7 +185,32 @@ TEST(FlightModes, CommandsNeedTheRightMode) {
   EXPECT_EQ(flight.command(FlightCommand{CommandKind::kGoTo, 0.0, Vector3d(NAN, 0.0, -2.0)})
                 .refusal,
             CommandRefusal::kInvalidTarget);
+  EXPECT_EQ(flight.command(FlightCommand{CommandKind::kGoTo, 0.0, Vector3d(1.0, 0.0, -2.0),
+                                         INFINITY})
+                .refusal,
+            CommandRefusal::kInvalidTarget);
   EXPECT_EQ(flight.modes().mode(), FlightMode::kHold);
+}
+
+TEST(FlightModes, AGoToTurnsToItsHeadingAndKeepsItInTheHold) {
+  Flight flight;
+  flight.state().q_world_body = Eigen::AngleAxisd(0.5, Vector3d::UnitZ());
+  flight.takeOffAndHold();
+  // Without a heading the body's is kept.
+  const Vector3d first(2.0, 0.0, -kTakeOffHeightM);
+  ASSERT_TRUE(flight.command(FlightCommand{CommandKind::kGoTo, 0.0, first}).accepted());
+  EXPECT_NEAR(flight.tick().setpoint.yaw_rad, 0.5, kExactM);
+  // With one, the setpoint has it from the start, and the hold it ends in keeps it.
+  const Vector3d target(2.0, 3.0, -kTakeOffHeightM);
+  ASSERT_TRUE(
+      flight.command(FlightCommand{CommandKind::kGoTo, 0.0, target, M_PI / 2.0}).accepted());
+  FlightOutput out = flight.tick();
+  EXPECT_EQ(out.setpoint.kind, SetpointKind::kGoTo);
+  EXPECT_NEAR(out.setpoint.yaw_rad, M_PI / 2.0, kExactM);
+  flight.state().p_world_body_m = target;
+  out = flight.tick();
+  EXPECT_EQ(out.mode, FlightMode::kHold);
+  EXPECT_NEAR(out.setpoint.yaw_rad, M_PI / 2.0, kExactM);
 }
 
 TEST(FlightModes, TakeOffClimbsStraightUpAndHoldsAtTheHeight) {

@@ -365,7 +365,7 @@ TEST(Trajectory, AllocatedTimesKeepTheMaxJerk) {
 TEST(Trajectory, StraightLineFromRestToRestWithinItsLimits) {
   TrajectoryParams params;
   const Vector3d from(0, 0, -1), to(3, -4, -2);
-  const StraightLine line(from, to, params, 0.4);
+  const StraightLine line(from, to, params, 0.4, 0.4);
   EXPECT_LT((line.sample(0.0).p_world_m - from).norm(), kTight);
   EXPECT_LT((line.sample(line.durationS()).p_world_m - to).norm(), kTight);
   EXPECT_EQ(line.sample(-1.0).p_world_m, from);
@@ -394,20 +394,54 @@ TEST(Trajectory, StraightLineFromRestToRestWithinItsLimits) {
     EXPECT_EQ(a.yaw_rad, 0.4);
   }
   // A short hop: the jerk binds, and its peak is the limit, at mid-way.
-  const StraightLine hop(from, from + Vector3d(0.05, 0, 0), params, 0.0);
+  const StraightLine hop(from, from + Vector3d(0.05, 0, 0), params, 0.0, 0.0);
   EXPECT_NEAR(hop.durationS(), std::cbrt(52.5 * 0.05 / params.max_jerk_m_s3), 1e-9);
   EXPECT_NEAR(hop.sample(0.5 * hop.durationS()).j_world_m_s3.norm(), params.max_jerk_m_s3, 1e-9);
   // With room for jerk, the acceleration binds.
   TrajectoryParams jerky = params;
   jerky.max_jerk_m_s3 = 200.0;
-  const StraightLine quick(from, from + Vector3d(0.05, 0, 0), jerky, 0.0);
+  const StraightLine quick(from, from + Vector3d(0.05, 0, 0), jerky, 0.0, 0.0);
   EXPECT_NEAR(quick.durationS(), std::sqrt(7.513188404399289 * 0.05 / jerky.max_accel_m_s2), 1e-9);
   // No distance, no time.
-  EXPECT_EQ(StraightLine(to, to, params, 0.0).durationS(), 0.0);
+  EXPECT_EQ(StraightLine(to, to, params, 0.0, 0.0).durationS(), 0.0);
   const PositionSetpoint held = Trajectory::hold(to, 1.0).sample(5.0);
   EXPECT_EQ(held.p_world_m, to);
   EXPECT_EQ(held.v_world_m_s, Vector3d::Zero());
   EXPECT_EQ(held.yaw_rad, 1.0);
+}
+
+TEST(Trajectory, StraightLineTurnsTheShorterWayWithinTheYawRate) {
+  const TrajectoryParams params;
+  const Vector3d at(1.0, -2.0, -1.0);
+  // A turn in place from 170° to -100°: the shorter way is +90° across ±180°, and it alone sets
+  // the time.
+  const double from_yaw = 170.0 * M_PI / 180.0, to_yaw = -100.0 * M_PI / 180.0;
+  const StraightLine turn(at, at, params, from_yaw, to_yaw);
+  EXPECT_NEAR(turn.durationS(), 35.0 / 16.0 * (M_PI / 2.0) / params.max_yaw_rate_rad_s, 1e-9);
+  EXPECT_EQ(turn.sample(-1.0).yaw_rad, from_yaw);
+  EXPECT_NEAR(turn.sample(0.5 * turn.durationS()).yaw_rad, from_yaw + M_PI / 4.0, 1e-9);
+  EXPECT_NEAR(std::remainder(turn.sample(turn.durationS()).yaw_rad - to_yaw, 2.0 * M_PI), 0.0,
+              1e-12);
+  double peak_rate = 0.0, last = turn.sample(0.0).yaw_rad;
+  const double dt_s = 1e-4;
+  constexpr double kRoundingRad = 1e-12;  // σ's rounding where it flattens at the ends
+  for (double t_s = dt_s; t_s <= turn.durationS(); t_s += dt_s) {
+    const PositionSetpoint sp = turn.sample(t_s);
+    EXPECT_GE(sp.yaw_rad, last - kRoundingRad);  // one way round, never back
+    peak_rate = std::max(peak_rate, (sp.yaw_rad - last) / dt_s);
+    last = sp.yaw_rad;
+    EXPECT_EQ(sp.p_world_m, at);
+    EXPECT_EQ(sp.v_world_m_s, Vector3d::Zero());
+  }
+  EXPECT_NEAR(peak_rate, params.max_yaw_rate_rad_s, 1e-3);
+  // Along a long line the distance sets the time, and the heading turns along the same profile.
+  const Vector3d to = at + Vector3d(6.0, 0.0, 0.0);
+  const StraightLine leg(at, to, params, 0.0, 0.3);
+  EXPECT_NEAR(leg.durationS(), 35.0 / 16.0 * 6.0 / params.max_speed_m_s, 1e-9);
+  for (const double t_s : {0.5, 3.0, 9.0}) {
+    const PositionSetpoint sp = leg.sample(t_s);
+    EXPECT_NEAR(sp.yaw_rad / 0.3, (sp.p_world_m - at).norm() / 6.0, 1e-9) << t_s;
+  }
 }
 
 TEST(Trajectory, DescentReachesItsSpeedAndGoesOn) {
@@ -701,6 +735,57 @@ TEST(FlightStack, AReachedGoToHoldsAlongItsLineWithoutAStep) {
   // One tick's change along a line flown at max_accel_m_s2: what a continuous setpoint moves by.
   const double one_tick_m_s = FlightStackParams{}.trajectory.max_accel_m_s2 * test::kControlDtS;
   EXPECT_LE(script.step_at_reach_m_s, one_tick_m_s);
+}
+
+// A go-to to the hold point with a heading is a turn in place: the body turns the shorter way
+// at about max_yaw_rate_rad_s and stays where it was.
+TEST(FlightStack, AGoToWithAHeadingTurnsInPlaceAtTheYawRate) {
+  FloorFlight flight{FlightStackParams{}};
+  constexpr double kHeadingRad = -M_PI / 2.0;  // from facing world x to facing -y
+  struct Script {
+    const test::FlightPlant* plant;
+    bool went = false;
+    int64_t hold_since_utime = -1, went_utime = -1;
+    Vector3d hold_world_m = Vector3d::Zero();
+    double last_yaw = 0.0, peak_rate = 0.0, drift_m = 0.0, yaw_at_end = NAN;
+    static double yawOf(const Eigen::Quaterniond& q) {
+      const Eigen::Matrix3d R = q.toRotationMatrix();
+      return std::atan2(R(1, 0), R(0, 0));
+    }
+    std::optional<FlightCommand> command(int64_t utime, FlightMode mode) {
+      if (mode == FlightMode::kHold && !went) {
+        if (hold_since_utime < 0) hold_since_utime = utime;
+        if (utime - hold_since_utime >= kHoldBeforeUs) {
+          went = true;
+          went_utime = utime;
+          hold_world_m = plant->state().p_world_m;
+          last_yaw = yawOf(plant->state().q_world_body);
+          return FlightCommand{CommandKind::kGoTo, 0.0, hold_world_m, kHeadingRad};
+        }
+      }
+      return armAndTakeOff(mode);
+    }
+    bool seen(int64_t utime, const TickOutput&) {
+      if (!went) return true;
+      const double yaw = yawOf(plant->state().q_world_body);
+      peak_rate = std::max(peak_rate, std::abs(std::remainder(yaw - last_yaw, 2.0 * M_PI)) /
+                                          test::kControlDtS);
+      last_yaw = yaw;
+      drift_m = std::max(drift_m, (plant->state().p_world_m - hold_world_m).norm());
+      yaw_at_end = yaw;
+      return utime - went_utime < 6'000'000;  // the turn's 4.4 s and some
+    }
+  } script;
+  script.plant = &flight.plant;
+  flyFromTheFloor(*flight.stack, flight.plant, flight.sensors, 20.0, script);
+  ASSERT_TRUE(script.went) << "the turn was never commanded";
+  std::printf("[flight] turn in place: peak yaw rate %.3f rad/s, drift %.3f m, heading error "
+              "%.4f rad\n",
+              script.peak_rate, script.drift_m, script.yaw_at_end - kHeadingRad);
+  constexpr double kHeadingTolRad = 0.02, kTurnDriftTolM = 0.05, kRateOvershoot = 1.3;
+  EXPECT_NEAR(std::remainder(script.yaw_at_end - kHeadingRad, 2.0 * M_PI), 0.0, kHeadingTolRad);
+  EXPECT_LT(script.drift_m, kTurnDriftTolM);
+  EXPECT_LT(script.peak_rate, kRateOvershoot * FlightStackParams{}.trajectory.max_yaw_rate_rad_s);
 }
 
 // Vision lost in the air: the descent on the IMU alone cannot see its speed (the velocity drifts

@@ -625,7 +625,7 @@ TEST(CorrectionReceiver, AcceptsTheGoodAndCountsEachBadKind) {
 // Flight commands: decoded within bounds, and received through the same signed path.
 
 flight_command_t sampleMission(int waypoints) {
-  flight_command_t m;
+  flight_command_t m{};
   m.utime = kNow;
   m.vehicle_id = kVehicle;
   m.command_id = 42;
@@ -668,6 +668,12 @@ TEST(Decode, FlightCommandsAreBoundedByTheirWaypoints) {
   expectBad(bad, "a waypoint is not finite");
   bad = sampleMission(3);
   bad.height_m = INFINITY;
+  expectBad(bad, "a field is not finite");
+  bad = sampleMission(3);
+  bad.yaw_rad = NAN;  // read only with has_yaw
+  const auto no_yaw = encode(bad);
+  ASSERT_TRUE(decodeMessage(no_yaw.data(), no_yaw.size(), DecodeBounds(), &got).ok());
+  bad.has_yaw = true;
   expectBad(bad, "a field is not finite");
   bad = sampleMission(flight_command_t::MAX_WAYPOINTS + 1);
   const auto too_long = encode(bad);

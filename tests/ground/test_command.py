@@ -38,8 +38,12 @@ def test_the_command_carries_what_was_asked() -> None:
     assert decoded.waypoint_count == 2
     assert list(decoded.waypoints_world_m[1]) == [2.0, 0.0, -1.0]
     assert decoded.max_speed_m_s == 0.5
-    goto = build(5, "goto", 18, target=(1.0, 2.0, -3.0))
+    goto = flight_command_t.decode(build(5, "goto", 18, target=(1.0, 2.0, -3.0)).encode())
     assert list(goto.target_world_m) == [1.0, 2.0, -3.0] and goto.waypoint_count == 0
+    assert not goto.has_yaw  # the drone keeps its heading
+    turn = flight_command_t.decode(build(5, "goto", 19, target=(1.0, 2.0, -3.0),
+                                         yaw_rad=-1.5).encode())
+    assert turn.has_yaw and turn.yaw_rad == -1.5
 
 
 @pytest.mark.parametrize("action,options,message", [
@@ -47,6 +51,8 @@ def test_the_command_carries_what_was_asked() -> None:
     (["goto", "1", "2", "x"], [], "goto: not a number in 1 2 x"),
     (["arm"], ["--copies", "0"], "--copies 0 outside [1, 100]"),
     (["arm"], ["--vehicle", "70000"], "--vehicle 70000 outside [0, 65535]"),
+    (["goto", "1", "2", "-1"], ["--yaw", "400"], "--yaw 400: for goto only, in [-360, 360]"),
+    (["land"], ["--yaw", "90"], "--yaw 90: for goto only, in [-360, 360]"),
 ])
 def test_a_wrong_command_line_exits_2_naming_it(action: list[str], options: list[str],
                                                 message: str,

@@ -30,6 +30,12 @@ kind = "go_to"
 target_m = [1.0, -0.5, -1.5]
 
 [[command]]
+at_s = 12
+kind = "go_to"
+target_m = [1.0, 0.5, -1.5]
+yaw_deg = -90
+
+[[command]]
 at_s = 15
 kind = "figure_eight"
 centre_m = [0.0, 0.0, -1.0]
@@ -59,13 +65,15 @@ TEST(Mission, AFileSaysWhatItsMissionDoes) {
   const Mission& m = parsed.value();
   EXPECT_EQ(m.name, "tour");
   EXPECT_EQ(m.max_s, 60.0);
-  ASSERT_EQ(m.commands.size(), 5u);
+  ASSERT_EQ(m.commands.size(), 6u);
   EXPECT_EQ(m.commands[1].kind, MissionCommand::Kind::kTakeOff);
   EXPECT_EQ(m.commands[1].height_m, 1.5);
   EXPECT_EQ(m.commands[2].target_world_m, Eigen::Vector3d(1.0, -0.5, -1.5));
-  EXPECT_EQ(m.commands[3].kind, MissionCommand::Kind::kWaypoints);
-  EXPECT_EQ(m.commands[3].waypoints_world_m.size(), 17u);
-  EXPECT_EQ(m.commands[3].max_speed_m_s, 1.0);
+  EXPECT_TRUE(std::isnan(m.commands[2].yaw_rad));  // no heading given: the drone keeps its own
+  EXPECT_DOUBLE_EQ(m.commands[3].yaw_rad, -M_PI / 2.0);
+  EXPECT_EQ(m.commands[4].kind, MissionCommand::Kind::kWaypoints);
+  EXPECT_EQ(m.commands[4].waypoints_world_m.size(), 17u);
+  EXPECT_EQ(m.commands[4].max_speed_m_s, 1.0);
   // Events in time order, whatever the file's.
   ASSERT_EQ(m.events.size(), 2u);
   EXPECT_EQ(m.events[0].kind, MissionEvent::Kind::kGust);
@@ -171,6 +179,8 @@ TEST(Mission, MistakesAreNamedWithTheirLine) {
             "m.toml:4: unknown key 'height_m' in arm (known: at_s, kind)");
   EXPECT_EQ(message("[[command]]\nat_s = 1\nkind = \"go_to\"\ntarget_m = [1, 2]\n"),
             "m.toml:4: 'target_m' must be three numbers [x, y, z]");
+  EXPECT_EQ(message("[[command]]\nat_s = 1\nkind = \"go_to\"\ntarget_m = [1, 2, 3]\nyaw_deg = 400\n"),
+            "m.toml:5: 'yaw_deg' must be a number in [-360, 360]");
   EXPECT_EQ(message("[[command]]\nat_s = -1\nkind = \"arm\"\n"),
             "m.toml:2: 'at_s' must be a number in [0, 86400]");
   EXPECT_EQ(message("[[command]]\nat_s = 5\nkind = \"arm\"\n[[command]]\nat_s = 1\nkind = \"land\"\n"),

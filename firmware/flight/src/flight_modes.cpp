@@ -377,7 +377,7 @@ CommandResult FlightModes::handle(const FlightCommand& command, const FlightInpu
       refusal = not_flying != CommandRefusal::kNone ? not_flying : positionChecks(in);
       const bool go_to = command.kind == CommandKind::kGoTo;
       if (refusal == CommandRefusal::kNone && go_to) {
-        if (!command.target_world_m.allFinite()) {
+        if (!command.target_world_m.allFinite() || std::isinf(command.yaw_rad)) {
           refusal = CommandRefusal::kInvalidTarget;
         } else if (!insideGeofence(command.target_world_m)) {
           refusal = CommandRefusal::kOutsideGeofence;
@@ -405,6 +405,7 @@ CommandResult FlightModes::handle(const FlightCommand& command, const FlightInpu
       const Vector3d& hold_world_m =
           insideGeofence(p_world_m) ? p_world_m : last_inside_world_m_;
       setpoint_ = setpointAt(kind, go_to ? command.target_world_m : hold_world_m, in);
+      if (go_to && !std::isnan(command.yaw_rad)) setpoint_.yaw_rad = command.yaw_rad;
       // A new hold point or go-to target in the same mode is no mode change.
       if (to != mode_) setMode(to, EventReason::kCommand, in, out);
       break;

@@ -249,6 +249,9 @@ PositionSetpoint FlightStack::guide(const FlightOutput& out, const EstimatorStat
   // A profile starts from where the last one left the setpoint, so the setpoint never jumps; on
   // a take-off from where the body is.
   const Eigen::Vector3d from_world_m = flying_ ? setpoint_.p_world_m : state.p_world_body_m;
+  // The heading turns from where the setpoint's is (a turn still under way goes on from there);
+  // a take-off keeps the body's.
+  const double from_yaw_rad = flying_ ? setpoint_.yaw_rad : sp.yaw_rad;
   if (!flying_ || !continuesProfile(sp, mode_setpoint_)) {
     mode_setpoint_ = sp;
     profile_start_utime_ = utime;
@@ -256,12 +259,13 @@ PositionSetpoint FlightStack::guide(const FlightOutput& out, const EstimatorStat
       case SetpointKind::kTakeOff:
       case SetpointKind::kHold:
       case SetpointKind::kGoTo:
-        line_ = StraightLine(from_world_m, sp.point_world_m, params_.trajectory, sp.yaw_rad);
+        line_ = StraightLine(from_world_m, sp.point_world_m, params_.trajectory, from_yaw_rad,
+                             sp.yaw_rad);
         break;
       case SetpointKind::kMission:
         // Flown only when loaded (the modes refuse a mission without one).
         line_ = StraightLine(from_world_m, mission_->sample(0.0).p_world_m, params_.trajectory,
-                             sp.yaw_rad);
+                             from_yaw_rad, sp.yaw_rad);
         mission_start_utime_ = utime + std::llround(line_.durationS() * kUsPerS);
         mission_finished_ = false;
         break;

@@ -63,7 +63,8 @@ Status TrajectoryParams::validate() const {
   return firstError(
       outOfRange("trajectory.max_speed_m_s", max_speed_m_s, 0.0, 20.0, Bound::kOpen),
       outOfRange("trajectory.max_accel_m_s2", max_accel_m_s2, 0.0, 20.0, Bound::kOpen),
-      outOfRange("trajectory.max_jerk_m_s3", max_jerk_m_s3, 0.0, 200.0, Bound::kOpen));
+      outOfRange("trajectory.max_jerk_m_s3", max_jerk_m_s3, 0.0, 200.0, Bound::kOpen),
+      outOfRange("trajectory.max_yaw_rate_rad_s", max_yaw_rate_rad_s, 0.0, 10.0, Bound::kOpen));
 }
 
 Trajectory::Trajectory(std::vector<Segment> segments, const Eigen::Vector3d& first_world_m,
@@ -258,24 +259,30 @@ std::array<double, 4> restToRest(double s) {
 }  // namespace
 
 StraightLine::StraightLine(const Eigen::Vector3d& from_world_m, const Eigen::Vector3d& to_world_m,
-                           const TrajectoryParams& params, double yaw_rad)
-    : from_world_m_(from_world_m), delta_m_(to_world_m - from_world_m), yaw_rad_(yaw_rad) {
+                           const TrajectoryParams& params, double from_yaw_rad, double to_yaw_rad)
+    : from_world_m_(from_world_m),
+      delta_m_(to_world_m - from_world_m),
+      from_yaw_rad_(from_yaw_rad),
+      delta_yaw_rad_(std::remainder(to_yaw_rad - from_yaw_rad, 2.0 * M_PI)) {
   const double length_m = delta_m_.norm();
   duration_s_ = std::max({kRestToRestPeakSpeed * length_m / params.max_speed_m_s,
                           std::sqrt(kRestToRestPeakAccel * length_m / params.max_accel_m_s2),
-                          std::cbrt(kRestToRestPeakJerk * length_m / params.max_jerk_m_s3)});
+                          std::cbrt(kRestToRestPeakJerk * length_m / params.max_jerk_m_s3),
+                          kRestToRestPeakSpeed * std::abs(delta_yaw_rad_) /
+                              params.max_yaw_rate_rad_s});
 }
 
 PositionSetpoint StraightLine::sample(double t_s) const {
   PositionSetpoint sp;
-  sp.yaw_rad = yaw_rad_;
   if (!(t_s < duration_s_)) {  // after the end (a zero length too, and NaN): at rest there
     sp.p_world_m = from_world_m_ + delta_m_;
+    sp.yaw_rad = from_yaw_rad_ + delta_yaw_rad_;
     return sp;
   }
   const double s = std::max(t_s, 0.0) / duration_s_;
   const std::array<double, 4> sigma = restToRest(s);
   const double T = duration_s_;
+  sp.yaw_rad = from_yaw_rad_ + delta_yaw_rad_ * sigma[0];
   sp.p_world_m = from_world_m_ + delta_m_ * sigma[0];
   sp.v_world_m_s = delta_m_ * (sigma[1] / T);
   sp.a_world_m_s2 = delta_m_ * (sigma[2] / (T * T));

@@ -138,7 +138,7 @@ std::string fieldProblem(const flight_command_t& m, const DecodeBounds&) {
   if (m.kind < flight_command_t::ARM || m.kind > flight_command_t::LAND)
     return "unknown kind " + std::to_string(m.kind);
   if (!std::isfinite(m.height_m) || !finite(m.target_world_m, 3) ||
-      !std::isfinite(m.max_speed_m_s))
+      !std::isfinite(m.max_speed_m_s) || (m.has_yaw && !std::isfinite(m.yaw_rad)))
     return "a field is not finite";
   if (m.kind == flight_command_t::MISSION && m.waypoint_count < 2)
     return "a mission needs at least 2 waypoints (got " + std::to_string(m.waypoint_count) + ")";

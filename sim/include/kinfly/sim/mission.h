@@ -6,6 +6,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -20,6 +21,9 @@ struct MissionCommand {
   Kind kind = Kind::kHold;
   double height_m = 1.0;                                // take-off: above where it stands
   Eigen::Vector3d target_world_m = Eigen::Vector3d::Zero();  // go-to
+  // go-to: the heading to turn to on the way [rad], about world z from world x towards world y
+  // (the file's yaw_deg); NaN: keep the drone's
+  double yaw_rad = std::numeric_limits<double>::quiet_NaN();
   std::vector<Eigen::Vector3d> waypoints_world_m;       // waypoints (and a figure eight's)
   double max_speed_m_s = 0.0;                           // waypoints: peak speed; 0: the drone's
   std::string name;                                     // as written: arm, figure_eight ...

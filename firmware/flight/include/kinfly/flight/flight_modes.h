@@ -10,6 +10,7 @@
 #include <Eigen/Core>
 #include <array>
 #include <cstdint>
+#include <limits>
 #include <optional>
 
 #include "kinfly/core/status.h"
@@ -100,6 +101,9 @@ struct FlightCommand {
   CommandKind kind = CommandKind::kHold;
   double height_m = 0.0;                                      // take-off: above the ground
   Eigen::Vector3d target_world_m = Eigen::Vector3d::Zero();  // go-to
+  // go-to: the heading to turn to on the way (ModeSetpoint::yaw_rad's convention); NaN keeps
+  // the body's
+  double yaw_rad = std::numeric_limits<double>::quiet_NaN();
 };
 
 // Why a command was refused; the first check that failed.
@@ -110,7 +114,8 @@ enum class CommandRefusal {
   kVisionNotFused,       // no pose fused within vision_fresh_s
   kNotAtRest,            // arming: moving or tilted
   kOutsideGeofence,      // arming outside the box, or a target outside it
-  kInvalidTarget,        // not finite, or a take-off lower than takeoff_height_min_m
+  kInvalidTarget,        // not finite (a go-to's yaw: infinite), or a take-off lower than
+                         // takeoff_height_min_m
   kDisarmed,             // flying commands need arming first
   kAlreadyArmed,
   kOnGround,             // hold, go-to, mission and land need a take-off first

@@ -7,7 +7,8 @@
 // solves a linear system); sample() is const and allocates nothing. Every trajectory is a chain
 // of polynomial segments per world axis, each in its own normalised time s = (t - t_i) / T_i in
 // [0, 1], which keeps the solve well conditioned whatever the segment times. Before its start a
-// trajectory holds its first point and after its end its last, at rest. Yaw is held constant.
+// trajectory holds its first point and after its end its last, at rest. A minimum-snap
+// trajectory and a descent hold their yaw; a straight line turns it.
 #pragma once
 
 #include <Eigen/Core>
@@ -33,6 +34,11 @@ struct TrajectoryParams {
   // and the simulated drone tumbled 40 cm (docs/sim.md). 30 leaves the figure eights at 1 and
   // 2 m/s (peaks 8 and 29 m/s^3) as they were.
   double max_jerk_m_s3 = 30.0;
+  // [rad/s] (0, 10] a straight line that turns the heading (a go-to given one) takes at least
+  // the time that keeps its peak yaw rate within this: about 45°/s, PX4's MPC_YAWRAUTO_MAX
+  // default. The odometry tracks a turn the IMU's prior carries, but the onboard map has to be
+  // filled again where the camera now looks.
+  double max_yaw_rate_rad_s = 0.785;
   Status validate() const;
 };
 
@@ -92,16 +98,18 @@ class Trajectory {
 // form: the two-point minimum-snap polynomial p(s) = p0 + (p1 - p0) σ(s) with
 // σ(s) = 35 s^4 - 84 s^5 + 70 s^6 - 20 s^7, s = t / T, T the shortest time that keeps the peak
 // speed (35/16 |p1 - p0| / T), acceleration (7.513 |p1 - p0| / T^2) and jerk
-// (52.5 |p1 - p0| / T^3) within the params.
+// (52.5 |p1 - p0| / T^3) within the params. The heading turns the shorter way round from one yaw
+// to the other along the same σ(s), T also long enough for its peak rate
+// (35/16 |Δyaw| / T) to stay within max_yaw_rate_rad_s: a turn in place is a line of length 0.
 // Made and sampled without allocating or solving: the flight modes start one inside the control
 // tick (take-off, go-to, the way to a mission's start).
 class StraightLine {
  public:
   StraightLine() = default;  // at rest at the origin
-  // from and to finite, params valid: the caller checks them once (FlightStack's params, the
-  // modes' targets).
+  // from, to and the yaws finite, params valid: the caller checks them once (FlightStack's
+  // params, the modes' targets).
   StraightLine(const Eigen::Vector3d& from_world_m, const Eigen::Vector3d& to_world_m,
-               const TrajectoryParams& params, double yaw_rad);
+               const TrajectoryParams& params, double from_yaw_rad, double to_yaw_rad);
   PositionSetpoint sample(double t_s) const;
   double durationS() const { return duration_s_; }
 
@@ -109,7 +117,8 @@ class StraightLine {
   Eigen::Vector3d from_world_m_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d delta_m_ = Eigen::Vector3d::Zero();
   double duration_s_ = 0.0;
-  double yaw_rad_ = 0.0;
+  double from_yaw_rad_ = 0.0;
+  double delta_yaw_rad_ = 0.0;  // in [-pi, pi]: the shorter way round
 };
 
 // Straight down from a point (world z grows), speeding up at params.max_accel_m_s2 to the

@@ -267,10 +267,12 @@ def test_unplugged_sensor_is_reconnected_and_counted(netns: list[str], sample_di
     assert probe.returncode == 0, probe_err
     heard = json.loads(probe_out)
     # Streaming on the first connection, waiting while unplugged, streaming on the second; heard
-    # from before the start, where the first status may come before the first connection.
+    # from before the start, where the first statuses may come before the first connection, or
+    # after it opened and before its first frame (a first read that timed out on a busy machine
+    # reads as waiting on connection 1: seen once in a CI run).
     phases = [(s["sensor_state"], s["sensor_connects"]) for s in heard]
     collapsed = [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]]
-    if collapsed[0] == (SENSOR_WAITING, 0):
+    while collapsed and collapsed[0][0] == SENSOR_WAITING and collapsed[0][1] <= 1:
         collapsed = collapsed[1:]
     assert collapsed == [(SENSOR_STREAMING, 1), (SENSOR_WAITING, 1), (SENSOR_STREAMING, 2)], phases
 

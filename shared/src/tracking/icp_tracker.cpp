@@ -433,8 +433,9 @@ bool keepPriorAlongScatter(const IcpTracker::Params& params,
     const Vector6d v = system.eig.eigenvectors().col(i);
     if (v.tail<3>().squaredNorm() < kMostlyTranslation) continue;
     facing_params.facing = IcpTracker::Facing{v.tail<3>(), params.facing_cosine};
-    const Matrix6d F = unpack(IcpTracker::buildSystem(current, model, level, T->linear().cast<float>(),
-                                          T->translation().cast<float>(), facing_params));
+    const Matrix6d F =
+        unpack(IcpTracker::buildSystem(current, model, level, T->linear().cast<float>(),
+                                       T->translation().cast<float>(), facing_params));
     const Vector6d d = s.cwiseProduct(v);
     if (d.dot(F * d) / system.weight >= params.weak_direction_fraction) continue;
     result->weak[result->weak_directions++] = d.normalized();

@@ -173,6 +173,9 @@ void ControlTask::run() {
     }
   }
   summary_.estimator_started = stack_->estimator().initialised();
+  const flight::EstimatorHealth health = stack_->estimator().health();
+  summary_.baro_fused = health.baro_fused;
+  summary_.baro_rejected = health.baro_rejected_gate;
   summary_.mode = stack_->modes().mode();
   summary_.modes = stack_->modes().counters();
   if (autopilot_) summary_.autopilot = autopilot_->counters();
@@ -209,6 +212,7 @@ void ControlTask::handleImu(const lcm_recv_buf_t* message) {
     sample.gyro_rad_s(i) = imu_.angular_velocity_rad_s[i];
     sample.accel_m_s2(i) = imu_.linear_acceleration_m_s2[i];
   }
+  if (imu_.has_pressure_altitude) sample.baro_alt_m = imu_.pressure_altitude_m;
   takeImu(sample);
 }
 
@@ -388,6 +392,8 @@ void ControlTask::reportStatus(const flight::TickOutput& out, int64_t utime) {
   s.vision_fused = health.vision_fused_count;
   s.vision_rejected = health.vision_rejected_gate + health.vision_rejected_too_old +
                       health.vision_rejected_out_of_order + health.vision_rejected_invalid;
+  s.baro_fused = health.baro_fused;
+  s.baro_rejected = health.baro_rejected_gate;
   s.reset_counter = health.reset_counter;
   s.resets = health.resets;
   link::writePose(estimator.T_world_odom(), &s.T_world_map);

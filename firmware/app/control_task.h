@@ -42,6 +42,8 @@ struct ControlSummary {
   int64_t resets = 0;           // the ground's anchor jumped: the estimator reset
   int64_t resets_rejected = 0;  // ... before the estimator started (the next pose anchors it)
   bool estimator_started = false;
+  int64_t baro_fused = 0;     // barometer readings the estimator fused ...
+  int64_t baro_rejected = 0;  // ... and gated out
   flight::FlightMode mode = flight::FlightMode::kDisarmed;
   flight::FlightCounters modes;
   std::optional<actuators::AutopilotCounters> autopilot;  // the mavlink backend's

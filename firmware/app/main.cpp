@@ -304,14 +304,14 @@ int run(int argc, char** argv) {
     std::printf(
         "kinfly-fw: control: %lld IMU samples (%lld rejected), %lld ticks (%lld without a new "
         "sample); %lld poses fused (%lld after their lockstep age), %lld rejected, %lld resets "
-        "to a pose, %lld resets (%lld before the start); "
-        "estimator %s; mode %s, %lld mode changes, %lld commands accepted, %lld refused; "
+        "to a pose, %lld resets (%lld before the start); %lld barometer readings fused (%lld "
+        "gated); estimator %s; mode %s, %lld mode changes, %lld commands accepted, %lld refused; "
         "failsafes: %lld vision lost, %lld estimator diverged, %lld attitude limit, %lld IMU "
         "lost, %lld geofence; %lld rotor commands sent, %lld not; %lld signed commands passed "
         "by the link, %lld dropped, %lld repeats ignored\n",
         n(c.imu_samples), n(c.imu_rejected), n(c.ticks), n(c.silent_ticks), n(c.poses_fused),
         n(c.poses_late), n(c.poses_rejected), n(c.pose_resets), n(c.resets), n(c.resets_rejected),
-        c.estimator_started ? "started" : "not started",
+        n(c.baro_fused), n(c.baro_rejected), c.estimator_started ? "started" : "not started",
         flight::toString(c.mode), n(f.mode_changes), n(f.commands_accepted),
         n(f.commands_refused), n(f.vision_lost), n(f.estimator_diverged), n(f.attitude_limit),
         n(f.imu_lost), n(f.geofence), n(c.commands_sent), n(c.commands_unsent),

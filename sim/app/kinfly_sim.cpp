@@ -39,6 +39,7 @@
 #include "kinfly/link/signing.h"
 #include "kinfly/mesh/mesh.h"
 #include "kinfly/sim/depth_camera.h"
+#include "kinfly/sim/barometer.h"
 #include "kinfly/sim/imu_model.h"
 #include "kinfly/sim/mission.h"
 #include "kinfly/sim/multirotor.h"
@@ -88,6 +89,7 @@ struct Options {
   double turbulence_w20_m_s = 0.0;
   MultirotorParams vehicle;
   ImuParams imu;
+  BarometerParams baro;
   DepthCameraParams camera;
 };
 
@@ -343,12 +345,15 @@ int run(const Options& o) {
   camera_params.seed = o.seed * 3 + 1;
   ImuParams imu_params = o.imu;
   imu_params.seed = o.seed * 3 + 2;
+  BarometerParams baro_params = o.baro;
+  baro_params.seed = o.seed * 7919 + 4;  // a stream of its own, apart from the seeds' 3 above
   WindParams wind_params;
   wind_params.mean_world_m_s = Eigen::Vector3d(o.wind_m_s[0], o.wind_m_s[1], o.wind_m_s[2]);
   wind_params.turbulence_w20_m_s = o.turbulence_w20_m_s;
   wind_params.seed = o.seed * 3 + 3;
   for (const Status& status : {validate(o), vehicle_params.validate(), camera_params.validate(),
-                               imu_params.validate(), wind_params.validate()}) {
+                               imu_params.validate(), baro_params.validate(),
+                               wind_params.validate()}) {
     if (!status.ok()) {
       std::fprintf(stderr, "kinfly-sim: %s\n", status.message().c_str());
       return 2;
@@ -443,6 +448,7 @@ int run(const Options& o) {
   }
   Wind wind(wind_params);
   ImuModel imu(imu_params);
+  Barometer baro(baro_params);
   DepthCamera camera(*rays.value(), camera_params);
   DepthCodec codec{DepthCodec::Params()};
   const Pose T_body_cam = forwardBodyCam();
@@ -522,6 +528,10 @@ int run(const Options& o) {
   imu_t imu_msg{};
   imu_msg.vehicle_id = o.vehicle_id;
   imu_msg.temperature_c = NAN;
+  // The barometer's readings go with the IMU sample at or after each of its periods.
+  const int64_t baro_period_us =
+      baro_params.rate_hz > 0.0 ? std::llround(1e6 / baro_params.rate_hz) : 0;
+  int64_t next_baro_us = kStartUtime;
   ground_truth_t truth_msg{};
   truth_msg.vehicle_id = o.vehicle_id;
   double next_progress_s = 5.0;
@@ -673,6 +683,11 @@ int run(const Options& o) {
     for (int i = 0; i < 3; ++i) {
       imu_msg.angular_velocity_rad_s[i] = reading.angular_velocity_rad_s[i];
       imu_msg.linear_acceleration_m_s2[i] = reading.specific_force_m_s2[i];
+    }
+    imu_msg.has_pressure_altitude = baro_period_us > 0 && utime >= next_baro_us;
+    if (imu_msg.has_pressure_altitude) {
+      imu_msg.pressure_altitude_m = static_cast<float>(baro.read(-s.p_world_m.z()));
+      next_baro_us += baro_period_us;
     }
     if (flight.steps % kStateEverySteps == 0 || flight.collided) {
       state_msg.utime = utime;
@@ -878,6 +893,11 @@ int main(int argc, char** argv) {
                  "default: the cores, at most 4")
       ->capture_default_str();
   app.add_option("--imu-rate-hz", o.imu.rate_hz, "IMU samples (and physics steps) per second")
+      ->capture_default_str();
+  app.add_option("--baro-rate-hz", o.baro.rate_hz,
+                 "barometer readings per second, sent with the IMU samples [0, 1000]; 0: none")
+      ->capture_default_str();
+  app.add_option("--baro-noise-m", o.baro.noise_m, "the barometer's 1-sigma noise per reading [m]")
       ->capture_default_str();
   app.add_option("--mass-error", o.mass_error, "the simulated mass against the nominal, +0.05: 5 % more")
       ->capture_default_str();

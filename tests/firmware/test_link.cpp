@@ -355,6 +355,29 @@ TEST(Decode, FlightStatusFieldsAreChecked) {
   }
 }
 
+
+// A pressure altitude is read only where the sample says it carries one.
+TEST(Decode, AnImuSamplesPressureAltitudeIsCheckedWhereItIsSet) {
+  imu_t m{};
+  m.vehicle_id = kVehicle;
+  m.linear_acceleration_m_s2[2] = -9.81;
+  m.temperature_c = NAN;
+  m.pressure_altitude_m = NAN;
+  imu_t got;
+  const auto without = encode(m);
+  ASSERT_TRUE(decodeMessage(without.data(), without.size(), DecodeBounds(), &got).ok());
+  EXPECT_FALSE(got.has_pressure_altitude);
+  m.has_pressure_altitude = true;
+  const auto not_finite = encode(m);
+  const DecodeResult r =
+      decodeMessage(not_finite.data(), not_finite.size(), DecodeBounds(), &got);
+  EXPECT_EQ(r.status, DecodeStatus::kBadField);
+  EXPECT_EQ(r.detail, "pressure_altitude_m is not finite");
+  m.pressure_altitude_m = 231.5f;
+  const auto with = encode(m);
+  ASSERT_TRUE(decodeMessage(with.data(), with.size(), DecodeBounds(), &got).ok());
+  EXPECT_EQ(got.pressure_altitude_m, 231.5f);
+}
 // Seeded random corruption of valid messages of every type: never a crash (ASan runs this too),
 // and whatever is accepted re-encodes to exactly the bytes received.
 template <class T>

@@ -166,6 +166,8 @@ def test_offboard_handshake_setpoints_and_the_autopilot_lost(netns: list[str],
     assert got["stream_requests"]["105"] == pytest.approx(1e6 / IMU_RATE_HZ)
     assert "31" in got["stream_requests"]
     assert control["imu_samples"] == link["imu_samples"] > 0 and control["imu_rejected"] == 0
+    # The pressure altitude the IMU messages carried reached the estimator and was fused.
+    assert control["baro_fused"] > 0 and control["baro_rejected"] == 0, control
     assert link["max_tilt_deg"] <= MAX_TILT_DEG
     # The handshake in PX4's order: setpoints streamed, then offboard, then arming.
     assert got["offboard_at_s"] - got["first_setpoint_at_s"] >= MIN_PRESTREAM_S, got

@@ -1,9 +1,11 @@
 // The simulated IMU: white noise of the stated density, biases that start where the seed puts
-// them and walk at the stated rate, and bias steps.
+// them and walk at the stated rate, and bias steps. The barometer beside it: its noise, its
+// drift's walk and its site altitude.
 #include <gtest/gtest.h>
 
 #include <cmath>
 
+#include "kinfly/sim/barometer.h"
 #include "kinfly/sim/imu_model.h"
 
 namespace kinfly::sim {
@@ -81,6 +83,43 @@ TEST(ImuModel, BadSettingsAreNamed) {
   ImuParams params;
   params.rate_hz = 10.0;
   EXPECT_EQ(params.validate().message(), "imu.rate_hz must be in [50, 8000] (got 10)");
+}
+
+TEST(Barometer, ReadsTheHeightFromTheSiteWithTheStatedNoise) {
+  BarometerParams params;
+  params.drift_m_rt_s = 0.0;
+  Barometer baro(params);
+  constexpr double kHeightM = 1.25;
+  double sum_m = 0.0, sq_m2 = 0.0;
+  for (int i = 0; i < kSamples; ++i) {
+    const double error_m = baro.read(kHeightM) - (params.site_altitude_m + kHeightM);
+    sum_m += error_m;
+    sq_m2 += error_m * error_m;
+  }
+  // The mean's standard error is sigma / sqrt(N): 0.2 mm; bound 1 mm.
+  constexpr double kMeanTolM = 1e-3;
+  EXPECT_NEAR(sum_m / kSamples, 0.0, kMeanTolM);
+  EXPECT_NEAR(std::sqrt(sq_m2 / kSamples) / params.noise_m, 1.0, kSigmaTol);
+}
+
+TEST(Barometer, DriftWalksAtTheStatedRate) {
+  // As the IMU's biases: 2000 seeded barometers, a minute each; bound 6 %.
+  constexpr int kBarometers = 2000;
+  constexpr double kWalkTol = 0.06;
+  constexpr double kSeconds = 60.0;
+  BarometerParams params;
+  params.noise_m = 0.0;
+  double drift_sq_m2 = 0.0;
+  for (int k = 0; k < kBarometers; ++k) {
+    params.seed = static_cast<uint64_t>(k) + 1;
+    Barometer baro(params);
+    for (int i = 0; i < static_cast<int>(kSeconds * params.rate_hz); ++i) baro.read(0.0);
+    drift_sq_m2 += baro.driftM() * baro.driftM();
+  }
+  EXPECT_NEAR(std::sqrt(drift_sq_m2 / kBarometers) / (params.drift_m_rt_s * std::sqrt(kSeconds)),
+              1.0, kWalkTol);
+  params.rate_hz = 1001.0;
+  EXPECT_EQ(params.validate().message(), "baro.rate_hz must be in [0, 1000] (got 1001)");
 }
 
 }  // namespace

@@ -60,6 +60,7 @@ def samples() -> dict[type, object]:
     imu.angular_velocity_rad_s = [0.125, -0.25, 0.5]
     imu.linear_acceleration_m_s2 = [0.5, -0.25, -9.8125]
     imu.temperature_c = 41.5
+    imu.has_pressure_altitude, imu.pressure_altitude_m = True, 112.375
 
     truth = ground_truth_t()
     truth.utime, truth.vehicle_id = 1_700_000_000_300_000, 7

@@ -69,6 +69,8 @@ imu_t sampleImu() {
     m.linear_acceleration_m_s2[i] = a[i];
   }
   m.temperature_c = 41.5f;
+  m.has_pressure_altitude = true;
+  m.pressure_altitude_m = 112.375f;
   return m;
 }
 

@@ -3,7 +3,8 @@ run in kinfly-fw's network namespace with pymavlink, as the real one behaves tow
 computer:
 
 - HEARTBEAT at 1 Hz as a PX4 quadrotor: armed flag, custom mode (main mode in bits 16-23);
-- its IMU (HIGHRES_IMU of a body at rest, seeded noise) and attitude (ATTITUDE_QUATERNION,
+- its IMU (HIGHRES_IMU of a body at rest, seeded noise; every tenth carries a barometer's
+  pressure altitude, as fields_updated marks it) and attitude (ATTITUDE_QUATERNION,
   level) only once asked for with SET_MESSAGE_INTERVAL, at the interval asked;
 - DO_SET_MODE to offboard accepted only while setpoints stream (at least OFFBOARD_MIN_SETPOINTS in
   the last OFFBOARD_WINDOW_S, as PX4 wants an offboard signal before the switch), otherwise
@@ -45,6 +46,10 @@ OFFBOARD_LOSS_S = 0.5
 ACCEL_NOISE_M_S2 = 0.02
 GYRO_NOISE_RAD_S = 0.002
 ALL_IMU_FIELDS = 0x3F
+PRESSURE_ALT_FIELD = 1 << 11
+PRESSURE_ALT_EVERY = 10  # IMU messages: 25 Hz at the 250 Hz the test asks for
+SITE_ALTITUDE_M = 231.0
+BARO_NOISE_M = 0.1
 
 
 def main() -> int:
@@ -71,6 +76,7 @@ def main() -> int:
     intervals: dict[int, float] = {}  # message id -> seconds, as asked
     due: dict[int, float] = {}
     next_heartbeat = boot
+    imu_sent = 0
     setpoints: list[float] = []       # arrival times (monotonic)
     got: dict[str, object] = {
         "setpoints": 0, "max_thrust": 0.0, "type_masks": [], "setpoint_targets": [],
@@ -202,9 +208,14 @@ def main() -> int:
             if message_id == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU:
                 acc = [rng.gauss(0.0, ACCEL_NOISE_M_S2) for _ in range(3)]
                 gyro = [rng.gauss(0.0, GYRO_NOISE_RAD_S) for _ in range(3)]
+                imu_sent += 1
+                fields, pressure_alt = ALL_IMU_FIELDS, 0.0
+                if imu_sent % PRESSURE_ALT_EVERY == 0:
+                    fields |= PRESSURE_ALT_FIELD
+                    pressure_alt = SITE_ALTITUDE_M + rng.gauss(0.0, BARO_NOISE_M)
                 conn.mav.highres_imu_send(time_usec, acc[0], acc[1], acc[2] - GRAVITY_M_S2,
                                           gyro[0], gyro[1], gyro[2], 0.0, 0.0, 0.0, 1013.0, 0.0,
-                                          0.0, 20.0, ALL_IMU_FIELDS)
+                                          pressure_alt, 20.0, fields)
             elif message_id == mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
                 conn.mav.attitude_quaternion_send(time_usec // 1000, 1.0, 0.0, 0.0, 0.0,
                                                   0.0, 0.0, 0.0)

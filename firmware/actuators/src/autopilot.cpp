@@ -26,8 +26,10 @@ constexpr uint32_t kPx4MainModeOffboard = 6;
 constexpr uint32_t kArduCopterGuidedNoGps = 20;
 // MAVLink signing's clock: 10 µs units since 2015-01-01 00:00:00 UTC.
 constexpr int64_t kSigningEpochUnixUs = 1420070400LL * 1000000LL;
-constexpr uint8_t kAllImuFields = 0x3F;  // HIGHRES_IMU fields_updated: x/y/z acc and gyro
+constexpr uint16_t kAllImuFields = 0x3F;  // HIGHRES_IMU fields_updated: x/y/z acc and gyro
+constexpr uint16_t kPressureAltField = 1 << 11;  // ... and pressure_alt
 constexpr double kMilliG = 9.80665e-3;   // [m/s² per mG] SCALED_IMU
+constexpr double kNoReading = std::numeric_limits<double>::quiet_NaN();  // ImuSample::baro_alt_m
 
 const char* autopilotName(int type) {
   switch (type) {
@@ -246,7 +248,9 @@ void Autopilot::handle(double now_s, int64_t arrival_utime) {
         break;
       }
       addImu(imu.time_usec, Eigen::Vector3d(imu.xgyro, imu.ygyro, imu.zgyro),
-             Eigen::Vector3d(imu.xacc, imu.yacc, imu.zacc), arrival_utime);
+             Eigen::Vector3d(imu.xacc, imu.yacc, imu.zacc),
+             (imu.fields_updated & kPressureAltField) != 0 ? imu.pressure_alt : kNoReading,
+             arrival_utime);
       break;
     }
     case MAVLINK_MSG_ID_SCALED_IMU: {
@@ -256,7 +260,7 @@ void Autopilot::handle(double now_s, int64_t arrival_utime) {
       last_imu_s_ = now_s;
       addImu(static_cast<uint64_t>(imu.time_boot_ms) * 1000,
              Eigen::Vector3d(imu.xgyro, imu.ygyro, imu.zgyro) * 1e-3,
-             Eigen::Vector3d(imu.xacc, imu.yacc, imu.zacc) * kMilliG, arrival_utime);
+             Eigen::Vector3d(imu.xacc, imu.yacc, imu.zacc) * kMilliG, kNoReading, arrival_utime);
       break;
     }
     case MAVLINK_MSG_ID_ATTITUDE_QUATERNION: {
@@ -287,8 +291,9 @@ void Autopilot::handle(double now_s, int64_t arrival_utime) {
 }
 
 void Autopilot::addImu(uint64_t remote_us, const Eigen::Vector3d& gyro_rad_s,
-                       const Eigen::Vector3d& accel_m_s2, int64_t arrival_utime) {
-  if (!gyro_rad_s.allFinite() || !accel_m_s2.allFinite() ||
+                       const Eigen::Vector3d& accel_m_s2, double baro_alt_m,
+                       int64_t arrival_utime) {
+  if (!gyro_rad_s.allFinite() || !accel_m_s2.allFinite() || std::isinf(baro_alt_m) ||
       imu_count_ == static_cast<int>(imu_.size())) {
     ++counters_.imu_rejected;
     return;
@@ -297,6 +302,7 @@ void Autopilot::addImu(uint64_t remote_us, const Eigen::Vector3d& gyro_rad_s,
   sample.utime = clock_.map(static_cast<int64_t>(remote_us), arrival_utime);
   sample.gyro_rad_s = gyro_rad_s;
   sample.accel_m_s2 = accel_m_s2;
+  sample.baro_alt_m = baro_alt_m;
   ++counters_.imu_samples;
 }
 

@@ -20,6 +20,9 @@ using Jacobian = Eigen::Matrix<double, 6, kErrorStates>;
 using namespace error_state;
 
 constexpr double kUsToS = 1e-6;
+// A weak direction whose translation part is at least this long (of the unit 6-vector) moves
+// the position: a reset to a pose keeps the state's own position along it.
+constexpr double kWeakTranslationShare = 0.1;
 // Below this angle the series of Exp and Log is exact in double precision.
 constexpr double kSmallAngleRad = 1e-8;
 
@@ -114,6 +117,8 @@ Status EstimatorParams::validate() const {
       outOfRange("estimator.vision_weak_std", vision_weak_std, 0, 1000, Bound::kOpen),
       outOfRange("estimator.vision_gate_chi2", vision_gate_chi2, 1, 1000),
       outOfRange("estimator.vision_timeout_s", vision_timeout_s, 0, 10, Bound::kOpen),
+      outOfRange("estimator.baro_noise_m", baro_noise_m, 0, 100, Bound::kOpen),
+      outOfRange("estimator.baro_gate_sigma", baro_gate_sigma, 1, 100),
       outOfRange("estimator.history_s", history_s, 0.3, 2),
       outOfRange("estimator.imu_rate_max_hz", imu_rate_max_hz, 50, 4000),
       outOfRange("estimator.diverged_pos_std_m", diverged_pos_std_m, 0, 1000, Bound::kOpen),
@@ -162,6 +167,9 @@ void Estimator::start(int64_t utime, const Nominal& x) {
   barrier_utime_ = utime;
   reset_utime_ = utime;
   last_vision_utime_ = -1;
+  baro_ref_m_ = std::numeric_limits<double>::quiet_NaN();
+  baro_ref_sum_m_ = 0.0;
+  baro_ref_samples_ = 0;
 }
 
 Covariance Estimator::initialCovariance() const {
@@ -183,7 +191,22 @@ void Estimator::push(const ImuSample& sample, double dt_s) {
   next.x = previous.x;
   next.P = previous.P;
   next.imu = sample;
-  predict(next.x, next.P, sample, dt_s);
+  switch (step(next.x, next.P, sample, dt_s, &health_.baro_test_ratio)) {
+    case Height::kFused: ++health_.baro_fused; break;
+    case Height::kRejectedGate: ++health_.baro_rejected_gate; break;
+    case Height::kNone:
+      // After initialise(), the readings of the first init_still_s against the state's height
+      // (world's z is down): one reading's noise would stay in the reference for good.
+      if (std::isfinite(sample.baro_alt_m) && !std::isfinite(baro_ref_m_)) {
+        if (baro_ref_samples_ == 0) baro_ref_first_utime_ = sample.utime;
+        baro_ref_sum_m_ += sample.baro_alt_m + next.x.p_world_body_m.z();
+        ++baro_ref_samples_;
+        if (static_cast<double>(sample.utime - baro_ref_first_utime_) * kUsToS >=
+            params_.init_still_s)
+          baro_ref_m_ = baro_ref_sum_m_ / static_cast<double>(baro_ref_samples_);
+      }
+      break;
+  }
   if (full) {
     head_ = (head_ + 1) % static_cast<int>(ring_.size());
   } else {
@@ -276,6 +299,12 @@ bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_odom_cam,
   const Covariance I_KH = Covariance::Identity() - K * H;
   P = (I_KH * P * I_KH.transpose()).eval() + K * R_noise * K.transpose();
 
+  inject(dx, x, P);
+  return true;
+}
+
+void Estimator::inject(const Eigen::Matrix<double, kErrorStates, 1>& dx, Nominal& x,
+                       Covariance& P) {
   x.p_world_body_m += dx.segment<3>(kP);
   x.v_world_body_m_s += dx.segment<3>(kV);
   x.q_world_body = (x.q_world_body * expRotation(dx.segment<3>(kTheta))).normalized();
@@ -288,12 +317,36 @@ bool Estimator::fuse(Nominal& x, Covariance& P, const Pose& T_odom_cam,
   G.block<3, 3>(kTheta, kTheta) -= skew(0.5 * dx.segment<3>(kTheta));
   P = (G * P * G.transpose()).eval();
   symmetrise(P);
+}
+
+bool Estimator::fuseHeight(Nominal& x, Covariance& P, double baro_alt_m,
+                           double* test_ratio) const {
+  // Measured height less predicted (world's z is down): innovation(x ⊕ δx) = innovation + δp_z,
+  // so H is -1 at δp_z, and P H^T is P's δp_z column negated.
+  const double innovation = (baro_alt_m - baro_ref_m_) + x.p_world_body_m.z();
+  const double r = std::pow(params_.baro_noise_m, 2);
+  const double s = P(kP + 2, kP + 2) + r;
+  *test_ratio = innovation * innovation / (s * std::pow(params_.baro_gate_sigma, 2));
+  if (!(*test_ratio <= 1.0)) return false;  // NaN fails too
+  const Eigen::Matrix<double, kErrorStates, 1> K = -P.col(kP + 2) / s;
+  // Joseph form, as for a pose: I - K H is the identity plus K in δp_z's column.
+  Covariance I_KH = Covariance::Identity();
+  I_KH.col(kP + 2) += K;
+  P = (I_KH * P * I_KH.transpose()).eval() + r * K * K.transpose();
+  inject(K * innovation, x, P);
   return true;
+}
+
+Estimator::Height Estimator::step(Nominal& x, Covariance& P, const ImuSample& imu, double dt_s,
+                                  double* test_ratio) const {
+  predict(x, P, imu, dt_s);
+  if (!std::isfinite(imu.baro_alt_m) || !std::isfinite(baro_ref_m_)) return Height::kNone;
+  return fuseHeight(x, P, imu.baro_alt_m, test_ratio) ? Height::kFused : Height::kRejectedGate;
 }
 
 bool Estimator::addImu(const ImuSample& sample) {
   if (sample.utime <= last_imu_utime_ || !sample.gyro_rad_s.allFinite() ||
-      !sample.accel_m_s2.allFinite()) {
+      !sample.accel_m_s2.allFinite() || std::isinf(sample.baro_alt_m)) {
     ++health_.imu_rejected;
     return false;
   }
@@ -303,6 +356,10 @@ bool Estimator::addImu(const ImuSample& sample) {
     still_accel_sum_ += sample.accel_m_s2;
     still_gyro_sum_ += sample.gyro_rad_s;
     ++still_samples_;
+    if (std::isfinite(sample.baro_alt_m)) {
+      still_baro_sum_m_ += sample.baro_alt_m;
+      ++still_baro_samples_;
+    }
     last_imu_utime_ = sample.utime;
     return true;
   }
@@ -349,6 +406,9 @@ VisionOutcome Estimator::startFromStill(const VisionPose& pose) {
   T_world_body.linear() = R_body_world.transpose();
   T_world_odom_ = T_world_body * params_.T_body_cam * T_odom_cam_at_rest.inverse();
   start(last_imu_utime_, x);
+  // World's origin is the body at rest, where the barometer read its mean.
+  if (still_baro_samples_ > 0)
+    baro_ref_m_ = still_baro_sum_m_ / static_cast<double>(still_baro_samples_);
   last_vision_utime_ = pose.utime;
   ++health_.vision_fused_count;
   return VisionOutcome::kFused;
@@ -404,12 +464,14 @@ VisionOutcome Estimator::addVision(const VisionPose& pose) {
 void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nominal& x,
                            const Covariance& P) {
   int first_replayed = k + 1;
+  // The readings were counted when they came; their test ratios now are not the health's.
+  double replay_test_ratio = 0.0;
   Entry& fused = at(split ? k + 1 : k);
   fused.x = x;
   fused.P = P;
   if (split) {
-    predict(fused.x, fused.P, at(k + 1).imu,
-            static_cast<double>(at(k + 1).imu.utime - pose.utime) * kUsToS);
+    step(fused.x, fused.P, at(k + 1).imu,
+         static_cast<double>(at(k + 1).imu.utime - pose.utime) * kUsToS, &replay_test_ratio);
     first_replayed = k + 2;
   }
   barrier_utime_ = fused.imu.utime;
@@ -418,8 +480,8 @@ void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nomi
     const Entry& previous = at(j - 1);
     entry.x = previous.x;
     entry.P = previous.P;
-    predict(entry.x, entry.P, entry.imu,
-            static_cast<double>(entry.imu.utime - previous.imu.utime) * kUsToS);
+    step(entry.x, entry.P, entry.imu,
+         static_cast<double>(entry.imu.utime - previous.imu.utime) * kUsToS, &replay_test_ratio);
   }
 }
 
@@ -445,6 +507,8 @@ void Estimator::addWeak(const WeakDirections& weak, const Matrix3d& R_world_odom
 
 void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
                             const WeakDirections& weak) const {
+  const Vector3d p_before_m = x.p_world_body_m;
+  const Matrix3d P_pos_before = P.block<3, 3>(kP, kP);
   const Pose T_world_odom = alignment(x);
   const Pose T_world_cam = T_world_odom * T_odom_cam;
   // Position and attitude from the pose; the velocity stays (vision has none to give) but its
@@ -476,6 +540,23 @@ void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
   P.block<3, 3>(kP, kTheta) += pose_cov.topRightCorner<3, 3>();
   P.block<3, 3>(kTheta, kP) += pose_cov.bottomLeftCorner<3, 3>();
   P.block<3, 3>(kTheta, kTheta) += pose_cov.bottomRightCorner<3, 3>();
+
+  // Along the pose's weak translations it measured nothing: there the state keeps its own
+  // position and uncertainty (the IMU's, a barometer's), or the reset would make the position
+  // unknown there and the filter diverged by its own test.
+  Matrix3d along = Matrix3d::Zero();  // the projector onto them, built by Gram-Schmidt
+  for (int i = 0; i < weak.count; ++i) {
+    if (weak.d[i].head<3>().norm() <= kWeakTranslationShare) continue;
+    Vector3d u = T_world_odom.linear() * weak.d[i].head<3>().normalized();
+    u -= along * u;
+    if (u.norm() > kWeakTranslationShare) along += u.normalized() * u.normalized().transpose();
+  }
+  if (along.isZero()) return;
+  const Matrix3d across = Matrix3d::Identity() - along;
+  x.p_world_body_m += along * (p_before_m - x.p_world_body_m);
+  P.middleRows<3>(kP) = (across * P.middleRows<3>(kP)).eval();
+  P.middleCols<3>(kP) = (P.middleCols<3>(kP) * across).eval();
+  P.block<3, 3>(kP, kP) += along * P_pos_before * along;
 }
 
 bool Estimator::applyReset(const OdomReset& reset) {

@@ -109,6 +109,8 @@ std::string fieldProblem(const imu_t& m, const DecodeBounds&) {
   if (auto why = vehicleProblem(m.vehicle_id); !why.empty()) return why;
   if (!finite(m.angular_velocity_rad_s, 3) || !finite(m.linear_acceleration_m_s2, 3))
     return "IMU sample is not finite";
+  if (m.has_pressure_altitude && !std::isfinite(m.pressure_altitude_m))
+    return "pressure_altitude_m is not finite";
   return {};
 }
 

@@ -148,8 +148,9 @@ class Autopilot {
   // it cannot.
   bool reopen(double now_s);
   void handle(double now_s, int64_t arrival_utime);
+  // baro_alt_m: the sample's pressure altitude, NaN without a new one.
   void addImu(uint64_t remote_us, const Eigen::Vector3d& gyro_rad_s,
-              const Eigen::Vector3d& accel_m_s2, int64_t arrival_utime);
+              const Eigen::Vector3d& accel_m_s2, double baro_alt_m, int64_t arrival_utime);
   bool sendMessage();
   void sendCommand(uint16_t command, float p1, float p2, float p3, float p4 = 0.0f);
   bool alive(double now_s) const;

@@ -391,6 +391,8 @@ void bindParams(nb::module_& m) {
       .def_rw("raycast", &FusionPipeline::Params::raycast)
       .def_rw("min_valid_depth_fraction", &FusionPipeline::Params::min_valid_depth_fraction)
       .def_rw("max_recovery_gate_scale", &FusionPipeline::Params::max_recovery_gate_scale)
+      .def_rw("max_prior_disagreement_m", &FusionPipeline::Params::max_prior_disagreement_m)
+      .def_rw("max_prior_disagreement_rad", &FusionPipeline::Params::max_prior_disagreement_rad)
       .def_rw("relocalise", &FusionPipeline::Params::relocalise)
       .def("validate", [](const FusionPipeline::Params& p, float voxel_size_m) {
         return whyInvalid(p.validate(voxel_size_m));

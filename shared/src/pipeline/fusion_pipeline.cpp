@@ -23,6 +23,10 @@ Status FusionPipeline::Params::validate(float voxel_size_m) const {
     return Status::error("min_valid_depth_fraction must be in [0, 1)");
   if (!(max_recovery_gate_scale >= 1.f))
     return Status::error("max_recovery_gate_scale must be >= 1");
+  if (!(max_prior_disagreement_m > 0.f && max_prior_disagreement_m <= 1.f))
+    return Status::error("max_prior_disagreement_m must be in (0, 1]");
+  if (!(max_prior_disagreement_rad > 0.f && max_prior_disagreement_rad <= 1.f))
+    return Status::error("max_prior_disagreement_rad must be in (0, 1]");
   if (new_map_after_failed_frames < 0)
     return Status::error("new_map_after_failed_frames must be >= 0 (0: never)");
   // Checked even when relocalisation is off: turning it on later must not meet a bad setting.
@@ -253,12 +257,11 @@ FrameResult FusionPipeline::trackAndFuse(FrameResult result, const Pose& T_world
   result.T_world_cam = orthonormalized(T_world_ref * icp.T_ref_cur);
   if (T_world_cam_near != nullptr) {
     const Pose off = T_world_cam_near->inverse() * result.T_world_cam;
-    const IcpTracker::Params& gates = tracker_.params();
-    if (off.translation().norm() > gates.max_translation_m ||
-        rotationAngleRad(off) > gates.max_rotation_rad) {
+    if (off.translation().norm() > params_.max_prior_disagreement_m ||
+        rotationAngleRad(off) > params_.max_prior_disagreement_rad) {
       std::ostringstream why;
       why << "tracked " << off.translation().norm() << " m and " << rotationAngleRad(off)
-          << " rad from the prior, beyond max_translation_m or max_rotation_rad";
+          << " rad from the prior, beyond max_prior_disagreement_m or _rad";
       result.status = TrackingStatus::kLost;
       result.T_world_cam = T_world_cam_;
       result.lost_reason = why.str();

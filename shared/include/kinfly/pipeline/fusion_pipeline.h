@@ -72,6 +72,13 @@ class FusionPipeline {
     // one, ICP searches as wide, but the pose it finds must lie within the normal gates of the
     // prior (processFrame).
     float max_recovery_gate_scale = 3.f;  // >= 1
+    // With a prior, a pose found after missed frames must lie this close to it: the IMU carries
+    // the camera across a second of missed frames within a few centimetres and a degree (3 cm
+    // and 1° in the tests), far below one frame's free motion (the ICP's jump gates, 20 cm and
+    // 20°, the rule until 2026-12-07, which let a relocalisation in the simulated ring's second
+    // corridor land 16 cm along it from a prior one frame old).
+    float max_prior_disagreement_m = 0.05f;    // (0, 1]
+    float max_prior_disagreement_rad = 0.05f;  // (0, 1]
     // Where neither the prior nor the last pose tracks a frame after missed ones, the frame is
     // tracked from the poses of the keyframes most like it (processFrame keeps them).
     bool relocalise = true;

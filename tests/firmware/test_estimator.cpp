@@ -587,42 +587,58 @@ TEST(Estimator, APoseTurnedAboutItsWeakRotationDoesNotTurnTheEstimate) {
   EXPECT_EQ(turnedPose(false), VisionOutcome::kRejectedGate);
 }
 
-TEST(Estimator, AResetToAPoseKeepsTheStatesOwnPositionAlongItsWeakDirections) {
-  // Poses 0.5 m off across their weak direction and 0.3 m along it are gated, then reset to.
-  // Along the weak direction the pose measured nothing, so the reset takes nothing there: the
-  // state keeps its own position and uncertainty (else the position would be unknown there and
-  // the filter diverged by its own test). Across it, the reset is the pose's.
+TEST(Estimator, AResetToAPoseKeepsTheStatesOwnPoseAlongItsWeakDirections) {
+  // Poses 0.5 m off across their weak translation and 0.3 m along it, and turned 3 degrees about
+  // their weak rotation (the optical axis, as facing a single wall), are gated, then reset to.
+  // Along the weak directions the pose measured nothing, so the reset takes nothing there: the
+  // state keeps its own position, attitude and uncertainty (else the position would be unknown
+  // there and the filter diverged by its own test, and the roll would be the odometry's). Across
+  // them, the reset is the pose's.
   Scenario scenario;
   const Recording rec = record(scenario);
   Estimator estimator(scenario.params);
   size_t k = 0;
   flyFor(rec, estimator, 3.0, &k);
   WeakDirections weak;
-  weak.count = 1;
+  weak.count = 2;
   weak.d[0] << 1.0, 0.0, 0.0, 0.0, 0.0, 0.0;
+  weak.d[1] << 0.0, 0.0, 0.0, 0.0, 0.0, 1.0;
+  const double turn_rad = 3.0 * kPi / 180.0;
+  const Eigen::Matrix3d turn = Eigen::AngleAxisd(turn_rad, Vector3d::UnitZ()).toRotationMatrix();
   const Vector3d along = rec.T_world_odom.linear() * Vector3d::UnitX();
   const Vector3d across = rec.T_world_odom.linear() * Vector3d::UnitY();
   const double var_along_before =
       along.dot(estimator.covariance().block<3, 3>(0, 0) * along);
+  // The optical axis is the body's x (roll).
+  const auto rollError = [&] {
+    return rotationVector(estimator.state().q_world_body.conjugate() * rec.truth[k].q_world_body)
+        .x();
+  };
+  const double roll_before_rad = rollError();
   const Vector3d jump_odom_m(0.3, 0.5, 0.0);
   for (int i = 0; i < scenario.params.vision_reset_rejections - 1; ++i) {
-    EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m, weak),
+    EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m, weak, turn),
               VisionOutcome::kRejectedGate);
   }
-  EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m, weak),
+  EXPECT_EQ(nextOffsetPose(rec, scenario.params, estimator, &k, jump_odom_m, weak, turn),
             VisionOutcome::kResetToPose);
   const Eigen::Matrix3d P_pos = estimator.covariance().block<3, 3>(0, 0);
   const Vector3d error_m = estimator.state().p_world_body_m - rec.truth[k].p_world_body_m;
-  std::printf("[estimator] reset to a pose 0.3 m off along its weak direction, 0.5 m across: "
-              "error along %.1f mm (sigma %.1f -> %.1f mm), across %.1f mm\n",
+  const double roll_error_rad = rollError();
+  std::printf("[estimator] reset to a pose 0.3 m off along its weak translation, 0.5 m across, "
+              "turned 3 degrees about its weak rotation: error along %.1f mm (sigma %.1f -> %.1f "
+              "mm), across %.1f mm, roll %.3f degrees (%.3f before)\n",
               error_m.dot(along) * 1e3, std::sqrt(var_along_before) * 1e3,
-              std::sqrt(along.dot(P_pos * along)) * 1e3, error_m.dot(across) * 1e3);
+              std::sqrt(along.dot(P_pos * along)) * 1e3, error_m.dot(across) * 1e3,
+              roll_error_rad * 180.0 / kPi, roll_before_rad * 180.0 / kPi);
   // Along: the state's own, a few of the IMU's milliseconds of drift (the gated second's), and
-  // its sigma no more than the IMU grows it over that second. Across: the pose, within its
-  // vision_pos_std_m grown a little by the replay.
+  // its sigma no more than the IMU grows it over that second; the roll as the state had it, not
+  // turned by the pose's 3 degrees. Across: the pose, within its vision_pos_std_m grown a little by the
+  // replay.
   constexpr double kFollowedFraction = 0.1, kSigmaGrowth = 3.0, kAcrossGrowth = 2.0;
   EXPECT_LT(std::abs(error_m.dot(along)), kFollowedFraction * jump_odom_m.x());
   EXPECT_LT(std::sqrt(along.dot(P_pos * along)), kSigmaGrowth * std::sqrt(var_along_before));
+  EXPECT_LT(std::abs(roll_error_rad - roll_before_rad), kFollowedFraction * turn_rad);
   EXPECT_NEAR(error_m.dot(across), jump_odom_m.y(), 3.0 * scenario.params.vision_pos_std_m);
   EXPECT_LT(std::sqrt(across.dot(P_pos * across)),
             kAcrossGrowth * scenario.params.vision_pos_std_m);

@@ -20,9 +20,10 @@ using Jacobian = Eigen::Matrix<double, 6, kErrorStates>;
 using namespace error_state;
 
 constexpr double kUsToS = 1e-6;
-// A weak direction whose translation part is at least this long (of the unit 6-vector) moves
-// the position: a reset to a pose keeps the state's own position along it.
-constexpr double kWeakTranslationShare = 0.1;
+// A weak direction whose translation (rotation) part is at least this long, of the unit
+// 6-vector, moves the position (turns the attitude): a reset to a pose keeps the state's own
+// there.
+constexpr double kWeakPartShare = 0.1;
 // Below this angle the series of Exp and Log is exact in double precision.
 constexpr double kSmallAngleRad = 1e-8;
 
@@ -67,6 +68,23 @@ struct Transition {
     return FX;
   }
 };
+
+// The projector onto the span of the weak directions' translation (part 0) or rotation
+// (part 3) parts where they are at least kWeakPartShare long, each turned by R into the frame
+// wanted; Gram-Schmidt, so nothing allocates.
+Matrix3d weakProjector(const WeakDirections& weak, int part, const Matrix3d& R) {
+  Matrix3d along = Matrix3d::Zero();
+  for (int i = 0; i < weak.count; ++i) {
+    const Vector3d d = weak.d[i].segment<3>(part);
+    if (d.norm() <= kWeakPartShare) continue;
+    Vector3d u = R * d.normalized();
+    u -= along * u;
+    if (u.norm() <= kWeakPartShare) continue;
+    u.normalize();
+    along += u * u.transpose();
+  }
+  return along;
+}
 
 void symmetrise(Covariance& P) { P = 0.5 * (P + P.transpose()).eval(); }
 
@@ -508,15 +526,29 @@ void Estimator::addWeak(const WeakDirections& weak, const Matrix3d& R_world_odom
 void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
                             const WeakDirections& weak) const {
   const Vector3d p_before_m = x.p_world_body_m;
+  const Quaterniond q_before = x.q_world_body;
   const Matrix3d P_pos_before = P.block<3, 3>(kP, kP);
+  const Matrix3d P_att_before = P.block<3, 3>(kTheta, kTheta);
   const Pose T_world_odom = alignment(x);
   const Pose T_world_cam = T_world_odom * T_odom_cam;
   // Position and attitude from the pose; the velocity stays (vision has none to give) but its
   // uncertainty, and the biases', go back to the start's so that the next poses can correct them:
   // a bias that stepped is what a drift the gate could not follow most often means.
-  const Matrix3d R_world_body = T_world_cam.linear() * params_.T_body_cam.linear().transpose();
-  x.q_world_body = Quaterniond(R_world_body).normalized();
+  //
+  // Along the pose's weak directions it measured nothing, so there the state keeps its own
+  // position, attitude and their uncertainty (the IMU's, a barometer's). Taking the pose's
+  // with a weak σ instead made every reset in a corridor a divergence (10 m, beyond
+  // diverged_pos_std_m), and, facing a single wall, tilted the estimate by the odometry's roll
+  // about the view.
+  const Matrix3d pos_along = weakProjector(weak, 0, T_world_odom.linear());
+  const Matrix3d att_along = weakProjector(weak, 3, params_.T_body_cam.linear());
+  const Matrix3d R_pose_body = T_world_cam.linear() * params_.T_body_cam.linear().transpose();
+  const Vector3d turn_rad =
+      logRotation(Quaterniond(q_before.toRotationMatrix().transpose() * R_pose_body).normalized());
+  x.q_world_body = (q_before * expRotation(turn_rad - att_along * turn_rad)).normalized();
+  const Matrix3d R_world_body = x.q_world_body.toRotationMatrix();
   x.p_world_body_m = T_world_cam.translation() - R_world_body * params_.T_body_cam.translation();
+  x.p_world_body_m += pos_along * (p_before_m - x.p_world_body_m);
   // The pose says nothing about odom's tilt: what the filter knew of it stays, and the reset's
   // position and attitude, taken through Exp(φ), carry its error: δp = -[p]x δφ, δθ = R^T δφ.
   const Eigen::Matrix2d P_phi = P.block<2, 2>(kPhi, kPhi);
@@ -533,30 +565,21 @@ void Estimator::resetToPose(Nominal& x, Covariance& P, const Pose& T_odom_cam,
   P.block<2, 3>(kPhi, kP) = JP.topRows<3>().transpose();
   P.block<2, 3>(kPhi, kTheta) = JP.bottomRows<3>().transpose();
   // The reset pose's own uncertainty: the tilt's error through it, and nothing known along its
-  // weak directions.
+  // weak directions (what of them the state's own takes over below).
   Matrix6d pose_cov = JP * J.transpose();
   addWeak(weak, T_world_odom.linear(), &pose_cov);
   P.block<3, 3>(kP, kP) += pose_cov.topLeftCorner<3, 3>();
   P.block<3, 3>(kP, kTheta) += pose_cov.topRightCorner<3, 3>();
   P.block<3, 3>(kTheta, kP) += pose_cov.bottomLeftCorner<3, 3>();
   P.block<3, 3>(kTheta, kTheta) += pose_cov.bottomRightCorner<3, 3>();
-
-  // Along the pose's weak translations it measured nothing: there the state keeps its own
-  // position and uncertainty (the IMU's, a barometer's), or the reset would make the position
-  // unknown there and the filter diverged by its own test.
-  Matrix3d along = Matrix3d::Zero();  // the projector onto them, built by Gram-Schmidt
-  for (int i = 0; i < weak.count; ++i) {
-    if (weak.d[i].head<3>().norm() <= kWeakTranslationShare) continue;
-    Vector3d u = T_world_odom.linear() * weak.d[i].head<3>().normalized();
-    u -= along * u;
-    if (u.norm() > kWeakTranslationShare) along += u.normalized() * u.normalized().transpose();
-  }
-  if (along.isZero()) return;
-  const Matrix3d across = Matrix3d::Identity() - along;
-  x.p_world_body_m += along * (p_before_m - x.p_world_body_m);
-  P.middleRows<3>(kP) = (across * P.middleRows<3>(kP)).eval();
-  P.middleCols<3>(kP) = (P.middleCols<3>(kP) * across).eval();
-  P.block<3, 3>(kP, kP) += along * P_pos_before * along;
+  const auto keepOwn = [&P](int block, const Matrix3d& along, const Matrix3d& P_before) {
+    const Matrix3d across = Matrix3d::Identity() - along;
+    P.middleRows<3>(block) = (across * P.middleRows<3>(block)).eval();
+    P.middleCols<3>(block) = (P.middleCols<3>(block) * across).eval();
+    P.block<3, 3>(block, block) += along * P_before * along;
+  };
+  keepOwn(kP, pos_along, P_pos_before);
+  keepOwn(kTheta, att_along, P_att_before);
 }
 
 bool Estimator::applyReset(const OdomReset& reset) {

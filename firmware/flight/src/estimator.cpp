@@ -213,8 +213,9 @@ void Estimator::push(const ImuSample& sample, double dt_s) {
     case Height::kFused: ++health_.baro_fused; break;
     case Height::kRejectedGate: ++health_.baro_rejected_gate; break;
     case Height::kNone:
-      // After initialise(), the readings of the first init_still_s against the state's height
-      // (world's z is down): one reading's noise would stay in the reference for good.
+      // The reference: the mean of the first init_still_s of readings after the start, each
+      // less the state's height (world's z is down): one reading's noise would stay in it for
+      // good.
       if (std::isfinite(sample.baro_alt_m) && !std::isfinite(baro_ref_m_)) {
         if (baro_ref_samples_ == 0) baro_ref_first_utime_ = sample.utime;
         baro_ref_sum_m_ += sample.baro_alt_m + next.x.p_world_body_m.z();
@@ -344,8 +345,9 @@ bool Estimator::fuseHeight(Nominal& x, Covariance& P, double baro_alt_m,
   const double innovation = (baro_alt_m - baro_ref_m_) + x.p_world_body_m.z();
   const double r = std::pow(params_.baro_noise_m, 2);
   const double s = P(kP + 2, kP + 2) + r;
-  *test_ratio = innovation * innovation / (s * std::pow(params_.baro_gate_sigma, 2));
-  if (!(*test_ratio <= 1.0)) return false;  // NaN fails too
+  const double ratio = innovation * innovation / (s * std::pow(params_.baro_gate_sigma, 2));
+  if (test_ratio != nullptr) *test_ratio = ratio;
+  if (!(ratio <= 1.0)) return false;  // NaN fails too
   const Eigen::Matrix<double, kErrorStates, 1> K = -P.col(kP + 2) / s;
   // Joseph form, as for a pose: I - K H is the identity plus K in δp_z's column.
   Covariance I_KH = Covariance::Identity();
@@ -374,10 +376,6 @@ bool Estimator::addImu(const ImuSample& sample) {
     still_accel_sum_ += sample.accel_m_s2;
     still_gyro_sum_ += sample.gyro_rad_s;
     ++still_samples_;
-    if (std::isfinite(sample.baro_alt_m)) {
-      still_baro_sum_m_ += sample.baro_alt_m;
-      ++still_baro_samples_;
-    }
     last_imu_utime_ = sample.utime;
     return true;
   }
@@ -424,9 +422,6 @@ VisionOutcome Estimator::startFromStill(const VisionPose& pose) {
   T_world_body.linear() = R_body_world.transpose();
   T_world_odom_ = T_world_body * params_.T_body_cam * T_odom_cam_at_rest.inverse();
   start(last_imu_utime_, x);
-  // World's origin is the body at rest, where the barometer read its mean.
-  if (still_baro_samples_ > 0)
-    baro_ref_m_ = still_baro_sum_m_ / static_cast<double>(still_baro_samples_);
   last_vision_utime_ = pose.utime;
   ++health_.vision_fused_count;
   return VisionOutcome::kFused;
@@ -482,14 +477,13 @@ VisionOutcome Estimator::addVision(const VisionPose& pose) {
 void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nominal& x,
                            const Covariance& P) {
   int first_replayed = k + 1;
-  // The readings were counted when they came; their test ratios now are not the health's.
-  double replay_test_ratio = 0.0;
   Entry& fused = at(split ? k + 1 : k);
   fused.x = x;
   fused.P = P;
   if (split) {
     step(fused.x, fused.P, at(k + 1).imu,
-         static_cast<double>(at(k + 1).imu.utime - pose.utime) * kUsToS, &replay_test_ratio);
+         static_cast<double>(at(k + 1).imu.utime - pose.utime) * kUsToS,
+         /*test_ratio=*/nullptr);  // counted, with their ratios, when they came
     first_replayed = k + 2;
   }
   barrier_utime_ = fused.imu.utime;
@@ -499,7 +493,8 @@ void Estimator::replayFrom(int k, bool split, const VisionPose& pose, const Nomi
     entry.x = previous.x;
     entry.P = previous.P;
     step(entry.x, entry.P, entry.imu,
-         static_cast<double>(entry.imu.utime - previous.imu.utime) * kUsToS, &replay_test_ratio);
+         static_cast<double>(entry.imu.utime - previous.imu.utime) * kUsToS,
+         /*test_ratio=*/nullptr);
   }
 }
 

@@ -122,11 +122,12 @@ FrameResult FusionPipeline::processFrame(ImageView<const uint16_t> raw_depth, in
   }
   const float gate_scale =
       std::min(1.f + static_cast<float>(missed_before), params_.max_recovery_gate_scale);
-  // With a prior, whatever try finds the pose after missed frames must agree with it within one
-  // frame's gates: the IMU carries the motion across the missed frames with an error far below
-  // the free motion of one frame, which the gates allow (3 cm after a second, in the tests).
-  // The widened gates are for ICP's search. A wider agreement let a frame of the ring's corridor
-  // converge 32 cm above a prior 2 frames old and carry the map there (docs/sim.md).
+  // With a prior, whatever try finds the pose after missed frames must agree with it within
+  // max_prior_disagreement_m and _rad: the IMU carries the motion across the missed frames with
+  // an error far below the free motion of one frame (3 cm after a second, in the tests). The
+  // widened gates are for ICP's search. Wider agreements let a frame of the ring's corridor
+  // converge 32 cm above a prior 2 frames old, and a relocalisation 16 cm along it from a prior
+  // one frame old (docs/sim.md).
   const Pose* near = missed_before > 0 ? T_world_cam_prior : nullptr;
   std::string from_prior;
   if (near != nullptr) {

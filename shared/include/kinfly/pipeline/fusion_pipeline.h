@@ -69,8 +69,8 @@ class FusionPipeline {
     // After missed frames (lost, or never delivered: a gap in the frames' times) ICP's gates
     // widen by one per frame missed, up to this factor (IcpTracker::track's gate_scale): without
     // a prior the camera has moved that many frames' worth since the last tracked one. With
-    // one, ICP searches as wide, but the pose it finds must lie within the normal gates of the
-    // prior (processFrame).
+    // one, ICP searches as wide, but the pose it finds must lie within max_prior_disagreement_m
+    // and _rad of the prior (processFrame).
     float max_recovery_gate_scale = 3.f;  // >= 1
     // With a prior, a pose found after missed frames must lie this close to it: the IMU carries
     // the camera across a second of missed frames within a few centimetres and a degree (3 cm

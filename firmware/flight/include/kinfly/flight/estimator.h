@@ -95,9 +95,8 @@ struct EstimatorParams {
   // Vision counts as fused while its last fused pose is at most this old.
   double vision_timeout_s = 0.2;                   // [s] (0, 10]
 
-  // Barometric height (ImuSample::baro_alt_m), 1σ per reading. Its reference is taken at the start
-  // (the rest's mean reading, or the mean of init_still_s of readings after initialise()); this
-  // is 3 times an MS5611's noise at its finest oversampling, and its slow drift (the
+  // Barometric height (ImuSample::baro_alt_m), 1σ per reading. Its reference is the mean of the
+  // first init_still_s of readings after the start, less the state's heights; this is 3 times an MS5611's noise at its finest oversampling, and its slow drift (the
   // weather, the building's air, the rotors' wash) is left in this noise rather than estimated:
   // vision outweighs it wherever vision sees the height (30 poses/s at 1 cm against 50 readings/s
   // at this), and where it does not, the barometer's drift is what bounds the height's error
@@ -265,11 +264,12 @@ class Estimator {
   VisionOutcome startFromStill(const VisionPose& pose);
   void predict(Nominal& x, Covariance& P, const ImuSample& imu, double dt_s) const;
   // The sample's barometric height fused into (x, P); false (nothing changes) when gated out, and
-  // the test ratio in *test_ratio. Only for a sample with a reading, after the reference is set.
+  // the test ratio in *test_ratio unless null. Only for a sample with a reading, after the
+  // reference is set.
   bool fuseHeight(Nominal& x, Covariance& P, double baro_alt_m, double* test_ratio) const;
   enum class Height { kNone, kFused, kRejectedGate };
   // One sample: the prediction over its step, then its height if it carries one and the reference
-  // is set (the test ratio, if any, in *test_ratio).
+  // is set (the test ratio, if any, in *test_ratio unless null).
   Height step(Nominal& x, Covariance& P, const ImuSample& imu, double dt_s,
               double* test_ratio) const;
   // Adds the error dx to the nominal state and takes P about it (Solà §6.3's reset).
@@ -313,10 +313,8 @@ class Estimator {
   Eigen::Vector3d still_gyro_sum_ = Eigen::Vector3d::Zero();
   int64_t still_samples_ = 0;
   int64_t still_first_utime_ = -1;
-  double still_baro_sum_m_ = 0.0;
-  int64_t still_baro_samples_ = 0;
-  // The barometer's reading at world's height 0: the rest's mean reading, or after initialise()
-  // the mean over init_still_s of readings less the state's heights; NaN until then.
+  // The barometer's reading at world's height 0: the mean over init_still_s of readings after
+  // the start, less the state's heights; NaN until then.
   double baro_ref_m_ = std::numeric_limits<double>::quiet_NaN();
   double baro_ref_sum_m_ = 0.0;
   int64_t baro_ref_samples_ = 0;

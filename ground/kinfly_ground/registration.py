@@ -79,7 +79,7 @@ class LoopCheck:
 _MIN_POINTS_PER_NEIGHBOURHOOD = 2
 
 
-def _points(name: str, points: np.ndarray) -> np.ndarray:
+def checked_points(name: str, points: np.ndarray) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"{name} must be an N x 3 array of points, got shape {points.shape}")
@@ -156,8 +156,8 @@ def check_loop(target_points: np.ndarray, source_points: np.ndarray,
     """Registers SOURCE_POINTS (in the source submap's frame) onto TARGET_POINTS (in the
     target's) from the guess, and judges the result."""
     params = params or RegistrationParams()
-    target = _points("target_points", target_points)
-    source = _points("source_points", source_points)
+    target = checked_points("target_points", target_points)
+    source = checked_points("source_points", source_points)
     guess = np.asarray(T_target_source_guess, dtype=np.float64)
     if guess.shape != (4, 4) or not np.all(np.isfinite(guess)):
         raise ValueError(f"the guess must be a finite 4x4 matrix, got shape {guess.shape}")

@@ -10,13 +10,11 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from rooms import error as _error, perturbed, pose as _pose, room as _room, submap as _submap
 
 from kinfly_ground.registration import RegistrationParams, check_loop
 
 SEED = 23
-POINTS_PER_M2 = 4000      # sampled surface density, above the 2 cm thinning's 2500 per m²
-POINT_NOISE_M = 0.003     # a fused submap's surface noise at 1 cm voxels
-SUBMAP_RADIUS_M = 2.5     # what a submap holds around where it was made
 # A lap's drift (test_posegraph's three laps drift 23 cm in all): the proximity guess is off by
 # this much.
 GUESS_ERROR_M = 0.15
@@ -30,49 +28,6 @@ SLIDE_GUESS_ERROR_M = 0.03
 SLIDE_GUESS_ERROR_RAD = np.deg2rad(2.0)
 
 
-def _pose(yaw_rad: float, xyz: tuple[float, float, float]) -> np.ndarray:
-    T = trimesh.transformations.rotation_matrix(yaw_rad, [0, 0, 1])
-    T[:3, 3] = xyz
-    return T
-
-
-def _room(rng: np.random.Generator, size_m: tuple[float, float, float] = (5.0, 4.0, 2.5),
-          furniture: int = 6) -> trimesh.Trimesh:
-    """A box room with furniture: boxes of random size and heading on the floor."""
-    sx, sy, sz = size_m
-    parts = [trimesh.creation.box((sx, sy, sz), _pose(0.0, (sx / 2, sy / 2, sz / 2)))]
-    for _ in range(furniture):
-        extent = rng.uniform([0.3, 0.3, 0.4], [1.2, 0.8, 1.5])
-        centre = (rng.uniform(0.6, sx - 0.6), rng.uniform(0.6, sy - 0.6), extent[2] / 2)
-        parts.append(trimesh.creation.box(extent, _pose(rng.uniform(0, np.pi), centre)))
-    return trimesh.util.concatenate(parts)
-
-
-def _submap(mesh: trimesh.Trimesh, T_world_submap: np.ndarray, rng: np.random.Generator
-            ) -> np.ndarray:
-    """The surface within SUBMAP_RADIUS_M of the submap's origin, with noise, in its frame."""
-    count = int(mesh.area * POINTS_PER_M2)
-    points, _ = trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 31)))
-    points = points[np.linalg.norm(points - T_world_submap[:3, 3], axis=1) < SUBMAP_RADIUS_M]
-    points = points + rng.normal(0.0, POINT_NOISE_M, points.shape)
-    return trimesh.transform_points(points, np.linalg.inv(T_world_submap))
-
-
-def _perturbed(T: np.ndarray, rng: np.random.Generator, error_m: float = GUESS_ERROR_M,
-               error_rad: float = GUESS_ERROR_RAD) -> np.ndarray:
-    axis = rng.normal(size=3)
-    turn = trimesh.transformations.rotation_matrix(error_rad, axis / np.linalg.norm(axis))
-    direction = rng.normal(size=3)
-    turn[:3, 3] = error_m * direction / np.linalg.norm(direction)
-    return T @ turn
-
-
-def _error(T: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    delta = np.linalg.inv(truth) @ T
-    angle = np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1.0, 1.0))
-    return float(np.linalg.norm(delta[:3, 3])), float(angle)
-
-
 # Where the two submaps were made: a metre apart, turned 40 degrees, 1.2 m up.
 T_WORLD_TARGET = _pose(0.3, (2.0, 1.8, 1.2))
 T_WORLD_SOURCE = _pose(1.0, (3.0, 2.2, 1.2))
@@ -83,7 +38,7 @@ def test_a_revisited_place_is_registered_from_a_drifted_guess() -> None:
     rng = np.random.default_rng(SEED)
     room = _room(rng)
     target, source = _submap(room, T_WORLD_TARGET, rng), _submap(room, T_WORLD_SOURCE, rng)
-    guess = _perturbed(T_TARGET_SOURCE, rng)
+    guess = perturbed(T_TARGET_SOURCE, rng, GUESS_ERROR_M, GUESS_ERROR_RAD)
     check = check_loop(target, source, guess)
     translation_m, rotation_rad = _error(check.T_target_source, T_TARGET_SOURCE)
     print(f"revisited: overlap {check.overlap:.2f}, rms {1000 * check.rms_m:.1f} mm, "
@@ -98,7 +53,7 @@ def test_another_room_is_refused() -> None:
     rng = np.random.default_rng(SEED)
     room, other = _room(rng), _room(rng, size_m=(6.0, 3.5, 2.7))
     check = check_loop(_submap(room, T_WORLD_TARGET, rng), _submap(other, T_WORLD_SOURCE, rng),
-                       _perturbed(T_TARGET_SOURCE, rng))
+                       perturbed(T_TARGET_SOURCE, rng, GUESS_ERROR_M, GUESS_ERROR_RAD))
     print(f"another room: {check.reason}")
     assert not check.accepted
     assert "overlap" in check.reason or "residual" in check.reason
@@ -152,7 +107,7 @@ def test_surfaces_that_can_slide_or_turn_are_refused_as_degenerate(scene: str) -
     T_world_source = _pose(0.3, (3.0, 1.8, 1.2))
     T_target_source = np.linalg.inv(T_WORLD_TARGET) @ T_world_source
     check = check_loop(_submap(mesh, T_WORLD_TARGET, rng), _submap(mesh, T_world_source, rng),
-                       _perturbed(T_target_source, rng, SLIDE_GUESS_ERROR_M,
+                       perturbed(T_target_source, rng, SLIDE_GUESS_ERROR_M,
                                   SLIDE_GUESS_ERROR_RAD))
     print(f"{scene}: {check.reason}")
     assert not check.accepted

@@ -54,3 +54,43 @@ def error(T: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     delta = np.linalg.inv(truth) @ T
     angle = np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1.0, 1.0))
     return float(np.linalg.norm(delta[:3, 3])), float(angle)
+
+
+# A drone's camera for views(): 58 degrees across, as the Kinect's depth, rendered at twice the
+# views' size and each 2 x 2 kept at its nearest, so that a near surface sampled more thinly than
+# the pixels still hides what lies behind it.
+VIEW_FOV_RAD = np.deg2rad(58.0)
+VIEW_SIZE = (80, 60)
+VIEW_POINTS_PER_M2 = 8000
+
+
+def views(mesh: trimesh.Trimesh, T_world_submap: np.ndarray, rng: np.random.Generator,
+          headings: int = 8) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]]:
+    """What a drone that turned on the spot at the submap's origin saw: HEADINGS depth images
+    (level, evenly turned) of MESH by z-buffered surface samples, their camera poses in the
+    submap's frame and the intrinsics; kinfly_ground.merge.Views' three fields."""
+    width, height = VIEW_SIZE
+    fine_w, fine_h = 2 * width, 2 * height
+    f = fine_w / 2 / np.tan(VIEW_FOV_RAD / 2)
+    count = int(mesh.area * VIEW_POINTS_PER_M2)
+    samples, _ = trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 31)))
+    samples = trimesh.transform_points(samples, np.linalg.inv(T_world_submap))
+    depths, poses = [], []
+    for k in range(headings):
+        heading = 2 * np.pi * k / headings
+        forward = np.array([np.cos(heading), np.sin(heading), 0.0])
+        right = np.array([np.sin(heading), -np.cos(heading), 0.0])
+        T_submap_cam = np.eye(4)
+        T_submap_cam[:3, :3] = np.column_stack([right, [0.0, 0.0, -1.0], forward])
+        p = samples @ T_submap_cam[:3, :3]  # into the camera (the origin is shared)
+        z = p[:, 2]
+        keep = z > 0.1
+        u = np.floor(f * p[keep, 0] / z[keep] + fine_w / 2).astype(int)
+        v = np.floor(f * p[keep, 1] / z[keep] + fine_h / 2).astype(int)
+        inside = (u >= 0) & (u < fine_w) & (v >= 0) & (v < fine_h)
+        fine = np.full((fine_h, fine_w), np.inf)
+        np.minimum.at(fine, (v[inside], u[inside]), z[keep][inside])
+        depth = fine.reshape(height, 2, width, 2).min(axis=(1, 3))
+        depths.append(np.where(np.isfinite(depth), depth, 0.0).astype(np.float32))
+        poses.append(T_submap_cam)
+    return np.stack(depths), np.stack(poses), (f / 2, f / 2, width / 2, height / 2)

@@ -10,6 +10,7 @@ from typing import Any
 
 from . import __version__
 from ._native import LinkQuality, write_ply
+from .merge import SharedWorlds
 from .outputs import (ate_figures, evaluate, memory, write_atomically, write_error_plot,
                       write_json, write_tum)
 from .station import Station
@@ -73,9 +74,10 @@ def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str
 
 
 def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
-                     truth: list | None) -> dict[str, Any]:
+                     truth: list | None, worlds: SharedWorlds) -> dict[str, Any]:
     with state.lock:
         segment, finished = state.segment, list(state.finished_segments)
+    key = (state.vehicle_id, len(finished))
     summary: dict[str, Any] = {
         "vehicle_id": state.vehicle_id,
         "keyframes": dataclasses.asdict(state.counters),
@@ -85,6 +87,12 @@ def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
         # This session's first: a station started after the drone (restarted) never saw those
         # before it.
         "first_keyframe_id": min(state.session_keyframe_ids, default=None),
+        # The world its map (this odometry frame's) is in: its own, or the vehicle's it was
+        # merged with (merge.py); T_world_map places its own optimised world there. The
+        # onboard and corrected trajectories stay in its own world; the optimised one and the
+        # mesh are in this one.
+        "world": {"vehicle_id": worlds.world_of(key)[0],
+                  "T_world_map": worlds.T_world_map(key).tolist()},
     }
     summary.update(_export_segment(segment, out, truth))
     # Earlier odometry frames (before a drone restart), each complete on its own.
@@ -156,7 +164,8 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
         where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
         link = station.receiver.link_quality(vid)
         vehicles[str(vid)] = {"directory": str(where),
-                              **_vehicle_summary(state, link, where, truth)}
+                              **_vehicle_summary(state, link, where, truth,
+                                                 station.mapper.worlds)}
     received = station.receiver.rejects  # what the ground can reject (the rest are the drone's)
     rejects = {"malformed": received.malformed, "unknown_channel": received.unknown_channel,
                "wrong_vehicle": received.wrong_vehicle}
@@ -209,6 +218,13 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
                   f"accepted, {verdicts[1]} refused by the check, {verdicts[2]} by the graph, "
                   f"{verdicts[3]} checks failed"
                   + (f", {unchecked} not checked before the end" if unchecked else ""))
+        if k["merge_checks"] or k["merges"]:
+            shared = v["world"]["vehicle_id"]
+            print(f"    {k['merge_checks']} checks for a common place with another vehicle's "
+                  f"map: {k['merges']} found, {k['merges_refused']} not, "
+                  f"{k['merge_checks_failed']} failed; "
+                  + (f"its map is in vehicle {shared}'s world" if shared != int(vid)
+                     else "its map is in its own world"))
         a = v["ate"]
         if a["available"]:
             parts = [f"{n} {a[n]['rmse_m'] * 100:.2f} cm ({a[n]['matched_poses']} poses)"

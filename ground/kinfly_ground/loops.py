@@ -3,7 +3,9 @@ its loop candidates here; a thread meshes the two submaps (marching cubes, the G
 registers them in a process of its own, because small_gicp holds the GIL for the whole
 registration (a 1 ms thread waited 1.9 s beside 12 checks in-process; 25 ms beside a process:
 docs/ground.md). The outcomes wait until the fusion thread takes them (`take_done`) and adds them
-to its chain's graph between keyframes, so the chain only ever changes on that thread."""
+to its chain's graph between keyframes, so the chain only ever changes on that thread. Merge
+checks between two vehicles' maps (merge.py: place recognition, then the same registration) take
+the same thread and process, in turn with the loops (`submit_merge`, `take_merges`)."""
 from __future__ import annotations
 
 import concurrent.futures
@@ -14,7 +16,7 @@ import signal
 import threading
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any
+from typing import Any, Protocol
 
 from .registration import LoopCheck, check_loop
 from .submaps import LoopCandidate, SubmapChain
@@ -36,6 +38,30 @@ def _lower_priority() -> None:
     os.nice(CHECK_NICENESS)
 
 
+class Job(Protocol):
+    """Work for the check process: ARGUMENTS is called on the checks' thread (meshing there),
+    FUNCTION then runs in the process with them (a module-level function: the process imports it
+    by name)."""
+
+    def arguments(self) -> tuple[Any, ...]: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class _LoopJob:
+    chain: SubmapChain
+    candidate: LoopCandidate
+
+    def arguments(self) -> tuple[Any, ...]:
+        return self.chain.check_arguments(self.candidate)  # meshing: tenths of a second
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckedMerge:
+    job: Any                  # the job submitted (submit_merge)
+    match: Any | None         # what its function returned; None where it failed (`error`)
+    error: str = ""
+
+
 @dataclasses.dataclass(frozen=True)
 class CheckedLoop:
     chain: SubmapChain
@@ -54,8 +80,10 @@ class LoopCloser:
         self._log = log
         self._check_fn = check
         self._cv = threading.Condition()
-        self._waiting: list[tuple[SubmapChain, LoopCandidate]] = []
+        # (the job, the function the process runs it with), in the order submitted
+        self._waiting: list[tuple[Job, Callable[..., Any]]] = []
         self._done: list[CheckedLoop] = []
+        self._merges_done: list[CheckedMerge] = []
         self._busy = False
         self._closing = False
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
@@ -63,14 +91,22 @@ class LoopCloser:
         self._thread: threading.Thread | None = None
 
     def submit(self, chain: SubmapChain, candidates: list[LoopCandidate]) -> None:
-        if not candidates:
+        self._submit([(_LoopJob(chain, candidate), self._check_fn) for candidate in candidates])
+
+    def submit_merge(self, job: Job, function: Callable[..., Any]) -> None:
+        """A merge check: FUNCTION(*JOB.arguments()) in the process; its outcome comes back
+        from take_merges."""
+        self._submit([(job, function)])
+
+    def _submit(self, jobs: list[tuple[Job, Callable[..., Any]]]) -> None:
+        if not jobs:
             return
         with self._cv:
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name="kground-loops",
                                                 daemon=True)
                 self._thread.start()
-            self._waiting.extend((chain, candidate) for candidate in candidates)
+            self._waiting.extend(jobs)
             self._cv.notify_all()
 
     def take_done(self, chain: SubmapChain) -> list[CheckedLoop]:
@@ -79,6 +115,12 @@ class LoopCloser:
             mine = [done for done in self._done if done.chain is chain]
             self._done = [done for done in self._done if done.chain is not chain]
         return mine
+
+    def take_merges(self) -> list[CheckedMerge]:
+        """The merge checks that finished since the last call."""
+        with self._cv:
+            done, self._merges_done = self._merges_done, []
+        return done
 
     def wait_idle(self, timeout_s: float) -> bool:
         """Waits until every submitted check finished; False when TIMEOUT_S passed first."""
@@ -110,20 +152,28 @@ class LoopCloser:
                 self._cv.wait_for(lambda: self._waiting or self._closing)
                 if self._closing:
                     return
-                chain, candidate = self._waiting.pop(0)
+                job, function = self._waiting.pop(0)
                 self._busy = True
-            outcome = None
+            outcome: CheckedLoop | CheckedMerge | None = None
             try:
-                check = self._check(chain, candidate)
-                if check is not None:  # None: closing
-                    outcome = CheckedLoop(chain, candidate, check)
+                result = self._check(job, function)
+                if result is not None:  # None: closing
+                    outcome = (CheckedLoop(job.chain, job.candidate, result)
+                               if isinstance(job, _LoopJob) else CheckedMerge(job, result))
             except Exception as error:  # noqa: BLE001 - a failed check is no loop; fusion goes on
-                outcome = CheckedLoop(chain, candidate, None, f"{type(error).__name__}: {error}")
-                self._log(f"loop check of submaps {candidate.older} and {candidate.newer} "
-                          f"failed: {outcome.error}")
+                why = f"{type(error).__name__}: {error}"
+                if isinstance(job, _LoopJob):
+                    outcome = CheckedLoop(job.chain, job.candidate, None, why)
+                    self._log(f"loop check of submaps {job.candidate.older} and "
+                              f"{job.candidate.newer} failed: {why}")
+                else:
+                    outcome = CheckedMerge(job, None, why)
+                    self._log(f"merge check {job} failed: {why}")
             with self._cv:
-                if outcome is not None:
+                if isinstance(outcome, CheckedLoop):
                     self._done.append(outcome)
+                elif outcome is not None:
+                    self._merges_done.append(outcome)
                 self._busy = False
                 self._cv.notify_all()
 
@@ -155,17 +205,17 @@ class LoopCloser:
         self._executor = executor
         return True
 
-    def _check(self, chain: SubmapChain, candidate: LoopCandidate) -> LoopCheck | None:
+    def _check(self, job: Job, function: Callable[..., Any]) -> Any | None:
         """The check's outcome, or None when close() came first."""
         if self._executor is None and not self._start_process():
             return None
         assert self._executor is not None
-        arguments: tuple[Any, ...] = chain.check_arguments(candidate)  # meshing: tenths of a second
+        arguments = job.arguments()
         with self._cv:
             if self._closing:
                 return None
         try:
-            future = self._executor.submit(self._check_fn, *arguments)
+            future = self._executor.submit(function, *arguments)
             return future.result() if self._until_done(future) else None
         except BrokenProcessPool:
             # The process died (killed for memory, say): the next check starts another.

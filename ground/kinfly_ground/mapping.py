@@ -6,9 +6,12 @@ closes, and its loop candidates are checked off the keyframe path (loops.py); th
 added to the chain's graph before the next keyframe, which moves the submaps (submaps.py). The
 correction policy: a correction that moves the onboard pose beyond the reset bounds is a jump
 (reset_counter + 1), as after a loop that moved the open submap. Ground truth is filed with the
-map of the session it arrived in and drawn in the map's frame."""
+map of the session it arrived in and drawn in the map's frame. Several vehicles' maps are checked
+for a common place now and then (merge.py, in the loop checks' process); once found, the two
+share a world, and every correction to either drone is in it (a jump, counted as a reset)."""
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any
@@ -18,6 +21,7 @@ import numpy as np
 from . import flight
 from ._native import Fusion, Keyframe, MapSnapshot, TrackingStatus, rotation_angle_rad
 from .loops import LoopCloser
+from .merge import SharedWorlds, Views, recognise_place, small_depth
 from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
 from .submaps import Submap, SubmapChain
 from .uplink import Uplink
@@ -43,6 +47,42 @@ def truth_anchor(corrected: list[StampedPose], truth: list[StampedPose]) -> np.n
     return None
 
 
+MapKey = tuple[int, int]  # (vehicle id, its segment's number): one odometry frame's map
+
+
+def _map_key(state: VehicleState) -> MapKey:
+    return state.vehicle_id, len(state.finished_segments)
+
+
+def _points(parts: list[tuple[MapSnapshot, np.ndarray]]) -> np.ndarray:
+    """The surface of a map's submaps, each meshed and moved by its correction."""
+    clouds = []
+    for snapshot, C in parts:
+        vertices = np.asarray(snapshot.mesh()[0], dtype=np.float64)
+        clouds.append(vertices @ C[:3, :3].T + C[:3, 3])
+    return np.concatenate(clouds) if clouds else np.zeros((0, 3))
+
+
+@dataclasses.dataclass(frozen=True, repr=False)
+class MergeJob:
+    """One merge check: the source map's surface sought in the target's (merge.py), each map in
+    its own optimised world. Its snapshots are meshed on the checks' thread (arguments)."""
+    target: MapKey
+    source: MapKey
+    target_parts: list[tuple[MapSnapshot, np.ndarray]]
+    source_parts: list[tuple[MapSnapshot, np.ndarray]]
+    target_views: Views
+    source_views: Views
+    params: Any
+
+    def arguments(self) -> tuple[Any, ...]:
+        return (_points(self.target_parts), self.target_views, _points(self.source_parts),
+                self.source_views, self.params)
+
+    def __str__(self) -> str:
+        return f"of vehicles {self.target[0]} and {self.source[0]}"
+
+
 class Mapper:
     """Handles queued keyframes (`process`, on the worker thread). MESH hands a submap's copy
     (vehicle, capture time, submap index, snapshot) to the mesher."""
@@ -56,6 +96,8 @@ class Mapper:
         self._mesh = mesh
         self._log = log
         self.loops = LoopCloser(log)
+        self.worlds = SharedWorlds()
+        self._merge_pending = False  # one merge check at a time, beside the loops
 
     def process(self, job: Job) -> None:
         """One keyframe that cannot be handled (intrinsics the engine refuses, say) is counted
@@ -94,6 +136,7 @@ class Mapper:
             segment.chain = SubmapChain(self.params.submaps, lambda: Fusion(
                 c, volume, pipeline, threads=self.params.threads))
         chain = segment.chain
+        self._take_merges()
         self._add_loops(state, chain, m.utime)
         has_onboard = m.tracking is not None
         if has_onboard:
@@ -112,10 +155,13 @@ class Mapper:
         state.map_blocks = chain.num_blocks
         state.refine_ms.append(result.total_ms)
         state.last_result = result
+        # The trajectories are kept in the map's own world, a merge's jump taken out: the drone's
+        # pose in the world its guess came from, the correction in the one it goes out in.
         if has_onboard:
-            segment.onboard.append((m.utime, T_onboard))
+            segment.onboard.append((m.utime, np.linalg.inv(chain.guess_placement) @ T_onboard))
         if T_corrected is not None:
-            segment.corrected.append((m.utime, T_corrected))
+            segment.corrected.append((m.utime, np.linalg.inv(chain.placement) @ T_corrected))
+            self._keep_view(state, m, depth)
             state.counters.keyframes_fused += 1
             state.rates["fused"].tick(time.monotonic())
             if self._correct(state, m, T_onboard, T_corrected, job.arrival_ns):
@@ -133,6 +179,93 @@ class Mapper:
                 state.counters.submaps_closed += 1
         if closed is not None:
             self._closed(state, chain, closed, m.utime)
+        self._merge_if_due(state, m.utime)
+
+    def _keep_view(self, state: VehicleState, m: Keyframe, depth: np.ndarray) -> None:
+        """The keyframe's depth made small, for the map's views in a merge check (none where
+        the image does not divide into the blocks)."""
+        block = self.params.merge_view_block
+        height, width = depth.shape
+        if height % block or width % block:
+            return
+        segment = state.segment
+        if segment.view_intrinsics is None:
+            c = m.camera
+            segment.view_intrinsics = (c.fx / block, c.fy / block, c.cx / block, c.cy / block)
+        preprocess = self.params.pipeline_params().preprocess
+        segment.views.append((m.utime, small_depth(depth, m.depth_scale_m, block,
+                                                   preprocess.min_depth_m,
+                                                   preprocess.max_depth_m)))
+
+    @staticmethod
+    def _views(segment: Segment) -> Views:
+        """The map's views: its keyframes' small depth where its own optimised world puts them."""
+        poses = dict(segment.chain.trajectory(shared=False))
+        kept = [(depth, poses[utime]) for utime, depth in segment.views if utime in poses]
+        return Views(np.stack([d for d, _ in kept]), np.stack([T for _, T in kept]),
+                     segment.view_intrinsics)
+
+    def _merge_if_due(self, state: VehicleState, utime: int) -> None:
+        """Every merge_interval_s of this vehicle's capture time, its map and another it shares
+        no world with (the one checked longest ago) go to the checks' process."""
+        segment = state.segment
+        if (self._merge_pending or segment.chain is None
+                or len(segment.views) < self.params.merge_min_keyframes
+                or (segment.last_merge_utime is not None
+                    and utime - segment.last_merge_utime < self.params.merge_interval_s * 1e6)):
+            return
+        key = _map_key(state)
+        others = [o for o in self.vehicles.values()
+                  if o is not state and o.segment.chain is not None
+                  and len(o.segment.views) >= self.params.merge_min_keyframes
+                  and not self.worlds.merged(_map_key(o), key)]
+        if not others:
+            return
+        other = min(others, key=lambda o: o.segment.last_merge_utime or 0)
+        segment.last_merge_utime = utime
+        other.segment.last_merge_utime = utime
+        job = MergeJob(_map_key(other), key, other.segment.chain.parts(shared=False),
+                       segment.chain.parts(shared=False), self._views(other.segment),
+                       self._views(segment), self.params.merge)
+        self._merge_pending = True
+        state.counters.merge_checks += 1
+        self.loops.submit_merge(job, recognise_place)
+
+    def _take_merges(self) -> None:
+        """Merges the maps whose checks found a common place since the last keyframe: from now
+        on both drones' corrections are in the shared world."""
+        for done in self.loops.take_merges():
+            self._merge_pending = False
+            job = done.job
+            target, source = self.vehicles[job.target[0]], self.vehicles[job.source[0]]
+            counters = source.counters
+            if done.match is None:
+                counters.merge_checks_failed += 1
+                continue
+            if not done.match.accepted:
+                counters.merges_refused += 1
+                self._log(f"vehicles {job.target[0]} and {job.source[0]}: no common place "
+                          f"({done.match.reason})")
+                continue
+            if _map_key(target) != job.target or _map_key(source) != job.source:
+                self._log(f"vehicles {job.target[0]} and {job.source[0]}: a common place "
+                          "found, but a drone restarted since: not merged")
+                continue
+            if self.worlds.merged(job.target, job.source):
+                continue
+            self.worlds.merge(job.target, job.source, done.match.T_target_source)
+            counters.merges += 1
+            target.counters.merges += 1
+            for state in self.vehicles.values():
+                if state.segment.chain is not None:
+                    state.segment.chain.place(self.worlds.T_world_map(_map_key(state)))
+            T = done.match.T_target_source
+            self._log(f"vehicles {job.target[0]} and {job.source[0]} share a map: vehicle "
+                      f"{job.source[0]}'s found in vehicle {job.target[0]}'s "
+                      f"({done.match.inliers} feature matches, overlap "
+                      f"{done.match.check.overlap:.2f}), {np.linalg.norm(T[:3, 3]):.2f} m and "
+                      f"{np.degrees(rotation_angle_rad(T)):.0f} deg apart; both now in vehicle "
+                      f"{self.worlds.world_of(job.source)[0]}'s world")
 
     def _closed(self, state: VehicleState, chain: SubmapChain, closed: Submap,
                 utime: int) -> None:
@@ -318,6 +451,7 @@ class Mapper:
     def _show_final(self, truth: list[StampedPose] | None, loops_timeout_s: float) -> None:
         if not self.loops.wait_idle(loops_timeout_s):
             self._log(f"loop checks still running after {loops_timeout_s:g} s: left out")
+        self._take_merges()
         for state in self.vehicles.values():
             # Checks that finished after their drone restarted still belong to its old map.
             for finished in state.finished_segments:

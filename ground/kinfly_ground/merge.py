@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from typing import Any
 
 import numpy as np
 
@@ -205,36 +206,37 @@ def recognise_place(target_points: np.ndarray, target_views: Views, source_point
 
 
 class SharedWorlds:
-    """Which vehicles' maps share a world. Each vehicle's map is in its own optimised world until
-    a merge places it in another's; a group's world is its first vehicle's. Merging two groups
-    moves the whole newer group into the older one's world, so every vehicle's placement stays
-    one transform T_world_vehicle. Thread-safe: the fusion thread merges, any thread reads."""
+    """Which maps share a world. A map is known by a key (the station's: a key id and its
+    odometry frame's number; keys must order). Each map is in its own optimised world until a
+    merge places it in another's; a group's world is its lowest key's. Merging two groups moves
+    the whole other group into that world, so every map's placement stays one transform
+    T_world_map. Thread-safe: the fusion thread merges, any thread reads."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        # vehicle -> (the vehicle whose world it is in, T_that_vehicle's_world_this_one's)
-        self._placed: dict[int, tuple[int, np.ndarray]] = {}
+        # key -> (the key whose world its map is in, T_that_world_this_map's_world)
+        self._placed: dict[Any, tuple[Any, np.ndarray]] = {}
 
-    def _root(self, vehicle: int) -> tuple[int, np.ndarray]:
-        return self._placed.get(vehicle, (vehicle, np.eye(4)))
+    def _root(self, key: Any) -> tuple[Any, np.ndarray]:
+        return self._placed.get(key, (key, np.eye(4)))
 
-    def world_of(self, vehicle: int) -> int:
-        """The vehicle whose world VEHICLE's map is in (itself until merged)."""
+    def world_of(self, key: Any) -> Any:
+        """The map whose world KEY's map is in (itself until merged)."""
         with self._lock:
-            return self._root(vehicle)[0]
+            return self._root(key)[0]
 
-    def T_world_vehicle(self, vehicle: int) -> np.ndarray:
-        """VEHICLE's own optimised world placed in its group's world."""
+    def T_world_map(self, key: Any) -> np.ndarray:
+        """KEY's map's own optimised world placed in its group's world."""
         with self._lock:
-            return self._root(vehicle)[1].copy()
+            return self._root(key)[1].copy()
 
-    def merged(self, a: int, b: int) -> bool:
+    def merged(self, a: Any, b: Any) -> bool:
         with self._lock:
             return self._root(a)[0] == self._root(b)[0]
 
-    def merge(self, a: int, b: int, T_a_b: np.ndarray) -> None:
+    def merge(self, a: Any, b: Any, T_a_b: np.ndarray) -> None:
         """B's map registered in A's: T_A_B takes B's own optimised world into A's. The group
-        with the greater root joins the other (the first vehicle's world stays put)."""
+        with the greater root joins the other (the lowest key's world stays put)."""
         T_a_b = np.asarray(T_a_b, dtype=np.float64)
         if T_a_b.shape != (4, 4) or not np.all(np.isfinite(T_a_b)):
             raise ValueError(f"a merge's transform must be a finite 4x4 matrix: {T_a_b}")
@@ -242,12 +244,12 @@ class SharedWorlds:
             root_a, T_ra_a = self._root(a)
             root_b, T_rb_b = self._root(b)
             if root_a == root_b:
-                raise ValueError(f"vehicles {a} and {b} share a world already")
+                raise ValueError(f"maps {a} and {b} share a world already")
             T_ra_rb = T_ra_a @ T_a_b @ np.linalg.inv(T_rb_b)
             if root_b < root_a:  # keep the lower root's world: B's group takes A's in
                 root_a, root_b, T_ra_rb = root_b, root_a, np.linalg.inv(T_ra_rb)
             members = [v for v, (root, _) in self._placed.items() if root == root_b]
-            for vehicle in {root_b, *members}:
-                T_rb_v = self._root(vehicle)[1]
-                self._placed[vehicle] = (root_a, T_ra_rb @ T_rb_v)
+            for key in {root_b, *members}:
+                T_rb_v = self._root(key)[1]
+                self._placed[key] = (root_a, T_ra_rb @ T_rb_v)
             self._placed.setdefault(root_a, (root_a, np.eye(4)))

@@ -33,6 +33,7 @@ from .submaps import SubmapParams
 from .conversions import ground_status
 from .uplink import Publish, Uplink
 from .vehicle import Job, StampedPose, VehicleState
+from .merge import PlaceParams
 from .viewer import Viewer
 
 
@@ -74,6 +75,14 @@ class StationParams:
     # checks still under way get this long to finish before the outputs are written.
     submaps: SubmapParams = SubmapParams()
     final_loops_timeout_s: float = 60.0  # [s] > 0
+    # Several drones in one map (merge.py): every merge_interval_s of a vehicle's capture time,
+    # once its map holds merge_min_keyframes, its map and one it does not share a world with yet
+    # are checked for a common place in the loop checks' process (inf: never). A map's views
+    # are its keyframes' depth, merge_view_block pixels square to a view's pixel.
+    merge_interval_s: float = 10.0      # [s] > 0
+    merge_min_keyframes: int = 10       # [1, 10000]
+    merge_view_block: int = 8           # [1, 64] pixels
+    merge: PlaceParams = PlaceParams()
 
     def volume_params(self) -> HashedVolumeParams:
         """The engine's parameters for each map's hashed volume."""
@@ -107,6 +116,9 @@ class StationParams:
             (0.005 <= self.correction_copy_interval_s <= 0.5,
              "correction copy interval must be in [0.005, 0.5] s"),
             (self.final_loops_timeout_s > 0, "final loops timeout must be > 0 s"),
+            (self.merge_interval_s > 0, "merge interval must be > 0 s"),
+            (1 <= self.merge_min_keyframes <= 10000, "merge min keyframes must be in [1, 10000]"),
+            (1 <= self.merge_view_block <= 64, "merge view block must be in [1, 64] pixels"),
         ]
         if why := next((why for ok, why in checks if not ok), ""):
             return why

@@ -8,7 +8,10 @@ in (as a single map was), starting at the pose the chain had reached:
 submap k's anchor A_k = T_c_anchor is its first keyframe's pose there. The optimised graph places
 the anchors at O_k = T_world_anchor; submap k's correction C_k = O_k A_k⁻¹ takes its content
 (and its keyframes' poses) from `c` into the optimised world. Before any loop every C_k is the
-identity and the chain is the single map of before.
+identity and the chain is the single map of before. Where another vehicle's map was found in
+this one's (merge.py), the whole optimised world is placed in the shared one by W = T_shared_world
+(`place`): every correction handed out, C_k's included, is then W C_k; the graph itself stays in
+the chain's own world, its first submap held.
 
 Threads. `refine`, `close_if_due`, `loop_candidates` and `add_loops` (a graph of tens of nodes:
 milliseconds) run on the fusion thread, the only one that changes the chain. `check_arguments` meshes closed submaps, whose snapshots do
@@ -159,14 +162,22 @@ class SubmapChain:
         self._loops: list[tuple[LoopCandidate, np.ndarray]] = []  # accepted checks, anchor edge
         self.outcomes: list[LoopOutcome] = []
         self._corrections: list[np.ndarray] = []  # C_k, swapped whole under the lock
+        self._placement = np.eye(4)  # W: the optimised world in the shared one (under the lock)
         self._lock = threading.Lock()
         self._lost_in_a_row = 0
         # The world the drone's published pose is in: the C of the last correction it was sent
         # (correction_sent), and the one before, for keyframes it captured before that arrived.
-        # The identity while it was sent none (a replay, a vehicle without a key).
+        # The identity while it was sent none (a replay, a vehicle without a key). Each with the
+        # placement W it held.
         self._C_returned = np.eye(4)  # of the last pose refine() returned
         self._C_sent = np.eye(4)
         self._C_sent_before = np.eye(4)
+        self._W_returned = np.eye(4)
+        self._W_sent = np.eye(4)
+        self._W_sent_before = np.eye(4)
+        # The placement of the world the last keyframe's guess was taken from (refine): its
+        # published pose, taken back into the chain's own world, is W⁻¹ T.
+        self.guess_placement = np.eye(4)
         # The open submap's last registered keyframes (utime, depth, T_c_cam), the overlap of
         # the next.
         self._recent: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(
@@ -177,11 +188,29 @@ class SubmapChain:
         return self.submaps[-1] if self.submaps else None
 
     def correction(self, index: int) -> np.ndarray:
+        """Submap INDEX's correction into the shared world: W C_k."""
         with self._lock:
-            return self._corrections[index]
+            return self._placement @ self._corrections[index]
 
     def corrections(self) -> dict[int, np.ndarray]:
-        """Every submap's C_k by index."""
+        """Every submap's W C_k by index."""
+        with self._lock:
+            return {k: self._placement @ C for k, C in enumerate(self._corrections)}
+
+    @property
+    def placement(self) -> np.ndarray:
+        """W: the chain's optimised world in the shared one (the identity until merged)."""
+        with self._lock:
+            return self._placement.copy()
+
+    def place(self, T_shared_world: np.ndarray) -> None:
+        """Places the optimised world in a shared one (a merge with another vehicle's map): the
+        next correction carries the move to the drone."""
+        with self._lock:
+            self._placement = np.array(T_shared_world, dtype=np.float64)
+
+    def own_corrections(self) -> dict[int, np.ndarray]:
+        """Every submap's C_k, in the chain's own optimised world (what a merge registers)."""
         with self._lock:
             return dict(enumerate(self._corrections))
 
@@ -202,14 +231,17 @@ class SubmapChain:
             result = self._begin(depth, utime, T_world_guess, after_loss=False)
             return result, (result.T_world_cam if self.submaps else None), None
         T_c_guess = np.linalg.inv(self._C_sent) @ T_world_guess
-        C = self.correction(active.index)
+        with self._lock:
+            C, W = self._placement @ self._corrections[active.index], self._placement.copy()
         result = active.fusion.refine(depth, utime, T_c_guess)
+        self.guess_placement = self._W_sent
         if (result.status is TrackingStatus.LOST
                 and not np.array_equal(self._C_sent_before, self._C_sent)):
             retry = active.fusion.refine(depth, utime,
                                          np.linalg.inv(self._C_sent_before) @ T_world_guess)
             if retry.status is not TrackingStatus.LOST:
                 result = retry
+                self.guess_placement = self._W_sent_before
         if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
             self._lost_in_a_row = 0
             T_c_cam = result.T_world_cam
@@ -219,7 +251,7 @@ class SubmapChain:
             active.keyframes.append((utime, T_c_cam))
             active.fused_utimes.add(utime)
             self._recent.append((utime, depth, T_c_cam))
-            self._C_returned = C
+            self._C_returned, self._W_returned = C, W
             return result, C @ T_c_cam, None
         self._lost_in_a_row += 1
         if self._lost_in_a_row < self.params.new_after_lost:
@@ -231,7 +263,7 @@ class SubmapChain:
         if len(self.submaps) == count:
             return result, None, None
         self._lost_in_a_row = 0
-        self._C_returned = C
+        self._C_returned, self._W_returned = C, W
         return began, C @ began.T_world_cam, active
 
     def correction_sent(self) -> None:
@@ -239,6 +271,7 @@ class SubmapChain:
         poses move into that pose's world."""
         if not np.array_equal(self._C_returned, self._C_sent):
             self._C_sent_before, self._C_sent = self._C_sent, self._C_returned
+            self._W_sent_before, self._W_sent = self._W_sent, self._W_returned
 
     def last_pose_published(self) -> np.ndarray:
         """The last registered keyframe's pose in the world the drone's published poses are in
@@ -429,7 +462,7 @@ class SubmapChain:
         """The pose graph as the viewer draws it: each submap's anchor position in the optimised
         world, the odometry edges, and the loop edges (older, newer, accepted by the graph)."""
         with self._lock:
-            corrections = list(self._corrections)
+            corrections = [self._placement @ C for C in self._corrections]
             edges = [(i, j) for i, j, _, _ in self._edges]
             submaps = list(self.submaps)
         nodes = {s.index: (corrections[s.index] @ s.T_c_anchor)[:3, 3] for s in submaps}
@@ -437,11 +470,23 @@ class SubmapChain:
                  for o in self.outcomes if o.check.accepted]
         return nodes, edges, loops
 
-    def trajectory(self) -> list[StampedPose]:
-        """Every registered keyframe's pose in the optimised world, by capture time (a keyframe
-        that began a submap is in both; the newer submap's is kept)."""
+    def parts(self, shared: bool) -> list[tuple[MapSnapshot, np.ndarray]]:
+        """Each submap's map (the open one's snapshot taken now: the fusion thread only) and its
+        correction, placed in the shared world (SHARED) or in the chain's own optimised one."""
         with self._lock:
-            corrections = list(self._corrections)
+            W = self._placement if shared else np.eye(4)
+            corrections = [W @ C for C in self._corrections]
+            submaps = list(self.submaps)
+        return [(s.snapshot if s.snapshot is not None else s.fusion.snapshot(),
+                 corrections[s.index]) for s in submaps]
+
+    def trajectory(self, shared: bool = True) -> list[StampedPose]:
+        """Every registered keyframe's pose in the optimised world, placed in the shared one
+        (SHARED) or not, by capture time (a keyframe that began a submap is in both; the newer
+        submap's is kept)."""
+        with self._lock:
+            W = self._placement if shared else np.eye(4)
+            corrections = [W @ C for C in self._corrections]
         poses: dict[int, np.ndarray] = {}
         for submap in self.submaps:
             for utime, T in submap.keyframes:
@@ -450,15 +495,12 @@ class SubmapChain:
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The whole map's mesh in the optimised world: each submap's own mesh moved by its
-        correction (vertices float32 Nx3, triangles int32 Mx3, normals float32 Nx3)."""
-        with self._lock:
-            corrections = list(self._corrections)
+        correction, placed in the shared world (vertices float32 Nx3, triangles int32 Mx3,
+        normals float32 Nx3)."""
         vertices, triangles, normals = [], [], []
         offset = 0
-        for submap in self.submaps:
-            snapshot = submap.snapshot if submap.snapshot is not None else submap.fusion.snapshot()
+        for snapshot, C in self.parts(shared=True):
             v, t, n = snapshot.mesh()
-            C = corrections[submap.index]
             vertices.append((np.asarray(v, np.float64) @ C[:3, :3].T + C[:3, 3]).astype(np.float32))
             normals.append((np.asarray(n, np.float64) @ C[:3, :3].T).astype(np.float32))
             triangles.append(np.asarray(t, np.int32) + offset)

@@ -40,6 +40,10 @@ class VehicleCounters:
     loops_refused_by_graph: int = 0  # passed the check, inconsistent with the rest (posegraph.py)
     loops_accepted: int = 0
     loop_checks_failed: int = 0    # the check raised (logged): no loop
+    merge_checks: int = 0          # this vehicle's map checked against another's (merge.py)
+    merges: int = 0                # of those, found there: the maps share a world since
+    merges_refused: int = 0        # not recognised, or refused by the check (logged)
+    merge_checks_failed: int = 0   # the check raised (logged)
 
 
 @dataclasses.dataclass
@@ -60,6 +64,11 @@ class Segment:
     final_mesh: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     # The final ATE of each trajectory (outputs.evaluate), made once for viewer and summary.
     evaluation: dict[str, dict[str, Any]] | None = None
+    # Each registered keyframe's depth made small (merge.small_depth), by capture time: the
+    # map's views for a merge check, and their intrinsics (fx, fy, cx, cy).
+    views: list[tuple[int, np.ndarray]] = dataclasses.field(default_factory=list)
+    view_intrinsics: tuple[float, float, float, float] | None = None
+    last_merge_utime: int | None = None  # capture time of this map's last merge check
 
 
 @dataclasses.dataclass

@@ -60,6 +60,18 @@ TUM_TOLERANCE = 1e-6
 # ate() of a rigidly moved copy: Umeyama alignment removes it up to double round-off.
 ALIGNED_ATE_TOLERANCE_M = 1e-6
 
+# Two drones' maps merged (merge.py): both hold this many keyframes when the one merge check
+# runs (a 10 s interval: the flight's 1.8 s of capture time has room for one), the flight goes on
+# after it; the issue's bound on the relative pose error between the merged maps is 2 cm.
+MERGE_KEYFRAMES = 14
+MERGE_FLIGHT_KEYFRAMES = 18
+MERGE_ONCE_S = 10.0
+MERGE_TOLERANCE_M = 0.02
+MERGE_TOLERANCE_DEG = 1.0
+# A bound, not a wait: the check's process starts and registers in seconds, on a busy machine
+# in tens of them.
+MERGE_CHECK_TIMEOUT_S = 300.0
+
 CODEC = DepthCodec(encoding=depth_keyframe_t.ENCODING_PALETTE_RVL_ZSTD)
 QUIET = StationParams(mesh_interval_s=0)  # no mesher: inline runs never mesh anyway
 
@@ -552,6 +564,85 @@ def test_serving_every_vehicle_keeps_one_map_each(sample) -> None:
         assert [c.utime for c in corrections] == [m.utime for m, _ in keyframes]
         for correction, (_, T_truth) in zip(corrections, keyframes):
             assert_near(corrected_pose(correction), T_truth)
+
+
+def test_two_vehicles_maps_merge_and_their_corrections_follow_into_one_world(
+        sample, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two drones over the same scene, the second's odometry frame 5 m away and turned half a
+    turn (its first keyframe one frame after the first drone's): once both maps hold
+    MERGE_KEYFRAMES keyframes, one check finds the second's map in the first's (in the checks'
+    process); the waiting is for that check's end, not for a time. From the next keyframe on,
+    the second drone's corrections are in the first drone's world (the jump counted as a reset),
+    the first's are as before, and the summary says which world each map is in."""
+    T_other_odometry = np.eye(4)
+    T_other_odometry[:3, :3] = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    T_other_odometry[:3, 3] = [5.0, 0.0, 0.3]
+    first = flight(sample, MERGE_FLIGHT_KEYFRAMES)
+    # The second drone: its own keyframes (every 3rd frame from one later), truth in the first
+    # drone's world beside each, and the onboard pose in its own odometry frame; from the second
+    # keyframe after the merge on, in the shared world, as the drone's pose is once it applied
+    # the first correction from there (docs/firmware.md, "Corrections").
+    T_first_inv = np.linalg.inv(sample[0][2])
+    second = []
+    for k, (utime, depth, T) in enumerate(sample[1::FRAME_STEP][:MERGE_FLIGHT_KEYFRAMES]):
+        T_truth = T_first_inv @ T
+        T_onboard = T_truth if k > MERGE_KEYFRAMES else T_other_odometry @ T_truth
+        second.append((keyframe(utime, depth, k, T_onboard, vehicle=OTHER_VEHICLE), T_truth))
+    params = StationParams(mesh_interval_s=0, merge_min_keyframes=MERGE_KEYFRAMES,
+                           merge_interval_s=MERGE_ONCE_S)
+    rig = Rig(params, vehicle_id=None, signed=(VEHICLE, OTHER_VEHICLE))
+    for (a, _), (b, _) in zip(first[:MERGE_KEYFRAMES], second[:MERGE_KEYFRAMES]):
+        rig.send(a)
+        rig.send(b)
+    mapper = rig.station.mapper
+    assert rig.state(OTHER_VEHICLE).counters.merge_checks == 1
+    assert mapper.loops.wait_idle(MERGE_CHECK_TIMEOUT_S), "the merge check did not end"
+    for (a, _), (b, _) in zip(first[MERGE_KEYFRAMES:], second[MERGE_KEYFRAMES:]):
+        rig.send(a)
+        rig.send(b)
+    rig.station.stop()
+    rig.station.show_final(None)
+
+    one, other = rig.state(VEHICLE), rig.state(OTHER_VEHICLE)
+    assert other.counters.merges == one.counters.merges == 1, rig.logs
+    assert any("share a map" in line for line in rig.logs), rig.logs
+    # The merge against the truth: the second map's own world placed in the first's.
+    T_truth = np.linalg.inv(T_other_odometry)
+    W = other.segment.chain.placement
+    error_m = float(np.linalg.norm(W[:3, 3] - T_truth[:3, 3]))
+    error_deg = angle_deg(T_truth[:3, :3].T @ W[:3, :3])
+    figure = (f"[station merge] the second map placed {100 * error_m:.2f} cm and "
+              f"{error_deg:.2f} deg from the truth")
+    assert error_m <= MERGE_TOLERANCE_M and error_deg <= MERGE_TOLERANCE_DEG
+    np.testing.assert_array_equal(one.segment.chain.placement, np.eye(4))
+    # Every correction near the truth in the world it went out in: the second drone's own
+    # odometry frame until the merge, the first drone's after it.
+    for (_, T), correction in zip(first, rig.corrections(VEHICLE)):
+        assert_near(corrected_pose(correction), T)
+    corrections = rig.corrections(OTHER_VEHICLE)
+    assert len(corrections) == MERGE_FLIGHT_KEYFRAMES
+    for k, ((_, T), correction) in enumerate(zip(second, corrections)):
+        assert_near(corrected_pose(correction),
+                    T if k >= MERGE_KEYFRAMES else T_other_odometry @ T)
+    assert other.counters.resets == 1 and one.counters.resets == 0
+    # The kept trajectories stay in each map's own world, the optimised one in the shared.
+    for (_, T_kept), (_, T_onboard), (_, T) in zip(other.segment.corrected,
+                                                  other.segment.onboard, second):
+        assert_near(T_kept, T_other_odometry @ T)
+        assert_near(T_onboard, T_other_odometry @ T)
+    for (_, T_optimised), (_, T) in zip(other.segment.chain.trajectory(), second):
+        assert_near(T_optimised, T)
+    summary = export(rig.station, tmp_path, "replay", time.monotonic(), None, {})
+    for vehicle in (VEHICLE, OTHER_VEHICLE):
+        world = summary["vehicles"][str(vehicle)]["world"]
+        assert world["vehicle_id"] == VEHICLE
+    np.testing.assert_allclose(summary["vehicles"][str(OTHER_VEHICLE)]["world"]["T_world_map"], W)
+    capsys.readouterr()
+    print_summary(summary, tmp_path, None)
+    printed = capsys.readouterr().out
+    assert f"its map is in vehicle {VEHICLE}'s world" in printed, printed
+    with capsys.disabled():
+        print(figure)
 
 
 def test_vehicles_beyond_the_limit_are_counted(sample) -> None:

@@ -207,16 +207,16 @@ def test_shared_worlds_compose_as_groups_merge() -> None:
 
     worlds = SharedWorlds()
     assert worlds.world_of(3) == 3 and not worlds.merged(1, 2)
-    np.testing.assert_array_equal(worlds.T_world_vehicle(2), np.eye(4))
+    np.testing.assert_array_equal(worlds.T_world_map(2), np.eye(4))
     worlds.merge(4, 3, T(4, 3))
     assert worlds.world_of(3) == 3 and worlds.world_of(4) == 3  # the lower root's world stays
-    np.testing.assert_allclose(worlds.T_world_vehicle(4), T(3, 4), atol=1e-12)
+    np.testing.assert_allclose(worlds.T_world_map(4), T(3, 4), atol=1e-12)
     worlds.merge(1, 2, T(1, 2))
     worlds.merge(2, 4, T(2, 4))
     for vehicle in truth:
         assert worlds.world_of(vehicle) == 1
-        np.testing.assert_allclose(worlds.T_world_vehicle(vehicle), truth[vehicle], atol=1e-12)
-    with pytest.raises(ValueError, match="vehicles 3 and 2 share a world already"):
+        np.testing.assert_allclose(worlds.T_world_map(vehicle), truth[vehicle], atol=1e-12)
+    with pytest.raises(ValueError, match="maps 3 and 2 share a world already"):
         worlds.merge(3, 2, T(3, 2))
     with pytest.raises(ValueError, match="finite 4x4"):
         SharedWorlds().merge(1, 2, np.full((4, 4), np.nan))

@@ -85,11 +85,12 @@ class MergeJob:
 
 class Mapper:
     """Handles queued keyframes (`process`, on the worker thread). MESH hands a submap's copy
-    (vehicle, capture time, submap index, snapshot) to the mesher."""
+    (vehicle, capture time, submap index, snapshot) to the mesher. MERGES: the vehicles' maps are
+    checked for a common place (a station serving every vehicle)."""
 
     def __init__(self, params: Any, vehicles: dict[int, VehicleState], uplink: Uplink,
                  mesh: Callable[[VehicleState, int, int, MapSnapshot], None],
-                 log: Callable[[str], None]) -> None:
+                 log: Callable[[str], None], merges: bool = False) -> None:
         self.params = params
         self.vehicles = vehicles
         self._uplink = uplink
@@ -97,6 +98,7 @@ class Mapper:
         self._log = log
         self.loops = LoopCloser(log)
         self.worlds = SharedWorlds()
+        self._merges = merges
         self._merge_pending = False  # one merge check at a time, beside the loops
 
     def process(self, job: Job) -> None:
@@ -183,10 +185,10 @@ class Mapper:
 
     def _keep_view(self, state: VehicleState, m: Keyframe, depth: np.ndarray) -> None:
         """The keyframe's depth made small, for the map's views in a merge check (none where
-        the image does not divide into the blocks)."""
+        the image does not divide into the blocks, and none where nothing is merged)."""
         block = self.params.merge_view_block
         height, width = depth.shape
-        if height % block or width % block:
+        if not self._merges or height % block or width % block:
             return
         segment = state.segment
         if segment.view_intrinsics is None:
@@ -196,6 +198,9 @@ class Mapper:
         segment.views.append((m.utime, small_depth(depth, m.depth_scale_m, block,
                                                    preprocess.min_depth_m,
                                                    preprocess.max_depth_m)))
+        if len(segment.views) > self.params.merge_max_views:
+            # Every other one goes: the views stay spread over the whole flight.
+            segment.views = segment.views[::2]
 
     @staticmethod
     def _views(segment: Segment) -> Views:
@@ -209,15 +214,16 @@ class Mapper:
         """Every merge_interval_s of this vehicle's capture time, its map and another it shares
         no world with (the one checked longest ago) go to the checks' process."""
         segment = state.segment
-        if (self._merge_pending or segment.chain is None
-                or len(segment.views) < self.params.merge_min_keyframes
+        if (self._merge_pending or segment.chain is None or not segment.views
+                or len(segment.corrected) < self.params.merge_min_keyframes
                 or (segment.last_merge_utime is not None
                     and utime - segment.last_merge_utime < self.params.merge_interval_s * 1e6)):
             return
         key = _map_key(state)
         others = [o for o in self.vehicles.values()
                   if o is not state and o.segment.chain is not None
-                  and len(o.segment.views) >= self.params.merge_min_keyframes
+                  and o.segment.views
+                  and len(o.segment.corrected) >= self.params.merge_min_keyframes
                   and not self.worlds.merged(_map_key(o), key)]
         if not others:
             return

@@ -82,6 +82,9 @@ class StationParams:
     merge_interval_s: float = 10.0      # [s] > 0
     merge_min_keyframes: int = 10       # [1, 10000]
     merge_view_block: int = 8           # [1, 64] pixels
+    # A map keeps at most this many views: beyond it, every other one is let go (19 KB each at
+    # 640 x 480: 5 MB a vehicle, where every keyframe of an hour at 5 Hz would be 340 MB).
+    merge_max_views: int = 256          # [8, 100000]
     merge: PlaceParams = PlaceParams()
 
     def volume_params(self) -> HashedVolumeParams:
@@ -119,6 +122,7 @@ class StationParams:
             (self.merge_interval_s > 0, "merge interval must be > 0 s"),
             (1 <= self.merge_min_keyframes <= 10000, "merge min keyframes must be in [1, 10000]"),
             (1 <= self.merge_view_block <= 64, "merge view block must be in [1, 64] pixels"),
+            (8 <= self.merge_max_views <= 100000, "merge max views must be in [8, 100000]"),
         ]
         if why := next((why for ok, why in checks if not ok), ""):
             return why
@@ -153,8 +157,10 @@ class Station:
                                  submit=lambda job: self.runner.submit(job), log=log)
         self.vehicles = self.arrivals.vehicles
         self.uplink = Uplink(publish, params.correction_copies, params.correction_copy_interval_s)
+        # Only a station serving every vehicle holds several maps to merge.
         self.mapper = Mapper(params, self.vehicles, self.uplink,
-                             lambda *job: self.runner.mesh(*job), log)
+                             lambda *job: self.runner.mesh(*job), log,
+                             merges=vehicle_id is None)
         self.runner: Runner[Job] = Runner(params.queue_keyframes, self.mapper.process,
                                           self.arrivals.on_dropped, inline=inline, log=log)
 

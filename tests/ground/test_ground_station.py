@@ -71,6 +71,7 @@ MERGE_TOLERANCE_DEG = 1.0
 # A bound, not a wait: the check's process starts and registers in seconds, on a busy machine
 # in tens of them.
 MERGE_CHECK_TIMEOUT_S = 300.0
+VIEWS_KEPT = 8
 
 CODEC = DepthCodec(encoding=depth_keyframe_t.ENCODING_PALETTE_RVL_ZSTD)
 QUIET = StationParams(mesh_interval_s=0)  # no mesher: inline runs never mesh anyway
@@ -643,6 +644,25 @@ def test_two_vehicles_maps_merge_and_their_corrections_follow_into_one_world(
     assert f"its map is in vehicle {VEHICLE}'s world" in printed, printed
     with capsys.disabled():
         print(figure)
+
+
+def test_a_map_keeps_its_views_bounded_and_only_where_maps_can_merge(sample) -> None:
+    """Serving every vehicle, a map keeps at most merge_max_views views (every other one let go
+    when there would be more: still spread from the first keyframe on); serving one, none."""
+    params = StationParams(mesh_interval_s=0, merge_max_views=VIEWS_KEPT,
+                           merge_interval_s=MERGE_ONCE_S)
+    keyframes = flight(sample, MERGE_FLIGHT_KEYFRAMES)
+    every = Rig(params, vehicle_id=None)
+    one = Rig(params)
+    for message, _ in keyframes:
+        every.send(message)
+        one.send(message)
+    views = every.state().segment.views
+    assert 0 < len(views) <= VIEWS_KEPT
+    assert views[0][0] == keyframes[0][0].utime
+    assert views[-1][0] >= keyframes[-(MERGE_FLIGHT_KEYFRAMES // VIEWS_KEPT) - 1][0].utime
+    assert views[0][1].shape == (480 // 8, 640 // 8)
+    assert one.state().segment.views == []
 
 
 def test_vehicles_beyond_the_limit_are_counted(sample) -> None:

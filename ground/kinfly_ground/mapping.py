@@ -86,11 +86,13 @@ class MergeJob:
 class Mapper:
     """Handles queued keyframes (`process`, on the worker thread). MESH hands a submap's copy
     (vehicle, capture time, submap index, snapshot) to the mesher. MERGES: the vehicles' maps are
-    checked for a common place (a station serving every vehicle)."""
+    checked for a common place (a station serving every vehicle); SHOW_SHARED tells the viewer which
+vehicles' maps share a world (groups of vehicle ids) after each merge."""
 
     def __init__(self, params: Any, vehicles: dict[int, VehicleState], uplink: Uplink,
                  mesh: Callable[[VehicleState, int, int, MapSnapshot], None],
-                 log: Callable[[str], None], merges: bool = False) -> None:
+                 log: Callable[[str], None], merges: bool = False,
+                 show_shared: Callable[[list[list[int]]], None] = lambda groups: None) -> None:
         self.params = params
         self.vehicles = vehicles
         self._uplink = uplink
@@ -99,6 +101,7 @@ class Mapper:
         self.loops = LoopCloser(log)
         self.worlds = SharedWorlds()
         self._merges = merges
+        self._show_shared = show_shared
         self._merge_pending = False  # one merge check at a time, beside the loops
 
     def process(self, job: Job) -> None:
@@ -262,9 +265,15 @@ class Mapper:
             self.worlds.merge(job.target, job.source, done.match.T_target_source)
             counters.merges += 1
             target.counters.merges += 1
+            groups: dict[MapKey, list[int]] = {}
             for state in self.vehicles.values():
                 if state.segment.chain is not None:
-                    state.segment.chain.place(self.worlds.T_world_map(_map_key(state)))
+                    key = _map_key(state)
+                    state.segment.chain.place(self.worlds.T_world_map(key))
+                    groups.setdefault(self.worlds.world_of(key), []).append(state.vehicle_id)
+                    if state.segment.corrected:  # its submaps drawn where they now are
+                        self._draw_map(state, state.segment.chain, state.segment.corrected[-1][0])
+            self._show_shared([sorted(g) for _, g in sorted(groups.items()) if len(g) > 1])
             T = done.match.T_target_source
             self._log(f"vehicles {job.target[0]} and {job.source[0]} share a map: vehicle "
                       f"{job.source[0]}'s found in vehicle {job.target[0]}'s "

@@ -160,7 +160,7 @@ class Station:
         # Only a station serving every vehicle holds several maps to merge.
         self.mapper = Mapper(params, self.vehicles, self.uplink,
                              lambda *job: self.runner.mesh(*job), log,
-                             merges=vehicle_id is None)
+                             merges=vehicle_id is None, show_shared=viewer.shared)
         self.runner: Runner[Job] = Runner(params.queue_keyframes, self.mapper.process,
                                           self.arrivals.on_dropped, inline=inline, log=log)
 

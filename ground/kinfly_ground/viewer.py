@@ -61,6 +61,10 @@ _FLIGHT_COLORS = {"estimate": (60, 120, 255), "setpoint": (230, 0, 200)}
 _GRAPH_RADIUS = rr.Radius.ui_points(4.0)
 _GRAPH_COLORS = {"nodes": (255, 200, 0), "odometry": (160, 160, 160),
                  "accepted": (0, 200, 80), "refused": (230, 40, 40)}
+# Each vehicle's map where a station serves several, so that merged maps (merge.py) drawn in
+# one view tell their vehicles apart; in turn by the order the vehicles arrive.
+_VEHICLE_MAP_COLORS = [(230, 159, 0), (86, 180, 233), (0, 158, 115), (240, 228, 66),
+                       (0, 114, 178), (213, 94, 0), (204, 121, 167)]
 # The map's column against the side column (camera over the two plots): the map is what a
 # person flies by, and the side views stay readable at a laptop's 1600 px.
 _MAP_COLUMN_SHARES = [2.0, 1.0]
@@ -92,10 +96,22 @@ def _vehicle_layout(prefix: str) -> rrb.Horizontal:
         name=prefix.rstrip("/") or None)
 
 
-def _layout(prefixes: list[str]) -> rrb.Blueprint:
+def _shared_layout(prefixes: list[str]) -> rrb.Spatial3DView:
+    """One 3D view of the maps and trajectories of vehicles whose maps share a world (merged)."""
+    names = " + ".join(prefix.rstrip("/") for prefix in prefixes)
+    return rrb.Spatial3DView(
+        name=f"shared map: {names}", origin="/",
+        contents=[f"+ /{prefix}world/{part}/**" for prefix in prefixes
+                  for part in ("map", "trajectory")])
+
+
+def _layout(prefixes: list[str], shared: list[list[str]] | None = None) -> rrb.Blueprint:
     """PREFIXES' views; several vehicles get a tab each, as every vehicle maps in its own
-    `world` frame and one 3D view of them all would draw unrelated frames over each other."""
-    layouts = [_vehicle_layout(prefix) for prefix in prefixes]
+    `world` frame and one 3D view of them all would draw unrelated frames over each other. Each
+    group of vehicles in SHARED (their prefixes), whose maps were merged into one world, gets a
+    tab of its own first, with their maps in one view."""
+    layouts = ([_shared_layout(group) for group in shared or []]
+               + [_vehicle_layout(prefix) for prefix in prefixes])
     # Open, the blueprint and selection panels would take a third of a laptop's width from the
     # map and the time panel a quarter of its height; collapsed, the time panel keeps its
     # playback bar, and a click opens any of them.
@@ -166,9 +182,11 @@ class VehicleView:
     restarted) must come from one thread, the station's fusion thread (or after it stopped). render, mesh, health and telemetry may come from any
     thread: rerun's time is per thread and each call sets it before logging."""
 
-    def __init__(self, rec: rr.RecordingStream | None, prefix: str) -> None:
+    def __init__(self, rec: rr.RecordingStream | None, prefix: str,
+                 map_color: tuple[int, int, int] | None = None) -> None:
         self._rec = rec
         self._prefix = prefix
+        self._map_color = map_color
         if rec is None:
             return
         rec.log(f"{prefix}world", rr.ViewCoordinates.RDF, static=True)
@@ -232,7 +250,7 @@ class VehicleView:
         self._stamp(utime)
         self._rec.log(f"{self._prefix}world/map/submap/{submap}/mesh",
                       rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles,
-                                vertex_normals=normals))
+                                vertex_normals=normals, albedo_factor=self._map_color))
 
     def submap_poses(self, utime: int, corrections: dict[int, np.ndarray]) -> None:
         """Where the pose graph puts each submap: CORRECTIONS maps a submap's index to the 4x4
@@ -335,6 +353,7 @@ class Viewer:
         self._partial_path = None if save_path is None else save_path.with_name(
             save_path.name + ".partial")
         self._views: dict[int, tuple[str, VehicleView]] = {}
+        self._shared: list[list[str]] = []  # prefixes of the vehicles whose maps were merged
         self._rec: rr.RecordingStream | None = None
         if not spawn and save_path is None:
             return
@@ -379,14 +398,27 @@ class Viewer:
             return view
         if any(known_prefix == prefix for known_prefix, _ in self._views.values()):
             raise ValueError(f"another vehicle is already shown under prefix {prefix!r}")
-        view = VehicleView(self._rec, prefix)
+        # A prefix: the station serves several vehicles, whose maps may come to share a view.
+        color = (_VEHICLE_MAP_COLORS[len(self._views) % len(_VEHICLE_MAP_COLORS)] if prefix
+                 else None)
+        view = VehicleView(self._rec, prefix, color)
         self._views[vehicle_id] = (prefix, view)
+        self._send_layout()
+        return view
+
+    def shared(self, groups: list[list[int]]) -> None:
+        """GROUPS of vehicles whose maps now share a world (merge.py): each gets a view of their
+        maps together, before the vehicles' own tabs."""
+        self._shared = [[self._views[v][0] for v in group if v in self._views]
+                        for group in groups]
+        self._send_layout()
+
+    def _send_layout(self) -> None:
         if self._rec is not None:
             # Made active, so a new vehicle's tab appears at once; it replaces whatever layout the
             # user arranged in the viewer meanwhile, a fair price for a vehicle joining mid-flight.
-            self._rec.send_blueprint(_layout([p for p, _ in self._views.values()]),
+            self._rec.send_blueprint(_layout([p for p, _ in self._views.values()], self._shared),
                                      make_active=True, make_default=True)
-        return view
 
     def close(self) -> None:
         """Flush everything logged, finish the .rrd and rename it into place. Later calls to

@@ -251,3 +251,27 @@ def test_vehicle_prefixes_are_distinct() -> None:
         viewer.vehicle(vehicle_id=3, prefix="vehicle_4/")
     with pytest.raises(ValueError):
         viewer.vehicle(vehicle_id=5, prefix="vehicle_5")
+
+
+def test_several_vehicles_maps_are_coloured_apart_and_one_alone_is_not(tmp_path: Path) -> None:
+    """Serving several vehicles, each map's mesh has its vehicle's colour, so that maps merged
+    into one world (merge.py) and drawn in one view (Viewer.shared) tell their vehicles apart; a
+    station serving one vehicle draws its map as before, uncoloured."""
+    vertices = np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1]], dtype=np.float32)
+    triangles = np.array([[0, 1, 2]], dtype=np.int32)
+    path = tmp_path / "vehicles.rrd"
+    viewer = Viewer(save_path=path)
+    for vehicle in (3, 4):
+        viewer.vehicle(vehicle, f"vehicle_{vehicle}/").mesh(T0_US, 0, vertices, triangles, None)
+    viewer.shared([[3, 4]])
+    viewer.close()
+    rows = read_rows(path)
+    colors = [latest(rows, f"vehicle_{v}/world/map/submap/0/mesh", "Mesh3D:albedo_factor")
+              for v in (3, 4)]
+    assert all(c is not None for c in colors) and colors[0] != colors[1], colors
+    alone = tmp_path / "alone.rrd"
+    viewer = Viewer(save_path=alone)
+    viewer.vehicle(3, "").mesh(T0_US, 0, vertices, triangles, None)
+    viewer.close()
+    meshes = [r for r in read_rows(alone) if r.entity == "world/map/submap/0/mesh"]
+    assert meshes and all(r.components.get("Mesh3D:albedo_factor") is None for r in meshes)

@@ -12,6 +12,7 @@ share a world, and every correction to either drone is in it (a jump, counted as
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import time
 from collections.abc import Callable
 from typing import Any
@@ -21,7 +22,7 @@ import numpy as np
 from . import flight
 from ._native import Fusion, Keyframe, MapSnapshot, TrackingStatus, rotation_angle_rad
 from .loops import LoopCloser
-from .merge import SharedWorlds, Views, recognise_place, small_depth
+from .merge import SharedWorlds, Views, recognise_place, small_depth, thinned
 from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
 from .submaps import Submap, SubmapChain
 from .uplink import Uplink
@@ -76,8 +77,11 @@ class MergeJob:
     params: Any
 
     def arguments(self) -> tuple[Any, ...]:
-        return (_points(self.target_parts), self.target_views, _points(self.source_parts),
-                self.source_views, self.params)
+        # Thinned to the registration's own voxel here: a map's mesh can hold millions of
+        # vertices, which the process would be sent whole.
+        voxel = self.params.registration.downsampling_m
+        return (thinned(_points(self.target_parts), voxel), self.target_views,
+                thinned(_points(self.source_parts), voxel), self.source_views, self.params)
 
     def __str__(self) -> str:
         return f"of vehicles {self.target[0]} and {self.source[0]}"
@@ -100,9 +104,22 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
         self._log = log
         self.loops = LoopCloser(log)
         self.worlds = SharedWorlds()
-        self._merges = merges
+        self._merges = merges and self._can_merge(log)
         self._show_shared = show_shared
+        self._no_views: set[int] = set()  # vehicles told their keyframes make no views
+        # The last check of each pair of maps: each map's capture time then.
+        self._pair_checked: dict[frozenset[MapKey], dict[MapKey, int]] = {}
         self._merge_pending = False  # one merge check at a time, beside the loops
+
+    @staticmethod
+    def _can_merge(log: Callable[[str], None]) -> bool:
+        """Whether place recognition can run here (kiss_matcher: PyPI has it for x86_64 only);
+        said once where it cannot, rather than a failed check every merge_interval_s."""
+        if importlib.util.find_spec("kiss_matcher") is not None:
+            return True
+        log("the kiss_matcher package is not installed (PyPI has it for x86_64 only): "
+            "the vehicles' maps will not be merged")
+        return False
 
     def process(self, job: Job) -> None:
         """One keyframe that cannot be handled (intrinsics the engine refuses, say) is counted
@@ -169,7 +186,8 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
             self._keep_view(state, m, depth)
             state.counters.keyframes_fused += 1
             state.rates["fused"].tick(time.monotonic())
-            if self._correct(state, m, T_onboard, T_corrected, job.arrival_ns):
+            if self._correct(state, m, T_onboard, chain.guess_moved @ T_onboard, T_corrected,
+                             job.arrival_ns):
                 chain.correction_sent()
         else:
             state.counters.keyframes_lost += 1
@@ -191,7 +209,14 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
         the image does not divide into the blocks, and none where nothing is merged)."""
         block = self.params.merge_view_block
         height, width = depth.shape
-        if not self._merges or height % block or width % block:
+        if not self._merges:
+            return
+        if height % block or width % block:
+            if state.vehicle_id not in self._no_views:
+                self._no_views.add(state.vehicle_id)
+                self._log(f"vehicle {state.vehicle_id}: its {width}x{height} keyframes do not "
+                          f"divide into {block}-pixel views (merge_view_block): its map will "
+                          "not be merged with others")
             return
         segment = state.segment
         if segment.view_intrinsics is None:
@@ -214,30 +239,38 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
                      segment.view_intrinsics)
 
     def _merge_if_due(self, state: VehicleState, utime: int) -> None:
-        """Every merge_interval_s of this vehicle's capture time, its map and another it shares
-        no world with (the one checked longest ago) go to the checks' process."""
+        """Pairs of maps that share no world are checked for a common place, each pair every
+        merge_interval_s of this vehicle's capture time (each map's own clock: drones' clocks
+        need not agree); of the pairs due, the one checked longest ago, one check at a time."""
         segment = state.segment
-        if (self._merge_pending or segment.chain is None or not segment.views
-                or len(segment.corrected) < self.params.merge_min_keyframes
-                or (segment.last_merge_utime is not None
-                    and utime - segment.last_merge_utime < self.params.merge_interval_s * 1e6)):
+        if (not self._merges or self._merge_pending or segment.chain is None
+                or not segment.views
+                or len(segment.corrected) < self.params.merge_min_keyframes):
             return
         key = _map_key(state)
-        others = [o for o in self.vehicles.values()
-                  if o is not state and o.segment.chain is not None
-                  and o.segment.views
-                  and len(o.segment.corrected) >= self.params.merge_min_keyframes
-                  and not self.worlds.merged(_map_key(o), key)]
-        if not others:
+        interval_us = self.params.merge_interval_s * 1e6
+        due = []
+        for other in self.vehicles.values():
+            o = other.segment
+            if (other is state or o.chain is None or not o.views
+                    or len(o.corrected) < self.params.merge_min_keyframes
+                    or self.worlds.merged(_map_key(other), key)):
+                continue
+            checked = self._pair_checked.get(frozenset((key, _map_key(other))))
+            if checked is None or utime - checked[key] >= interval_us:
+                due.append((-1 if checked is None else checked[key], other))
+        if not due:
             return
-        other = min(others, key=lambda o: o.segment.last_merge_utime or 0)
-        segment.last_merge_utime = utime
-        other.segment.last_merge_utime = utime
-        job = MergeJob(_map_key(other), key, other.segment.chain.parts(shared=False),
+        _, other = min(due, key=lambda pair: pair[0])
+        other_key = _map_key(other)
+        self._pair_checked[frozenset((key, other_key))] = {
+            key: utime, other_key: other.segment.corrected[-1][0]}
+        job = MergeJob(other_key, key, other.segment.chain.parts(shared=False),
                        segment.chain.parts(shared=False), self._views(other.segment),
                        self._views(segment), self.params.merge)
         self._merge_pending = True
         state.counters.merge_checks += 1
+        other.counters.merge_checks += 1
         self.loops.submit_merge(job, recognise_place)
 
     def _take_merges(self) -> None:
@@ -247,40 +280,51 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
             self._merge_pending = False
             job = done.job
             target, source = self.vehicles[job.target[0]], self.vehicles[job.source[0]]
-            counters = source.counters
+            pair = f"vehicles {job.target[0]} and {job.source[0]}"
             if done.match is None:
-                counters.merge_checks_failed += 1
+                for state in (target, source):
+                    state.counters.merge_checks_failed += 1
                 continue
-            if not done.match.accepted:
-                counters.merges_refused += 1
-                self._log(f"vehicles {job.target[0]} and {job.source[0]}: no common place "
-                          f"({done.match.reason})")
-                continue
-            if _map_key(target) != job.target or _map_key(source) != job.source:
-                self._log(f"vehicles {job.target[0]} and {job.source[0]}: a common place "
-                          "found, but a drone restarted since: not merged")
-                continue
-            if self.worlds.merged(job.target, job.source):
+            if (done.match.accepted and (_map_key(target) != job.target
+                                         or _map_key(source) != job.source)):
+                reason = "a common place found, but a drone restarted since"
+            else:
+                reason = done.match.reason
+            if reason or self.worlds.merged(job.target, job.source):
+                for state in (target, source):
+                    state.counters.merges_refused += 1
+                self._log(f"{pair}: not merged ({reason or 'they share a world already'})")
                 continue
             self.worlds.merge(job.target, job.source, done.match.T_target_source)
-            counters.merges += 1
-            target.counters.merges += 1
-            groups: dict[MapKey, list[int]] = {}
-            for state in self.vehicles.values():
-                if state.segment.chain is not None:
-                    key = _map_key(state)
-                    state.segment.chain.place(self.worlds.T_world_map(key))
-                    groups.setdefault(self.worlds.world_of(key), []).append(state.vehicle_id)
-                    if state.segment.corrected:  # its submaps drawn where they now are
-                        self._draw_map(state, state.segment.chain, state.segment.corrected[-1][0])
-            self._show_shared([sorted(g) for _, g in sorted(groups.items()) if len(g) > 1])
+            for state in (target, source):
+                state.counters.merges += 1
             T = done.match.T_target_source
-            self._log(f"vehicles {job.target[0]} and {job.source[0]} share a map: vehicle "
-                      f"{job.source[0]}'s found in vehicle {job.target[0]}'s "
-                      f"({done.match.inliers} feature matches, overlap "
+            self._log(f"{pair} share a map: vehicle {job.source[0]}'s found in vehicle "
+                      f"{job.target[0]}'s ({done.match.inliers} feature matches, overlap "
                       f"{done.match.check.overlap:.2f}), {np.linalg.norm(T[:3, 3]):.2f} m and "
                       f"{np.degrees(rotation_angle_rad(T)):.0f} deg apart; both now in vehicle "
                       f"{self.worlds.world_of(job.source)[0]}'s world")
+            self._place_maps()
+
+    def _place_maps(self) -> None:
+        """Every map, earlier odometry frames' included, placed where the shared worlds now put
+        it; then the current ones drawn there and the viewer told which maps share a world."""
+        groups: dict[MapKey, list[int]] = {}
+        for state in self.vehicles.values():
+            for number, segment in enumerate([*state.finished_segments, state.segment]):
+                if segment.chain is not None:
+                    segment.chain.place(self.worlds.T_world_map((state.vehicle_id, number)))
+            if state.segment.chain is not None:
+                groups.setdefault(self.worlds.world_of(_map_key(state)), []).append(
+                    state.vehicle_id)
+        for state in self.vehicles.values():
+            segment = state.segment
+            if segment.chain is not None and segment.corrected:
+                utime = segment.corrected[-1][0]
+                self._draw_map(state, segment.chain, utime)
+                state.view.optimised(utime, np.array([T[:3, 3]
+                                                      for _, T in segment.chain.trajectory()]))
+        self._show_shared([sorted(g) for _, g in sorted(groups.items()) if len(g) > 1])
 
     def _closed(self, state: VehicleState, chain: SubmapChain, closed: Submap,
                 utime: int) -> None:
@@ -346,11 +390,14 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
         state.view.pose_graph(utime, *chain.graph())
 
     def _correct(self, state: VehicleState, m: Keyframe, T_onboard: np.ndarray,
-                 T_corrected: np.ndarray, arrival_ns: int) -> bool:
-        """The correction policy, then the uplink: whether the correction went out."""
+                 T_onboard_now: np.ndarray, T_corrected: np.ndarray, arrival_ns: int) -> bool:
+        """The correction policy, then the uplink: whether the correction went out.
+        T_ONBOARD_NOW is the drone's pose moved into the world of the last correction (the
+        chain's guess_moved): what this correction moves it from."""
         # The move in the camera's own frame: its translation is the distance between the two
         # poses, however far from the origin the drone is.
-        if jump_exceeds(np.linalg.inv(T_onboard) @ T_corrected, self.params.reset_translation_m,
+        if jump_exceeds(np.linalg.inv(T_onboard_now) @ T_corrected,
+                        self.params.reset_translation_m,
                         self.params.reset_rotation_rad):
             state.reset_counter += 1
             state.counters.resets += 1
@@ -448,6 +495,7 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
     def _new_segment(self, state: VehicleState, utime: int) -> None:
         with state.lock:
             if state.segment.chain is not None:
+                state.segment.views = []  # only a current map is checked for merges
                 state.finished_segments.append(state.segment)
             state.segment = Segment()
         state.view.restarted(utime)

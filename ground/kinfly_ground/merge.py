@@ -17,10 +17,10 @@ a turn lies on itself: from such a guess (the recognition's, where it found noth
 check accepted a registration 1.08 m and 171 degrees from the truth, overlap and residual fine
 (test_merge.py's room, a throwaway run). And many matches do not make a place right: two drones
 that began symmetrically in a rectangular room, each facing its own end, see the same shell in
-their own frames, and the recognition laid one map on the other with 100-193 matches, refused by
-the loop check's gates only now and then and narrowly (residual 8.1 against 8 mm). There each
-map's furniture stands where the other's cameras saw empty floor (docs/ground.md, "Several drones
-in one map")"""
+their own frames, and the recognition laid one map on the other with 78-234 matches; in office0
+such a match passed every gate of the loop check, 5.08 m from the truth. There each map's
+furniture stands where the other's cameras saw empty floor: 9-47 % of its points lay where they
+saw through, at the true places at most 0.1 % (docs/ground.md, "Several drones in one map")"""
 from __future__ import annotations
 
 import dataclasses
@@ -37,8 +37,8 @@ class PlaceParams:
     # KISS-Matcher's voxel: both clouds are thinned to it and its normal and feature radii are
     # multiples of it (3 and 5 voxels): 5 cm describes furniture and corners, not a map's noise.
     voxel_m: float = 0.05
-    # Of the recognition's final, mutually consistent matches: true places gave 135-333, other
-    # rooms 0-1; a symmetric place gave up to 193, so this refuses only what found nothing.
+    # Of the recognition's final, mutually consistent matches: true places gave 83-344, other
+    # rooms 0-1; a symmetric place gave up to 234, so this refuses only what found little.
     min_inliers: int = 50
     # Two vehicles' whole maps overlap only where both flew, a share of each (a loop's submaps
     # are chosen because they do): office0's maps 5 m apart overlapped 0.27 at the truth.
@@ -57,6 +57,9 @@ class PlaceParams:
     max_seen_through: float = 0.02
     # Both maps are thinned to a point per voxel of this size before that test.
     free_space_voxel_m: float = 0.05
+    # The test says nothing where the other's views saw little of the map: at least this share
+    # of its thinned points must be seen (at the true places 0.37-1.0 were).
+    min_seen: float = 0.1
 
     def __post_init__(self) -> None:
         if not all(getattr(self, name) > 0 for name in (
@@ -66,6 +69,8 @@ class PlaceParams:
         if not self.free_space_margin_per_m2 >= 0:
             raise ValueError("free_space_margin_per_m2 must not be negative: "
                              f"{self.free_space_margin_per_m2}")
+        if not 0 < self.min_seen <= 1:
+            raise ValueError(f"min_seen must be in (0, 1]: {self.min_seen}")
         if not 0 <= self.max_seen_through < 1:
             raise ValueError(f"max_seen_through must be in [0, 1): {self.max_seen_through}")
         if self.min_inliers < 3:
@@ -146,8 +151,8 @@ class PlaceMatch:
     reason: str                # why refused; "" when accepted
 
 
-def _thinned(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """One point per occupied voxel."""
+def thinned(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """One point per occupied voxel (the first of it)."""
     _, first = np.unique(np.floor(points / voxel_m).astype(np.int64), axis=0, return_index=True)
     return points[np.sort(first)]
 
@@ -193,10 +198,14 @@ def recognise_place(target_points: np.ndarray, target_views: Views, source_point
     if not check.accepted:
         return PlaceMatch(False, T, inliers, check, check.reason)
     for name, points, views in (
-            ("source", _moved(_thinned(source, params.free_space_voxel_m), T), target_views),
-            ("target", _moved(_thinned(target, params.free_space_voxel_m), np.linalg.inv(T)),
+            ("source", _moved(thinned(source, params.free_space_voxel_m), T), target_views),
+            ("target", _moved(thinned(target, params.free_space_voxel_m), np.linalg.inv(T)),
              source_views)):
         share, observed = _seen_through_share(points, views, params)
+        if observed < params.min_seen * len(points):
+            return PlaceMatch(False, T, inliers, check, (
+                f"the other's cameras saw only {observed} of the {name} map's {len(points)} "
+                f"points, below min_seen {params.min_seen}: too few to test for free space"))
         if share > params.max_seen_through:
             return PlaceMatch(False, T, inliers, check, (
                 f"{100 * share:.0f} % of the {name} map's {observed} points that the other's "

@@ -178,6 +178,11 @@ class SubmapChain:
         # The placement of the world the last keyframe's guess was taken from (refine): its
         # published pose, taken back into the chain's own world, is W⁻¹ T.
         self.guess_placement = np.eye(4)
+        # That published pose moved into the world of the correction before this one (the
+        # drone's world once it applied that): a correction's jump is measured from there, so
+        # that a keyframe captured before the drone applied a loop's or a merge's correction
+        # does not count the same jump again.
+        self.guess_moved = np.eye(4)
         # The open submap's last registered keyframes (utime, depth, T_c_cam), the overlap of
         # the next.
         self._recent: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque(
@@ -235,6 +240,7 @@ class SubmapChain:
             C, W = self._placement @ self._corrections[active.index], self._placement.copy()
         result = active.fusion.refine(depth, utime, T_c_guess)
         self.guess_placement = self._W_sent
+        self.guess_moved = self._C_returned @ np.linalg.inv(self._C_sent)
         if (result.status is TrackingStatus.LOST
                 and not np.array_equal(self._C_sent_before, self._C_sent)):
             retry = active.fusion.refine(depth, utime,
@@ -242,6 +248,7 @@ class SubmapChain:
             if retry.status is not TrackingStatus.LOST:
                 result = retry
                 self.guess_placement = self._W_sent_before
+                self.guess_moved = self._C_returned @ np.linalg.inv(self._C_sent_before)
         if result.status in (TrackingStatus.FIRST_FRAME, TrackingStatus.OK):
             self._lost_in_a_row = 0
             T_c_cam = result.T_world_cam

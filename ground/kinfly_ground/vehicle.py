@@ -42,7 +42,7 @@ class VehicleCounters:
     loop_checks_failed: int = 0    # the check raised (logged): no loop
     merge_checks: int = 0          # this vehicle's map checked against another's (merge.py)
     merges: int = 0                # of those, found there: the maps share a world since
-    merges_refused: int = 0        # not recognised, or refused by the check (logged)
+    merges_refused: int = 0        # not recognised, refused by the check, or stale (logged)
     merge_checks_failed: int = 0   # the check raised (logged)
 
 
@@ -68,7 +68,6 @@ class Segment:
     # map's views for a merge check, and their intrinsics (fx, fy, cx, cy).
     views: list[tuple[int, np.ndarray]] = dataclasses.field(default_factory=list)
     view_intrinsics: tuple[float, float, float, float] | None = None
-    last_merge_utime: int | None = None  # capture time of this map's last merge check
 
 
 @dataclasses.dataclass

@@ -567,14 +567,16 @@ def test_serving_every_vehicle_keeps_one_map_each(sample) -> None:
             assert_near(corrected_pose(correction), T_truth)
 
 
+@pytest.mark.parametrize("drone_applies", [True, False], ids=["applied", "not_applied"])
 def test_two_vehicles_maps_merge_and_their_corrections_follow_into_one_world(
-        sample, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+        sample, tmp_path: Path, capsys: pytest.CaptureFixture[str], drone_applies: bool) -> None:
     """Two drones over the same scene, the second's odometry frame 5 m away and turned half a
     turn (its first keyframe one frame after the first drone's): once both maps hold
     MERGE_KEYFRAMES keyframes, one check finds the second's map in the first's (in the checks'
     process); the waiting is for that check's end, not for a time. From the next keyframe on,
-    the second drone's corrections are in the first drone's world (the jump counted as a reset),
-    the first's are as before, and the summary says which world each map is in."""
+    the second drone's corrections are in the first drone's world (the jump counted as one
+    reset, whether the drone applies the corrections or its poses stay in its own frame, as a
+    replay's do), the first's are as before, and the summary says which world each map is in."""
     T_other_odometry = np.eye(4)
     T_other_odometry[:3, :3] = Rotation.from_euler("z", 180, degrees=True).as_matrix()
     T_other_odometry[:3, 3] = [5.0, 0.0, 0.3]
@@ -587,7 +589,8 @@ def test_two_vehicles_maps_merge_and_their_corrections_follow_into_one_world(
     second = []
     for k, (utime, depth, T) in enumerate(sample[1::FRAME_STEP][:MERGE_FLIGHT_KEYFRAMES]):
         T_truth = T_first_inv @ T
-        T_onboard = T_truth if k > MERGE_KEYFRAMES else T_other_odometry @ T_truth
+        applied = drone_applies and k > MERGE_KEYFRAMES
+        T_onboard = T_truth if applied else T_other_odometry @ T_truth
         second.append((keyframe(utime, depth, k, T_onboard, vehicle=OTHER_VEHICLE), T_truth))
     params = StationParams(mesh_interval_s=0, merge_min_keyframes=MERGE_KEYFRAMES,
                            merge_interval_s=MERGE_ONCE_S)
@@ -606,6 +609,7 @@ def test_two_vehicles_maps_merge_and_their_corrections_follow_into_one_world(
 
     one, other = rig.state(VEHICLE), rig.state(OTHER_VEHICLE)
     assert other.counters.merges == one.counters.merges == 1, rig.logs
+    assert other.counters.merge_checks == one.counters.merge_checks == 1
     assert any("share a map" in line for line in rig.logs), rig.logs
     # The merge against the truth: the second map's own world placed in the first's.
     T_truth = np.linalg.inv(T_other_odometry)

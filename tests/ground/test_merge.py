@@ -154,9 +154,9 @@ def test_two_vehicles_maps_of_one_office_are_merged_with_no_guess(replica_dir: P
 def test_office_maps_5_m_apart_are_never_merged_wrongly(replica_dir: Path, seed: int) -> None:
     """The issue's two drones 5 m apart facing away, in office0 (its diagonal: each map the
     surface within 3.5 m of its drone, a quarter of either in the other). Measured while
-    choosing the gates: the true place found once in three, and otherwise 115-193 matches that
+    choosing the gates: the true place found once in three, and otherwise 115-234 matches that
     lay each map on the other with hardly a turn (floor, ceiling and a wall at the same distance
-    in both frames), refused by the residual or by the registration's move from the match."""
+    in both frames), which the loop check's gates passed and the free-space test refused."""
     mesh = trimesh.load(replica_dir / "office0_mesh.ply")
     rng = np.random.default_rng(seed)
     lo, hi = mesh.bounds
@@ -196,8 +196,8 @@ def _turn(yaw_deg: float, xyz: tuple[float, float, float]) -> np.ndarray:
 
 
 def test_shared_worlds_compose_as_groups_merge() -> None:
-    """Vehicles 1..4 begin where TRUTH puts them; 3 joins 4's group, 1 and 2 merge, then the two
-    groups: every vehicle ends in vehicle 1's world, where the truth puts it, and pairs already
+    """Vehicles 1..4 begin where TRUTH puts them; 4 is merged with 3 (4 joins 3's world, the
+    lower key's), 1 and 2 merge, then the two groups: every vehicle ends in vehicle 1's world, where the truth puts it, and pairs already
     sharing a world cannot merge again."""
     truth = {1: np.eye(4), 2: _turn(90, (5, 0, 0)), 3: _turn(180, (0, 4, 1)),
              4: _turn(-45, (2, 2, 0))}
@@ -256,5 +256,7 @@ def test_bad_inputs_are_refused_by_name() -> None:
         PlaceParams(voxel_m=0.0)
     with pytest.raises(ValueError, match="max_seen_through"):
         PlaceParams(max_seen_through=1.0)
+    with pytest.raises(ValueError, match="min_seen"):
+        PlaceParams(min_seen=0.0)
     with pytest.raises(ValueError, match="K x H x W depth and K x 4 x 4 poses"):
         Views(np.ones((2, 4, 4)), np.eye(4)[None], (2.0, 2.0, 2.0, 2.0))

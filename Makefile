@@ -115,7 +115,7 @@ DEPS_GROUPS := demo sim unit test fuzz aarch64 image bench
 DEPS_TARGETS := $(addprefix deps-,$(DEPS_GROUPS))
 
 .PHONY: deps $(DEPS_TARGETS) build test unit-test python-test test-asan fuzz fuzz-corpus demo sim \
-        sim-programs bench-sim \
+        sim-programs bench-sim sim-two \
         demo-runs test-runs soak eval bench clean distclean firmware-aarch64 test-aarch64 \
         aarch64-unit-tests qemu-plugin package-aarch64 image \
         flash deploy
@@ -207,6 +207,10 @@ sim-programs: deps-demo deps-sim
 
 bench-sim: sim-programs
 	$(PY) $(REPO_ROOT)/tests/bench/bench_sim_flights.py --out $(REPO_ROOT)/out/bench
+
+# Two drones in the simulated room, their maps merged by one ground station (scripts/two_drones.py).
+sim-two: sim-programs
+	$(PY) $(REPO_ROOT)/scripts/two_drones.py --out $(REPO_ROOT)/out/sim_two
 
 # How often the demo's flight holds: every keyframe fused, every output written, an ATE; on a
 # machine as it is, then with both cores of a 2-core machine busy with other work.

@@ -223,16 +223,17 @@ def fly(netns: list[str], ground: Sequence[str], drones: Sequence[Sequence[str]]
     return Flight(ground_rc, drone_rcs, ground_proc.output(), "".join(drone_lines))
 
 
-def check_flight(out: Path, max_missing: int) -> list[str]:
-    """What is wrong with the flight whose outputs are in OUT: an empty list when it mapped every
-    keyframe the drone sent (up to MAX_MISSING), wrote every output and has an ATE."""
+def check_flight(out: Path, max_missing: int, vehicle_id: int = VEHICLE_ID) -> list[str]:
+    """What is wrong with VEHICLE_ID's flight whose outputs are in OUT: an empty list when it
+    mapped every keyframe the drone sent (up to MAX_MISSING), wrote every output and has an
+    ATE."""
     summary_path = out / "summary.json"
     if not summary_path.is_file():
         return [f"{summary_path} was not written"]
     summary = json.loads(summary_path.read_text())
-    vehicle = summary["vehicles"].get(str(VEHICLE_ID))
+    vehicle = summary["vehicles"].get(str(vehicle_id))
     if vehicle is None:
-        return [f"the ground station received nothing from vehicle {VEHICLE_ID}"]
+        return [f"the ground station received nothing from vehicle {vehicle_id}"]
     problems = []
     k, drone = vehicle["keyframes"], vehicle.get("drone_reported")
     if drone is None or not drone["final"]:

@@ -61,12 +61,6 @@ AWAITING = ": waiting for the orchestrator"
 # port, so a group apart on the same port would leak the ground's messages onto the drone's bus.
 DRONE_PEER_PORT, GROUND_PEER_PORT = 7668, 7669
 GROUND_LCM_URL = "udpm://239.255.76.68:7670?ttl=0"
-# What lcm-logger records on the drone's bus: everything but the raw depth frames (30 a second at
-# VGA; the keyframes that reached the ground are in their chunks) ...
-RECORDED = (f"KINFLY_{VEHICLE_ID}_(IMU|MOTOR_COMMAND|SIM_STATE|ODOMETRY|KEYFRAME_CHUNK|STATUS|"
-            "FLIGHT|COMMAND|GROUND_TRUTH)")
-# ... and on the ground's: what the ground station sent back.
-RECORDED_GROUND = f"KINFLY_{VEHICLE_ID}_(GROUND_STATUS|CORRECTION|CHUNK_REQUEST)"
 # How long after its frame's capture each odometry pose reaches the drone's estimator, in simulated
 # time: the camera's 30 ms latency and one frame at 30 Hz for the odometry, the budget a drone's
 # must keep. kinfly-sim waits for a pose only then (--pose-age-ms) and kinfly-fw fuses it then
@@ -104,12 +98,24 @@ KILLED_RECORDING = "session_until_kill_{}.rrd"
 PARTIAL_RECORDING = "session.rrd.partial"
 
 
+def recorded(vehicle: int) -> str:
+    """What lcm-logger records on the drone's bus: everything but the raw depth frames (30 a
+    second at VGA; the keyframes that reached the ground are in their chunks)."""
+    return (f"KINFLY_{vehicle}_(IMU|MOTOR_COMMAND|SIM_STATE|ODOMETRY|KEYFRAME_CHUNK|STATUS|"
+            "FLIGHT|COMMAND|GROUND_TRUTH)")
+
+
+def recorded_ground(vehicle: int) -> str:
+    """... and on the ground's: what the ground station sent back."""
+    return f"KINFLY_{vehicle}_(GROUND_STATUS|CORRECTION|CHUNK_REQUEST)"
+
+
 class Ground:
     """kinfly-ground in the namespace, killed and restarted as the mission says."""
 
-    def __init__(self, netns: list[str], out: Path, key: Path) -> None:
+    def __init__(self, netns: list[str], out: Path, key: Path, vehicle: int) -> None:
         self.command = [*netns, *SHARE_CORES,
-                        *ground_command(out, key=key, lcm_url=GROUND_LCM_URL),
+                        *ground_command(out, key=key, vehicle=vehicle, lcm_url=GROUND_LCM_URL),
                         "--peer", f"127.0.0.1:{DRONE_PEER_PORT}", "--peer-port",
                         str(GROUND_PEER_PORT)]
         self.out = out
@@ -203,11 +209,11 @@ def act(line: str, ground: Ground, link: Link) -> None:
     raise RuntimeError(f"kinfly-sim waits for what sim.py cannot do: {line.strip()}")
 
 
-def drone_command(key: Path, out: Path, camera_downsample: int) -> list[str]:
+def drone_command(key: Path, out: Path, camera_downsample: int, vehicle: int) -> list[str]:
     """kinfly-fw for the simulated Kinect at 1/CAMERA_DOWNSAMPLE of 640x480: its odometry at
     320x240 (the configuration's downsample of VGA), or at the camera's size when smaller."""
     width, height = 640 // camera_downsample, 480 // camera_downsample
-    return [str(BUILD / "kinfly-fw"), "--config", str(FW_CONFIG), "--vehicle.id", str(VEHICLE_ID),
+    return [str(BUILD / "kinfly-fw"), "--config", str(FW_CONFIG), "--vehicle.id", str(vehicle),
             "--source.width", str(width), "--source.height", str(height),
             "--link.peers", f"127.0.0.1:{GROUND_PEER_PORT}", "--link.peer_port",
             str(DRONE_PEER_PORT),
@@ -221,12 +227,14 @@ def drone_command(key: Path, out: Path, camera_downsample: int) -> list[str]:
             "--output.trajectory", str(out / "drone_trajectory.tum")]
 
 
-def scene_arguments(scene: str) -> list[str]:
+def scene_arguments(scene: str, start: list[float] | None = None) -> list[str]:
     """kinfly-sim's --scene (and --scene-start) for a scene of --scene: built in, or a mesh from
-    the shared data, which must be there."""
+    the shared data, which must be there, with START (x, y, heading) or the scene's own."""
     if scene not in DATA_SCENES:
-        return ["--scene", scene]
-    mesh, start = DATA_SCENES[scene]
+        return ["--scene", scene, *([] if start is None else
+                                    ["--scene-start", *(str(v) for v in start)])]
+    mesh, scene_start = DATA_SCENES[scene]
+    start = scene_start if start is None else start
     path = kinfly_eval.data_root() / mesh
     if not path.is_file():
         raise ValueError(f"{scene}: no mesh at {path} (the shared data: set KINFLY_DATA)")
@@ -234,7 +242,7 @@ def scene_arguments(scene: str) -> list[str]:
 
 
 def sim_command(key: Path, out: Path, args: argparse.Namespace, scene: list[str]) -> list[str]:
-    return [str(BUILD / "kinfly-sim"), "--key-file", str(key), "--vehicle", str(VEHICLE_ID),
+    return [str(BUILD / "kinfly-sim"), "--key-file", str(key), "--vehicle", str(args.vehicle),
             "--lcm-url", LCM_URL, *scene, "--seed", str(args.seed), "--pose-age-ms",
             str(POSE_AGE_MS),
             "--hover-s", str(args.hover_s), "--camera-downsample", str(args.camera_downsample),
@@ -280,13 +288,13 @@ def stop_all(sim: Watched | None, drone: Watched | None, ground: Ground | None,
     return problems
 
 
-def missed_while_away(out: Path, ground: Ground | None) -> int:
+def missed_while_away(out: Path, ground: Ground | None, vehicle_id: int) -> int:
     """Keyframes the ground station may have missed: none, unless it was restarted; then those
     before the first one the restarted station heard (the killed one's map died with it)."""
     summary = out / "summary.json"
     if ground is None or not ground.kills or not summary.is_file():
         return 0
-    vehicle = json.loads(summary.read_text())["vehicles"].get(str(VEHICLE_ID), {})
+    vehicle = json.loads(summary.read_text())["vehicles"].get(str(vehicle_id), {})
     return vehicle.get("first_keyframe_id") or 0
 
 
@@ -309,11 +317,17 @@ def main() -> int:
                    f"scene's, {MISSIONS.relative_to(REPO_ROOT)}/<room_tour|corridor|ring_loop|office0>.toml)")
     p.add_argument("--camera-downsample", type=int, default=1, choices=range(1, 5),
                    help="the simulated Kinect at 1/N of 640x480 (default 1)")
+    p.add_argument("--vehicle", type=int, default=VEHICLE_ID,
+                   help=f"the drone's vehicle id, in every channel (default {VEHICLE_ID})")
+    p.add_argument("--scene-start", type=float, nargs=3, metavar=("X", "Y", "HEADING"),
+                   help="where on the floor the drone stands instead of the scene's start "
+                   "(kinfly-sim --scene-start: a built-in scene's frame is z down, its heading "
+                   "from +x towards +y; a mesh's is z up, counter-clockwise) [m, m, deg]")
     args = p.parse_args()
     if args.mission is None:
         args.mission = str(SCENE_MISSIONS[args.scene])
     try:
-        scene = scene_arguments(args.scene)
+        scene = scene_arguments(args.scene, args.scene_start)
     except ValueError as error:
         print(f"sim: --scene: {error}", file=sys.stderr)
         return 2
@@ -324,18 +338,19 @@ def main() -> int:
     try:
         with network_namespace("sim") as netns:
             logger = subprocess.Popen([*netns, "lcm-logger", "--quiet", "--lcm-url", LCM_URL,
-                                       "--channel", RECORDED, str(out / "flight.lcmlog")],
+                                       "--channel", recorded(args.vehicle), str(out / "flight.lcmlog")],
                                       stdout=subprocess.DEVNULL, start_new_session=True)
             ground_logger = subprocess.Popen(
                 [*netns, "lcm-logger", "--quiet", "--lcm-url", GROUND_LCM_URL, "--channel",
-                 RECORDED_GROUND, str(out / "ground.lcmlog")],
+                 recorded_ground(args.vehicle), str(out / "ground.lcmlog")],
                 stdout=subprocess.DEVNULL, start_new_session=True)
             ground = drone = sim = None
             link = Link(netns)
             try:
-                ground = Ground(netns, out, key)
+                ground = Ground(netns, out, key, args.vehicle)
                 drone = Watched([*netns, *SHARE_CORES,
-                                 *drone_command(key, out, args.camera_downsample)],
+                                 *drone_command(key, out, args.camera_downsample,
+                                                args.vehicle)],
                                 "[drone]  ", quiet=False)
                 sim = Watched([*netns, *SHARE_CORES, *sim_command(key, out, args, scene)],
                               "[sim]    ",
@@ -359,12 +374,12 @@ def main() -> int:
         return 1
     if drone is not None and "control: failsafe:" in drone.output():
         problems.append("a failsafe acted in flight (the drone's log above says which)")
-    missed = missed_while_away(out, ground)
-    problems += check_flight(out, max_missing=missed)
+    missed = missed_while_away(out, ground, args.vehicle)
+    problems += check_flight(out, max_missing=missed, vehicle_id=args.vehicle)
     errors = None
     if (out / "flight.lcmlog").is_file():
         try:
-            errors = write_plots(out, VEHICLE_ID)
+            errors = write_plots(out, args.vehicle)
         except (OSError, ValueError, ImportError) as error:
             problems.append(f"no plots or map score: {error}")
     kills = 0 if ground is None else ground.kills

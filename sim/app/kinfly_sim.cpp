@@ -79,7 +79,7 @@ struct Options {
   int camera_downsample = 1;
   std::string summary;
   std::string scene_mesh;
-  std::vector<double> scene_start;  // X Y HEADING_DEG, a mesh file's scene only
+  std::vector<double> scene_start;  // X Y HEADING_DEG; a built-in scene's own where empty
   // Errors of the simulated vehicle against the nominal one (what kinfly-fw's flight stack
   // believes by default): fractions, +0.05 = 5 % more.
   double mass_error = 0.0;
@@ -143,15 +143,17 @@ MultirotorParams simulatedVehicle(const Options& o) {
   return p;
 }
 
-// The scene by --scene: a built-in one by name, else a mesh file standing at --scene-start.
+// The scene by --scene: a built-in one by name (at its own start, or at --scene-start in its own
+// frame: z down, as --scene-mesh writes it), else a mesh file standing at --scene-start.
 StatusOr<Scene> chosenScene(const Options& o) {
   const std::vector<std::string>& names = sceneNames();
   if (std::find(names.begin(), names.end(), o.scene) != names.end()) {
-    if (!o.scene_start.empty()) {
-      return Status::error("--scene-start: scene '" + o.scene + "' has its own start; it is for "
-                           "scenes from mesh files");
+    StatusOr<Scene> scene = makeScene(o.scene);
+    if (scene.ok() && o.scene_start.size() == 3) {
+      scene.value().start_xy_m = {o.scene_start[0], o.scene_start[1]};
+      scene.value().start_yaw_rad = o.scene_start[2] * M_PI / 180.0;
     }
-    return makeScene(o.scene);
+    return scene;
   }
   if (!std::filesystem::is_regular_file(o.scene)) {
     std::string known;
@@ -436,7 +438,7 @@ int run(const Options& o) {
     if (problem != nullptr && !o.scene_start.empty()) {
       // + 0.0: a floor at the mesh's zero prints as 0.000, not -0.000.
       std::fprintf(stderr, "kinfly-sim: --scene-start %g %g %g: the drone standing there %s "
-                   "(its floor is at %.3f m in the mesh's frame)\n", o.scene_start[0],
+                   "(its floor is at %.3f m in the scene's frame)\n", o.scene_start[0],
                    o.scene_start[1], o.scene_start[2], problem, -scene.value().floor_z_m + 0.0);
       return 2;
     }
@@ -834,9 +836,10 @@ int main(int argc, char** argv) {
                  "office0_mesh.ply), which needs --scene-start")
       ->capture_default_str();
   app.add_option("--scene-start", o.scene_start,
-                 "a mesh file's scene: where the drone stands on its floor, X Y in the mesh's "
+                 "where the drone stands on the floor: for a mesh file's scene X Y in the mesh's "
                  "frame [m] and its heading counter-clockwise from the mesh's +x seen from above "
-                 "[deg]")
+                 "[deg]; for a built-in scene (its own start without it) X Y in the scene's "
+                 "frame, z down as --scene-mesh writes it, and the heading from +x towards +y")
       ->expected(3);
   app.add_option("--seed", o.seed, "seeds the IMU, the camera's noise and the wind")
       ->capture_default_str();

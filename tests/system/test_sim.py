@@ -243,8 +243,8 @@ def test_says_when_kinfly_fw_is_not_there(netns: list[str], tmp_path: Path) -> N
 
 @pytest.mark.parametrize(("args", "message"), [
     (["--scene", "hall"], "--scene: 'hall' is neither a scene (room, corridor, ring) nor a mesh file"),
-    (["--scene", "room", "--scene-start", "0", "0", "0"],
-     "--scene-start: scene 'room' has its own start; it is for scenes from mesh files"),
+    (["--scene", "room", "--scene-start", "2.95", "0", "0"],
+     "--scene-start 2.95 0 0: the drone standing there is within the body's radius of the scene"),
     (["--mass-error", "0.9"], "--mass-error must be in [-0.5, 0.5] (got 0.9)"),
     (["--takeoff-height-m", "3"], "--takeoff-height-m must be in [0.2, 2.5] (got 3)"),
     (["--imu-rate-hz", "10"], "imu.rate_hz must be in [50, 8000] (got 10)"),
@@ -301,7 +301,7 @@ end_header
     ([], "--scene-start: a scene from a mesh file ({mesh}) needs where the drone stands: X Y "
          "HEADING_DEG in the mesh's frame"),
     (["5", "0", "0"], "--scene-start 5 0 0: the drone standing there is not over the scene's "
-                      "floor (its floor is at 0.500 m in the mesh's frame)"),
+                      "floor (its floor is at 0.500 m in the scene's frame)"),
     (["0.95", "0", "0"], "--scene-start 0.95 0 0: the drone standing there is within the body's "
                          "radius of the scene"),
     (["-1.1", "0", "0"], "--scene-start -1.1 0 0: the drone standing there has no room to take "

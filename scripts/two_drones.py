@@ -1,0 +1,132 @@
+"""`make sim-two`: two drones in one room, their maps merged into one by the ground station
+(issue 17, "several drones in one map"; docs/ground.md, "Several drones in one map").
+
+Each drone is flown by scripts/sim.py through the real programs (kinfly-sim, kinfly-fw and a
+kinfly-ground of its own), one after the other, from its own start: the two far apart and facing
+away from each other, each then turning on the spot a full turn (sim/missions/look_around.toml).
+Their two flight logs are then played together, as if flown at once (each event at its time since
+its own log's start), into one kinfly-ground serving every vehicle, which looks for a place the
+two maps share and, once found, puts both in the first drone's world. The figure: the relative
+pose error between the two maps, against the simulator's truth. Both drones' truth is in the
+scene's frame, so each vehicle's optimised trajectory aligned with its own truth gives where the
+shared world lies in the scene; the two must agree. Run with the project's .venv python (the
+Makefile does); sim.py needs root or passwordless sudo for its network namespace."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import lcm
+import numpy as np
+
+from kinfly_ground._native import rotation_angle_rad
+from kinfly_ground.outputs import ate, read_tum
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+MISSION = REPO_ROOT / "sim" / "missions" / "look_around.toml"
+# Where the two drones stand in the built-in room (its frame: z down, heading from +x towards
+# +y), facing away from each other: the two open spots of its floor furthest apart (4.66 m; its
+# ramps and steps leave no two 5 m apart with room to take off), each heading away from the other.
+STARTS = {1: (-2.2, 1.1, 149.0), 2: (1.8, -1.3, -31.0)}
+# The issue's bound on the relative pose error between the two drones' merged maps.
+MERGE_TOLERANCE_M = 0.02
+
+
+def fly(vehicle: int, start: tuple[float, float, float], out: Path, seed: int) -> int:
+    command = [sys.executable, str(REPO_ROOT / "scripts" / "sim.py"), "--scene", "room",
+               "--mission", str(MISSION), "--vehicle", str(vehicle), "--seed", str(seed),
+               "--scene-start", *(str(v) for v in start), "--out", str(out)]
+    print(f"two_drones: flying vehicle {vehicle} from {start}: {' '.join(command)}", flush=True)
+    return subprocess.run(command).returncode
+
+
+def play_together(logs: list[Path], out: Path) -> None:
+    """The events of LOGS in one log, each at its time since its own log's first event."""
+    events = []
+    for log in logs:
+        read = list(lcm.EventLog(str(log), "r"))
+        if not read:
+            raise ValueError(f"{log} holds no events")
+        start = read[0].timestamp
+        events += [(event.timestamp - start, event.channel, event.data) for event in read]
+    events.sort(key=lambda event: event[0])
+    written = lcm.EventLog(str(out), "w", overwrite=True)
+    for timestamp, channel, data in events:
+        written.write_event(timestamp, channel, data)
+    written.close()
+
+
+def shared_world_in_scene(vehicle_dir: Path) -> np.ndarray:
+    """Where this vehicle's optimised trajectory (in the world it ended in) lies in the scene:
+    its alignment with its own truth."""
+    result = ate(read_tum(vehicle_dir / "trajectory_optimised.tum"),
+                 read_tum(vehicle_dir / "trajectory_ground_truth.tum"))
+    if result is None:
+        raise ValueError(f"{vehicle_dir}: too few optimised poses match the truth to align")
+    return result["T_truth_estimate"]
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "sim_two")
+    p.add_argument("--seed", type=int, default=1, help="the simulator's seed (default 1)")
+    args = p.parse_args()
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    problems = []
+    for vehicle, start in STARTS.items():
+        if fly(vehicle, start, out / f"flight_{vehicle}", args.seed + vehicle - 1) != 0:
+            problems.append(f"vehicle {vehicle}'s flight failed (above)")
+        if not (out / f"flight_{vehicle}" / "flight.lcmlog").is_file():
+            print(f"two_drones: FAILED: vehicle {vehicle}'s flight left no log", file=sys.stderr)
+            return 1
+    # A flight that failed late (a collision at landing) still mapped: its map is merged and
+    # scored, and the run fails at the end.
+    together = out / "two_drones.lcmlog"
+    play_together([out / f"flight_{v}" / "flight.lcmlog" for v in STARTS], together)
+    ground = out / "ground"
+    replay = subprocess.run([str(Path(sys.executable).parent / "kinfly-ground"), "replay",
+                             str(together), "--out", str(ground)])
+    if replay.returncode != 0:
+        print("two_drones: FAILED: the ground station's replay failed (above)", file=sys.stderr)
+        return 1
+    summary = json.loads((ground / "summary.json").read_text())
+    first, second = (summary["vehicles"].get(str(v)) for v in STARTS)
+    if first is None or second is None:
+        print("two_drones: FAILED: the ground station did not hear both vehicles",
+              file=sys.stderr)
+        return 1
+    keys = second["keyframes"]
+    print(f"two_drones: {keys['merge_checks']} checks for a common place, {keys['merges']} "
+          f"found, {keys['merges_refused']} not, {keys['merge_checks_failed']} failed")
+    if second["world"]["vehicle_id"] != min(STARTS):
+        print("two_drones: FAILED: the two maps were not merged", *problems, sep="\n  - ",
+              file=sys.stderr)
+        return 1
+    # Where each vehicle's optimised trajectory puts the shared world in the scene: the same
+    # place when the maps were merged right.
+    A1, A2 = (shared_world_in_scene(Path(v["directory"])) for v in (first, second))
+    error = np.linalg.inv(A1) @ A2
+    error_m = float(np.linalg.norm(error[:3, 3]))
+    error_deg = math.degrees(rotation_angle_rad(error))
+    figures = {"relative_pose_error_m": error_m, "relative_pose_error_deg": error_deg,
+               "tolerance_m": MERGE_TOLERANCE_M, "starts": STARTS,
+               "apart_m": math.dist(STARTS[1][:2], STARTS[2][:2])}
+    (out / "two_drones.json").write_text(json.dumps(figures, indent=2) + "\n")
+    print(f"two_drones: merged; the relative pose error between the two maps "
+          f"{100 * error_m:.2f} cm and {error_deg:.2f} deg (at most "
+          f"{100 * MERGE_TOLERANCE_M:.0f} cm); files in {out}")
+    if error_m > MERGE_TOLERANCE_M:
+        problems.append("the relative pose error is beyond the tolerance")
+    if problems:
+        print("two_drones: FAILED:", *problems, sep="\n  - ", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -22,7 +22,7 @@ import numpy as np
 from . import flight
 from ._native import Fusion, Keyframe, MapSnapshot, TrackingStatus, rotation_angle_rad
 from .loops import LoopCloser
-from .merge import SharedWorlds, Views, recognise_place, small_depth, thinned
+from .merge import PlaceParams, SharedWorlds, Views, moved, recognise_place, small_depth, thinned
 from .outputs import ATE_MAX_TIME_DIFF_S, evaluate
 from .submaps import Submap, SubmapChain
 from .uplink import Uplink
@@ -57,10 +57,7 @@ def _map_key(state: VehicleState) -> MapKey:
 
 def _points(parts: list[tuple[MapSnapshot, np.ndarray]]) -> np.ndarray:
     """The surface of a map's submaps, each meshed and moved by its correction."""
-    clouds = []
-    for snapshot, C in parts:
-        vertices = np.asarray(snapshot.mesh()[0], dtype=np.float64)
-        clouds.append(vertices @ C[:3, :3].T + C[:3, 3])
+    clouds = [moved(np.asarray(snapshot.mesh()[0], dtype=np.float64), C) for snapshot, C in parts]
     return np.concatenate(clouds) if clouds else np.zeros((0, 3))
 
 
@@ -74,7 +71,7 @@ class MergeJob:
     source_parts: list[tuple[MapSnapshot, np.ndarray]]
     target_views: Views
     source_views: Views
-    params: Any
+    params: PlaceParams
 
     def arguments(self) -> tuple[Any, ...]:
         # Thinned to the registration's own voxel here: a map's mesh can hold millions of
@@ -110,6 +107,9 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
         # The last check of each pair of maps: each map's capture time then.
         self._pair_checked: dict[frozenset[MapKey], dict[MapKey, int]] = {}
         self._merge_pending = False  # one merge check at a time, beside the loops
+        # The depth range a map fuses, which its views keep (once, not per keyframe).
+        preprocess = params.pipeline_params().preprocess
+        self._view_range_m = (preprocess.min_depth_m, preprocess.max_depth_m)
 
     @staticmethod
     def _can_merge(log: Callable[[str], None]) -> bool:
@@ -207,10 +207,10 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
     def _keep_view(self, state: VehicleState, m: Keyframe, depth: np.ndarray) -> None:
         """The keyframe's depth made small, for the map's views in a merge check (none where
         the image does not divide into the blocks, and none where nothing is merged)."""
-        block = self.params.merge_view_block
-        height, width = depth.shape
         if not self._merges:
             return
+        block = self.params.merge_view_block
+        height, width = depth.shape
         if height % block or width % block:
             if state.vehicle_id not in self._no_views:
                 self._no_views.add(state.vehicle_id)
@@ -222,10 +222,8 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
         if segment.view_intrinsics is None:
             c = m.camera
             segment.view_intrinsics = (c.fx / block, c.fy / block, c.cx / block, c.cy / block)
-        preprocess = self.params.pipeline_params().preprocess
         segment.views.append((m.utime, small_depth(depth, m.depth_scale_m, block,
-                                                   preprocess.min_depth_m,
-                                                   preprocess.max_depth_m)))
+                                                   *self._view_range_m)))
         if len(segment.views) > self.params.merge_max_views:
             # Every other one goes: the views stay spread over the whole flight.
             segment.views = segment.views[::2]

@@ -81,8 +81,9 @@ class PlaceParams:
 class Views:
     """Depth images a map was made from, made small: where its cameras saw through, the space it
     knows is empty. DEPTH_M is K x H x W (0 where no depth, and where the map took none: beyond
-    its fusion's depth range), each pixel the nearest depth of the full image's pixels under it, so that a point in front of it by a margin lay in front of
-    every surface that pixel saw; T_WORLD_CAM is K x 4 x 4 in the map's own frame (optical
+    its fusion's depth range), each pixel the nearest depth of the full image's pixels under
+    it, so that a point in front of it by a margin lay in front of every surface that pixel
+    saw; T_WORLD_CAM is K x 4 x 4 in the map's own frame (optical
     axes: x right, y down, z forward); INTRINSICS are fx, fy, cx, cy at that size."""
     depth_m: np.ndarray
     T_world_cam: np.ndarray
@@ -157,7 +158,8 @@ def thinned(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return points[np.sort(first)]
 
 
-def _moved(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+def moved(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """POINTS (N x 3) moved by the rigid transform T."""
     return points @ T[:3, :3].T + T[:3, 3]
 
 
@@ -198,8 +200,8 @@ def recognise_place(target_points: np.ndarray, target_views: Views, source_point
     if not check.accepted:
         return PlaceMatch(False, T, inliers, check, check.reason)
     for name, points, views in (
-            ("source", _moved(thinned(source, params.free_space_voxel_m), T), target_views),
-            ("target", _moved(thinned(target, params.free_space_voxel_m), np.linalg.inv(T)),
+            ("source", moved(thinned(source, params.free_space_voxel_m), T), target_views),
+            ("target", moved(thinned(target, params.free_space_voxel_m), np.linalg.inv(T)),
              source_views)):
         share, observed = _seen_through_share(points, views, params)
         if observed < params.min_seen * len(points):

@@ -77,7 +77,7 @@ StatusOr<std::unique_ptr<DepthSource>> openSource(const FirmwareConfig& config) 
   if (source.kind == "dataset") return openDatasetSource(source.dataset);
   if (source.kind == "synthetic") {
     SyntheticSourceParams p = source.synthetic;
-    p.first_utime = link::wallClockUtime();
+    p.clock = link::wallClockUtime;
     return openSyntheticSource(p);
   }
   if (source.kind == "openni") return openOpenniSource(source.openni);

@@ -93,8 +93,13 @@ def until_accepted(netns: list[str], key: Path, drone: Watched, *command: object
         if answered.returncode == 0:
             return answered.stderr
         assert f"({command[0]}) refused: " in answered.stderr, answered.stderr + drone.output()
-    # Stopped, it prints its summaries: what became of the poses says why.
-    raise AssertionError(f"{command[0]} refused {ARM_ATTEMPTS} times:\n{stop(drone)}")
+    # Stopped, it prints its summaries: what became of the poses says why. They come first, as
+    # a long log is cut in the middle where it is shown.
+    output = stop(drone)
+    summaries = [line for line in output.splitlines()
+                 if line.startswith(("kinfly-fw: control:", "kinfly-fw: mavlink:"))]
+    raise AssertionError(f"{command[0]} refused {ARM_ATTEMPTS} times; " + "\n".join(summaries)
+                         + f"\nthe whole log:\n{output}")
 
 
 @contextmanager

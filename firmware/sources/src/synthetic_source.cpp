@@ -36,13 +36,14 @@ class SyntheticSource : public DepthSource {
   }
 
   SourceStatus next(DepthCapture* out, std::string*) override {
+    if (frames_ == 0 && params_.clock) first_utime_ = params_.clock();
     const double t_s = static_cast<double>(frames_) / params_.rate_hz;
     const Pose T_world_cam = poseAt(still_ ? 0.0 : t_s);
     if (out->depth.width() != camera_.width || out->depth.height() != camera_.height)
       out->depth = Image<uint16_t>(camera_.width, camera_.height);
     scene_.renderRawDepth(camera_, T_world_cam, kMaxDepthM, kDepthScaleM, &rng_,
                           out->depth.view());
-    out->utime = params_.first_utime + std::llround(t_s * 1e6);
+    out->utime = first_utime_ + std::llround(t_s * 1e6);
     out->has_ground_truth = true;
     out->T_world_cam_truth = T_first_world_ * T_world_cam;
     ++frames_;
@@ -67,6 +68,7 @@ class SyntheticSource : public DepthSource {
   bool still_;
   Pose T_first_world_;
   int64_t frames_ = 0;
+  int64_t first_utime_ = 0;
 };
 
 }  // namespace

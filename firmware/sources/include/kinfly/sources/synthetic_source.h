@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 
@@ -21,7 +22,10 @@ struct SyntheticSourceParams {
   // source.motion: swing (the hovering drone's swing and bob) | still (at rest where the swing
   // starts: a drone on the floor, for bench tests with an IMU at rest)
   std::string motion = "swing";
-  int64_t first_utime = 0;     // [us] capture time of frame 0 (kinfly-fw: the wall clock)
+  // [us] Read when frame 0 is rendered, it is that frame's capture time (kinfly-fw: the wall
+  // clock); none: 0. Read at the first frame, not at the opening, so that however long the
+  // program takes to start, a frame is delivered as soon after its stamp as it is rendered.
+  std::function<int64_t()> clock;
   Status validate() const;  // an error names the key, its range and the value
 };
 

@@ -30,7 +30,8 @@ from typing import Any
 import numpy as np
 import small_gicp
 
-from .registration import LoopCheck, RegistrationParams, check_loop, checked_points
+from .registration import (LoopCheck, RegistrationParams, check_loop, checked_points,
+                           thinned_clouds)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,12 +233,8 @@ def _coarsely_registered(target: np.ndarray, source: np.ndarray, guess: np.ndarr
     """GUESS registered at the recognition's voxel (PlaceParams.coarse_correspondence_m says
     why); the loop check judges what comes of it."""
     registration = params.registration
-    target_cloud, target_tree = small_gicp.preprocess_points(
-        target, downsampling_resolution=params.voxel_m,
-        num_neighbors=registration.normal_neighbours, num_threads=registration.threads)
-    source_cloud, _ = small_gicp.preprocess_points(
-        source, downsampling_resolution=params.voxel_m,
-        num_neighbors=registration.normal_neighbours, num_threads=registration.threads)
+    target_cloud, target_tree, source_cloud, _ = thinned_clouds(target, source, params.voxel_m,
+                                                                registration)
     result = small_gicp.align(target_cloud, source_cloud, target_tree, guess,
                               registration_type="GICP",
                               max_correspondence_distance=params.coarse_correspondence_m,

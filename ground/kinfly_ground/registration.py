@@ -10,6 +10,7 @@ the rest of the graph disagrees."""
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import small_gicp
@@ -150,6 +151,17 @@ def _fit(target_cloud, source_cloud, T: np.ndarray,
     return overlap, rms, _conditioning(large[nearest[inliers]], normals)
 
 
+def thinned_clouds(target: np.ndarray, source: np.ndarray, downsampling_m: float,
+                   params: RegistrationParams) -> tuple[Any, Any, Any, Any]:
+    """Both clouds thinned to DOWNSAMPLING_M voxels with their covariances, for small_gicp:
+    (target cloud, its tree, source cloud, its tree)."""
+    clouds = [small_gicp.preprocess_points(points, downsampling_resolution=downsampling_m,
+                                           num_neighbors=params.normal_neighbours,
+                                           num_threads=params.threads)
+              for points in (target, source)]
+    return (*clouds[0], *clouds[1])
+
+
 def check_loop(target_points: np.ndarray, source_points: np.ndarray,
                T_target_source_guess: np.ndarray,
                params: RegistrationParams | None = None) -> LoopCheck:
@@ -161,12 +173,8 @@ def check_loop(target_points: np.ndarray, source_points: np.ndarray,
     guess = np.asarray(T_target_source_guess, dtype=np.float64)
     if guess.shape != (4, 4) or not np.all(np.isfinite(guess)):
         raise ValueError(f"the guess must be a finite 4x4 matrix, got shape {guess.shape}")
-    target_cloud, target_tree = small_gicp.preprocess_points(
-        target, downsampling_resolution=params.downsampling_m,
-        num_neighbors=params.normal_neighbours, num_threads=params.threads)
-    source_cloud, source_tree = small_gicp.preprocess_points(
-        source, downsampling_resolution=params.downsampling_m,
-        num_neighbors=params.normal_neighbours, num_threads=params.threads)
+    target_cloud, target_tree, source_cloud, source_tree = thinned_clouds(
+        target, source, params.downsampling_m, params)
     min_points = _MIN_POINTS_PER_NEIGHBOURHOOD * params.normal_neighbours
     if target_cloud.size() < min_points or source_cloud.size() < min_points:
         return LoopCheck(False, guess, 0.0, float("inf"), 0.0,

@@ -78,6 +78,8 @@ StatusOr<std::unique_ptr<DepthSource>> openSource(const FirmwareConfig& config) 
   if (source.kind == "synthetic") {
     SyntheticSourceParams p = source.synthetic;
     p.clock = link::wallClockUtime;
+    // Paced as its stamps say, it is a live camera; unpaced or faster, a replay of itself.
+    p.drop_late = source.realtime && source.speed == 1.0;
     return openSyntheticSource(p);
   }
   if (source.kind == "openni") return openOpenniSource(source.openni);

@@ -35,15 +35,28 @@ class SyntheticSource : public DepthSource {
            " Hz, seed " + std::to_string(params_.seed);
   }
 
-  SourceStatus next(DepthCapture* out, std::string*) override {
-    if (frames_ == 0 && params_.clock) first_utime_ = params_.clock();
+  SourceStatus next(DepthCapture* out, std::string* why) override {
+    if (params_.clock) {
+      if (frames_ == 0) {
+        first_utime_ = params_.clock();
+      } else if (const int64_t now = params_.clock();
+                 params_.drop_late && now >= frameUtime(frames_ + 1)) {
+        // So that on a busy machine the stamps never fall further behind the clock than a
+        // frame: a pose that old would be fused late, or not at all.
+        *why = "synthetic: frame " + std::to_string(frames_) + " dropped, " +
+               std::to_string((now - frameUtime(frames_)) / 1000) +
+               " ms late (rendering slower than source.rate_hz)";
+        ++frames_;
+        return SourceStatus::kSkipped;
+      }
+    }
     const double t_s = static_cast<double>(frames_) / params_.rate_hz;
     const Pose T_world_cam = poseAt(still_ ? 0.0 : t_s);
     if (out->depth.width() != camera_.width || out->depth.height() != camera_.height)
       out->depth = Image<uint16_t>(camera_.width, camera_.height);
     scene_.renderRawDepth(camera_, T_world_cam, kMaxDepthM, kDepthScaleM, &rng_,
                           out->depth.view());
-    out->utime = first_utime_ + std::llround(t_s * 1e6);
+    out->utime = frameUtime(frames_);
     out->has_ground_truth = true;
     out->T_world_cam_truth = T_first_world_ * T_world_cam;
     ++frames_;
@@ -51,6 +64,10 @@ class SyntheticSource : public DepthSource {
   }
 
  private:
+  int64_t frameUtime(int64_t frame) const {
+    return first_utime_ + std::llround(static_cast<double>(frame) / params_.rate_hz * 1e6);
+  }
+
   // In the scene's frame: the first camera sits at the origin looking along +z at the objects.
   static Pose poseAt(double t_s) {
     const Eigen::Vector3d target(0.0, 0.3, 2.0);

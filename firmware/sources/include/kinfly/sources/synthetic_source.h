@@ -26,6 +26,9 @@ struct SyntheticSourceParams {
   // clock); none: 0. Read at the first frame, not at the opening, so that however long the
   // program takes to start, a frame is delivered as soon after its stamp as it is rendered.
   std::function<int64_t()> clock;
+  // With a clock: a frame whose successor is already due by it is dropped (kSkipped), as a
+  // camera's would be on a host that is late (kinfly-fw: when paced at the rate of its stamps).
+  bool drop_late = false;
   Status validate() const;  // an error names the key, its range and the value
 };
 

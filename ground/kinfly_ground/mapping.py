@@ -55,6 +55,20 @@ def _map_key(state: VehicleState) -> MapKey:
     return state.vehicle_id, len(state.finished_segments)
 
 
+def pair_due(params: Any, checked: dict[MapKey, tuple[int, int]] | None,
+             key: MapKey, utime: int, blocks: dict[MapKey, int]) -> bool:
+    """Whether a pair of maps is due a check, at KEY's map's capture time UTIME, with BLOCKS
+    each map's blocks now; CHECKED: each map's capture time and blocks at the pair's last check
+    (StationParams.merge_min_growth says when)."""
+    if checked is None:
+        return True
+    elapsed_us = utime - checked[key][0]
+    if elapsed_us < params.merge_interval_s * 1e6:
+        return False
+    grown = any(now >= (1 + params.merge_min_growth) * checked[k][1] for k, now in blocks.items())
+    return grown or elapsed_us >= params.merge_max_interval_s * 1e6
+
+
 def _points(parts: list[tuple[MapSnapshot, np.ndarray]]) -> np.ndarray:
     """The surface of a map's submaps, each meshed and moved by its correction."""
     clouds = [moved(np.asarray(snapshot.mesh()[0], dtype=np.float64), C) for snapshot, C in parts]
@@ -104,8 +118,8 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
         self._merges = merges and self._can_merge(log)
         self._show_shared = show_shared
         self._no_views: set[int] = set()  # vehicles told their keyframes make no views
-        # The last check of each pair of maps: each map's capture time then.
-        self._pair_checked: dict[frozenset[MapKey], dict[MapKey, int]] = {}
+        # The last check of each pair of maps: each map's capture time and blocks then.
+        self._pair_checked: dict[frozenset[MapKey], dict[MapKey, tuple[int, int]]] = {}
         self._merge_pending = False  # one merge check at a time, beside the loops
         # The depth range a map fuses, which its views keep (once, not per keyframe).
         preprocess = params.pipeline_params().preprocess
@@ -237,32 +251,34 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
                      segment.view_intrinsics)
 
     def _merge_if_due(self, state: VehicleState, utime: int) -> None:
-        """Pairs of maps that share no world are checked for a common place, each pair every
-        merge_interval_s of this vehicle's capture time (each map's own clock: drones' clocks
-        need not agree); of the pairs due, the one checked longest ago, one check at a time."""
+        """Pairs of maps that share no world are checked for a common place, each pair at most
+        every merge_interval_s of this vehicle's capture time (each map's own clock: drones'
+        clocks need not agree), and again sooner than merge_max_interval_s only where a map
+        grew; of the pairs due, the one checked longest ago, one check at a time."""
         segment = state.segment
         if (not self._merges or self._merge_pending or segment.chain is None
                 or not segment.views
                 or len(segment.corrected) < self.params.merge_min_keyframes):
             return
         key = _map_key(state)
-        interval_us = self.params.merge_interval_s * 1e6
         due = []
         for other in self.vehicles.values():
-            o = other.segment
+            o, other_key = other.segment, _map_key(other)
             if (other is state or o.chain is None or not o.views
                     or len(o.corrected) < self.params.merge_min_keyframes
-                    or self.worlds.merged(_map_key(other), key)):
+                    or self.worlds.merged(other_key, key)):
                 continue
-            checked = self._pair_checked.get(frozenset((key, _map_key(other))))
-            if checked is None or utime - checked[key] >= interval_us:
-                due.append((-1 if checked is None else checked[key], other))
+            checked = self._pair_checked.get(frozenset((key, other_key)))
+            if pair_due(self.params, checked, key, utime, {
+                    key: segment.chain.num_blocks, other_key: o.chain.num_blocks}):
+                due.append((-1 if checked is None else checked[key][0], other))
         if not due:
             return
         _, other = min(due, key=lambda pair: pair[0])
         other_key = _map_key(other)
         self._pair_checked[frozenset((key, other_key))] = {
-            key: utime, other_key: other.segment.corrected[-1][0]}
+            key: (utime, segment.chain.num_blocks),
+            other_key: (other.segment.corrected[-1][0], other.segment.chain.num_blocks)}
         job = MergeJob(other_key, key, other.segment.chain.parts(shared=False),
                        segment.chain.parts(shared=False), self._views(other.segment),
                        self._views(segment), self.params.merge)

@@ -80,6 +80,12 @@ class StationParams:
     # are checked for a common place in the loop checks' process (inf: never). A map's views
     # are its keyframes' depth, merge_view_block pixels square to a view's pixel.
     merge_interval_s: float = 10.0      # [s] > 0
+    # A pair already refused is checked again only once either map grew by this share of its
+    # blocks since (new ground to find the other in), or after merge_max_interval_s whatever it
+    # did: a check costs 2-6 s of a core (test_merge.py), and drones that keep to their own
+    # rooms, or hover, would otherwise spend the loop checks' process on them every 10 s.
+    merge_min_growth: float = 0.1       # [0, 10]; 0: every merge_interval_s
+    merge_max_interval_s: float = 120.0  # [s] >= merge_interval_s
     merge_min_keyframes: int = 10       # [1, 10000]
     merge_view_block: int = 8           # [1, 64] pixels
     # A map keeps at most this many views: beyond it, every other one is let go (19 KB each at
@@ -120,6 +126,9 @@ class StationParams:
              "correction copy interval must be in [0.005, 0.5] s"),
             (self.final_loops_timeout_s > 0, "final loops timeout must be > 0 s"),
             (self.merge_interval_s > 0, "merge interval must be > 0 s"),
+            (0 <= self.merge_min_growth <= 10, "merge min growth must be in [0, 10]"),
+            (self.merge_max_interval_s >= self.merge_interval_s,
+             "merge max interval must be >= the merge interval"),
             (1 <= self.merge_min_keyframes <= 10000, "merge min keyframes must be in [1, 10000]"),
             (1 <= self.merge_view_block <= 64, "merge view block must be in [1, 64] pixels"),
             (8 <= self.merge_max_views <= 100000, "merge max views must be in [8, 100000]"),

@@ -25,7 +25,7 @@ from kinfly_ground._native import (Channel, CorrectionReceiver, DepthCodec, Sign
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
                                    write_atomically, write_tum)
 from kinfly_ground.export import export, print_summary
-from kinfly_ground.mapping import truth_anchor
+from kinfly_ground.mapping import pair_due, truth_anchor
 from kinfly_ground.station import Station, StationParams
 from kinfly_ground.submaps import SubmapParams
 from kinfly_ground.viewer import Viewer
@@ -667,6 +667,34 @@ def test_a_map_keeps_its_views_bounded_and_only_where_maps_can_merge(sample) -> 
     assert views[-1][0] >= keyframes[-(MERGE_FLIGHT_KEYFRAMES // VIEWS_KEPT) - 1][0].utime
     assert views[0][1].shape == (480 // 8, 640 // 8)
     assert one.state().segment.views == []
+
+
+def test_a_pair_of_maps_is_checked_again_only_once_a_map_grew_or_long_after() -> None:
+    """merge_min_growth and merge_max_interval_s: a pair that was checked is not checked again
+    within merge_interval_s; after it, only once either map grew by the share (new ground), or
+    once merge_max_interval_s passed whatever they did (in the map's own capture time)."""
+    params = StationParams(merge_interval_s=10.0, merge_min_growth=0.1,
+                           merge_max_interval_s=120.0)
+    a, b = (1, 0), (2, 0)
+    s = 1_000_000
+    checked = {a: (100 * s, 1000), b: (7 * s, 500)}  # the drones' clocks need not agree
+
+    def due(seconds_later: float, blocks_a: int, blocks_b: int) -> bool:
+        return pair_due(params, checked, a, round((100 + seconds_later) * s),
+                        {a: blocks_a, b: blocks_b})
+
+    assert pair_due(params, None, a, 0, {a: 1, b: 1})  # never checked
+    assert not due(9.9, 5000, 5000)   # within the interval, however much they grew
+    assert not due(10.0, 1099, 549)   # hovering: under 10 % more
+    assert due(10.0, 1100, 500)       # one map 10 % larger
+    assert due(10.0, 1000, 550)
+    assert not due(119.9, 1000, 500)
+    assert due(120.0, 1000, 500)      # long after, as loops may have reshaped the maps
+    # Growth of 0: every merge_interval_s, as before the rule.
+    params = StationParams(merge_interval_s=10.0, merge_min_growth=0.0)
+    assert due(10.0, 1000, 500)
+    assert "merge max interval" in StationParams(merge_interval_s=10.0,
+                                                 merge_max_interval_s=5.0).validate()
 
 
 def test_vehicles_beyond_the_limit_are_counted(sample) -> None:

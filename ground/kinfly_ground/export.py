@@ -14,6 +14,7 @@ from .merge import SharedWorlds
 from .outputs import (ate_figures, evaluate, memory, write_atomically, write_error_plot,
                       write_json, write_tum)
 from .station import Station
+from .submaps import Mesh, joined_meshes
 from .vehicle import Segment, VehicleState, percentile
 
 
@@ -46,12 +47,16 @@ def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, A
     return summary
 
 
-def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str, Any]:
+def _export_segment(segment: Segment, out: Path, truth: list | None,
+                    meshes: list[Mesh] | None = None) -> dict[str, Any]:
+    """Writes the segment's files; its mesh is appended to MESHES too, where given."""
     files: dict[str, str] = {}
     result: dict[str, Any] = {"files": files, "corrected_poses": len(segment.corrected)}
     chain = segment.chain
     if chain is not None:
         mesh = segment.final_mesh or chain.mesh()
+        if meshes is not None:
+            meshes.append(mesh)
         result["mesh_triangles"] = write_atomically(out / "mesh.ply",
                                                     lambda tmp: write_ply(str(tmp), *mesh))
         files["mesh"] = "mesh.ply"
@@ -74,10 +79,18 @@ def _export_segment(segment: Segment, out: Path, truth: list | None) -> dict[str
 
 
 def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
-                     truth: list | None, worlds: SharedWorlds) -> dict[str, Any]:
+                     truth: list | None, worlds: SharedWorlds,
+                     meshes: list[Mesh]) -> dict[str, Any]:
+    """The vehicle's summary, its files written; its current map's mesh appended to MESHES."""
     with state.lock:
         segment, finished = state.segment, list(state.finished_segments)
-    key = (state.vehicle_id, len(finished))
+
+    def world(number: int) -> dict[str, Any]:
+        # The world the map of its NUMBERth odometry frame is in: its own, or the vehicle's
+        # it was merged with (merge.py); T_world_map places its own optimised world there.
+        return {"vehicle_id": worlds.world_of((state.vehicle_id, number))[0],
+                "T_world_map": worlds.T_world_map((state.vehicle_id, number)).tolist()}
+
     summary: dict[str, Any] = {
         "vehicle_id": state.vehicle_id,
         "keyframes": dataclasses.asdict(state.counters),
@@ -87,17 +100,15 @@ def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
         # This session's first: a station started after the drone (restarted) never saw those
         # before it.
         "first_keyframe_id": min(state.session_keyframe_ids, default=None),
-        # The world its map (this odometry frame's) is in: its own, or the vehicle's it was
-        # merged with (merge.py); T_world_map places its own optimised world there. The
-        # onboard and corrected trajectories stay in its own world; the optimised one and the
-        # mesh are in this one.
-        "world": {"vehicle_id": worlds.world_of(key)[0],
-                  "T_world_map": worlds.T_world_map(key).tolist()},
+        # The onboard and corrected trajectories stay in the map's own world; the optimised
+        # one and the mesh are in this one.
+        "world": world(len(finished)),
     }
-    summary.update(_export_segment(segment, out, truth))
+    summary.update(_export_segment(segment, out, truth, meshes))
     # Earlier odometry frames (before a drone restart), each complete on its own.
     summary["earlier_segments"] = [
-        {"directory": f"segments/{i}", **_export_segment(s, out / "segments" / str(i), None)}
+        {"directory": f"segments/{i}", "world": world(i - 1),
+         **_export_segment(s, out / "segments" / str(i), None)}
         for i, s in enumerate(finished, 1)]
     if link is not None:
         summary["link"] = link_summary(link)
@@ -159,13 +170,16 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
     it stopped, so the maps hold still."""
     # A summary from an earlier export must not vouch for files this one is replacing.
     (out / "summary.json").unlink(missing_ok=True)
-    vehicles = {}
+    vehicles, meshes = {}, {}
     for vid, state in sorted(list(station.vehicles.items())):
         where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
         link = station.receiver.link_quality(vid)
+        mesh: list[Mesh] = []
         vehicles[str(vid)] = {"directory": str(where),
                               **_vehicle_summary(state, link, where, truth,
-                                                 station.mapper.worlds)}
+                                                 station.mapper.worlds, mesh)}
+        if mesh:
+            meshes[vid] = mesh[0]
     received = station.receiver.rejects  # what the ground can reject (the rest are the drone's)
     rejects = {"malformed": received.malformed, "unknown_channel": received.unknown_channel,
                "wrong_vehicle": received.wrong_vehicle}
@@ -174,11 +188,32 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
     rejects["handler_errors"] = station.handler_errors
     summary = {
         "kinfly_ground": __version__, "mode": mode, "duration_s": time.monotonic() - started,
-        "vehicles": vehicles, "rejected_messages": rejects, "memory": memory(),
+        "vehicles": vehicles, "shared_maps": _export_shared_maps(vehicles, meshes, out),
+        "rejected_messages": rejects, "memory": memory(),
         "params": dataclasses.asdict(station.params), **extra,
     }
     write_json(out / "summary.json", summary)
     return summary
+
+
+def _export_shared_maps(vehicles: dict[str, Any], meshes: dict[int, Mesh],
+                        out: Path) -> list[dict[str, Any]]:
+    """Each world that several vehicles' current maps share (merge.py), as one mesh in
+    shared_<its vehicle>/mesh.ply: their meshes are in that world already."""
+    groups: dict[int, list[int]] = {}
+    for vid, v in vehicles.items():
+        if int(vid) in meshes:
+            groups.setdefault(v["world"]["vehicle_id"], []).append(int(vid))
+    shared = []
+    for world, members in sorted(groups.items()):
+        if len(members) < 2:
+            continue
+        mesh = joined_meshes([meshes[vid] for vid in members])
+        path = out / f"shared_{world}" / "mesh.ply"
+        triangles = write_atomically(path, lambda tmp: write_ply(str(tmp), *mesh))
+        shared.append({"world": world, "vehicles": members, "mesh": str(path),
+                       "mesh_triangles": triangles})
+    return shared
 
 
 def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
@@ -233,6 +268,9 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
         else:
             print(f"    ATE: {a['reason']}")
         print(f"    files: {', '.join(str(Path(v['directory']) / f) for f in v['files'].values())}")
+    for shared in summary.get("shared_maps", []):
+        print(f"  one map of vehicles {', '.join(map(str, shared['vehicles']))} in vehicle "
+              f"{shared['world']}'s world: {shared['mesh']}")
     m = summary["memory"]
     after = summary.get("memory_after_fusion")
     print(f"  memory: {after['rss_mb']:.0f} MB resident after fusing, " if after else "  memory: ",

@@ -151,6 +151,24 @@ class LoopsAdded:
     revised: list[LoopOutcome]
 
 
+Mesh = tuple[np.ndarray, np.ndarray, np.ndarray]  # vertices Nx3, triangles Mx3, normals Nx3
+
+
+def joined_meshes(meshes: list[Mesh]) -> Mesh:
+    """MESHES as one (vertices float32, triangles int32, normals float32): each one's triangles
+    numbered after the vertices of those before it."""
+    if not meshes:
+        return (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32),
+                np.zeros((0, 3), np.float32))
+    triangles, offset = [], 0
+    for v, t, _ in meshes:
+        triangles.append(np.asarray(t, np.int32) + np.int32(offset))
+        offset += len(v)
+    return (np.concatenate([np.asarray(v, np.float32) for v, _, _ in meshes]),
+            np.concatenate(triangles),
+            np.concatenate([np.asarray(n, np.float32) for _, _, n in meshes]))
+
+
 class SubmapChain:
     """MAKE_FUSION makes an empty map for a new submap (the station's camera and parameters)."""
 
@@ -500,19 +518,13 @@ class SubmapChain:
                 poses[utime] = corrections[submap.index] @ T
         return sorted(poses.items(), key=lambda pose: pose[0])
 
-    def mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def mesh(self) -> Mesh:
         """The whole map's mesh in the optimised world: each submap's own mesh moved by its
         correction, placed in the shared world (vertices float32 Nx3, triangles int32 Mx3,
         normals float32 Nx3)."""
-        vertices, triangles, normals = [], [], []
-        offset = 0
+        moved = []
         for snapshot, C in self.parts(shared=True):
             v, t, n = snapshot.mesh()
-            vertices.append((np.asarray(v, np.float64) @ C[:3, :3].T + C[:3, 3]).astype(np.float32))
-            normals.append((np.asarray(n, np.float64) @ C[:3, :3].T).astype(np.float32))
-            triangles.append(np.asarray(t, np.int32) + offset)
-            offset += len(v)
-        if not vertices:
-            return (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32),
-                    np.zeros((0, 3), np.float32))
-        return np.concatenate(vertices), np.concatenate(triangles), np.concatenate(normals)
+            moved.append(((np.asarray(v, np.float64) @ C[:3, :3].T + C[:3, 3]).astype(np.float32),
+                          t, (np.asarray(n, np.float64) @ C[:3, :3].T).astype(np.float32)))
+        return joined_meshes(moved)

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ._native import DroneStatus, FlightStatus, Keyframe, LinkQuality, Signer
-from .submaps import SubmapChain
+from .submaps import Mesh, SubmapChain
 from .viewer import VehicleView
 
 StampedPose = tuple[int, np.ndarray]  # (utime [us], 4x4 T_world_cam)
@@ -61,7 +61,7 @@ class Segment:
     T_map_truth: np.ndarray | None = None
     truth_drawn: int = 0
     # The final map (vertices, triangles, normals), meshed once for viewer and file.
-    final_mesh: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    final_mesh: Mesh | None = None
     # The final ATE of each trajectory (outputs.evaluate), made once for viewer and summary.
     evaluation: dict[str, dict[str, Any]] | None = None
     # Each registered keyframe's depth made small (merge.small_depth), by capture time: the

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
@@ -642,10 +643,21 @@ def test_two_vehicles_maps_merge_and_their_corrections_follow_into_one_world(
         world = summary["vehicles"][str(vehicle)]["world"]
         assert world["vehicle_id"] == VEHICLE
     np.testing.assert_allclose(summary["vehicles"][str(OTHER_VEHICLE)]["world"]["T_world_map"], W)
+    # One mesh of both maps in the shared world, beside each vehicle's own.
+    shared, = summary["shared_maps"]
+    assert shared["world"] == VEHICLE and shared["vehicles"] == [VEHICLE, OTHER_VEHICLE]
+    assert Path(shared["mesh"]) == tmp_path / f"shared_{VEHICLE}" / "mesh.ply"
+    joined = trimesh.load(shared["mesh"], process=False)
+    own = [trimesh.load(Path(summary["vehicles"][str(v)]["directory"]) / "mesh.ply",
+                        process=False) for v in (VEHICLE, OTHER_VEHICLE)]
+    assert shared["mesh_triangles"] == len(joined.faces) == sum(len(m.faces) for m in own)
+    np.testing.assert_allclose(joined.vertices, np.concatenate([m.vertices for m in own]))
     capsys.readouterr()
     print_summary(summary, tmp_path, None)
     printed = capsys.readouterr().out
     assert f"its map is in vehicle {VEHICLE}'s world" in printed, printed
+    assert (f"one map of vehicles {VEHICLE}, {OTHER_VEHICLE} in vehicle {VEHICLE}'s world: "
+            f"{tmp_path / f'shared_{VEHICLE}' / 'mesh.ply'}") in printed, printed
     with capsys.disabled():
         print(figure)
 

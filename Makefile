@@ -209,8 +209,10 @@ bench-sim: sim-programs
 	$(PY) $(REPO_ROOT)/tests/bench/bench_sim_flights.py --out $(REPO_ROOT)/out/bench
 
 # Two drones in the simulated room, their maps merged by one ground station (scripts/two_drones.py).
+# SIM_TWO_SCENE=office0: Replica's office scaled by 1.5, from the shared data.
+SIM_TWO_SCENE ?= room
 sim-two: sim-programs
-	$(PY) $(REPO_ROOT)/scripts/two_drones.py --out $(REPO_ROOT)/out/sim_two
+	$(PY) $(REPO_ROOT)/scripts/two_drones.py --scene $(SIM_TWO_SCENE) --out $(REPO_ROOT)/out/sim_two
 
 # How often the demo's flight holds: every keyframe fused, every output written, an ATE; on a
 # machine as it is, then with both cores of a 2-core machine busy with other work.

@@ -227,18 +227,40 @@ def drone_command(key: Path, out: Path, camera_downsample: int, vehicle: int) ->
             "--output.trajectory", str(out / "drone_trajectory.tum")]
 
 
-def scene_arguments(scene: str, start: list[float] | None = None) -> list[str]:
+def scene_arguments(scene: str, start: list[float] | None = None, scale: float = 1.0,
+                    scaled_to: Path | None = None) -> list[str]:
     """kinfly-sim's --scene (and --scene-start) for a scene of --scene: built in, or a mesh from
-    the shared data, which must be there, with START (x, y, heading) or the scene's own."""
+    the shared data, which must be there, with START (x, y, heading) or the scene's own. A mesh
+    is scaled by SCALE about its origin, written to SCALED_TO (START is in the scaled frame)."""
     if scene not in DATA_SCENES:
+        if scale != 1.0:
+            raise ValueError(f"{scene}: only a mesh scene can be scaled (--scene-scale)")
         return ["--scene", scene, *([] if start is None else
                                     ["--scene-start", *(str(v) for v in start)])]
     mesh, scene_start = DATA_SCENES[scene]
-    start = scene_start if start is None else start
     path = kinfly_eval.data_root() / mesh
     if not path.is_file():
         raise ValueError(f"{scene}: no mesh at {path} (the shared data: set KINFLY_DATA)")
+    if scale != 1.0:
+        if start is None:
+            raise ValueError(f"{scene} scaled by {scale:g} needs --scene-start (its own start "
+                             "need not be open floor any more)")
+        if not 0.5 <= scale <= 4.0:
+            raise ValueError(f"--scene-scale must be in [0.5, 4], got {scale:g}")
+        if scaled_to is None:
+            raise ValueError(f"{scene} scaled by {scale:g}: nowhere to write the scaled mesh")
+        path = scaled_to
+    start = scene_start if start is None else start
     return ["--scene", str(path), "--scene-start", *(str(v) for v in start)]
+
+
+def write_scaled_scene(scene: str, scale: float, scaled_to: Path) -> None:
+    """The mesh of SCENE scaled by SCALE about its origin, written to SCALED_TO, where
+    scene_arguments pointed kinfly-sim."""
+    import trimesh  # only here: the unscaled scenes need no mesh library
+    scaled = trimesh.load(kinfly_eval.data_root() / DATA_SCENES[scene][0], process=False)
+    scaled.apply_scale(scale)
+    scaled.export(scaled_to)
 
 
 def sim_command(key: Path, out: Path, args: argparse.Namespace, scene: list[str]) -> list[str]:
@@ -323,16 +345,23 @@ def main() -> int:
                    help="where on the floor the drone stands instead of the scene's start "
                    "(kinfly-sim --scene-start: a built-in scene's frame is z down, its heading "
                    "from +x towards +y; a mesh's is z up, counter-clockwise) [m, m, deg]")
+    p.add_argument("--scene-scale", type=float, default=1.0,
+                   help="a mesh scene (office0) scaled by this about its origin: a larger room "
+                   "of the same shapes, written to <out>/scene_scaled.ply; needs --scene-start, "
+                   "in the scaled frame (default 1)")
     args = p.parse_args()
     if args.mission is None:
         args.mission = str(SCENE_MISSIONS[args.scene])
+    out = args.out
+    scaled_to = out / "scene_scaled.ply"
     try:
-        scene = scene_arguments(args.scene, args.scene_start)
+        scene = scene_arguments(args.scene, args.scene_start, args.scene_scale, scaled_to)
     except ValueError as error:
         print(f"sim: --scene: {error}", file=sys.stderr)
         return 2
-    out = args.out
     key = fresh_output(out)
+    if args.scene_scale != 1.0:
+        write_scaled_scene(args.scene, args.scene_scale, scaled_to)
     started = time.monotonic()
     problems: list[str] = []
     try:
@@ -385,8 +414,10 @@ def main() -> int:
     kills = 0 if ground is None else ground.kills
     killed = {KILLED_RECORDING.format(n): f"the recording of the ground station up to kill {n}"
               for n in range(1, kills + 1)}
+    scaled = ({"scene_scaled.ply": "the mesh scene scaled (--scene-scale), as kinfly-sim loaded "
+               "it"} if args.scene_scale != 1.0 else {})
     print(f"\nsim: {time.monotonic() - started:.0f} s; files in {out}:\n"
-          f"{list_outputs(out, {**OUTPUTS, **killed})}")
+          f"{list_outputs(out, {**OUTPUTS, **killed, **scaled})}")
     for loss in link.losses:
         print(f"sim: link loss, {loss}")
     if kills and ground is not None and ground.current is not None:

@@ -28,17 +28,27 @@ from kinfly_ground.outputs import ate, read_tum
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 MISSION = REPO_ROOT / "sim" / "missions" / "look_around.toml"
-# Where the two drones stand in the built-in room (its frame: z down, heading from +x towards
-# +y), facing away from each other: the two open spots of its floor furthest apart (4.66 m; its
-# ramps and steps leave no two 5 m apart with room to take off), each heading away from the other.
-STARTS = {1: (-2.2, 1.1, 149.0), 2: (1.8, -1.3, -31.0)}
+# Where the two drones stand, facing away from each other, per scene (sim.py --scene and
+# --scene-scale), and the scene's frame:
+# - the built-in room (z down, heading from +x towards +y): the two open spots of its floor
+#   furthest apart (4.66 m; its ramps and steps leave no two 5 m apart with room to take off);
+# - office0 scaled by 1.5 (a 6.6 x 7.5 m room of the scan's shapes; z up, heading
+#   counter-clockwise): 5.37 m apart, each 0.85-0.92 m from the nearest wall and at least
+#   0.8 m from anything between 0.15 and 2 m above the floor (the unscaled office has no two
+#   such spots further than 0.5 m apart, with 0.7 m at most 3.9 m).
+SCENES = {
+    "room": (1.0, {1: (-2.2, 1.1, 149.0), 2: (1.8, -1.3, -31.0)}),
+    "office0": (1.5, {1: (-0.1, -3.23, -114.1), 2: (2.09, 1.67, 65.9)}),
+}
 # The issue's bound on the relative pose error between the two drones' merged maps.
 MERGE_TOLERANCE_M = 0.02
 
 
-def fly(vehicle: int, start: tuple[float, float, float], out: Path, seed: int) -> int:
-    command = [sys.executable, str(REPO_ROOT / "scripts" / "sim.py"), "--scene", "room",
-               "--mission", str(MISSION), "--vehicle", str(vehicle), "--seed", str(seed),
+def fly(scene: str, vehicle: int, start: tuple[float, float, float], out: Path,
+        seed: int) -> int:
+    command = [sys.executable, str(REPO_ROOT / "scripts" / "sim.py"), "--scene", scene,
+               "--scene-scale", str(SCENES[scene][0]), "--mission", str(MISSION),
+               "--vehicle", str(vehicle), "--seed", str(seed),
                "--scene-start", *(str(v) for v in start), "--out", str(out)]
     print(f"two_drones: flying vehicle {vehicle} from {start}: {' '.join(command)}", flush=True)
     return subprocess.run(command).returncode
@@ -74,12 +84,18 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "sim_two")
     p.add_argument("--seed", type=int, default=1, help="the simulator's seed (default 1)")
+    p.add_argument("--scene", choices=list(SCENES), default="room",
+                   help="room (kinfly-sim's own) or office0 (Replica's scan from the shared "
+                   "data, scaled by 1.5: the office has no two open spots 5 m apart); default "
+                   "room")
     args = p.parse_args()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     problems = []
-    for vehicle, start in STARTS.items():
-        if fly(vehicle, start, out / f"flight_{vehicle}", args.seed + vehicle - 1) != 0:
+    starts = SCENES[args.scene][1]
+    for vehicle, start in starts.items():
+        if fly(args.scene, vehicle, start, out / f"flight_{vehicle}",
+               args.seed + vehicle - 1) != 0:
             problems.append(f"vehicle {vehicle}'s flight failed (above)")
         if not (out / f"flight_{vehicle}" / "flight.lcmlog").is_file():
             print(f"two_drones: FAILED: vehicle {vehicle}'s flight left no log", file=sys.stderr)
@@ -87,7 +103,7 @@ def main() -> int:
     # A flight that failed late (a collision at landing) still mapped: its map is merged and
     # scored, and the run fails at the end.
     together = out / "two_drones.lcmlog"
-    play_together([out / f"flight_{v}" / "flight.lcmlog" for v in STARTS], together)
+    play_together([out / f"flight_{v}" / "flight.lcmlog" for v in starts], together)
     ground = out / "ground"
     replay = subprocess.run([str(Path(sys.executable).parent / "kinfly-ground"), "replay",
                              str(together), "--out", str(ground)])
@@ -95,7 +111,7 @@ def main() -> int:
         print("two_drones: FAILED: the ground station's replay failed (above)", file=sys.stderr)
         return 1
     summary = json.loads((ground / "summary.json").read_text())
-    first, second = (summary["vehicles"].get(str(v)) for v in STARTS)
+    first, second = (summary["vehicles"].get(str(v)) for v in starts)
     if first is None or second is None:
         print("two_drones: FAILED: the ground station did not hear both vehicles",
               file=sys.stderr)
@@ -103,7 +119,7 @@ def main() -> int:
     keys = second["keyframes"]
     print(f"two_drones: {keys['merge_checks']} checks for a common place, {keys['merges']} "
           f"found, {keys['merges_refused']} not, {keys['merge_checks_failed']} failed")
-    if second["world"]["vehicle_id"] != min(STARTS):
+    if second["world"]["vehicle_id"] != min(starts):
         print("two_drones: FAILED: the two maps were not merged", *problems, sep="\n  - ",
               file=sys.stderr)
         return 1
@@ -114,8 +130,9 @@ def main() -> int:
     error_m = float(np.linalg.norm(error[:3, 3]))
     error_deg = math.degrees(rotation_angle_rad(error))
     figures = {"relative_pose_error_m": error_m, "relative_pose_error_deg": error_deg,
-               "tolerance_m": MERGE_TOLERANCE_M, "starts": STARTS,
-               "apart_m": math.dist(STARTS[1][:2], STARTS[2][:2])}
+               "tolerance_m": MERGE_TOLERANCE_M, "scene": args.scene,
+               "scene_scale": SCENES[args.scene][0], "starts": starts,
+               "apart_m": math.dist(starts[1][:2], starts[2][:2])}
     (out / "two_drones.json").write_text(json.dumps(figures, indent=2) + "\n")
     print(f"two_drones: merged; the relative pose error between the two maps "
           f"{100 * error_m:.2f} cm and {error_deg:.2f} deg (at most "

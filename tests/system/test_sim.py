@@ -6,6 +6,7 @@ tests."""
 from __future__ import annotations
 
 import json
+import math
 import re
 import signal
 import subprocess
@@ -13,14 +14,17 @@ import sys
 from pathlib import Path
 
 import lcm
+import numpy as np
 import pytest
+import trimesh
 from kinfly.ground_truth_t import ground_truth_t
 from netns import send_signal
 
 from conftest import REPO_ROOT, built
 from demo import Watched, make_key
 from firmware_run import control_summary, firmware, summary
-from sim import POSE_AGE_MS
+from sim import POSE_AGE_MS, scene_arguments, write_scaled_scene
+from two_drones import SCENES
 
 VEHICLE = 5
 LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
@@ -37,6 +41,8 @@ HEIGHT_TOL_M = 0.15
 # lockstep wait for the ground once it is gone (link.final_wait_s, 5 s), scoring the map.
 SIM_PY_TIMEOUT_S = 600.0
 SIM_PY_VEHICLE = 1  # scripts/demo.py's VEHICLE_ID
+# The issue's two drones start this far apart (issue 17, "several drones in one map").
+TWO_DRONES_APART_M = 5.0
 # A mission's start: armed after the estimator's still start, then a metre up.
 TAKE_OFF = """
 [[command]]
@@ -329,6 +335,40 @@ def test_a_mesh_scene_with_room_to_stand_is_taken(tmp_path: Path) -> None:
                           "--wait-s", "0.1"], capture_output=True, text=True, timeout=60)
     assert sim.returncode == 1, sim.stderr
     assert f"scene {mesh}" in sim.stdout and "control task never answered" in sim.stderr
+
+
+def test_the_two_drones_starts_in_the_scaled_office_are_taken(tmp_path: Path,
+                                                               replica_dir: Path) -> None:
+    """`make sim-two SIM_TWO_SCENE=office0`: the office scaled as two_drones.py asks sim.py to
+    (about its origin, the start in the scaled frame), and each drone's start there on its
+    floor, clear of everything, with room to take off (kinfly-sim's own checks)."""
+    scale, starts = SCENES["office0"]
+    scaled = tmp_path / "scene_scaled.ply"
+    assert scene_arguments("office0", list(starts[1]), scale, scaled)[:2] == ["--scene",
+                                                                            str(scaled)]
+    write_scaled_scene("office0", scale, scaled)
+    original = trimesh.load(replica_dir / "office0_mesh.ply", process=False)
+    np.testing.assert_allclose(trimesh.load(scaled, process=False).bounds,
+                               scale * original.bounds, rtol=1e-6)
+    key = keygen(tmp_path)
+    for vehicle, start in starts.items():
+        sim = subprocess.run([built("bin/kinfly-sim"), "--key-file", key, "--scene", scaled,
+                              "--scene-start", *map(str, start), "--lcm-url", "memq://",
+                              "--wait-s", "0.1"], capture_output=True, text=True, timeout=60)
+        assert sim.returncode == 1 and "control task never answered" in sim.stderr, (
+            f"vehicle {vehicle}: {sim.stderr}")
+    assert math.dist(starts[1][:2], starts[2][:2]) >= TWO_DRONES_APART_M
+
+
+@pytest.mark.parametrize(("scene", "start", "scale", "message"), [
+    ("room", None, 1.5, "only a mesh scene can be scaled"),
+    ("office0", None, 1.5, "needs --scene-start"),
+    ("office0", [0.0, 0.0, 0.0], 10.0, "--scene-scale must be in [0.5, 4], got 10"),
+])
+def test_a_scene_scaled_wrongly_is_refused(scene: str, start: list[float] | None, scale: float,
+                                           message: str, replica_dir: Path) -> None:
+    with pytest.raises(ValueError, match=re.escape(message)):
+        scene_arguments(scene, start, scale, Path("unused.ply"))
 
 
 @pytest.mark.parametrize(("name", "text"), [

@@ -11,6 +11,7 @@ import re
 import signal
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import lcm
@@ -24,7 +25,7 @@ from conftest import REPO_ROOT, built
 from demo import Watched, make_key
 from firmware_run import control_summary, firmware, summary
 from sim import POSE_AGE_MS, scene_arguments, write_scaled_scene
-from two_drones import SCENES
+from two_drones import LANDS_AT_S, SCENES, meeting_mission
 
 VEHICLE = 5
 LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
@@ -43,6 +44,7 @@ SIM_PY_TIMEOUT_S = 600.0
 SIM_PY_VEHICLE = 1  # scripts/demo.py's VEHICLE_ID
 # The issue's two drones start this far apart (issue 17, "several drones in one map").
 TWO_DRONES_APART_M = 5.0
+MISSION_DIGITS_M = 1e-3  # a mission's positions are written to the millimetre
 # A mission's start: armed after the estimator's still start, then a metre up.
 TAKE_OFF = """
 [[command]]
@@ -342,7 +344,7 @@ def test_the_two_drones_starts_in_the_scaled_office_are_taken(tmp_path: Path,
     """`make sim-two SIM_TWO_SCENE=office0`: the office scaled as two_drones.py asks sim.py to
     (about its origin, the start in the scaled frame), and each drone's start there on its
     floor, clear of everything, with room to take off (kinfly-sim's own checks)."""
-    scale, starts = SCENES["office0"]
+    scale, starts, approaches = SCENES["office0"]
     scaled = tmp_path / "scene_scaled.ply"
     assert scene_arguments("office0", list(starts[1]), scale, scaled)[:2] == ["--scene",
                                                                             str(scaled)]
@@ -352,9 +354,23 @@ def test_the_two_drones_starts_in_the_scaled_office_are_taken(tmp_path: Path,
                                scale * original.bounds, rtol=1e-6)
     key = keygen(tmp_path)
     for vehicle, start in starts.items():
+        # Its mission flies it towards the other drone: its approach point, from the drone's
+        # world (x its heading, y to its right) back into the scene's, lies on the way there.
+        other = starts[2 if vehicle == 1 else 1]
+        mission = meeting_mission(start, other, approaches[vehicle],
+                                  tmp_path / f"mission_{vehicle}.toml")
+        commands = tomllib.loads(mission.read_text())["command"]
+        x, y, _ = next(c for c in commands if c["at_s"] == LANDS_AT_S)["target_m"]
+        h = math.radians(start[2])
+        reached = (start[0] + x * math.cos(h) + y * math.sin(h),
+                   start[1] + x * math.sin(h) - y * math.cos(h))
+        towards = np.subtract(other[:2], start[:2]) / math.dist(other[:2], start[:2])
+        np.testing.assert_allclose(reached, start[:2] + approaches[vehicle] * towards,
+                                   atol=MISSION_DIGITS_M)
         sim = subprocess.run([built("bin/kinfly-sim"), "--key-file", key, "--scene", scaled,
-                              "--scene-start", *map(str, start), "--lcm-url", "memq://",
-                              "--wait-s", "0.1"], capture_output=True, text=True, timeout=60)
+                              "--scene-start", *map(str, start), "--mission", mission,
+                              "--lcm-url", "memq://", "--wait-s", "0.1"],
+                             capture_output=True, text=True, timeout=60)
         assert sim.returncode == 1 and "control task never answered" in sim.stderr, (
             f"vehicle {vehicle}: {sim.stderr}")
     assert math.dist(starts[1][:2], starts[2][:2]) >= TWO_DRONES_APART_M

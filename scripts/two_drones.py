@@ -3,7 +3,9 @@
 
 Each drone is flown by scripts/sim.py through the real programs (kinfly-sim, kinfly-fw and a
 kinfly-ground of its own), one after the other, from its own start: the two far apart and facing
-away from each other, each then turning on the spot a full turn (sim/missions/look_around.toml).
+away from each other, each then turning on the spot a full turn (sim/missions/look_around.toml);
+in the office (--scene office0, Replica's scan scaled by 1.5) each then flies some way towards
+the other and turns again there (meeting_mission, written beside the outputs).
 Their two flight logs are then played together, as if flown at once (each event at its time since
 its own log's start), into one kinfly-ground serving every vehicle, which looks for a place the
 two maps share and, once found, puts both in the first drone's world. The figure: the relative
@@ -43,7 +45,8 @@ MISSION = REPO_ROOT / "sim" / "missions" / "look_around.toml"
 # furniture hides the middle of the room, two maps made turning on the spot 5.37 m apart shared
 # 1-3 % of their surface (measured against the truth), where recognition needs a good share:
 # so after its turn each drone flies this far towards the other, as far as the floor is clear
-# by 0.8 m at flying height (a desk stands between them), and turns there again.
+# by 0.8 m at flying height (a desk stands between them), and turns there again (mesh scenes
+# only: meeting_mission takes the starts as a mesh's, z up).
 SCENES = {
     "room": (1.0, {1: (-2.2, 1.1, 149.0), 2: (1.8, -1.3, -31.0)}, {1: 0.0, 2: 0.0}),
     "office0": (1.5, {1: (-0.1, -3.23, 180.0), 2: (2.09, 1.67, 65.9)}, {1: 1.35, 2: 0.8}),
@@ -69,11 +72,13 @@ def meeting_mission(start: tuple[float, float, float], other: tuple[float, float
     bearing = math.atan2(other[1] - start[1], other[0] - start[0]) - math.radians(start[2])
     target = (approach_m * math.cos(bearing), -approach_m * math.sin(bearing), -HEIGHT_M)
     yaw = -math.degrees(bearing)
-    text = MISSION.read_text().replace('name = "look around"', 'name = "look around, meet"')
-    text = text.replace("max_s = 45", f"max_s = {LANDS_AT_S + APPROACH_S + 4 * TURN_S + 15:g}")
+    text = MISSION.read_text()
     land = f"at_s = {LANDS_AT_S}\nkind = \"land\""
-    assert land in text, f"{MISSION} no longer lands at {LANDS_AT_S} s"
-    # The approach, then the full turn there a quarter at a time (headings within (-180, 180]:
+    for expected in ('name = "look around"', "max_s = 45", land):
+        assert expected in text, f"{MISSION} no longer says {expected!r}: update two_drones.py"
+    text = text.replace('name = "look around"', 'name = "look around, meet"')
+    text = text.replace("max_s = 45", f"max_s = {LANDS_AT_S + APPROACH_S + 4 * TURN_S + 15:g}")
+    # The approach, then the full turn there a quarter at a time (headings within [-180, 180):
     # the attitude loop turns the shorter way).
     steps = "".join(
         f"at_s = {at_s:g}\nkind = \"go_to\"\n"
@@ -136,6 +141,7 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     problems = []
     _, starts, approaches = SCENES[args.scene]
+    assert args.scene != "room" or not any(approaches.values()), "a mesh scene's convention"
     for vehicle, start in starts.items():
         other = next(s for v, s in starts.items() if v != vehicle)
         mission = meeting_mission(start, other, approaches[vehicle],

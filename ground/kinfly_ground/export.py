@@ -86,9 +86,11 @@ def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
         segment, finished = state.segment, list(state.finished_segments)
 
     def world(number: int) -> dict[str, Any]:
-        # The world the map of its NUMBERth odometry frame is in: its own, or the vehicle's
-        # it was merged with (merge.py); T_world_map places its own optimised world there.
-        return {"vehicle_id": worlds.world_of((state.vehicle_id, number))[0],
+        # The world the map of its NUMBERth odometry frame is in: its own, or that of the map
+        # it was merged with (merge.py), a vehicle's map of one of its odometry frames (0: its
+        # first); T_world_map places its own optimised world there.
+        vehicle_id, segment = worlds.world_of((state.vehicle_id, number))
+        return {"vehicle_id": vehicle_id, "segment": segment,
                 "T_world_map": worlds.T_world_map((state.vehicle_id, number)).tolist()}
 
     summary: dict[str, Any] = {
@@ -199,20 +201,22 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
 def _export_shared_maps(vehicles: dict[str, Any], meshes: dict[int, Mesh],
                         out: Path) -> list[dict[str, Any]]:
     """Each world that several vehicles' current maps share (merge.py), as one mesh in
-    shared_<its vehicle>/mesh.ply: their meshes are in that world already."""
-    groups: dict[int, list[int]] = {}
+    shared_<its vehicle>/mesh.ply (shared_<vehicle>_<segment> where the world is that of a
+    vehicle's later odometry frame): their meshes are in that world already."""
+    groups: dict[tuple[int, int], list[int]] = {}
     for vid, v in vehicles.items():
         if int(vid) in meshes:
-            groups.setdefault(v["world"]["vehicle_id"], []).append(int(vid))
+            groups.setdefault((v["world"]["vehicle_id"], v["world"]["segment"]),
+                              []).append(int(vid))
     shared = []
-    for world, members in sorted(groups.items()):
+    for (world, segment), members in sorted(groups.items()):
         if len(members) < 2:
             continue
         mesh = joined_meshes([meshes[vid] for vid in members])
-        path = out / f"shared_{world}" / "mesh.ply"
+        path = out / f"shared_{world}{f'_{segment}' if segment else ''}" / "mesh.ply"
         triangles = write_atomically(path, lambda tmp: write_ply(str(tmp), *mesh))
-        shared.append({"world": world, "vehicles": members, "mesh": str(path),
-                       "mesh_triangles": triangles})
+        shared.append({"world": world, "segment": segment, "vehicles": members,
+                       "mesh": str(path), "mesh_triangles": triangles})
     return shared
 
 
@@ -254,12 +258,14 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
                   f"{verdicts[3]} checks failed"
                   + (f", {unchecked} not checked before the end" if unchecked else ""))
         if k["merge_checks"] or k["merges"]:
-            shared = v["world"]["vehicle_id"]
+            world = (v["world"]["vehicle_id"], v["world"]["segment"])
+            own = (int(vid), len(v["earlier_segments"]))
             print(f"    {k['merge_checks']} checks for a common place with another vehicle's "
                   f"map: {k['merges']} found, {k['merges_refused']} not, "
                   f"{k['merge_checks_failed']} failed; "
-                  + (f"its map is in vehicle {shared}'s world" if shared != int(vid)
-                     else "its map is in its own world"))
+                  + ("its map is in its own world" if world == own else
+                     f"its map is in vehicle {world[0]}'s world"
+                     + (f" (its odometry frame {world[1]})" if world[1] else "")))
         a = v["ate"]
         if a["available"]:
             parts = [f"{n} {a[n]['rmse_m'] * 100:.2f} cm ({a[n]['matched_poses']} poses)"
@@ -270,7 +276,9 @@ def print_summary(summary: dict[str, Any], out: Path, rrd: Path | None) -> None:
         print(f"    files: {', '.join(str(Path(v['directory']) / f) for f in v['files'].values())}")
     for shared in summary.get("shared_maps", []):
         print(f"  one map of vehicles {', '.join(map(str, shared['vehicles']))} in vehicle "
-              f"{shared['world']}'s world: {shared['mesh']}")
+              f"{shared['world']}'s world"
+              + (f" (its odometry frame {shared['segment']})" if shared["segment"] else "")
+              + f": {shared['mesh']}")
     m = summary["memory"]
     after = summary.get("memory_after_fusion")
     print(f"  memory: {after['rss_mb']:.0f} MB resident after fusing, " if after else "  memory: ",

@@ -127,7 +127,8 @@ class StationParams:
             (self.final_loops_timeout_s > 0, "final loops timeout must be > 0 s"),
             (self.merge_interval_s > 0, "merge interval must be > 0 s"),
             (0 <= self.merge_min_growth <= 10, "merge min growth must be in [0, 10]"),
-            (self.merge_max_interval_s >= self.merge_interval_s,
+            (self.merge_max_interval_s >= self.merge_interval_s
+             or math.isinf(self.merge_interval_s),  # never checked: the rule says nothing
              "merge max interval must be >= the merge interval"),
             (1 <= self.merge_min_keyframes <= 10000, "merge min keyframes must be in [1, 10000]"),
             (1 <= self.merge_view_block <= 64, "merge view block must be in [1, 64] pixels"),

@@ -1,11 +1,13 @@
-// The synthetic camera's clock (sources/synthetic_source.h): frame 0 is stamped when it is
+// The synthetic camera's clock (sources/synthetic_source.h): frame 0 is stamped once it is
 // rendered, not when the source was opened, and a frame whose successor is already due is
 // dropped as a camera's would be, so that a late host never sees stamps more than a frame old.
 // A hand-driven clock stands in for the wall clock.
 #include <gtest/gtest.h>
 
 #include <cstdint>
+#include <memory>
 #include <string>
+#include <utility>
 
 #include "kinfly/sources/synthetic_source.h"
 
@@ -17,7 +19,7 @@ constexpr int64_t kPeriodUs = 100'000;
 constexpr int64_t kOpenedUs = 5'000'000;  // the clock when the source is opened
 constexpr int64_t kStartUs = 5'300'000;   // ... and at the first frame, after a slow start
 
-std::unique_ptr<DepthSource> opened(int64_t* now, bool drop_late) {
+StatusOr<std::unique_ptr<DepthSource>> opened(int64_t* now, bool drop_late) {
   SyntheticSourceParams params;
   params.width_px = 32;
   params.height_px = 24;
@@ -25,14 +27,14 @@ std::unique_ptr<DepthSource> opened(int64_t* now, bool drop_late) {
   params.motion = "still";
   params.clock = [now] { return *now; };
   params.drop_late = drop_late;
-  auto source = openSyntheticSource(params);
-  EXPECT_TRUE(source.ok()) << source.status().message();
-  return *std::move(source);
+  return openSyntheticSource(params);
 }
 
 TEST(SyntheticSource, StampsFromTheFirstFrameAndDropsWhatTheHostWasTooLateFor) {
   int64_t now = kOpenedUs;
-  const auto source = opened(&now, true);
+  auto opening = opened(&now, true);
+  ASSERT_TRUE(opening.ok()) << opening.status().message();
+  const std::unique_ptr<DepthSource> source = *std::move(opening);
   DepthCapture capture;
   std::string why;
   now = kStartUs;
@@ -55,7 +57,9 @@ TEST(SyntheticSource, StampsFromTheFirstFrameAndDropsWhatTheHostWasTooLateFor) {
 
 TEST(SyntheticSource, WithoutDroppingEveryFrameComesOnItsSchedule) {
   int64_t now = kOpenedUs;
-  const auto source = opened(&now, false);
+  auto opening = opened(&now, false);
+  ASSERT_TRUE(opening.ok()) << opening.status().message();
+  const std::unique_ptr<DepthSource> source = *std::move(opening);
   DepthCapture capture;
   std::string why;
   for (int frame = 0; frame < 4; ++frame) {

@@ -641,11 +641,12 @@ def test_two_vehicles_maps_merge_and_their_corrections_follow_into_one_world(
     summary = export(rig.station, tmp_path, "replay", time.monotonic(), None, {})
     for vehicle in (VEHICLE, OTHER_VEHICLE):
         world = summary["vehicles"][str(vehicle)]["world"]
-        assert world["vehicle_id"] == VEHICLE
+        assert (world["vehicle_id"], world["segment"]) == (VEHICLE, 0)
     np.testing.assert_allclose(summary["vehicles"][str(OTHER_VEHICLE)]["world"]["T_world_map"], W)
     # One mesh of both maps in the shared world, beside each vehicle's own.
     shared, = summary["shared_maps"]
-    assert shared["world"] == VEHICLE and shared["vehicles"] == [VEHICLE, OTHER_VEHICLE]
+    assert (shared["world"], shared["segment"]) == (VEHICLE, 0)
+    assert shared["vehicles"] == [VEHICLE, OTHER_VEHICLE]
     assert Path(shared["mesh"]) == tmp_path / f"shared_{VEHICLE}" / "mesh.ply"
     joined = trimesh.load(shared["mesh"], process=False)
     own = [trimesh.load(Path(summary["vehicles"][str(v)]["directory"]) / "mesh.ply",
@@ -707,6 +708,7 @@ def test_a_pair_of_maps_is_checked_again_only_once_a_map_grew_or_long_after() ->
     assert due(10.0, 1000, 500)
     assert "merge max interval" in StationParams(merge_interval_s=10.0,
                                                  merge_max_interval_s=5.0).validate()
+    assert StationParams(merge_interval_s=math.inf).validate() == ""  # never: nothing to bound
 
 
 def test_vehicles_beyond_the_limit_are_counted(sample) -> None:

@@ -293,7 +293,8 @@ def test_drone_restart_and_malformed_traffic(tmp_path: Path, netns: list[str]) -
     assert (out / earlier["directory"] / "mesh.ply").exists()
     # Served alone, each map stays in its own world.
     identity = [[float(i == j) for j in range(4)] for i in range(4)]
-    assert earlier["world"] == vehicle["world"] == {"vehicle_id": 1, "T_world_map": identity}
+    assert earlier["world"] == {"vehicle_id": 1, "segment": 0, "T_world_map": identity}
+    assert vehicle["world"] == {"vehicle_id": 1, "segment": 1, "T_world_map": identity}
     # Each map holds its own flight's keyframes, as many as that run of the drone sent (the two
     # runs may select different ones: a loaded machine makes the odometry skip frames).
     onboard_now = (out / "trajectory_onboard.tum").read_text().splitlines()

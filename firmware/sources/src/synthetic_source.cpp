@@ -36,11 +36,9 @@ class SyntheticSource : public DepthSource {
   }
 
   SourceStatus next(DepthCapture* out, std::string* why) override {
-    if (params_.clock) {
-      if (frames_ == 0) {
-        first_utime_ = params_.clock();
-      } else if (const int64_t now = params_.clock();
-                 params_.drop_late && now >= frameUtime(frames_ + 1)) {
+    if (params_.clock && frames_ > 0) {
+      if (const int64_t now = params_.clock();
+          params_.drop_late && now >= frameUtime(frames_ + 1)) {
         // So that on a busy machine the stamps never fall further behind the clock than a
         // frame: a pose that old would be fused late, or not at all.
         *why = "synthetic: frame " + std::to_string(frames_) + " dropped, " +
@@ -56,6 +54,10 @@ class SyntheticSource : public DepthSource {
       out->depth = Image<uint16_t>(camera_.width, camera_.height);
     scene_.renderRawDepth(camera_, T_world_cam, kMaxDepthM, kDepthScaleM, &rng_,
                           out->depth.view());
+    // After the render, where the capture's pacing starts too: were it read before, a slow
+    // first render would leave every frame that much later than its stamp, and from two
+    // periods on every other frame would be dropped for good.
+    if (params_.clock && frames_ == 0) first_utime_ = params_.clock();
     out->utime = frameUtime(frames_);
     out->has_ground_truth = true;
     out->T_world_cam_truth = T_first_world_ * T_world_cam;

@@ -22,9 +22,9 @@ struct SyntheticSourceParams {
   // source.motion: swing (the hovering drone's swing and bob) | still (at rest where the swing
   // starts: a drone on the floor, for bench tests with an IMU at rest)
   std::string motion = "swing";
-  // [us] Read when frame 0 is rendered, it is that frame's capture time (kinfly-fw: the wall
-  // clock); none: 0. Read at the first frame, not at the opening, so that however long the
-  // program takes to start, a frame is delivered as soon after its stamp as it is rendered.
+  // [us] Read once frame 0 is rendered, it is that frame's capture time (kinfly-fw: the wall
+  // clock); none: 0. Read then, not at the opening, so that however long the program takes to
+  // start, a frame paced to its stamp is delivered on it.
   std::function<int64_t()> clock;
   // With a clock: a frame whose successor is already due by it is dropped (kSkipped), as a
   // camera's would be on a host that is late (kinfly-fw: when paced at the rate of its stamps).

@@ -47,16 +47,15 @@ def _ate_summary(segment: Segment, truth: list | None, out: Path) -> dict[str, A
     return summary
 
 
-def _export_segment(segment: Segment, out: Path, truth: list | None,
-                    meshes: list[Mesh] | None = None) -> dict[str, Any]:
-    """Writes the segment's files; its mesh is appended to MESHES too, where given."""
+def _export_segment(segment: Segment, out: Path,
+                    truth: list | None) -> tuple[dict[str, Any], Mesh | None]:
+    """Writes the segment's files: their summary, and the mesh written (None without a map)."""
     files: dict[str, str] = {}
     result: dict[str, Any] = {"files": files, "corrected_poses": len(segment.corrected)}
     chain = segment.chain
+    mesh = None
     if chain is not None:
         mesh = segment.final_mesh or chain.mesh()
-        if meshes is not None:
-            meshes.append(mesh)
         result["mesh_triangles"] = write_atomically(out / "mesh.ply",
                                                     lambda tmp: write_ply(str(tmp), *mesh))
         files["mesh"] = "mesh.ply"
@@ -75,13 +74,13 @@ def _export_segment(segment: Segment, out: Path, truth: list | None,
     result["ate"] = _ate_summary(segment, truth, out)
     if result["ate"]["available"]:
         files["ate_plot"] = "ate.png"
-    return result
+    return result, mesh
 
 
 def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
-                     truth: list | None, worlds: SharedWorlds,
-                     meshes: list[Mesh]) -> dict[str, Any]:
-    """The vehicle's summary, its files written; its current map's mesh appended to MESHES."""
+                     truth: list | None,
+                     worlds: SharedWorlds) -> tuple[dict[str, Any], Mesh | None]:
+    """The vehicle's summary, its files written, and its current map's mesh."""
     with state.lock:
         segment, finished = state.segment, list(state.finished_segments)
 
@@ -106,11 +105,12 @@ def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
         # one and the mesh are in this one.
         "world": world(len(finished)),
     }
-    summary.update(_export_segment(segment, out, truth, meshes))
+    files, mesh = _export_segment(segment, out, truth)
+    summary.update(files)
     # Earlier odometry frames (before a drone restart), each complete on its own.
     summary["earlier_segments"] = [
         {"directory": f"segments/{i}", "world": world(i - 1),
-         **_export_segment(s, out / "segments" / str(i), None)}
+         **_export_segment(s, out / "segments" / str(i), None)[0]}
         for i, s in enumerate(finished, 1)]
     if link is not None:
         summary["link"] = link_summary(link)
@@ -126,7 +126,7 @@ def _vehicle_summary(state: VehicleState, link: LinkQuality | None, out: Path,
             "chunks_sent": d.chunks_sent, "chunks_resent": d.chunks_resent,
             "corrections_accepted": d.corrections_accepted,
             "rejected_wrong_key": d.rejected_wrong_key, "rejected_bad_mac": d.rejected_bad_mac}
-    return summary
+    return summary, mesh
 
 
 def link_summary(link: LinkQuality) -> dict[str, Any]:
@@ -176,12 +176,10 @@ def export(station: Station, out: Path, mode: str, started: float, truth: list |
     for vid, state in sorted(list(station.vehicles.items())):
         where = out if station.vehicle_id is not None else out / f"vehicle_{vid}"
         link = station.receiver.link_quality(vid)
-        mesh: list[Mesh] = []
-        vehicles[str(vid)] = {"directory": str(where),
-                              **_vehicle_summary(state, link, where, truth,
-                                                 station.mapper.worlds, mesh)}
-        if mesh:
-            meshes[vid] = mesh[0]
+        vehicle, mesh = _vehicle_summary(state, link, where, truth, station.mapper.worlds)
+        vehicles[str(vid)] = {"directory": str(where), **vehicle}
+        if mesh is not None:
+            meshes[vid] = mesh
     received = station.receiver.rejects  # what the ground can reject (the rest are the drone's)
     rejects = {"malformed": received.malformed, "unknown_channel": received.unknown_channel,
                "wrong_vehicle": received.wrong_vehicle}

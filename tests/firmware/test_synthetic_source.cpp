@@ -19,7 +19,8 @@ constexpr int64_t kPeriodUs = 100'000;
 constexpr int64_t kOpenedUs = 5'000'000;  // the clock when the source is opened
 constexpr int64_t kStartUs = 5'300'000;   // ... and at the first frame, after a slow start
 
-StatusOr<std::unique_ptr<DepthSource>> opened(int64_t* now, bool drop_late) {
+// The source on the clock NOW; null (the test failed) where it does not open.
+std::unique_ptr<DepthSource> opened(int64_t* now, bool drop_late) {
   SyntheticSourceParams params;
   params.width_px = 32;
   params.height_px = 24;
@@ -27,14 +28,18 @@ StatusOr<std::unique_ptr<DepthSource>> opened(int64_t* now, bool drop_late) {
   params.motion = "still";
   params.clock = [now] { return *now; };
   params.drop_late = drop_late;
-  return openSyntheticSource(params);
+  StatusOr<std::unique_ptr<DepthSource>> source = openSyntheticSource(params);
+  if (!source.ok()) {
+    ADD_FAILURE() << source.status().message();
+    return nullptr;
+  }
+  return *std::move(source);
 }
 
 TEST(SyntheticSource, StampsFromTheFirstFrameAndDropsWhatTheHostWasTooLateFor) {
   int64_t now = kOpenedUs;
-  auto opening = opened(&now, true);
-  ASSERT_TRUE(opening.ok()) << opening.status().message();
-  const std::unique_ptr<DepthSource> source = *std::move(opening);
+  const std::unique_ptr<DepthSource> source = opened(&now, true);
+  ASSERT_NE(source, nullptr);
   DepthCapture capture;
   std::string why;
   now = kStartUs;
@@ -57,9 +62,8 @@ TEST(SyntheticSource, StampsFromTheFirstFrameAndDropsWhatTheHostWasTooLateFor) {
 
 TEST(SyntheticSource, WithoutDroppingEveryFrameComesOnItsSchedule) {
   int64_t now = kOpenedUs;
-  auto opening = opened(&now, false);
-  ASSERT_TRUE(opening.ok()) << opening.status().message();
-  const std::unique_ptr<DepthSource> source = *std::move(opening);
+  const std::unique_ptr<DepthSource> source = opened(&now, false);
+  ASSERT_NE(source, nullptr);
   DepthCapture capture;
   std::string why;
   for (int frame = 0; frame < 4; ++frame) {

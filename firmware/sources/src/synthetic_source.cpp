@@ -36,11 +36,10 @@ class SyntheticSource : public DepthSource {
   }
 
   SourceStatus next(DepthCapture* out, std::string* why) override {
-    if (params_.clock && frames_ > 0) {
-      if (const int64_t now = params_.clock();
-          params_.drop_late && now >= frameUtime(frames_ + 1)) {
-        // So that on a busy machine the stamps never fall further behind the clock than a
-        // frame: a pose that old would be fused late, or not at all.
+    if (params_.drop_late && params_.clock && frames_ > 0) {
+      // So that on a busy machine the stamps never fall further behind the clock than a
+      // frame: a pose that old would be fused late, or not at all.
+      if (const int64_t now = params_.clock(); now >= frameUtime(frames_ + 1)) {
         *why = "synthetic: frame " + std::to_string(frames_) + " dropped, " +
                std::to_string((now - frameUtime(frames_)) / 1000) +
                " ms late (rendering slower than source.rate_hz)";

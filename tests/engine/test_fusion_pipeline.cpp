@@ -1,6 +1,6 @@
 // FusionPipeline end to end on a synthetic sequence with Kinect noise: tracks the known
-// trajectory, survives an empty frame, respects given poses, and along a wall, where only a motion
-// prior can, follows it where the scene leaves the pose weak.
+// trajectory, survives an empty frame, respects given poses, along a wall, where only a motion
+// prior can, follows it where the scene leaves the pose weak, and tracks a scene 3.6 m off.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -560,6 +560,76 @@ TEST_F(PipelineFixture, AfterEveryTryFailsANewMapBeginsAtThePriorAndTracks) {
     EXPECT_EQ(began_at, kFailed - 1);
     EXPECT_LE(began_at, kMaxRecoveryFrames);
   }
+}
+
+
+// Far range (issue 17: "frames declared lost on a sequence whose mean depth is 3.5 m: 0"). The
+// far end of a hall, 3.3-3.9 m off (mean depth 3.6 m): floor, end wall, crates, a ball, with the
+// sensor's noise drawn anew for every pixel (sigma 2 cm at 3.6 m, three pixels' spacing there).
+// The camera drifts sideways, up and forwards 1.1 cm and turns 0.5 degrees a frame.
+constexpr int kFarFrames = 40;
+// Each frame is matched against a map whose every normal is a difference of such noise over one
+// 1 cm voxel, and the end wall fixes a turn about the vertical only together with a step
+// sideways (both move the far scene alike): the two drift together, by 2 cm and 1.1 degrees in
+// the first 30 frames, then hold. 3 cm (the design's ATE budget) and 2 degrees; a frame lost and
+// not fused, or tracked to a wrong surface, is off by more (with the fixed gate, 44 cm).
+constexpr double kFarPoseTolM = 0.03;
+constexpr double kFarPoseTolDeg = 2.0;
+
+SyntheticScene farHall() {
+  SyntheticScene scene;
+  scene.addPlane(Eigen::Vector3f(0.f, -1.f, 0.f), -1.5f);  // the floor 1.5 m below (y down)
+  scene.addPlane(Eigen::Vector3f(0.f, 0.f, -1.f), -3.9f);  // the end wall
+  scene.addBox(Eigen::Vector3f(-1.0f, 1.0f, 3.0f), Eigen::Vector3f(0.4f, 0.5f, 0.3f));
+  scene.addBox(Eigen::Vector3f(0.9f, 0.7f, 3.3f), Eigen::Vector3f(0.3f, 0.8f, 0.3f));
+  scene.addBox(Eigen::Vector3f(0.0f, -0.6f, 3.7f), Eigen::Vector3f(0.6f, 0.3f, 0.2f));
+  scene.addSphere(Eigen::Vector3f(-0.3f, 0.6f, 2.8f), 0.35f);
+  return scene;
+}
+
+// Flies the far hall; returns the frames lost, and fails on a pose off by more than the bounds
+// where `check_poses`.
+int flyTheFarHall(const FusionPipeline::Params& params, bool check_poses) {
+  const PinholeCamera camera = test::tumCamera();
+  const SyntheticScene scene = farHall();
+  HashedVolume volume(HashedVolume::Params{});
+  FusionPipeline pipeline(camera, params, &volume);
+  Image<uint16_t> raw(camera.width, camera.height);
+  const Eigen::Vector3d axis = Eigen::Vector3d(0.1, 1.0, 0.05).normalized();
+  int lost = 0;
+  for (int k = 0; k < kFarFrames; ++k) {
+    const Pose truth = test::makePose(axis * test::degToRad(0.5 * k),
+                                      Eigen::Vector3d(0.01, 0.002, 0.005) * k);
+    std::mt19937 rng(5000 + static_cast<uint32_t>(k));
+    scene.renderRawDepth(camera, truth, test::kRenderMaxDepthM, test::kTumDepthScale, &rng, raw);
+    if (k == 0) {
+      double sum_m = 0.0;
+      int n = 0;
+      for (int y = 0; y < camera.height; ++y)
+        for (int x = 0; x < camera.width; ++x)
+          if (raw(x, y) > 0) sum_m += raw(x, y) * test::kTumDepthScale, ++n;
+      EXPECT_NEAR(sum_m / n, 3.6, 0.1) << "the scene is no longer seen from 3.5 m";
+    }
+    const FrameResult r = pipeline.processFrame(raw, 1'000'000 + 33'333 * k);
+    if (r.status == TrackingStatus::kLost) ++lost;
+    if (!check_poses) continue;
+    EXPECT_NE(r.status, TrackingStatus::kLost) << "frame " << k << ": " << r.lost_reason;
+    EXPECT_LT(test::translationErrorM(r.T_world_cam, truth), kFarPoseTolM) << "frame " << k;
+    EXPECT_LT(test::radToDeg(test::rotationErrorRad(r.T_world_cam, truth)), kFarPoseTolDeg)
+        << "frame " << k;
+    if (k == kFarFrames - 1)
+      std::printf("[pipeline] far hall: %d of %d frames lost, last pose %.1f mm off\n", lost,
+                  kFarFrames, 1000.0 * test::translationErrorM(r.T_world_cam, truth));
+  }
+  return lost;
+}
+
+TEST(PipelineFar, AHallSeenFromThreeAndAHalfMetresIsTrackedEveryFrame) {
+  EXPECT_EQ(flyTheFarHall(FusionPipeline::Params(), true), 0);
+  // The fixed 20 degree gate alone refuses most correct pairs there, and the frames are lost.
+  FusionPipeline::Params fixed_gate;
+  fixed_gate.icp.normal_gate_sigmas = 0.f;
+  EXPECT_GT(flyTheFarHall(fixed_gate, false), kFarFrames / 2);
 }
 
 }  // namespace

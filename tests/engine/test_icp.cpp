@@ -426,7 +426,15 @@ IcpSystem referenceSystem(const DepthFrame& current, const ModelMaps& model, int
       if (!isValid(q) || !isValid(nq)) continue;
       ++s.matched;
       const Eigen::Vector3f d = p - q;
-      if (d.squaredNorm() > gate_m * gate_m || (R * n).dot(nq) < cos_gate) continue;
+      if (d.squaredNorm() > gate_m * gate_m) continue;
+      // The angle gate widened by the sensor's noise over the model normals' spacing.
+      const float cos_n = (R * n).dot(nq);
+      const float tan_w = model.normal_spacing_m > 0.f
+                              ? params.normal_gate_sigmas / model.normal_spacing_m *
+                                    kinectNoiseSigmaM(v.z())
+                              : 0.f;
+      if (cos_n < cos_gate && !(cos_n > 0.f && cos_n * cos_n * (1.f + tan_w * tan_w) >= 1.f))
+        continue;
       if (params.facing) {
         const Eigen::Vector3f u = params.facing->direction.normalized().cast<float>();
         const float cos_sq = static_cast<float>(params.facing->cosine * params.facing->cosine);
@@ -469,6 +477,22 @@ TEST_F(IcpFixture, SystemMatchesPerPixelReference) {
     // Jacobian on even 1% of the pairs moves the sums by ~1e-2.
     constexpr double kRelSumTol = 1e-6;
     expectSystemsNear(fast, ref, kRelSumTol, c.level);
+  }
+  // A raycast model's normals are the TSDF's gradient over one voxel: the angle gate widens with
+  // the sensor's noise over it. Twice the default noise sigmas reach past 20 degrees from 1.5 m,
+  // where the corner room's walls and ball are.
+  model.normal_spacing_m = 0.01f;
+  for (int level = 0; level < kPyramidLevels; ++level) {
+    IcpTracker::SystemParams widened = IcpTracker(IcpTracker::Params()).systemParams();
+    widened.normal_gate_sigmas = 2.f;
+    const IcpSystem fast = IcpTracker::buildSystem(current, model, level, R, t, widened);
+    const IcpSystem ref = referenceSystem(current, model, level, R, t, widened);
+    widened.normal_gate_sigmas = 0.f;
+    const IcpSystem fixed = IcpTracker::buildSystem(current, model, level, R, t, widened);
+    EXPECT_GT(fast.inliers, fixed.inliers) << "level " << level << ": the gate did not widen";
+    EXPECT_EQ(fast.inliers, ref.inliers) << "level " << level;
+    constexpr double kRelSumTol = 1e-6;
+    expectSystemsNear(fast, ref, kRelSumTol, level);
   }
 }
 

@@ -253,6 +253,7 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
   const int tile = params_.range_tile_px;
   ImageView<Eigen::Vector3f> vmap = maps->vertex_ref[0].view();
   ImageView<Eigen::Vector3f> nmap = maps->normal_ref[0].view();
+  maps->normal_spacing_m = volume.voxelSizeM();
   const int hits = sumDynamic(camera_.height, 4, [&](int y) {
     VoxelReader reader(volume);
     int row_hits = 0;

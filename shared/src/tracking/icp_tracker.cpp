@@ -47,6 +47,7 @@ Status IcpTracker::Params::validate() const {
   if (!(max_rmse_m > 0.f)) why << "max_rmse_m must be > 0; ";
   if (!(max_rmse_sigmas >= 0.f)) why << "max_rmse_sigmas must be >= 0; ";
   if (!(huber_sigmas >= 0.f)) why << "huber_sigmas must be >= 0; ";
+  if (!(normal_gate_sigmas >= 0.f)) why << "normal_gate_sigmas must be >= 0; ";
   if (!(convergence_epsilon >= 0.0)) why << "convergence_epsilon must be >= 0; ";
   return why.str().empty() ? Status() : Status::error(why.str());
 }
@@ -57,6 +58,7 @@ IcpTracker::SystemParams IcpTracker::systemParams() const {
   SystemParams system;
   system.distance_gate_m = params_.distance_gate_m;
   system.cos_angle_gate = std::cos(params_.normal_angle_gate_rad);
+  system.normal_gate_sigmas = params_.normal_gate_sigmas;
   system.noise_weighting = params_.noise_weighting;
   system.huber_sigmas = params_.huber_sigmas;
   system.parallel = true;
@@ -109,6 +111,8 @@ struct Association {
   int width, height;
   float gate_sq;  // [m^2]
   float cos_gate;
+  // The widened gate's tangent per metre of sensor noise sigma (0: the fixed gate alone).
+  float tan_gate_per_sigma;
   bool noise_weighting;
   float huber_k;  // Huber threshold in noise sigmas; infinite when the robust weight is off
   // SystemParams::facing: the unit direction, and the squared cosine a normal must reach.
@@ -154,7 +158,14 @@ inline Ints pointToPlane(const Vec3s& p, Floats z_cur, const Vec3s& n_cur, const
                          const Vec3s& nq, Ints found, const Association& a, Floats row[kColumns]) {
   const Vec3s d{p.x - q.x, p.y - q.y, p.z - q.z};
   const Vec3s n_ref = rotate(a.R, n_cur);
-  Ints inlier = found & ~(dot(d, d) > a.gate_sq) & ~(dot(n_ref, nq) < a.cos_gate);
+  const Floats sigma = lanes::lanewise(kinectNoiseSigmaM, z_cur);
+  // The widened gate: cos >= 1 / sqrt(1 + tan^2), squared to spare the root. The fixed gate is
+  // its floor, so the wider of the two decides.
+  const Floats cos_n = dot(n_ref, nq);
+  const Floats tan_w = a.tan_gate_per_sigma * sigma;
+  const Ints within_angle =
+      ~(cos_n < a.cos_gate) | ((cos_n > 0.f) & ~(cos_n * cos_n * (1.f + tan_w * tan_w) < 1.f));
+  Ints inlier = found & ~(dot(d, d) > a.gate_sq) & within_angle;
   // Both normals must face it: the model's normal of a surface seen edge-on is the TSDF's
   // gradient, which the projective distances of grazing rays tilt towards the view, while the
   // frame's, from its own neighbouring points, is not.
@@ -168,12 +179,11 @@ inline Ints pointToPlane(const Vec3s& p, Floats z_cur, const Vec3s& n_cur, const
   // Noise weight (sigma_1m / sigma)^2, normalised to 1 at 1 m, times the Huber weight k / |r|
   // beyond k sigmas. Using the weight itself, not its square root on both factors, saves a
   // square root; one reciprocal of sigma saves two divisions.
-  const Floats inv_sigma = 1.f / lanes::lanewise(kinectNoiseSigmaM, z_cur);
+  const Floats inv_sigma = 1.f / sigma;
   const Floats noise_sqrt = kinectNoiseSigmaM(1.f) * inv_sigma;
   const Floats noise = a.noise_weighting ? noise_sqrt * noise_sqrt : lanes::splat(1.f);
   const Floats abs_r = lanes::abs(e) * inv_sigma;
   const Floats weight = abs_r > a.huber_k ? noise * (a.huber_k / abs_r) : noise;
-  const Floats sigma = 1.f / inv_sigma;
   const Floats values[kColumns] = {p.y * nq.z - p.z * nq.y,  // p x nq
                                    p.z * nq.x - p.x * nq.z,
                                    p.x * nq.y - p.y * nq.x,
@@ -319,6 +329,9 @@ IcpSystem IcpTracker::buildSystem(const DepthFrame& current, const ModelMaps& mo
       params.huber_sigmas > 0.f ? params.huber_sigmas : std::numeric_limits<float>::infinity();
   Association assoc{R_ref_cur, t_ref_cur, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height,
                     params.distance_gate_m * params.distance_gate_m, params.cos_angle_gate,
+                    model.normal_spacing_m > 0.f
+                        ? params.normal_gate_sigmas / model.normal_spacing_m
+                        : 0.f,
                     params.noise_weighting, huber_k, {}, 0.f};
   if (!params.facing) return build<false>(current, model, level, assoc, params.parallel);
   assoc.facing = params.facing->direction.normalized().cast<float>();

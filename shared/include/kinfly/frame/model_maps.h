@@ -18,6 +18,9 @@ struct ModelMaps {
   std::array<PinholeCamera, kPyramidLevels> camera;
   std::array<Image<Eigen::Vector3f>, kPyramidLevels> vertex_ref;  // [m]
   std::array<Image<Eigen::Vector3f>, kPyramidLevels> normal_ref;  // unit, facing the camera
+  // The spacing the normals were differenced over (the volume's voxel; 0: unknown): the sensor's
+  // noise over it tells how far a normal may lie off the surface's (IcpTracker's angle gate).
+  float normal_spacing_m = 0.f;  // [m]
   // Fills levels 1.. from level 0 by taking every second pixel, matching the depth pyramid's
   // pixel-centre convention.
   void buildPyramid();

@@ -60,6 +60,13 @@ class IcpTracker {
     std::array<int, kPyramidLevels> iterations_coarse_to_fine{10, 5, 4};  // each >= 0
     float distance_gate_m = 0.10f;        // [m] > 0: correspondence rejected beyond this
     float normal_angle_gate_rad = 0.349066f;  // [rad] (0, pi/2]: 20 degrees
+    // The model's normal is the TSDF's gradient, a difference over one voxel of distances each
+    // as noisy as the sensor at that depth: at 3.6 m (sigma 2 cm) against 1 cm voxels a map
+    // fused from a few frames has normals tens of degrees off, and the fixed 20 degrees refused
+    // 95 % of the correct pairs (docs/engine.md, departure 9). So the gate's tangent is the
+    // larger of tan(normal_angle_gate_rad) and this many times sigma(z) / spacing
+    // (ModelMaps::normal_spacing_m). Near the sensor (sigma 6 mm at 2 m) the fixed gate decides.
+    float normal_gate_sigmas = 0.5f;  // >= 0; 0 leaves the fixed gate alone
     float min_inlier_fraction = 0.10f;    // (0, 1]: fewer inliers at the finest level -> lost
     int min_inliers = 100;                // >= 6: absolute floor per level, guards tiny images
     // Degeneracy (Zhang, Kaess and Singh, ICRA 2016): an eigen-direction of the 6x6 system,
@@ -121,6 +128,7 @@ class IcpTracker {
   struct SystemParams {
     float distance_gate_m = 0.10f;        // [m] > 0
     float cos_angle_gate = 0.9396926f;    // (0, 1]: cos of normal_angle_gate_rad (20 degrees)
+    float normal_gate_sigmas = 0.5f;      // >= 0: Params::normal_gate_sigmas
     bool noise_weighting = true;
     float huber_sigmas = 3.f;             // >= 0; 0 disables the robust weight
     bool parallel = true;                 // threads over fixed row chunks: the same result

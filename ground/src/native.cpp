@@ -348,6 +348,7 @@ void bindParams(nb::module_& m) {
       .def_rw("iterations_coarse_to_fine", &IcpTracker::Params::iterations_coarse_to_fine)
       .def_rw("distance_gate_m", &IcpTracker::Params::distance_gate_m)
       .def_rw("normal_angle_gate_rad", &IcpTracker::Params::normal_angle_gate_rad)
+      .def_rw("normal_gate_sigmas", &IcpTracker::Params::normal_gate_sigmas)
       .def_rw("min_inlier_fraction", &IcpTracker::Params::min_inlier_fraction)
       .def_rw("min_inliers", &IcpTracker::Params::min_inliers)
       .def_rw("weak_direction_fraction", &IcpTracker::Params::weak_direction_fraction)

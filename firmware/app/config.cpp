@@ -159,6 +159,10 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--odometry.lookahead_m", o.volume.lookahead_m,
                   "the volume follows the drone, centred this far ahead of the camera [m]")
       ->capture_default_str();
+  app->add_option("--odometry.max_lookahead_m", o.volume.max_lookahead_m,
+                  "or as far as the camera sees its scene (the frame's median depth), up to "
+                  "this [m]")
+      ->capture_default_str();
   app->add_option("--odometry.shift_blocks", o.volume.shift_threshold_blocks,
                   "it shifts when its wanted centre has moved this many 8-voxel blocks")
       ->capture_default_str();
@@ -367,6 +371,8 @@ Status OdometryConfig::validate() const {
                          std::to_string(downsample) + ")");
   return firstError(namingKeys(volume.validate(), {{"resolution_vox", "odometry.volume_vox"},
                                                      {"voxel_size_m", "odometry.voxel_m"},
+                                                     {"max_lookahead_m",
+                                                      "odometry.max_lookahead_m"},
                                                      {"lookahead_m", "odometry.lookahead_m"},
                                                      {"shift_threshold_blocks",
                                                       "odometry.shift_blocks"}}),

@@ -62,7 +62,7 @@ struct SourceConfig {                            // [source]
 
 struct OdometryConfig {                          // [odometry]
   int downsample = 2;            // downsample {1, 2, 4}: 640x480 sensors run at 320x240
-  // volume_vox (resolution_vox), voxel_m (voxel_size_m), lookahead_m, shift_blocks
+  // volume_vox (resolution_vox), voxel_m (voxel_size_m), lookahead_m, max_lookahead_m, shift_blocks
   // (shift_threshold_blocks): the volume that follows the drone.
   DenseVolume::Params volume;
   int threads = 1;               // threads [1, 64]: the engine's OpenMP threads

@@ -436,9 +436,9 @@ IcpSystem referenceSystem(const DepthFrame& current, const ModelMaps& model, int
       if (cos_n < cos_gate && !(cos_n > 0.f && cos_n * cos_n * (1.f + tan_w * tan_w) >= 1.f))
         continue;
       if (params.facing) {
-        const Eigen::Vector3f u = params.facing->direction.normalized().cast<float>();
+        const Eigen::Vector3f dir = params.facing->direction.normalized().cast<float>();
         const float cos_sq = static_cast<float>(params.facing->cosine * params.facing->cosine);
-        const float along = u.dot(nq), along_cur = u.dot(R * n);
+        const float along = dir.dot(nq), along_cur = dir.dot(R * n);
         if (along * along < cos_sq || along_cur * along_cur < cos_sq) continue;
       }
       const double e = nq.dot(d);

@@ -40,7 +40,7 @@ std::unique_ptr<TsdfVolume> makeVolume(bool dense, const Pose& T_world_cam) {
     p.voxel_size_m = kDenseVoxelM;
     p.lookahead_m = 1.5f;
     auto v = std::make_unique<DenseVolume>(p);
-    v->followCamera(T_world_cam);
+    v->followCamera(T_world_cam, 0.f);
     return v;
   }
   HashedVolume::Params p;

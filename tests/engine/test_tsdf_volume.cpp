@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <random>
 #include <set>
 #include <tuple>
@@ -194,15 +195,16 @@ TEST(DenseVolume, FollowCameraShiftsOnlyBeyondThreshold) {
   const DenseVolume::Params params = smallDense();
   DenseVolume volume(params);
   const float block_m = volume.blockSizeM();  // 0.4 m
-  volume.followCamera(Pose::Identity());
+  volume.followCamera(Pose::Identity(), 0.f);
   const int settled = volume.shiftCount();
   const BlockIndex settled_origin = volume.originBlock();
-  volume.followCamera(Pose::Identity());
+  volume.followCamera(Pose::Identity(), 0.f);
   EXPECT_EQ(volume.shiftCount(), settled) << "no motion, no shift";
 
   // Half a block sideways is below the 2-block threshold.
   volume.followCamera(test::makePose(Eigen::Vector3d::Zero(),
-                                     Eigen::Vector3d(0.5 * block_m, 0.0, 0.0)));
+                                     Eigen::Vector3d(0.5 * block_m, 0.0, 0.0)),
+                      0.f);
   EXPECT_EQ(volume.shiftCount(), settled);
   EXPECT_EQ(volume.originBlock(), settled_origin);
 
@@ -210,12 +212,35 @@ TEST(DenseVolume, FollowCameraShiftsOnlyBeyondThreshold) {
   // point the camera looks at must be inside it.
   const Pose far = test::makePose(Eigen::Vector3d(0.0, test::kPi / 2, 0.0),
                                   Eigen::Vector3d(5.0 * block_m, 0.0, 0.0));
-  volume.followCamera(far);
+  volume.followCamera(far, 0.f);
   EXPECT_GT(volume.shiftCount(), settled);
   const Eigen::Vector3d look = far * Eigen::Vector3d(0.0, 0.0, params.lookahead_m);
   EXPECT_TRUE(inWindow(volume, volume.blockOf(look.cast<float>())));
   const Eigen::Vector3d cam = far.translation();
   EXPECT_TRUE(inWindow(volume, volume.blockOf(cam.cast<float>())));
+}
+
+// The window goes out to where the camera sees its scene, no further than max_lookahead_m, and
+// stays at lookahead_m where the depth is not known.
+TEST(DenseVolume, TheWindowFollowsHowFarTheCameraSees) {
+  DenseVolume::Params params = smallDense();  // 3.2 m cube, 1 m ahead
+  params.max_lookahead_m = 2.0f;
+  DenseVolume volume(params);
+  const auto origin_for = [&](double ahead_m) {
+    return BlockIndex(volume.blockOf(Eigen::Vector3f(0.f, 0.f, static_cast<float>(ahead_m))) -
+                      BlockIndex::Constant(volume.blocksPerSide() / 2));
+  };
+  const BlockIndex far_point = volume.blockOf(Eigen::Vector3f(0.f, 0.f, 3.5f));
+  volume.followCamera(Pose::Identity(), 0.f);
+  EXPECT_EQ(volume.originBlock(), origin_for(params.lookahead_m));
+  EXPECT_FALSE(inWindow(volume, far_point));
+  volume.followCamera(Pose::Identity(), std::numeric_limits<float>::quiet_NaN());
+  EXPECT_EQ(volume.originBlock(), origin_for(params.lookahead_m)) << "a depth not known";
+  volume.followCamera(Pose::Identity(), 10.f);  // a scene beyond the limit
+  EXPECT_EQ(volume.originBlock(), origin_for(params.max_lookahead_m));
+  EXPECT_TRUE(inWindow(volume, far_point));
+  params.max_lookahead_m = 0.5f;
+  EXPECT_FALSE(params.validate().ok()) << "a limit nearer than lookahead_m";
 }
 
 // The trilinear TSDF and its gradient as defined, one corner at a time through

@@ -46,6 +46,8 @@ FusionPipeline::FusionPipeline(const PinholeCamera& input_camera, const Params& 
       frame_(preprocessor_.camera()),
       model_(preprocessor_.camera()) {
   integrator_.reserve(preprocessor_.camera().width, preprocessor_.camera().height, *volume);
+  if (volume->followsCamera())
+    view_depths_.resize(static_cast<size_t>(frame_.depth_m.back().numPixels()));
   if (params_.relocalise) relocaliser_.emplace(params_.relocaliser);
 }
 
@@ -297,11 +299,24 @@ FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_dep
   return fuse(result, /*predict_from_pose=*/false);
 }
 
+float FusionPipeline::medianViewDepthM() {
+  // The coarsest level: a few thousand depths, a few microseconds, nothing allocated.
+  const Image<float>& depth = frame_.depth_m.back();
+  size_t n = 0;
+  for (const float* d = depth.data(); d != depth.data() + depth.numPixels(); ++d)
+    if (*d > 0.f) view_depths_[n++] = *d;
+  if (n == 0) return 0.f;
+  const auto end = view_depths_.begin() + static_cast<std::ptrdiff_t>(n);
+  const auto middle = view_depths_.begin() + static_cast<std::ptrdiff_t>(n / 2);
+  std::nth_element(view_depths_.begin(), middle, end);
+  return *middle;
+}
+
 FrameResult FusionPipeline::fuse(FrameResult result, bool predict_from_pose) {
   // Whatever fused it (tracked, a given pose, a new map), the frame ends any loss.
   lost_in_a_row_ = missed_ = failed_since_tracked_ = 0;
   T_world_cam_ = result.T_world_cam;
-  volume_->followCamera(T_world_cam_);
+  if (volume_->followsCamera()) volume_->followCamera(T_world_cam_, medianViewDepthM());
 
   const auto t0 = std::chrono::steady_clock::now();
   integrator_.integrate(frame_.raw_depth_m.view(), frame_.camera[0], T_world_cam_, volume_);

@@ -8,6 +8,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "kinfly/core/camera.h"
 #include "kinfly/core/image.h"
@@ -165,6 +166,9 @@ class FusionPipeline {
   // Integrates at result.T_world_cam; with predict_from_pose, raycasts model_ from there for
   // the next frame to track against.
   FrameResult fuse(FrameResult result, bool predict_from_pose);
+  // The median depth of the frame's coarsest level (0 without depth), where a volume that
+  // follows the camera centres itself (TsdfVolume::followCamera).
+  float medianViewDepthM();
 
   Params params_;
   TsdfVolume* volume_;
@@ -176,6 +180,7 @@ class FusionPipeline {
   // (0.6 MB at the defaults), which a pipeline without relocalisation should not hold.
   std::optional<Relocaliser> relocaliser_;
   DepthFrame frame_;
+  std::vector<float> view_depths_;  // medianViewDepthM's, sized once for a following volume
   ModelMaps model_;
   std::unique_ptr<ModelMaps> render_maps_;  // allocated by the first renderShaded()
   bool has_model_ = false;

@@ -72,9 +72,11 @@ class TsdfVolume {
   size_t numAllocatedBlocks() const { return allocatedBlocks().size(); }
   // Bytes reserved for voxel storage and its index, whether used or not.
   virtual size_t memoryBytes() const = 0;
-  // Volumes of bounded extent move so the space in front of the camera stays inside; an
-  // unbounded volume ignores this.
-  virtual void followCamera(const Pose& /*T_world_cam*/) {}
+  // Volumes of bounded extent move so the space in front of the camera stays inside, as far
+  // ahead as it sees its scene (`view_depth_m`, the frame's median depth; 0: not known); an
+  // unbounded volume ignores this, and says so here.
+  virtual bool followsCamera() const { return false; }
+  virtual void followCamera(const Pose& /*T_world_cam*/, float /*view_depth_m*/) {}
   virtual void clear() = 0;
 
   BlockIndex blockOf(const Eigen::Vector3f& p_world) const {
@@ -98,8 +100,15 @@ class DenseVolume final : public TsdfVolume {
   struct Params {
     int resolution_vox = 128;     // voxels per edge, multiple of 8 in [16, 512]
     float voxel_size_m = 0.03f;   // [m] (0, 0.2]; 128 x 3 cm = 3.84 m cube
-    // The volume is kept centred this far in front of the camera, along its optical axis.
-    float lookahead_m = 2.0f;     // [m] [0, 10]
+    // The volume is kept centred along the camera's optical axis this far in front of it, or
+    // where the camera sees its scene (the frame's median depth) up to max_lookahead_m. A
+    // 3.84 m cube centred 2 m ahead ends 3.9 m ahead, less up to the shift threshold's 0.5 m:
+    // a scene 3.6 m off (a hall's far end) lay mostly outside it, its 12 cm band behind the
+    // surface too, and every frame of it was lost (docs/engine.md, departure 9). Centred 2.7 m
+    // ahead it reaches the sensor's 4 m and the band at every shift; it then leaves out what is
+    // nearer than 0.8-1.3 m, which a view whose median is that far holds little of.
+    float lookahead_m = 2.0f;      // [m] [0, 10]
+    float max_lookahead_m = 2.7f;  // [m] [lookahead_m, 10]
     // Re-centre only when the wanted centre has moved this many blocks, so shifts are rare.
     int shift_threshold_blocks = 2;  // [1, 64]
     Status validate() const;
@@ -111,7 +120,8 @@ class DenseVolume final : public TsdfVolume {
   VoxelBlock* allocateBlock(const BlockIndex& b) override;
   const std::vector<VoxelBlock*>& allocatedBlocks() const override { return observed_; }
   size_t memoryBytes() const override;
-  void followCamera(const Pose& T_world_cam) override;
+  bool followsCamera() const override { return true; }
+  void followCamera(const Pose& T_world_cam, float view_depth_m) override;
   void clear() override;
 
   // The block range [origin, origin + blocks_per_side) currently held.

@@ -160,8 +160,8 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "the volume follows the drone, centred this far ahead of the camera [m]")
       ->capture_default_str();
   app->add_option("--odometry.max_lookahead_m", o.volume.max_lookahead_m,
-                  "or as far as the camera sees its scene (the frame's median depth), up to "
-                  "this [m]")
+                  "the volume goes out to where the camera sees its scene (the frame's median "
+                  "depth), up to this far ahead; at or below lookahead_m it stays there [m]")
       ->capture_default_str();
   app->add_option("--odometry.shift_blocks", o.volume.shift_threshold_blocks,
                   "it shifts when its wanted centre has moved this many 8-voxel blocks")

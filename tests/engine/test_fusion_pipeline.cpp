@@ -562,11 +562,10 @@ TEST_F(PipelineFixture, AfterEveryTryFailsANewMapBeginsAtThePriorAndTracks) {
   }
 }
 
-
 // Far range (issue 17: "frames declared lost on a sequence whose mean depth is 3.5 m: 0"). The
 // far end of a hall, 3.3-3.9 m off (mean depth 3.6 m): floor, end wall, crates, a ball, with the
 // sensor's noise drawn anew for every pixel (sigma 2 cm at 3.6 m, three pixels' spacing there).
-// The camera drifts sideways, up and forwards 1.1 cm and turns 0.5 degrees a frame.
+// The camera drifts sideways, down and forwards 1.1 cm and turns 0.5 degrees a frame.
 constexpr int kFarFrames = 40;
 // Each frame is matched against a map whose every normal is a difference of such noise over one
 // 1 cm voxel, and the end wall fixes a turn about the vertical only together with a step
@@ -643,6 +642,30 @@ TEST(PipelineFar, AHallSeenFromThreeAndAHalfMetresIsTrackedEveryFrame) {
   fixed_gate.icp.normal_gate_sigmas = 0.f;
   HashedVolume volume{HashedVolume::Params{}};
   EXPECT_GT(flyTheFarHall(fixed_gate, &volume, false), kFarFrames / 2);
+}
+
+// The cube is centred at the median depth of the frame: a wall 2.46 m off (between the limits,
+// 6 cm inside a 24 cm block, so that its noise cannot move the block) centres it there; a wall
+// 1.2 m off leaves it at lookahead_m.
+TEST(PipelineFar, TheDronesCubeIsCentredWhereTheViewsMedianDepthIs) {
+  const PinholeCamera camera = test::tumCamera();
+  const DenseVolume::Params cube;
+  Image<uint16_t> raw(camera.width, camera.height);
+  for (const float wall_m : {2.46f, 1.2f}) {
+    SyntheticScene scene;
+    scene.addPlane(Eigen::Vector3f(0.f, 0.f, -1.f), -wall_m);
+    std::mt19937 rng(77);
+    scene.renderRawDepth(camera, Pose::Identity(), test::kRenderMaxDepthM, test::kTumDepthScale,
+                         &rng, raw);
+    DenseVolume volume(cube);
+    FusionPipeline pipeline(camera, onboardParams(cube), &volume);
+    ASSERT_EQ(pipeline.processFrame(raw, 1'000'000).status, TrackingStatus::kFirstFrame);
+    const float ahead_m = std::max(wall_m, cube.lookahead_m);
+    EXPECT_EQ(volume.originBlock(),
+              BlockIndex(volume.blockOf(Eigen::Vector3f(0.f, 0.f, ahead_m)) -
+                         BlockIndex::Constant(volume.blocksPerSide() / 2)))
+        << "a wall " << wall_m << " m off";
+  }
 }
 
 TEST(PipelineFar, TheDronesCubeGoesOutToAFarScene) {

@@ -83,8 +83,9 @@ TEST(AllocationCounter, SeesAllocations) {
 }
 
 // `gaps`: every other measured frame (the second, fourth, ...) comes after two that never came (the recovery path, its
-// widened gates and its messages, must not allocate either).
-void expectNoAllocationPerFrame(bool gaps) {
+// widened gates and its messages, must not allocate either). `dense`: into the drone's dense
+// volume, which follows the camera (the frame's median depth each frame), not a hashed one.
+void expectNoAllocationPerFrame(bool gaps, bool dense = false) {
   constexpr int kWarmUpFrames = 6;  // also enough intervals for the pipeline to know the rate
   constexpr int kMeasuredFrames = 10;
   constexpr int64_t kFrameUs = 33'333;
@@ -111,8 +112,15 @@ void expectNoAllocationPerFrame(bool gaps) {
           static_cast<uint16_t>(std::lround(depth.back().data()[p] / test::kTumDepthScale));
     }
   }
-  HashedVolume volume(HashedVolume::Params{});
-  FusionPipeline pipeline(camera, FusionPipeline::Params(), &volume);
+  HashedVolume hashed(HashedVolume::Params{});
+  DenseVolume::Params cube;
+  cube.voxel_size_m = 0.02f;  // a 2.56 m cube
+  cube.lookahead_m = 1.5f;
+  DenseVolume dense_volume(cube);
+  TsdfVolume* volume = dense ? static_cast<TsdfVolume*>(&dense_volume) : &hashed;
+  FusionPipeline::Params params;
+  if (dense) params.integrate.truncation_m = 4.f * cube.voxel_size_m;
+  FusionPipeline pipeline(camera, params, volume);
   for (int k = 0; k < kWarmUpFrames; ++k) {
     const FrameResult r = pipeline.processFrame(raw[k % kPoses], utime(k));
     ASSERT_NE(r.status, TrackingStatus::kLost) << r.lost_reason;
@@ -142,6 +150,10 @@ TEST(FusionPipelineAllocation, NoHeapAllocationPerFrameAfterWarmUp) {
 
 TEST(FusionPipelineAllocation, NoHeapAllocationPerFrameAfterGaps) {
   expectNoAllocationPerFrame(/*gaps=*/true);
+}
+
+TEST(FusionPipelineAllocation, NoHeapAllocationPerFrameInADenseVolume) {
+  expectNoAllocationPerFrame(/*gaps=*/false, /*dense=*/true);
 }
 
 }  // namespace

@@ -433,7 +433,7 @@ IcpSystem referenceSystem(const DepthFrame& current, const ModelMaps& model, int
                               ? params.normal_gate_sigmas / model.normal_spacing_m *
                                     kinectNoiseSigmaM(v.z())
                               : 0.f;
-      if (cos_n < cos_gate && !(cos_n > 0.f && cos_n * cos_n * (1.f + tan_w * tan_w) >= 1.f))
+      if (cos_n < cos_gate && !(cos_n > 0.f && !(cos_n * cos_n * (1.f + tan_w * tan_w) < 1.f)))
         continue;
       if (params.facing) {
         const Eigen::Vector3f dir = params.facing->direction.normalized().cast<float>();
@@ -479,8 +479,8 @@ TEST_F(IcpFixture, SystemMatchesPerPixelReference) {
     expectSystemsNear(fast, ref, kRelSumTol, c.level);
   }
   // A raycast model's normals are the TSDF's gradient over one voxel: the angle gate widens with
-  // the sensor's noise over it. Twice the default noise sigmas reach past 20 degrees from 1.5 m,
-  // where the corner room's walls and ball are.
+  // the sensor's noise over it. Twice the default noise sigmas reach past 20 degrees from 1 m
+  // (35 degrees at 1.5 m), where the corner room's walls and ball are.
   model.normal_spacing_m = 0.01f;
   for (int level = 0; level < kPyramidLevels; ++level) {
     IcpTracker::SystemParams widened = IcpTracker(IcpTracker::Params()).systemParams();

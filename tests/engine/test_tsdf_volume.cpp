@@ -220,27 +220,36 @@ TEST(DenseVolume, FollowCameraShiftsOnlyBeyondThreshold) {
   EXPECT_TRUE(inWindow(volume, volume.blockOf(cam.cast<float>())));
 }
 
-// The window goes out to where the camera sees its scene, no further than max_lookahead_m, and
-// stays at lookahead_m where the depth is not known.
+// The window goes out to where the camera sees its scene, no nearer than lookahead_m and no
+// further than max_lookahead_m, and stays at lookahead_m where the depth is not known.
 TEST(DenseVolume, TheWindowFollowsHowFarTheCameraSees) {
-  DenseVolume::Params params = smallDense();  // 3.2 m cube, 1 m ahead
-  params.max_lookahead_m = 2.0f;
+  DenseVolume::Params params = smallDense();  // 3.2 m cube of 0.4 m blocks, 1 m ahead
+  params.max_lookahead_m = 3.0f;
   DenseVolume volume(params);
   const auto origin_for = [&](double ahead_m) {
     return BlockIndex(volume.blockOf(Eigen::Vector3f(0.f, 0.f, static_cast<float>(ahead_m))) -
                       BlockIndex::Constant(volume.blocksPerSide() / 2));
   };
-  const BlockIndex far_point = volume.blockOf(Eigen::Vector3f(0.f, 0.f, 3.5f));
+  const BlockIndex far_point = volume.blockOf(Eigen::Vector3f(0.f, 0.f, 4.3f));
   volume.followCamera(Pose::Identity(), 0.f);
   EXPECT_EQ(volume.originBlock(), origin_for(params.lookahead_m));
   EXPECT_FALSE(inWindow(volume, far_point));
   volume.followCamera(Pose::Identity(), std::numeric_limits<float>::quiet_NaN());
   EXPECT_EQ(volume.originBlock(), origin_for(params.lookahead_m)) << "a depth not known";
+  // Between the limits the centre is the depth itself (each step beyond the shift threshold).
+  volume.followCamera(Pose::Identity(), 2.1f);
+  EXPECT_EQ(volume.originBlock(), origin_for(2.1));
+  volume.followCamera(Pose::Identity(), 0.2f);  // a near view: back to lookahead_m
+  EXPECT_EQ(volume.originBlock(), origin_for(params.lookahead_m));
   volume.followCamera(Pose::Identity(), 10.f);  // a scene beyond the limit
   EXPECT_EQ(volume.originBlock(), origin_for(params.max_lookahead_m));
   EXPECT_TRUE(inWindow(volume, far_point));
+  // A limit below lookahead_m keeps the window there.
   params.max_lookahead_m = 0.5f;
-  EXPECT_FALSE(params.validate().ok()) << "a limit nearer than lookahead_m";
+  ASSERT_TRUE(params.validate().ok());
+  DenseVolume held(params);
+  held.followCamera(Pose::Identity(), 10.f);
+  EXPECT_EQ(held.originBlock(), origin_for(params.lookahead_m));
 }
 
 // The trilinear TSDF and its gradient as defined, one corner at a time through

@@ -302,6 +302,7 @@ FrameResult FusionPipeline::processFrameAtPose(ImageView<const uint16_t> raw_dep
 float FusionPipeline::medianViewDepthM() {
   // The coarsest level: a few thousand depths, a few microseconds, nothing allocated.
   const Image<float>& depth = frame_.depth_m.back();
+  if (view_depths_.size() < static_cast<size_t>(depth.numPixels())) return 0.f;
   size_t n = 0;
   for (const float* d = depth.data(); d != depth.data() + depth.numPixels(); ++d)
     if (*d > 0.f) view_depths_[n++] = *d;

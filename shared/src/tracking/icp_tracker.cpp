@@ -47,7 +47,8 @@ Status IcpTracker::Params::validate() const {
   if (!(max_rmse_m > 0.f)) why << "max_rmse_m must be > 0; ";
   if (!(max_rmse_sigmas >= 0.f)) why << "max_rmse_sigmas must be >= 0; ";
   if (!(huber_sigmas >= 0.f)) why << "huber_sigmas must be >= 0; ";
-  if (!(normal_gate_sigmas >= 0.f)) why << "normal_gate_sigmas must be >= 0; ";
+  if (!(normal_gate_sigmas >= 0.f && std::isfinite(normal_gate_sigmas)))
+    why << "normal_gate_sigmas must be finite and >= 0; ";
   if (!(convergence_epsilon >= 0.0)) why << "convergence_epsilon must be >= 0; ";
   return why.str().empty() ? Status() : Status::error(why.str());
 }

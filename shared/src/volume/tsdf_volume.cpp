@@ -22,8 +22,8 @@ Status DenseVolume::Params::validate() const {
     why << "voxel_size_m must be in (0, 0.2] (got " << voxel_size_m << ")";
   else if (!(lookahead_m >= 0.f && lookahead_m <= 10.f))
     why << "lookahead_m must be in [0, 10] (got " << lookahead_m << ")";
-  else if (!(max_lookahead_m >= lookahead_m && max_lookahead_m <= 10.f))
-    why << "max_lookahead_m must be in [lookahead_m, 10] (got " << max_lookahead_m << ")";
+  else if (!(max_lookahead_m >= 0.f && max_lookahead_m <= 10.f))
+    why << "max_lookahead_m must be in [0, 10] (got " << max_lookahead_m << ")";
   else if (shift_threshold_blocks < 1 || shift_threshold_blocks > 64)
     why << "shift_threshold_blocks must be in [1, 64] (got " << shift_threshold_blocks << ")";
   return why.str().empty() ? Status() : Status::error(why.str());
@@ -87,9 +87,11 @@ void DenseVolume::shiftTo(const BlockIndex& new_origin) {
 }
 
 void DenseVolume::followCamera(const Pose& T_world_cam, float view_depth_m) {
-  // Written so that a depth not known (0, NaN) keeps lookahead_m.
+  // Never nearer than lookahead_m, whatever the limit; written so that a depth not known (0,
+  // NaN) keeps lookahead_m.
   const float ahead = view_depth_m > params_.lookahead_m
-                          ? std::min(view_depth_m, params_.max_lookahead_m)
+                          ? std::max(params_.lookahead_m,
+                                     std::min(view_depth_m, params_.max_lookahead_m))
                           : params_.lookahead_m;
   const Eigen::Vector3d centre =
       T_world_cam.translation() + T_world_cam.linear().col(2) * static_cast<double>(ahead);

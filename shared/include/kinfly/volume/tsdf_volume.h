@@ -106,9 +106,12 @@ class DenseVolume final : public TsdfVolume {
     // a scene 3.6 m off (a hall's far end) lay mostly outside it, its 12 cm band behind the
     // surface too, and every frame of it was lost (docs/engine.md, departure 9). Centred 2.7 m
     // ahead it reaches the sensor's 4 m and the band at every shift; it then leaves out what is
-    // nearer than 0.8-1.3 m, which a view whose median is that far holds little of.
+    // nearer than 0.8-1.3 m, which a view whose median is that far holds little of. A limit
+    // at or below lookahead_m keeps the cube at lookahead_m. The window shifts whenever the
+    // wanted centre moves by the shift threshold, so a view whose median swings across the
+    // 0.7 m between the two shifts it back and forth.
     float lookahead_m = 2.0f;      // [m] [0, 10]
-    float max_lookahead_m = 2.7f;  // [m] [lookahead_m, 10]
+    float max_lookahead_m = 2.7f;  // [m] [0, 10]
     // Re-centre only when the wanted centre has moved this many blocks, so shifts are rare.
     int shift_threshold_blocks = 2;  // [1, 64]
     Status validate() const;

@@ -53,7 +53,8 @@ DATA_SCENES = {
 }
 # Each scene's mission unless --mission says otherwise.
 SCENE_MISSIONS = {"room": MISSIONS / "room_tour.toml", "corridor": MISSIONS / "corridor.toml",
-                  "ring": MISSIONS / "ring_loop.toml", "office0": MISSIONS / "office0.toml"}
+                  "ring": MISSIONS / "ring_loop.toml", "hall": MISSIONS / "look_around.toml",
+                  "office0": MISSIONS / "office0.toml"}
 # kinfly-sim's words after an event it waits on this script for (kAwaitingOrchestrator).
 AWAITING = ": waiting for the orchestrator"
 # The link: each side's UDP port for the other's unicast, and the ground's own LCM bus, on a
@@ -327,7 +328,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "sim")
     p.add_argument("--scene", default="room", choices=list(SCENE_MISSIONS),
-                   help="room, corridor, ring (kinfly-sim's own) or office0 (Replica's scan in the "
+                   help="room, corridor, ring, hall (kinfly-sim's own) or office0 (Replica's scan in the "
                    "shared data: $KINFLY_DATA, else <repo>/../shared/data); default room")
     p.add_argument("--seed", type=int, default=1, help="the simulator's seed (default 1)")
     p.add_argument("--hover-s", type=float, default=20.0,

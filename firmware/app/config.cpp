@@ -189,6 +189,12 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--keyframe.min_inlier_fraction", k.min_inlier_fraction,
                   "only from frames tracked at least this well (ICP inlier fraction)")
       ->capture_default_str();
+  app->add_option("--keyframe.max_gap_rotation_rad", k.max_gap_rotation_rad,
+                  "... or from any frame tracked, once it turned this far from the last [rad]")
+      ->capture_default_str();
+  app->add_option("--keyframe.max_gap_translation_m", k.max_gap_translation_m,
+                  "... or moved this far from it [m]")
+      ->capture_default_str();
   LinkConfig& l = c->link;
   app->add_option("--link.lcm_url", l.lcm_url,
                   "LCM URL (empty: LCM_DEFAULT_URL or default; memq:// with link.peers)");

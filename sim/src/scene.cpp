@@ -322,8 +322,30 @@ Scene ringCorridor() {
   return scene;
 }
 
+// The floor in view from 2.6 m on at flying height; crates and pillars 2.4-3.5 m out give
+// structure at that range (test_fusion_pipeline's far hall, flown).
+Scene hall() {
+  Scene scene;
+  scene.name = "hall";
+  addFloor(&scene, {-3.6f, -3.6f}, {3.6f, 3.6f});
+  TriangleMesh& mesh = scene.mesh;
+  addRoomShell(&mesh, {-3.6f, -3.6f, -3.0f}, {3.6f, 3.6f, 0.0f});
+  addBox(&mesh, {2.6f, -1.4f, -0.9f}, {3.4f, -0.6f, 0.0f});
+  addBox(&mesh, {2.4f, 0.8f, -0.5f}, {3.0f, 1.6f, 0.0f});
+  addBox(&mesh, {-1.0f, 2.7f, -1.2f}, {0.0f, 3.5f, 0.0f});
+  addBox(&mesh, {1.0f, 2.5f, -0.6f}, {1.6f, 3.1f, 0.0f});
+  addBox(&mesh, {-3.5f, -0.5f, -0.7f}, {-2.7f, 0.5f, 0.0f});
+  addPillar(&mesh, {-2.6f, 1.8f}, 0.25f, -3.0f, 0.0f);
+  addBox(&mesh, {-1.8f, -3.5f, -1.0f}, {-0.8f, -2.8f, 0.0f});
+  addBox(&mesh, {0.2f, -3.4f, -0.4f}, {0.8f, -2.6f, 0.0f});
+  addPillar(&mesh, {1.5f, -2.7f}, 0.2f, -3.0f, 0.0f);
+  scene.start_xy_m = {0.0, 0.0};
+  scene.start_yaw_rad = 0.0;
+  return scene;
+}
+
 const std::vector<std::string>& sceneNames() {
-  static const std::vector<std::string> names = {"room", "corridor", "ring"};
+  static const std::vector<std::string> names = {"room", "corridor", "ring", "hall"};
   return names;
 }
 
@@ -331,7 +353,8 @@ StatusOr<Scene> makeScene(const std::string& name) {
   if (name == "room") return furnishedRoom();
   if (name == "corridor") return corridor();
   if (name == "ring") return ringCorridor();
-  return Status::error("scene '" + name + "' is unknown (known: room, corridor, ring)");
+  if (name == "hall") return hall();
+  return Status::error("scene '" + name + "' is unknown (known: room, corridor, ring, hall)");
 }
 
 }  // namespace kinfly::sim

@@ -180,6 +180,31 @@ TEST(KeyframeSelector, PoorlyTrackedFramesAreNeverKeyframes) {
   EXPECT_FALSE(selector.select(poseAt(1.0), 5 * kSecond, TrackingStatus::kLost, 0.f));
 }
 
+// A frame tracked, but below min_inlier_fraction (far range's noise), becomes a keyframe only
+// once the camera is about to leave the last keyframe's view: past max_gap_rotation_rad or
+// max_gap_translation_m; a lost frame never; and time alone never makes one of it.
+TEST(KeyframeSelector, APoorlyTrackedFrameIsAKeyframeBeforeTheViewIsLeft) {
+  const KeyframeSelector::Params p;
+  const float poor = p.min_inlier_fraction * 0.5f;
+  const double gap_deg = p.max_gap_rotation_rad * 180.0 / M_PI;
+  KeyframeSelector selector(p);
+  int64_t t = 0;
+  ASSERT_TRUE(selector.select(poseAt(0.0), t, TrackingStatus::kFirstFrame, 1.f));
+  t += 5 * kSecond;  // long past max_interval_s
+  EXPECT_FALSE(selector.select(poseAt(0.0, gap_deg * 0.9), t, TrackingStatus::kOk, poor));
+  t += kSecond / 5;
+  EXPECT_FALSE(selector.select(poseAt(0.0, gap_deg * 1.1), t, TrackingStatus::kLost, 0.f));
+  EXPECT_TRUE(selector.select(poseAt(0.0, gap_deg * 1.1), t, TrackingStatus::kOk, poor));
+  t += kSecond / 5;
+  EXPECT_FALSE(selector.select(poseAt(p.max_gap_translation_m * 0.9, gap_deg * 1.1), t,
+                               TrackingStatus::kOk, poor));
+  EXPECT_TRUE(selector.select(poseAt(p.max_gap_translation_m * 1.1, gap_deg * 1.1), t,
+                              TrackingStatus::kOk, poor));
+  // The first frame after a restart is a keyframe only if it is well tracked.
+  KeyframeSelector fresh(p);
+  EXPECT_FALSE(fresh.select(poseAt(0.0), 0, TrackingStatus::kOk, poor));
+}
+
 TEST(KeyframeSelector, TimeRunningBackwardsRestartsTheReference) {
   KeyframeSelector selector(KeyframeSelector::Params{});
   EXPECT_TRUE(selector.select(poseAt(0.0), 10 * kSecond, TrackingStatus::kFirstFrame, 1.f));
@@ -193,6 +218,9 @@ TEST(KeyframeSelector, ValidateNamesTheBadValue) {
   p = KeyframeSelector::Params{};
   p.min_translation_m = -1.0;
   EXPECT_NE(p.validate().message().find("min_translation_m"), std::string::npos);
+  p = KeyframeSelector::Params{};
+  p.max_gap_rotation_rad = p.min_rotation_rad * 0.5;
+  EXPECT_NE(p.validate().message().find("max_gap_rotation_rad"), std::string::npos);
 }
 
 // ---- CorrectionAnchor -------------------------------------------------------------------------

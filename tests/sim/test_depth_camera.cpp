@@ -334,7 +334,8 @@ TEST(Scenes, FacesLookIntoTheFreeSpace) {
       EXPECT_LT(mesh.normals[mesh.triangles[i][0]].z(), -0.99f);
     }
   }
-  EXPECT_EQ(makeScene("hall").status().message(), "scene 'hall' is unknown (known: room, corridor, ring)");
+  EXPECT_EQ(makeScene("cave").status().message(),
+            "scene 'cave' is unknown (known: room, corridor, ring, hall)");
 }
 
 // A file in the temporary folder, removed however the test ends.

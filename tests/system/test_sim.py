@@ -250,7 +250,8 @@ def test_says_when_kinfly_fw_is_not_there(netns: list[str], tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize(("args", "message"), [
-    (["--scene", "hall"], "--scene: 'hall' is neither a scene (room, corridor, ring) nor a mesh file"),
+    (["--scene", "cave"], "--scene: 'cave' is neither a scene (room, corridor, ring, hall) nor a "
+     "mesh file"),
     (["--scene", "room", "--scene-start", "2.95", "0", "0"],
      "--scene-start 2.95 0 0: the drone standing there is within the body's radius of the scene"),
     (["--mass-error", "0.9"], "--mass-error must be in [-0.5, 0.5] (got 0.9)"),

@@ -18,25 +18,35 @@ Status KeyframeSelector::Params::validate() const {
         << ")";
   else if (!(min_inlier_fraction >= 0.f && min_inlier_fraction <= 1.f))
     why << "keyframe.min_inlier_fraction must be in [0, 1] (got " << min_inlier_fraction << ")";
+  else if (!(max_gap_rotation_rad >= min_rotation_rad && max_gap_rotation_rad <= M_PI))
+    why << "keyframe.max_gap_rotation_rad must be in [keyframe.min_rotation_rad, pi] (got "
+        << max_gap_rotation_rad << ")";
+  else if (!(max_gap_translation_m >= min_translation_m && max_gap_translation_m <= 10.0))
+    why << "keyframe.max_gap_translation_m must be in [keyframe.min_translation_m, 10] m (got "
+        << max_gap_translation_m << ")";
   return why.str().empty() ? Status() : Status::error(why.str());
 }
 
 bool KeyframeSelector::select(const Pose& T_world_cam, int64_t utime, TrackingStatus status,
                               float inlier_fraction) {
-  const bool tracked = status == TrackingStatus::kFirstFrame ||
-                       (status == TrackingStatus::kOk &&
-                        inlier_fraction >= params_.min_inlier_fraction);
-  if (!tracked) return false;
+  const bool well_tracked = status == TrackingStatus::kFirstFrame ||
+                            (status == TrackingStatus::kOk &&
+                             inlier_fraction >= params_.min_inlier_fraction);
+  if (!well_tracked && status != TrackingStatus::kOk) return false;
   // Time running backwards means the source restarted (a replay looping, a sensor reset): the
   // old reference says nothing about this frame.
   bool take = !last_.has_value() || utime < last_->utime;
+  if (take && !well_tracked) return false;
   if (!take) {
     const double elapsed_s = static_cast<double>(utime - last_->utime) * 1e-6;
     if (elapsed_s < params_.min_interval_s) return false;
     const Pose motion = last_->T_world_cam.inverse() * T_world_cam;
-    take = elapsed_s >= params_.max_interval_s ||
-           motion.translation().norm() >= params_.min_translation_m ||
-           rotationAngleRad(motion) >= params_.min_rotation_rad;
+    const double moved_m = motion.translation().norm(), turned_rad = rotationAngleRad(motion);
+    take = well_tracked ? elapsed_s >= params_.max_interval_s ||
+                              moved_m >= params_.min_translation_m ||
+                              turned_rad >= params_.min_rotation_rad
+                        : moved_m >= params_.max_gap_translation_m ||
+                              turned_rad >= params_.max_gap_rotation_rad;
   }
   if (take) last_ = Reference{T_world_cam, utime};
   return take;

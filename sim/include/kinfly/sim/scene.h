@@ -45,6 +45,9 @@ Scene corridor();
 // starts in the corner at (-5.5, -4.5), heading +x down the corridor at y in [-6, -3]; a lap
 // is long enough for the odometry to drift before it comes back (docs/sim.md, "Scenes").
 Scene ringCorridor();
+// A 7.2 m square hall, 3 m high, crates and pillars against its walls: the far wall 3.5 m off
+// whichever way the drone, in its middle, looks (issue 17's far range; docs/sim.md, "Scenes").
+Scene hall();
 
 // A scene from a mesh file (PLY, OBJ, OFF or STL: readMeshFile), in metres with z up, as
 // Replica's and most scans' are; a half turn about x puts it in the simulator's world (z down:
@@ -57,7 +60,7 @@ Scene ringCorridor();
 StatusOr<Scene> loadMeshScene(const std::string& path, const Eigen::Vector2d& start_xy_m,
                               double start_heading_rad);
 
-// The scenes by name: room, corridor, ring. An error names the name and the known ones.
+// The scenes by name: room, corridor, ring, hall. An error names the name and the known ones.
 StatusOr<Scene> makeScene(const std::string& name);
 // The names makeScene knows, for --help.
 const std::vector<std::string>& sceneNames();

@@ -1,6 +1,7 @@
 // Which onboard frames become keyframes for the ground station: enough motion since the last
 // keyframe (translation or rotation), or enough time, never faster than a minimum interval, and
-// only from frames the odometry tracked well.
+// only from frames the odometry tracked well, or tracked at all once the camera is about to
+// leave the last keyframe's view.
 #pragma once
 
 #include <cstdint>
@@ -23,6 +24,16 @@ class KeyframeSelector {
     // [0, 1]: tracking quality a keyframe's pose needs. Pixels beyond the dense volume have no
     // model to match, so well-tracked real frames sit near 0.5 (ICP calls < 0.1 lost).
     float min_inlier_fraction = 0.25f;
+    // The ground registers each keyframe against its map, seen from the last ones: a view
+    // turned by the camera's field (about 60 degrees) from the last keyframe shares nothing with
+    // it. In the simulated hall, 3.5 m from its walls, ICP's inlier fraction while turning was
+    // 0.13-0.28 (the sensor's noise at that range), no frame reached min_inlier_fraction for 79
+    // degrees, and the ground could not register 6 of 41 keyframes (docs/firmware.md,
+    // "Keyframes"). So once the motion since the last keyframe reaches either of these, a frame
+    // ICP tracked (kOk) is a keyframe whatever its inlier fraction: 30 degrees leaves half the
+    // view in common.
+    double max_gap_rotation_rad = 0.5236;  // [rad] [min_rotation_rad, pi]: 30 degrees
+    double max_gap_translation_m = 0.5;    // [m] [min_translation_m, 10]
     Status validate() const;  // an error names the value and its range
   };
 

@@ -328,8 +328,8 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=REPO_ROOT / "out" / "sim")
     p.add_argument("--scene", default="room", choices=list(SCENE_MISSIONS),
-                   help="room, corridor, ring, hall (kinfly-sim's own) or office0 (Replica's scan in the "
-                   "shared data: $KINFLY_DATA, else <repo>/../shared/data); default room")
+                   help="room, corridor, ring, hall (kinfly-sim's own) or office0 (Replica's scan "
+                   "in the shared data: $KINFLY_DATA, else <repo>/../shared/data); default room")
     p.add_argument("--seed", type=int, default=1, help="the simulator's seed (default 1)")
     p.add_argument("--hover-s", type=float, default=20.0,
                    help=f"seconds the drone holds at 1 m before it lands (default 20); "
@@ -337,7 +337,8 @@ def main() -> int:
     p.add_argument("--mission", default=None,
                    help=f"a mission file (sim/missions/, docs/sim.md), or {HOVER!r} for "
                    f"kinfly-sim's built-in take off, hold --hover-s, land (default: the "
-                   f"scene's, {MISSIONS.relative_to(REPO_ROOT)}/<room_tour|corridor|ring_loop|office0>.toml)")
+                   f"scene's, {MISSIONS.relative_to(REPO_ROOT)}/"
+                   f"<room_tour|corridor|ring_loop|look_around|office0>.toml)")
     p.add_argument("--camera-downsample", type=int, default=1, choices=range(1, 5),
                    help="the simulated Kinect at 1/N of 640x480 (default 1)")
     p.add_argument("--vehicle", type=int, default=VEHICLE_ID,

@@ -171,7 +171,7 @@ TEST(KeyframeSelector, MotionOrTimeMakesAKeyframeButNotFasterThanTheMinimum) {
   EXPECT_TRUE(selector.select(poseAt(0.12, 11.0), t, TrackingStatus::kOk, 0.9f));  // 1 s, still
 }
 
-TEST(KeyframeSelector, PoorlyTrackedFramesAreNeverKeyframes) {
+TEST(KeyframeSelector, LostFramesAndAPoorFirstFrameAreNeverKeyframes) {
   const KeyframeSelector::Params p;
   KeyframeSelector selector(p);
   EXPECT_FALSE(selector.select(poseAt(0.0), 0, TrackingStatus::kLost, 0.f));
@@ -200,9 +200,25 @@ TEST(KeyframeSelector, APoorlyTrackedFrameIsAKeyframeBeforeTheViewIsLeft) {
                                TrackingStatus::kOk, poor));
   EXPECT_TRUE(selector.select(poseAt(p.max_gap_translation_m * 1.1, gap_deg * 1.1), t,
                               TrackingStatus::kOk, poor));
-  // The first frame after a restart is a keyframe only if it is well tracked.
+  // Never faster than min_interval_s.
+  t += kSecond / 20;
+  EXPECT_FALSE(selector.select(poseAt(2.0, 3.0 * gap_deg), t, TrackingStatus::kOk, poor));
+  // The first frame after a restart is a keyframe only if it is well tracked, and time running
+  // backwards forgets the old reference for the poorly tracked frames after it as well.
   KeyframeSelector fresh(p);
   EXPECT_FALSE(fresh.select(poseAt(0.0), 0, TrackingStatus::kOk, poor));
+  ASSERT_TRUE(fresh.select(poseAt(0.0), 10 * kSecond, TrackingStatus::kFirstFrame, 1.f));
+  EXPECT_FALSE(fresh.select(poseAt(0.0), 1 * kSecond, TrackingStatus::kOk, poor));
+  EXPECT_FALSE(fresh.select(poseAt(2.0, 3.0 * gap_deg), 11 * kSecond, TrackingStatus::kOk, poor))
+      << "compared with the pose from before the restart";
+  // A gap set below the normal thresholds is held at them.
+  KeyframeSelector::Params low = p;
+  low.max_gap_rotation_rad = 0.01;
+  low.max_gap_translation_m = 0.01;
+  ASSERT_TRUE(low.validate().ok());
+  KeyframeSelector held(low);
+  ASSERT_TRUE(held.select(poseAt(0.0), 0, TrackingStatus::kFirstFrame, 1.f));
+  EXPECT_FALSE(held.select(poseAt(0.05, 5.0), kSecond, TrackingStatus::kOk, poor));
 }
 
 TEST(KeyframeSelector, TimeRunningBackwardsRestartsTheReference) {
@@ -219,8 +235,11 @@ TEST(KeyframeSelector, ValidateNamesTheBadValue) {
   p.min_translation_m = -1.0;
   EXPECT_NE(p.validate().message().find("min_translation_m"), std::string::npos);
   p = KeyframeSelector::Params{};
-  p.max_gap_rotation_rad = p.min_rotation_rad * 0.5;
+  p.max_gap_rotation_rad = 4.0;
   EXPECT_NE(p.validate().message().find("max_gap_rotation_rad"), std::string::npos);
+  p = KeyframeSelector::Params{};
+  p.max_gap_translation_m = 0.0;
+  EXPECT_NE(p.validate().message().find("max_gap_translation_m"), std::string::npos);
 }
 
 // ---- CorrectionAnchor -------------------------------------------------------------------------

@@ -293,10 +293,14 @@ TEST(RayScene, TouchesWhatIsWithinTheBodysRadius) {
   EXPECT_FALSE(rays.value()->touches({0, 0, 0.1}, kRadius));  // beneath it, too
 }
 
-TEST(Scenes, RoomCorridorAndRingAreClosedAroundTheStart) {
-  expectClosedAroundTheStart(furnishedRoom());
-  expectClosedAroundTheStart(corridor());
-  expectClosedAroundTheStart(ringCorridor());
+TEST(Scenes, EveryBuiltInSceneIsClosedAroundTheStart) {
+  for (const std::string& name : sceneNames()) {
+    SCOPED_TRACE(name);
+    const StatusOr<Scene> scene = makeScene(name);
+    ASSERT_TRUE(scene.ok()) << scene.status().message();
+    expectClosedAroundTheStart(scene.value());
+  }
+  EXPECT_EQ(sceneNames().size(), 4u) << "room, corridor, ring, hall";
 }
 
 // sim/missions/ring_loop.toml flies along the ring's corridors' middles, a metre above the floor:
@@ -323,7 +327,7 @@ TEST(Scenes, TheRingsMiddleLineIsClear) {
 
 TEST(Scenes, FacesLookIntoTheFreeSpace) {
   // Each vertex normal of the room agrees with its triangle's winding, and the floor looks up.
-  for (const Scene& scene : {furnishedRoom(), corridor(), ringCorridor()}) {
+  for (const Scene& scene : {furnishedRoom(), corridor(), ringCorridor(), hall()}) {
     const TriangleMesh& mesh = scene.mesh;
     for (const Eigen::Vector3i& t : mesh.triangles) {
       const Eigen::Vector3f wound =

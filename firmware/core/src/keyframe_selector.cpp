@@ -1,5 +1,6 @@
 #include "kinfly/fw/keyframe_selector.h"
 
+#include <algorithm>
 #include <cmath>
 #include <sstream>
 
@@ -18,12 +19,11 @@ Status KeyframeSelector::Params::validate() const {
         << ")";
   else if (!(min_inlier_fraction >= 0.f && min_inlier_fraction <= 1.f))
     why << "keyframe.min_inlier_fraction must be in [0, 1] (got " << min_inlier_fraction << ")";
-  else if (!(max_gap_rotation_rad >= min_rotation_rad && max_gap_rotation_rad <= M_PI))
-    why << "keyframe.max_gap_rotation_rad must be in [keyframe.min_rotation_rad, pi] (got "
-        << max_gap_rotation_rad << ")";
-  else if (!(max_gap_translation_m >= min_translation_m && max_gap_translation_m <= 10.0))
-    why << "keyframe.max_gap_translation_m must be in [keyframe.min_translation_m, 10] m (got "
-        << max_gap_translation_m << ")";
+  else if (!(max_gap_rotation_rad > 0.0 && max_gap_rotation_rad <= M_PI))
+    why << "keyframe.max_gap_rotation_rad must be in (0, pi] (got " << max_gap_rotation_rad << ")";
+  else if (!(max_gap_translation_m > 0.0 && max_gap_translation_m <= 10.0))
+    why << "keyframe.max_gap_translation_m must be in (0, 10] m (got " << max_gap_translation_m
+        << ")";
   return why.str().empty() ? Status() : Status::error(why.str());
 }
 
@@ -34,8 +34,9 @@ bool KeyframeSelector::select(const Pose& T_world_cam, int64_t utime, TrackingSt
                              inlier_fraction >= params_.min_inlier_fraction);
   if (!well_tracked && status != TrackingStatus::kOk) return false;
   // Time running backwards means the source restarted (a replay looping, a sensor reset): the
-  // old reference says nothing about this frame.
-  bool take = !last_.has_value() || utime < last_->utime;
+  // old reference says nothing about this frame, nor about a later one.
+  if (last_.has_value() && utime < last_->utime) last_.reset();
+  bool take = !last_.has_value();
   if (take && !well_tracked) return false;
   if (!take) {
     const double elapsed_s = static_cast<double>(utime - last_->utime) * 1e-6;
@@ -45,8 +46,10 @@ bool KeyframeSelector::select(const Pose& T_world_cam, int64_t utime, TrackingSt
     take = well_tracked ? elapsed_s >= params_.max_interval_s ||
                               moved_m >= params_.min_translation_m ||
                               turned_rad >= params_.min_rotation_rad
-                        : moved_m >= params_.max_gap_translation_m ||
-                              turned_rad >= params_.max_gap_rotation_rad;
+                        : moved_m >= std::max(params_.max_gap_translation_m,
+                                              params_.min_translation_m) ||
+                              turned_rad >= std::max(params_.max_gap_rotation_rad,
+                                                     params_.min_rotation_rad);
   }
   if (take) last_ = Reference{T_world_cam, utime};
   return take;

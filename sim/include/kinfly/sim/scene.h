@@ -45,7 +45,7 @@ Scene corridor();
 // starts in the corner at (-5.5, -4.5), heading +x down the corridor at y in [-6, -3]; a lap
 // is long enough for the odometry to drift before it comes back (docs/sim.md, "Scenes").
 Scene ringCorridor();
-// A 7.2 m square hall, 3 m high, crates and pillars against its walls: the far wall 3.5 m off
+// A 7.2 m square hall, 3 m high, crates and pillars against its walls: the far wall 3.6 m off
 // whichever way the drone, in its middle, looks (issue 17's far range; docs/sim.md, "Scenes").
 Scene hall();
 

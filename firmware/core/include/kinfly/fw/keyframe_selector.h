@@ -26,14 +26,14 @@ class KeyframeSelector {
     float min_inlier_fraction = 0.25f;
     // The ground registers each keyframe against its map, seen from the last ones: a view
     // turned by the camera's field (about 60 degrees) from the last keyframe shares nothing with
-    // it. In the simulated hall, 3.5 m from its walls, ICP's inlier fraction while turning was
+    // it. In the simulated hall, 3.6 m from its walls, ICP's inlier fraction while turning was
     // 0.13-0.28 (the sensor's noise at that range), no frame reached min_inlier_fraction for 79
     // degrees, and the ground could not register 6 of 41 keyframes (docs/firmware.md,
     // "Keyframes"). So once the motion since the last keyframe reaches either of these, a frame
     // ICP tracked (kOk) is a keyframe whatever its inlier fraction: 30 degrees leaves half the
-    // view in common.
-    double max_gap_rotation_rad = 0.5236;  // [rad] [min_rotation_rad, pi]: 30 degrees
-    double max_gap_translation_m = 0.5;    // [m] [min_translation_m, 10]
+    // view in common. Never below min_rotation_rad and min_translation_m, whatever they are.
+    double max_gap_rotation_rad = 0.5236;  // [rad] (0, pi]: 30 degrees
+    double max_gap_translation_m = 0.5;    // [m] (0, 10]
     Status validate() const;  // an error names the value and its range
   };
 

@@ -354,7 +354,9 @@ StatusOr<Scene> makeScene(const std::string& name) {
   if (name == "corridor") return corridor();
   if (name == "ring") return ringCorridor();
   if (name == "hall") return hall();
-  return Status::error("scene '" + name + "' is unknown (known: room, corridor, ring, hall)");
+  std::string known;
+  for (const std::string& n : sceneNames()) known += (known.empty() ? "" : ", ") + n;
+  return Status::error("scene '" + name + "' is unknown (known: " + known + ")");
 }
 
 }  // namespace kinfly::sim

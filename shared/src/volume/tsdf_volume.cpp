@@ -87,12 +87,10 @@ void DenseVolume::shiftTo(const BlockIndex& new_origin) {
 }
 
 void DenseVolume::followCamera(const Pose& T_world_cam, float view_depth_m) {
-  // Never nearer than lookahead_m, whatever the limit; written so that a depth not known (0,
-  // NaN) keeps lookahead_m.
-  const float ahead = view_depth_m > params_.lookahead_m
-                          ? std::max(params_.lookahead_m,
-                                     std::min(view_depth_m, params_.max_lookahead_m))
-                          : params_.lookahead_m;
+  // Never nearer than lookahead_m, whatever the limit. A depth not known keeps lookahead_m: 0
+  // by the max, NaN since std::min passes it on and std::max then keeps its first argument.
+  const float ahead =
+      std::max(params_.lookahead_m, std::min(view_depth_m, params_.max_lookahead_m));
   const Eigen::Vector3d centre =
       T_world_cam.translation() + T_world_cam.linear().col(2) * static_cast<double>(ahead);
   const BlockIndex wanted =

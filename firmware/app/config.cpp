@@ -195,6 +195,9 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
   app->add_option("--keyframe.max_gap_translation_m", k.max_gap_translation_m,
                   "... or moved this far from it [m]")
       ->capture_default_str();
+  app->add_option("--keyframe.min_covisibility", k.min_covisibility,
+                  "... or seeing less than this share of what the last keyframe saw (0: off)")
+      ->capture_default_str();
   LinkConfig& l = c->link;
   app->add_option("--link.lcm_url", l.lcm_url,
                   "LCM URL (empty: LCM_DEFAULT_URL or default; memq:// with link.peers)");

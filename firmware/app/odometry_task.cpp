@@ -105,7 +105,10 @@ void OdometryTask::process(const DepthCapture& capture) {
   }
   // A new map's first frame is always a keyframe: the ground learns where the new map began.
   if (r.new_map) selector_.reset();
-  const bool keyframe = selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction);
+  const DepthFrame& frame = pipeline_.frame();
+  const bool keyframe =
+      selector_.select(r.T_world_cam, r.utime, r.status, r.inlier_fraction,
+                       {frame.depth_m[kPyramidLevels - 1].view(), frame.camera[kPyramidLevels - 1]});
   Pose T_world_odom;
   int32_t reset_counter = 0;
   {

@@ -6,6 +6,7 @@
 #include <array>
 #include <atomic>
 #include <cmath>
+#include <cstdio>
 #include <chrono>
 #include <thread>
 #include <vector>
@@ -19,6 +20,7 @@
 #include "kinfly/core/range_check.h"
 #include "kinfly/fw/send_budget.h"
 #include "kinfly/fw/sensor_watch.h"
+#include "kinfly/core/camera.h"
 #include "kinfly/core/image.h"
 #include "test_util.h"
 
@@ -221,6 +223,78 @@ TEST(KeyframeSelector, APoorlyTrackedFrameIsAKeyframeBeforeTheViewIsLeft) {
   EXPECT_FALSE(held.select(poseAt(0.05, 5.0), kSecond, TrackingStatus::kOk, poor));
 }
 
+// What a camera at T_world_cam sees of a wall 3.6 m ahead of the world's origin (z = 3.6),
+// where only the part at x >= x_min_m is within the sensor's range (the rest, like the hall's
+// corners, is too far to measure): the coarsest level of the drone's 320x240 pyramid.
+struct WallView {
+  PinholeCamera camera{65.6f, 65.6f, 39.5f, 29.5f, 80, 60};
+  Image<float> depth_m{80, 60};
+  KeyframeSelector::View view() const { return {depth_m.view(), camera}; }
+};
+
+WallView wallView(const Pose& T_world_cam, double x_min_m) {
+  WallView w;
+  const Eigen::Matrix3d R = T_world_cam.linear();
+  for (int y = 0; y < w.camera.height; ++y)
+    for (int x = 0; x < w.camera.width; ++x) {
+      const Eigen::Vector3d ray = w.camera.backProject(static_cast<float>(x), static_cast<float>(y), 1.f).cast<double>();  // z = 1
+      const Eigen::Vector3d d = R * ray;
+      const double t = (3.6 - T_world_cam.translation().z()) / d.z();  // camera z = t
+      const double x_world = T_world_cam.translation().x() + t * d.x();
+      w.depth_m(x, y) = d.z() > 0.0 && x_world >= x_min_m ? static_cast<float>(t) : NAN;
+    }
+  return w;
+}
+
+// The same 20 degree turn, short of max_gap_rotation_rad, by a frame tracked poorly (far
+// range): a keyframe when the last keyframe saw only the wall's right end (the turn brings in
+// mostly what it never saw), not when it saw the whole wall (two thirds are shared).
+TEST(KeyframeSelector, AFrameSeeingLittleOfWhatTheLastKeyframeSawIsAKeyframe) {
+  KeyframeSelector::Params p;
+  p.min_covisibility = 0.6f;  // the value measured in the hall (keyframe_selector.h)
+  ASSERT_TRUE(p.validate().ok());
+  const float poor = p.min_inlier_fraction * 0.5f;
+  const double turn_deg = 20.0;
+  ASSERT_LT(test::degToRad(turn_deg), p.max_gap_rotation_rad);
+  for (const double x_min_m : {-100.0, 0.5}) {
+    SCOPED_TRACE(x_min_m);
+    KeyframeSelector selector(p);
+    const WallView first = wallView(poseAt(0.0), x_min_m);
+    ASSERT_TRUE(selector.select(poseAt(0.0), 0, TrackingStatus::kFirstFrame, 1.f, first.view()));
+    EXPECT_NEAR(selector.covisibility(poseAt(0.0), first.view()), 1.f, 1e-6f)
+        << "the keyframe's own view is all shared";
+    const WallView turned = wallView(poseAt(0.0, turn_deg), x_min_m);
+    const float shared = selector.covisibility(poseAt(0.0, turn_deg), turned.view());
+    std::printf("covisibility after a %.0f degree turn, the wall measured from x = %.1f m: %.3f\n",
+                turn_deg, x_min_m, shared);
+    const bool taken =
+        selector.select(poseAt(0.0, turn_deg), kSecond, TrackingStatus::kOk, poor, turned.view());
+    if (x_min_m < 0.0) {
+      EXPECT_GT(shared, p.min_covisibility);
+      EXPECT_FALSE(taken);
+    } else {
+      EXPECT_LT(shared, p.min_covisibility);
+      EXPECT_TRUE(taken);
+    }
+  }
+  // Something that came 0.5 m nearer than the wall the keyframe saw is not what it saw.
+  KeyframeSelector selector(p);
+  const WallView wall = wallView(poseAt(0.0), -100.0);
+  ASSERT_TRUE(selector.select(poseAt(0.0), 0, TrackingStatus::kFirstFrame, 1.f, wall.view()));
+  WallView nearer = wallView(poseAt(0.0), -100.0);
+  for (int i = 0; i < nearer.depth_m.numPixels(); ++i) nearer.depth_m.data()[i] -= 0.5f;
+  EXPECT_EQ(selector.covisibility(poseAt(0.0), nearer.view()), 0.f);
+  // Without a view (or with the rule off) only the motion rules decide.
+  EXPECT_EQ(selector.covisibility(poseAt(0.0), {}), 1.f);
+  KeyframeSelector::Params off = p;
+  off.min_covisibility = 0.f;
+  KeyframeSelector blind(off);
+  const WallView corner = wallView(poseAt(0.0), 0.5);
+  ASSERT_TRUE(blind.select(poseAt(0.0), 0, TrackingStatus::kFirstFrame, 1.f, corner.view()));
+  const WallView turned = wallView(poseAt(0.0, turn_deg), 0.5);
+  EXPECT_FALSE(blind.select(poseAt(0.0, turn_deg), kSecond, TrackingStatus::kOk, poor, turned.view()));
+}
+
 TEST(KeyframeSelector, TimeRunningBackwardsRestartsTheReference) {
   KeyframeSelector selector(KeyframeSelector::Params{});
   EXPECT_TRUE(selector.select(poseAt(0.0), 10 * kSecond, TrackingStatus::kFirstFrame, 1.f));
@@ -240,6 +314,9 @@ TEST(KeyframeSelector, ValidateNamesTheBadValue) {
   p = KeyframeSelector::Params{};
   p.max_gap_translation_m = 0.0;
   EXPECT_NE(p.validate().message().find("max_gap_translation_m"), std::string::npos);
+  p = KeyframeSelector::Params{};
+  p.min_covisibility = 1.f;
+  EXPECT_NE(p.validate().message().find("min_covisibility"), std::string::npos);
 }
 
 // ---- CorrectionAnchor -------------------------------------------------------------------------

@@ -4,6 +4,8 @@
 #include <cmath>
 #include <sstream>
 
+#include "kinfly/core/noise_model.h"
+
 namespace kinfly::fw {
 
 Status KeyframeSelector::Params::validate() const {
@@ -24,11 +26,41 @@ Status KeyframeSelector::Params::validate() const {
   else if (!(max_gap_translation_m > 0.0 && max_gap_translation_m <= 10.0))
     why << "keyframe.max_gap_translation_m must be in (0, 10] m (got " << max_gap_translation_m
         << ")";
+  else if (!(min_covisibility >= 0.f && min_covisibility < 1.f))
+    why << "keyframe.min_covisibility must be in [0, 1) (got " << min_covisibility << ")";
   return why.str().empty() ? Status() : Status::error(why.str());
 }
 
+float KeyframeSelector::covisibility(const Pose& T_world_cam, const View& view) const {
+  if (!last_.has_value() || !last_->has_view || view.depth_m.empty()) return 1.f;
+  // Both views' depths are noisy and the poses drift a little between keyframes: three sigmas
+  // of the sensor's noise, and no less than the coarsest level's 4x4 average blurs a 3 cm step.
+  constexpr float kSigmas = 3.f, kFloorM = 0.03f;
+  const Eigen::Matrix4f T_last_cur = (last_->T_world_cam.inverse() * T_world_cam).matrix().cast<float>();
+  const Eigen::Matrix3f R = T_last_cur.topLeftCorner<3, 3>();
+  const Eigen::Vector3f t = T_last_cur.topRightCorner<3, 1>();
+  const ImageView<const float> last = last_depth_m_.view();
+  int seen = 0, shared = 0;
+  for (int y = 0; y < view.depth_m.height(); ++y) {
+    const float* row = view.depth_m.row(y);
+    for (int x = 0; x < view.depth_m.width(); ++x) {
+      if (!(row[x] > 0.f)) continue;
+      ++seen;
+      const Eigen::Vector3f q = R * view.camera.backProject(static_cast<float>(x), static_cast<float>(y), row[x]) + t;
+      if (!(q.z() > 0.f)) continue;
+      const Eigen::Vector2f uv = last_camera_.project(q);
+      const int u = static_cast<int>(std::lround(uv.x())), v = static_cast<int>(std::lround(uv.y()));
+      if (!last.inside(u, v)) continue;
+      const float z = last(u, v);
+      if (z > 0.f && std::abs(z - q.z()) <= std::max(kFloorM, kSigmas * kinectNoiseSigmaM(q.z())))
+        ++shared;
+    }
+  }
+  return seen > 0 ? static_cast<float>(shared) / static_cast<float>(seen) : 1.f;
+}
+
 bool KeyframeSelector::select(const Pose& T_world_cam, int64_t utime, TrackingStatus status,
-                              float inlier_fraction) {
+                              float inlier_fraction, const View& view) {
   const bool well_tracked = status == TrackingStatus::kFirstFrame ||
                             (status == TrackingStatus::kOk &&
                              inlier_fraction >= params_.min_inlier_fraction);
@@ -50,9 +82,20 @@ bool KeyframeSelector::select(const Pose& T_world_cam, int64_t utime, TrackingSt
                                               params_.min_translation_m) ||
                               turned_rad >= std::max(params_.max_gap_rotation_rad,
                                                      params_.min_rotation_rad);
+    // Computed only for a frame the rules above did not take: a few thousand projections.
+    take = take || (params_.min_covisibility > 0.f &&
+                    covisibility(T_world_cam, view) < params_.min_covisibility);
   }
-  if (take) last_ = Reference{T_world_cam, utime};
-  return take;
+  if (!take) return false;
+  last_ = Reference{T_world_cam, utime, !view.depth_m.empty()};
+  if (last_->has_view) {
+    if (last_depth_m_.width() != view.depth_m.width() ||
+        last_depth_m_.height() != view.depth_m.height())
+      last_depth_m_ = Image<float>(view.depth_m.width(), view.depth_m.height());
+    last_depth_m_.copyFrom(view.depth_m);
+    last_camera_ = view.camera;
+  }
+  return true;
 }
 
 }  // namespace kinfly::fw

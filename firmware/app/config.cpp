@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "kinfly/core/range_check.h"
+#include "kinfly/frame/depth_frame.h"
 #include "kinfly/link/channels.h"
 #include "publisher.h"
 
@@ -171,6 +172,10 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
       ->capture_default_str();
   app->add_option("--odometry.icp_fine_iterations", o.icp_fine_iterations,
                   "ICP iterations at the finest level (the engine's default: 4)")
+      ->capture_default_str();
+  app->add_option("--odometry.model_level", o.model_level,
+                  "raycast the model for tracking at this pyramid level's resolution (0: every "
+                  "pixel; 1: half, a quarter of the rays)")
       ->capture_default_str();
   app->add_option("--odometry.capture_queue", o.capture_queue, "frames queued before odometry")
       ->capture_default_str();
@@ -387,6 +392,7 @@ Status OdometryConfig::validate() const {
                                                       "odometry.shift_blocks"}}),
                       outOfRange("odometry.threads", threads, 1, 64),
                       outOfRange("odometry.icp_fine_iterations", icp_fine_iterations, 1, 20),
+                      outOfRange("odometry.model_level", model_level, 0, kPyramidLevels - 2),
                       outOfRange("odometry.capture_queue", capture_queue, 1, 64));
 }
 

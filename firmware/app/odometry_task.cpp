@@ -23,6 +23,7 @@ Status OdometryTask::engineParams(const FirmwareConfig& config, const PinholeCam
   pipeline->preprocess.downsample = config.odometry.downsample;
   pipeline->integrate.truncation_m = 4.f * volume->voxel_size_m;
   pipeline->icp.iterations_coarse_to_fine.back() = config.odometry.icp_fine_iterations;
+  pipeline->model_level = config.odometry.model_level;
   if (Status valid = volume->validate(); !valid.ok()) return valid;
   return pipeline->validate(volume->voxel_size_m);
 }

@@ -45,6 +45,7 @@ struct Options {
   int max_frames = 0;
   int downsample = 1;
   int icp_fine_iterations = kinfly::IcpTracker::Params().iterations_coarse_to_fine.back();
+  int model_level = kinfly::FusionPipeline::Params().model_level;
   double pose_max_dt_s = 0.02;
   bool verbose = false;
 };
@@ -97,6 +98,10 @@ int main(int argc, char** argv) {
   app.add_option("--icp-fine-iterations", opt.icp_fine_iterations,
                  "ICP iterations at the finest level (the drone's kinfly-fw runs 2: odometry.icp_fine_iterations)")
       ->capture_default_str()->check(CLI::Range(1, 20));
+  app.add_option("--model-level", opt.model_level,
+                 "raycast the model for tracking at this pyramid level's resolution (1: half; "
+                 "kinfly-fw's odometry.model_level)")
+      ->capture_default_str()->check(CLI::Range(0, kinfly::kPyramidLevels - 2));
   app.add_flag("--verbose", opt.verbose, "progress line for every frame (default: every 20th and every lost frame)");
   CLI11_PARSE(app, argc, argv);
 
@@ -138,6 +143,7 @@ int main(int argc, char** argv) {
   params.preprocess.depth_scale_m = 1.0 / opt.depth_scale;
   params.preprocess.downsample = opt.downsample;
   params.icp.iterations_coarse_to_fine.back() = opt.icp_fine_iterations;
+  params.model_level = opt.model_level;
   params.integrate.truncation_m = opt.truncation_m > 0.f ? opt.truncation_m : 4.f * voxel_m;
   if (const kinfly::Status status = params.validate(voxel_m); !status.ok()) return fail(status.message());
 

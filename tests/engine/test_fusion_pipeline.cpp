@@ -3,6 +3,7 @@
 // prior can, follows it where the scene leaves the pose weak, and tracks a scene 3.6 m off.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <optional>
@@ -83,6 +84,57 @@ TEST_F(PipelineFixture, TracksSyntheticSequence) {
         << "frame " << k;
   }
   EXPECT_GT(volume.numAllocatedBlocks(), 0u);
+}
+
+// The model raycast at half resolution (Params::model_level 1, the drone's): its finest two
+// levels are one 320x240 image, the coarsest every second pixel of it, and the sequence is
+// tracked within the same bounds as with every pixel cast.
+TEST_F(PipelineFixture, AModelRaycastAtHalfResolutionTracksTheSequence) {
+  FusionPipeline::Params params;
+  params.model_level = 1;
+  ASSERT_TRUE(params.validate(volume.voxelSizeM()).ok());
+  HashedVolume half_volume{HashedVolume::Params{}};
+  FusionPipeline half(camera, params, &half_volume);
+  const ModelMaps& model = half.model();
+  EXPECT_EQ(model.camera[0].width, camera.width / 2);
+  EXPECT_EQ(model.camera[1].width, camera.width / 2);
+  EXPECT_EQ(model.camera[2].width, camera.width / 4);
+  EXPECT_EQ(model.vertex_ref[0].height(), camera.height / 2);
+  for (int k = 0; k < kFrames; ++k) {
+    render(k, 1000 + k);
+    const FrameResult r = half.processFrame(raw, utimeOf(k));
+    if (k > 0) {
+      ASSERT_EQ(r.status, TrackingStatus::kOk) << "frame " << k << ": " << r.lost_reason;
+    }
+    EXPECT_LT(test::translationErrorM(r.T_world_cam, groundTruth(k)), kPoseTolM) << "frame " << k;
+    EXPECT_LT(test::radToDeg(test::rotationErrorRad(r.T_world_cam, groundTruth(k))), kPoseTolDeg)
+        << "frame " << k;
+  }
+  int hits = 0;
+  for (int y = 0; y < model.camera[1].height; ++y)
+    for (int x = 0; x < model.camera[1].width; ++x) {
+      hits += model.vertex_ref[0](x, y).allFinite() ? 1 : 0;
+      ASSERT_EQ(model.vertex_ref[1](x, y).allFinite(), model.vertex_ref[0](x, y).allFinite());
+      if (model.vertex_ref[0](x, y).allFinite()) {
+        ASSERT_EQ(model.vertex_ref[1](x, y), model.vertex_ref[0](x, y)) << "level 1 is level 0";
+      }
+    }
+  EXPECT_GT(hits, model.camera[0].width * model.camera[0].height / 2);
+  for (int y = 0; y < model.camera[2].height; ++y)
+    for (int x = 0; x < model.camera[2].width; ++x)
+      if (model.vertex_ref[2](x, y).allFinite()) {
+        ASSERT_EQ(model.vertex_ref[2](x, y), model.vertex_ref[1](2 * x, 2 * y));
+      }
+  // A render is still of the whole image; the model's own shading is of its size.
+  Image<uint8_t> full(camera.width, camera.height, 0), own(camera.width / 2, camera.height / 2, 0);
+  half.renderShaded(full.view());
+  half.shadeModel(own.view());
+  EXPECT_GT(std::count_if(full.data(), full.data() + full.numPixels(), [](uint8_t v) { return v > 0; }),
+            full.numPixels() / 2);
+  EXPECT_GT(std::count_if(own.data(), own.data() + own.numPixels(), [](uint8_t v) { return v > 0; }),
+            own.numPixels() / 2);
+  params.model_level = kPyramidLevels - 1;
+  EXPECT_NE(params.validate(volume.voxelSizeM()).message().find("model_level"), std::string::npos);
 }
 
 TEST_F(PipelineFixture, EmptyFrameIsLostAndTrackingRecovers) {
@@ -587,12 +639,14 @@ SyntheticScene farHall() {
 }
 
 // The drone's configuration (kinfly-fw's defaults): 320x240, a dense cube of 3 cm voxels
-// following the camera, a truncation of four voxels, two ICP iterations at the finest level.
+// following the camera, a truncation of four voxels, two ICP iterations at the finest level,
+// the model raycast at 160x120.
 FusionPipeline::Params onboardParams(const DenseVolume::Params& volume) {
   FusionPipeline::Params params;
   params.preprocess.downsample = 2;
   params.integrate.truncation_m = 4.f * volume.voxel_size_m;
   params.icp.iterations_coarse_to_fine.back() = 2;
+  params.model_level = 1;
   return params;
 }
 

@@ -41,7 +41,7 @@ REPLICA_SUBDIR = "replica_office0_nvblox/replica"
 
 # The onboard configuration of kinfly-fuse: QVGA (640x480 halved), rolling dense volume, 1 thread.
 ONBOARD_ARGS = ["--downsample", "2", "--volume", "dense", "--threads", "1",
-                "--icp-fine-iterations", "2"]
+                "--icp-fine-iterations", "2", "--model-level", "1"]
 
 # Replica office0 as rendered for NICE-SLAM (cam_params.json): fx, fy, cx, cy and units per metre.
 REPLICA_INTRINSICS = "600,600,599.5,339.5"

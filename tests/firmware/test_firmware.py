@@ -44,7 +44,7 @@ def test_log_replay_matches_the_offline_engine(sample_log: Path, sample_dir: Pat
     assert "60 frames captured, 60 processed (0 lost," in run.stdout, run.stdout
     subprocess.run([built("bin/kinfly-fuse"), "--tum", sample_dir, "--out", tmp_path / "fuse",
                     "--downsample", "2", "--volume", "dense", "--threads", "1",
-                    "--icp-fine-iterations", "2"],
+                    "--icp-fine-iterations", "2", "--model-level", "1"],
                    check=True, capture_output=True, timeout=120)
     fw, fuse = read_tum(trajectory), read_tum(tmp_path / "fuse" / "trajectory.tum")
     assert fw.shape == fuse.shape

@@ -1,12 +1,14 @@
 #include "kinfly/frame/model_maps.h"
 
+#include <algorithm>
+
 #include "parallel.h"
 
 namespace kinfly {
 
-ModelMaps::ModelMaps(const PinholeCamera& level0_camera) {
+ModelMaps::ModelMaps(const PinholeCamera& level0_camera, int first_level) {
   for (int l = 0; l < kPyramidLevels; ++l) {
-    camera[l] = level0_camera.scaled(1 << l);
+    camera[l] = level0_camera.scaled(1 << std::max(l, first_level));
     vertex_ref[l] = Image<Eigen::Vector3f>(camera[l].width, camera[l].height, invalidVector());
     normal_ref[l] = Image<Eigen::Vector3f>(camera[l].width, camera[l].height, invalidVector());
   }
@@ -15,10 +17,11 @@ ModelMaps::ModelMaps(const PinholeCamera& level0_camera) {
 void ModelMaps::buildPyramid() {
   for (int l = 1; l < kPyramidLevels; ++l) {
     const int w = camera[l].width, h = camera[l].height;
+    const int step = camera[l - 1].width == w ? 1 : 2;
     forEachStatic(h, [&](int y) {
       for (int x = 0; x < w; ++x) {
-        vertex_ref[l](x, y) = vertex_ref[l - 1](2 * x, 2 * y);
-        normal_ref[l](x, y) = normal_ref[l - 1](2 * x, 2 * y);
+        vertex_ref[l](x, y) = vertex_ref[l - 1](step * x, step * y);
+        normal_ref[l](x, y) = normal_ref[l - 1](step * x, step * y);
       }
     });
   }

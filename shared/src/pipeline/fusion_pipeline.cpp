@@ -29,6 +29,8 @@ Status FusionPipeline::Params::validate(float voxel_size_m) const {
     return Status::error("max_prior_disagreement_rad must be in (0, 1]");
   if (new_map_after_failed_frames < 0)
     return Status::error("new_map_after_failed_frames must be >= 0 (0: never)");
+  if (model_level < 0 || model_level > kPyramidLevels - 2)
+    return Status::error("model_level must be in [0, " + std::to_string(kPyramidLevels - 2) + "]");
   // Checked even when relocalisation is off: turning it on later must not meet a bad setting.
   if (const Status r = relocaliser.validate(); !r.ok())
     return Status::error("relocaliser: " + r.message());
@@ -42,9 +44,9 @@ FusionPipeline::FusionPipeline(const PinholeCamera& input_camera, const Params& 
       preprocessor_(input_camera, params.preprocess),
       tracker_(params.icp),
       integrator_(params.integrate),
-      raycaster_(preprocessor_.camera(), params.raycast),
+      raycaster_(preprocessor_.camera().scaled(1 << params.model_level), params.raycast),
       frame_(preprocessor_.camera()),
-      model_(preprocessor_.camera()) {
+      model_(preprocessor_.camera(), params.model_level) {
   integrator_.reserve(preprocessor_.camera().width, preprocessor_.camera().height, *volume);
   if (volume->followsCamera())
     view_depths_.resize(static_cast<size_t>(frame_.depth_m.back().numPixels()));
@@ -234,7 +236,7 @@ FrameResult FusionPipeline::processFrameFromGuess(ImageView<const uint16_t> raw_
 void FusionPipeline::predict(const Pose& T_world_cam, FrameResult* result) {
   const auto t0 = std::chrono::steady_clock::now();
   raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam, &model_,
-                     frame_.depth_m[0].view());
+                     frame_.depth_m[params_.model_level].view());
   model_.buildPyramid();
   result->ms.raycast += msSince(t0);
 }
@@ -330,8 +332,12 @@ FrameResult FusionPipeline::fuse(FrameResult result, bool predict_from_pose) {
 }
 
 void FusionPipeline::renderShaded(ImageView<uint8_t> out) {
-  if (!render_maps_) render_maps_ = std::make_unique<ModelMaps>(camera());
-  raycaster_.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_, render_maps_.get());
+  if (!render_maps_) {
+    render_raycaster_ = std::make_unique<Raycaster>(camera(), params_.raycast);
+    render_maps_ = std::make_unique<ModelMaps>(camera());
+  }
+  render_raycaster_->raycast(*volume_, params_.integrate.truncation_m, T_world_cam_,
+                             render_maps_.get());
   Raycaster::shade(render_maps_->vertex_ref[0].view(), render_maps_->normal_ref[0].view(), out);
 }
 

@@ -94,6 +94,12 @@ class FusionPipeline {
     // stack, kinfly-fuse). 0: never. Frames without depth (a covered sensor) do not count: they
     // say nothing of whether the map still fits.
     int new_map_after_failed_frames = 10;  // >= 0
+    // The pyramid level whose resolution the model is raycast at for tracking (ModelMaps'
+    // first_level). The raycast was the largest stage onboard (2.4 of 6.9 ms at 320x240); at
+    // level 1 it casts a quarter of the rays and ICP pairs four of the frame's finest points
+    // with each model pixel, whose plane (point and normal) they are measured against
+    // (docs/engine.md, departure 10). 0: every pixel, as KinectFusion does.
+    int model_level = 0;  // [0, kPyramidLevels - 2]
     Status validate(float voxel_size_m) const;
   };
 
@@ -127,12 +133,13 @@ class FusionPipeline {
   const DepthFrame& frame() const { return frame_; }
   const ModelMaps& model() const { return model_; }
   // Lambertian render of the model from the latest pose: a full raycast, every pixel, on demand
-  // (the per-frame model maps only cover the pixels measured).
+  // (the per-frame model maps only cover the pixels measured), at camera()'s size.
   void renderShaded(ImageView<uint8_t> out);
   // The same from the per-frame model maps, only where the latest frame measured depth but
   // without another raycast. After processFrameFromGuess these maps are the prediction from
   // that frame's guess, which the frame was registered against; processFrameAtPose leaves them
-  // as the last prediction made (empty where only given poses were fused).
+  // as the last prediction made (empty where only given poses were fused). At the model's size,
+  // model().camera[0] (camera()'s unless Params::model_level > 0).
   void shadeModel(ImageView<uint8_t> out) const;
 
  private:
@@ -182,7 +189,9 @@ class FusionPipeline {
   DepthFrame frame_;
   std::vector<float> view_depths_;  // medianViewDepthM's, sized once for a following volume
   ModelMaps model_;
-  std::unique_ptr<ModelMaps> render_maps_;  // allocated by the first renderShaded()
+  // Allocated by the first renderShaded(): the full image, whatever the model's resolution.
+  std::unique_ptr<Raycaster> render_raycaster_;
+  std::unique_ptr<ModelMaps> render_maps_;
   bool has_model_ = false;
   bool model_at_pose_ = false;  // model_ was raycast from T_world_cam_
   int lost_in_a_row_ = 0;        // processFrame's frames lost since the last fused one

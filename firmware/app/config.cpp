@@ -201,7 +201,8 @@ void addConfigOptions(CLI::App* app, FirmwareConfig* c) {
                   "... or moved this far from it [m]")
       ->capture_default_str();
   app->add_option("--keyframe.min_covisibility", k.min_covisibility,
-                  "... or seeing less than this share of what the last keyframe saw (0: off)")
+                  "... or once less than this share of what it sees was seen by the last keyframe "
+                  "(0: off)")
       ->capture_default_str();
   LinkConfig& l = c->link;
   app->add_option("--link.lcm_url", l.lcm_url,

@@ -71,7 +71,7 @@ struct OdometryConfig {                          // [odometry]
   int icp_fine_iterations = 2;
   // model_level [0, 1]: the model is raycast for tracking at this pyramid level's resolution
   // (FusionPipeline::Params::model_level): 1, 160x120, cut the frame from 6.5 to 4.8 ms on the
-  // TUM teddy sequence and moved its ATE from 1.559 to 1.580 cm (docs/engine.md item 10).
+  // TUM teddy sequence and moved its ATE from 1.559 to 1.580 cm (docs/engine.md item 4).
   int model_level = 1;
   int capture_queue = 4;         // capture_queue [1, 64]: frames between capture and odometry
   Status validate() const;

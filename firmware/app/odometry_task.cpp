@@ -37,7 +37,8 @@ OdometryTask::OdometryTask(const FirmwareConfig& config, const PinholeCamera& ca
                            LatestValue<OdometryPose>* poses, SharedPoseHistory* history,
                            const StopToken* stop)
     : config_(config), volume_(volume), pipeline_(camera, pipeline, &volume_),
-      selector_(config.keyframe),
+      selector_(config.keyframe, pipeline_.frame().camera[kPyramidLevels - 1].width,
+                pipeline_.frame().camera[kPyramidLevels - 1].height),
       publisher_("odometry", config.link.effectiveLcmUrl(), config.vehicle.id, {},
                  unicastPeers(config.link, /*listen_port=*/0, {})),
       anchor_(anchor), counters_(counters),

@@ -266,7 +266,7 @@ class PyFusion {
   // full: a raycast of every pixel (slow at full resolution); otherwise the per-frame model
   // maps shaded, where the last refined keyframe measured depth (fuse_at raycasts nothing).
   GrayOut render(bool full) {
-    const kinfly::PinholeCamera& camera = pipeline_->camera();
+    const kinfly::PinholeCamera& camera = full ? pipeline_->camera() : pipeline_->model().camera[0];
     auto* image = new kinfly::Image<uint8_t>(camera.width, camera.height, 0);
     {
       nb::gil_scoped_release unlocked;

@@ -52,8 +52,7 @@ from firmware_run import firmware, summary  # noqa: E402
 from netns import network_namespace  # noqa: E402
 
 BUILD = REPO_ROOT / "build"
-ONBOARD_ARGS = ["--downsample", "2", "--volume", "dense", "--threads", "1",
-                "--icp-fine-iterations", "2", "--model-level", "1"]
+ONBOARD_ARGS = kinfly_eval.ONBOARD_ARGS
 # Issue 4, "Targets".
 TARGETS = {"frame_ms_median": 8.0, "frame_ms_p99": 15.0, "ate_m": 0.04, "peak_rss_mb": 64.0,
            # Issue 18's: 30 frames a second on one A72 core at IPC 0.8 would allow 40 M; the

@@ -85,7 +85,8 @@ TEST(AllocationCounter, SeesAllocations) {
 // `gaps`: every other measured frame (the second, fourth, ...) comes after two that never came (the recovery path, its
 // widened gates and its messages, must not allocate either). `dense`: into the drone's dense
 // volume, which follows the camera (the frame's median depth each frame), not a hashed one.
-void expectNoAllocationPerFrame(bool gaps, bool dense = false) {
+// `model_level`: the model raycast at that level's resolution (the drone's 1).
+void expectNoAllocationPerFrame(bool gaps, bool dense = false, int model_level = 0) {
   constexpr int kWarmUpFrames = 6;  // also enough intervals for the pipeline to know the rate
   constexpr int kMeasuredFrames = 10;
   constexpr int64_t kFrameUs = 33'333;
@@ -120,6 +121,7 @@ void expectNoAllocationPerFrame(bool gaps, bool dense = false) {
   TsdfVolume* volume = dense ? static_cast<TsdfVolume*>(&dense_volume) : &hashed;
   FusionPipeline::Params params;
   if (dense) params.integrate.truncation_m = 4.f * cube.voxel_size_m;
+  params.model_level = model_level;
   FusionPipeline pipeline(camera, params, volume);
   for (int k = 0; k < kWarmUpFrames; ++k) {
     const FrameResult r = pipeline.processFrame(raw[k % kPoses], utime(k));
@@ -154,6 +156,10 @@ TEST(FusionPipelineAllocation, NoHeapAllocationPerFrameAfterGaps) {
 
 TEST(FusionPipelineAllocation, NoHeapAllocationPerFrameInADenseVolume) {
   expectNoAllocationPerFrame(/*gaps=*/false, /*dense=*/true);
+}
+
+TEST(FusionPipelineAllocation, NoHeapAllocationPerFrameWithTheModelAtHalfResolution) {
+  expectNoAllocationPerFrame(/*gaps=*/false, /*dense=*/true, /*model_level=*/1);
 }
 
 }  // namespace

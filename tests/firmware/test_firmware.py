@@ -72,6 +72,8 @@ def test_dataset_replay_matches_the_log_replay(sample_log: Path, sample_dir: Pat
     (["--vehicle.id", "70000"], "vehicle.id must be in [0, 65535]"),
     (["--odometry.downsample", "3"], "odometry.downsample must be 1, 2 or 4"),
     (["--keyframe.min_interval_s", "5"], "keyframe.min_interval_s"),
+    (["--keyframe.min_covisibility", "1"], "keyframe.min_covisibility must be in [0, 1)"),
+    (["--odometry.model_level", "2"], "odometry.model_level must be in [0, 1]"),
     (["--source.kind", "camera"], "source.kind must be log, dataset, openni, synthetic or lcm"),
     (["--link.status_rate_hz", "0"], "link.status_rate_hz"),
     (["--output.log_level", "loud"], "output.log_level"),

@@ -31,10 +31,17 @@ Status KeyframeSelector::Params::validate() const {
   return why.str().empty() ? Status() : Status::error(why.str());
 }
 
+KeyframeSelector::KeyframeSelector(const Params& params, int view_width, int view_height)
+    : params_(params) {
+  if (params_.min_covisibility > 0.f && view_width > 0 && view_height > 0)
+    last_depth_m_ = Image<float>(view_width, view_height);
+}
+
 float KeyframeSelector::covisibility(const Pose& T_world_cam, const View& view) const {
   if (!last_.has_value() || !last_->has_view || view.depth_m.empty()) return 1.f;
   // Both views' depths are noisy and the poses drift a little between keyframes: three sigmas
-  // of the sensor's noise, and no less than the coarsest level's 4x4 average blurs a 3 cm step.
+  // of the sensor's noise, and no less than 3 cm, since the coarsest level's depth is two
+  // range-gated 5x5 means of the frame's, which spread a step across its neighbours.
   constexpr float kSigmas = 3.f, kFloorM = 0.03f;
   const Eigen::Matrix4f T_last_cur = (last_->T_world_cam.inverse() * T_world_cam).matrix().cast<float>();
   const Eigen::Matrix3f R = T_last_cur.topLeftCorner<3, 3>();
@@ -49,6 +56,10 @@ float KeyframeSelector::covisibility(const Pose& T_world_cam, const View& view) 
       const Eigen::Vector3f q = R * view.camera.backProject(static_cast<float>(x), static_cast<float>(y), row[x]) + t;
       if (!(q.z() > 0.f)) continue;
       const Eigen::Vector2f uv = last_camera_.project(q);
+      // Bounded in float first: a point near the camera's plane projects far beyond int's range.
+      if (!(uv.x() > -0.5f && uv.x() < static_cast<float>(last.width()) - 0.5f &&
+            uv.y() > -0.5f && uv.y() < static_cast<float>(last.height()) - 0.5f))
+        continue;
       const int u = static_cast<int>(std::lround(uv.x())), v = static_cast<int>(std::lround(uv.y()));
       if (!last.inside(u, v)) continue;
       const float z = last(u, v);
@@ -87,7 +98,7 @@ bool KeyframeSelector::select(const Pose& T_world_cam, int64_t utime, TrackingSt
                     covisibility(T_world_cam, view) < params_.min_covisibility);
   }
   if (!take) return false;
-  last_ = Reference{T_world_cam, utime, !view.depth_m.empty()};
+  last_ = Reference{T_world_cam, utime, params_.min_covisibility > 0.f && !view.depth_m.empty()};
   if (last_->has_view) {
     if (last_depth_m_.width() != view.depth_m.width() ||
         last_depth_m_.height() != view.depth_m.height())

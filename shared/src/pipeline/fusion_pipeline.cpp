@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cassert>
 #include <chrono>
 #include <cmath>
 #include <sstream>
@@ -47,6 +48,8 @@ FusionPipeline::FusionPipeline(const PinholeCamera& input_camera, const Params& 
       raycaster_(preprocessor_.camera().scaled(1 << params.model_level), params.raycast),
       frame_(preprocessor_.camera()),
       model_(preprocessor_.camera(), params.model_level) {
+  // validate() names the range; a caller that skipped it would index past the pyramid.
+  assert(params.model_level >= 0 && params.model_level <= kPyramidLevels - 2);
   integrator_.reserve(preprocessor_.camera().width, preprocessor_.camera().height, *volume);
   if (volume->followsCamera())
     view_depths_.resize(static_cast<size_t>(frame_.depth_m.back().numPixels()));
@@ -333,15 +336,17 @@ FrameResult FusionPipeline::fuse(FrameResult result, bool predict_from_pose) {
 
 void FusionPipeline::renderShaded(ImageView<uint8_t> out) {
   if (!render_maps_) {
-    render_raycaster_ = std::make_unique<Raycaster>(camera(), params_.raycast);
+    if (params_.model_level > 0)
+      render_raycaster_ = std::make_unique<Raycaster>(camera(), params_.raycast);
     render_maps_ = std::make_unique<ModelMaps>(camera());
   }
-  render_raycaster_->raycast(*volume_, params_.integrate.truncation_m, T_world_cam_,
-                             render_maps_.get());
+  Raycaster& raycaster = render_raycaster_ ? *render_raycaster_ : raycaster_;
+  raycaster.raycast(*volume_, params_.integrate.truncation_m, T_world_cam_, render_maps_.get());
   Raycaster::shade(render_maps_->vertex_ref[0].view(), render_maps_->normal_ref[0].view(), out);
 }
 
 void FusionPipeline::shadeModel(ImageView<uint8_t> out) const {
+  assert(out.width() == model_.camera[0].width && out.height() == model_.camera[0].height);
   Raycaster::shade(model_.vertex_ref[0].view(), model_.normal_ref[0].view(), out);
 }
 

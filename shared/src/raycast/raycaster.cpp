@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cassert>
 #include <cmath>
 
 #include <limits>
@@ -239,6 +240,10 @@ RaycastResult Raycaster::raycast(const TsdfVolume& volume, float truncation_m,
                                  const Pose& T_world_cam, ModelMaps* maps,
                                  ImageView<const float> depth_hint_m) {
   const bool use_hint = !depth_hint_m.empty();
+  // The maps, the hint and this raycaster's tables are one camera's (a model at another pyramid
+  // level has a raycaster of its own size: FusionPipeline::Params::model_level).
+  assert(maps->vertex_ref[0].width() == camera_.width && maps->vertex_ref[0].height() == camera_.height);
+  assert(!use_hint || (depth_hint_m.width() == camera_.width && depth_hint_m.height() == camera_.height));
   // Tile ranges cost a pass over every allocated block, which grows with the map; a hinted ray
   // already knows its range.
   if (!use_hint) computeRanges(volume, T_world_cam.inverse());

@@ -24,6 +24,7 @@ struct ModelMaps {
   // The spacing the normals were differenced over (the volume's voxel; 0: unknown): the sensor's
   // noise over it tells how far a normal may lie off the surface's (IcpTracker's angle gate).
   float normal_spacing_m = 0.f;  // [m]
+  int first_level = 0;           // the level raycast; the finer ones hold the same image
   // Fills levels 1.. from level 0 by taking every second pixel, matching the depth pyramid's
   // pixel-centre convention (a copy where a level has its finer one's size).
   void buildPyramid();

@@ -95,10 +95,10 @@ class FusionPipeline {
     // say nothing of whether the map still fits.
     int new_map_after_failed_frames = 10;  // >= 0
     // The pyramid level whose resolution the model is raycast at for tracking (ModelMaps'
-    // first_level). The raycast was the largest stage onboard (2.4 of 6.9 ms at 320x240); at
+    // first_level). The raycast was the largest stage onboard (2.4 of 6.5 ms at 320x240); at
     // level 1 it casts a quarter of the rays and ICP pairs four of the frame's finest points
     // with each model pixel, whose plane (point and normal) they are measured against
-    // (docs/engine.md, departure 10). 0: every pixel, as KinectFusion does.
+    // (docs/engine.md, departure 4). 0: every pixel, as KinectFusion does.
     int model_level = 0;  // [0, kPyramidLevels - 2]
     Status validate(float voxel_size_m) const;
   };
@@ -189,7 +189,7 @@ class FusionPipeline {
   DepthFrame frame_;
   std::vector<float> view_depths_;  // medianViewDepthM's, sized once for a following volume
   ModelMaps model_;
-  // Allocated by the first renderShaded(): the full image, whatever the model's resolution.
+  // Allocated by the first renderShaded(), raycaster_ serving where the model is full-size.
   std::unique_ptr<Raycaster> render_raycaster_;
   std::unique_ptr<ModelMaps> render_maps_;
   bool has_model_ = false;

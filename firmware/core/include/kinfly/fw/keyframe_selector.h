@@ -56,10 +56,13 @@ class KeyframeSelector {
     PinholeCamera camera;
   };
 
-  explicit KeyframeSelector(const Params& params) : params_(params) {}
+  // With min_covisibility > 0, the copy of the last keyframe's view is allocated here for views
+  // of view_width x view_height, so that flight allocates nothing.
+  explicit KeyframeSelector(const Params& params, int view_width = 0, int view_height = 0);
 
-  // Decides for one processed frame; when it returns true the frame is the new reference, and
-  // keeps a copy of `view` (allocated for the first keyframe, or when the view's size changes).
+  // Decides for one processed frame; when it returns true the frame is the new reference, and,
+  // with min_covisibility > 0, keeps a copy of `view` (allocated anew only when the view's size
+  // is not the one given at construction).
   bool select(const Pose& T_world_cam, int64_t utime, TrackingStatus status,
               float inlier_fraction, const View& view = {});
 

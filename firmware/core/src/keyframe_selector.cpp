@@ -56,12 +56,12 @@ float KeyframeSelector::covisibility(const Pose& T_world_cam, const View& view) 
       const Eigen::Vector3f q = R * view.camera.backProject(static_cast<float>(x), static_cast<float>(y), row[x]) + t;
       if (!(q.z() > 0.f)) continue;
       const Eigen::Vector2f uv = last_camera_.project(q);
-      // Bounded in float first: a point near the camera's plane projects far beyond int's range.
+      // Bounded in float, before rounding: a point near the camera's plane projects far beyond
+      // int's range. Within these bounds the rounded pixel is inside the image.
       if (!(uv.x() > -0.5f && uv.x() < static_cast<float>(last.width()) - 0.5f &&
             uv.y() > -0.5f && uv.y() < static_cast<float>(last.height()) - 0.5f))
         continue;
       const int u = static_cast<int>(std::lround(uv.x())), v = static_cast<int>(std::lround(uv.y()));
-      if (!last.inside(u, v)) continue;
       const float z = last(u, v);
       if (z > 0.f && std::abs(z - q.z()) <= std::max(kFloorM, kSigmas * kinectNoiseSigmaM(q.z())))
         ++shared;

@@ -127,6 +127,10 @@ void bilateralBand(ImageView<const float> depth_m, int y_begin, int y_end,
 
   constexpr float kFar = -1e9f;  // [m] the depth invalid pixels are read as
   for (int x0 = 0; x0 < w; x0 += tile) {
+    // The output columns of this tile, and the groups of four that cover them: the last tile of
+    // a row is weighed only as far as its groups read.
+    const int n = std::min(tile, w - x0);
+    const int groups_end = (n + kWidth - 1) / kWidth * kWidth;
     auto loadDepth = [&](int y) {
       float* row = depthRow(y);
       std::fill(row, row + kDepthRow, kFar);
@@ -149,10 +153,10 @@ void bilateralBand(ImageView<const float> depth_m, int y_begin, int y_end,
           const float* table = forward_weights[forwardIndex(dx, dy)];
           // All of the row's bins first, so that the lookups read their indices from memory.
           int bins[kMaxTile + 2 * kMaxR + kWidth];
-          for (int i = 0; i < tile + 2 * r; i += kWidth)
+          for (int i = 0; i < groups_end + 2 * r; i += kWidth)
             lanes::store(bins + i, rangeBin(lanes::load<Floats>(there + i),
                                             lanes::load<Floats>(here + i), k));
-          for (int i = 0; i < tile + 2 * r; i += kWidth)
+          for (int i = 0; i < groups_end + 2 * r; i += kWidth)
             lanes::store(weights + i, lanes::lookup(table, bins + i));
         }
       if (y < y_begin) continue;
@@ -168,7 +172,6 @@ void bilateralBand(ImageView<const float> depth_m, int y_begin, int y_end,
           else
             taps[t].weight = ringRow(y, forwardIndex(dx, dy)) + r;
         }
-      const int n = std::min(tile, w - x0);
       const float* centre = depthRow(y) + 2 * r;
       float filtered[kMaxTile];
       int c = 0;

@@ -24,6 +24,33 @@ Status TsdfIntegrator::Params::validate(float voxel_size_m) const {
   return why.str().empty() ? Status() : Status::error(why.str());
 }
 
+namespace {
+
+// The running weighted average of the seed's steps 10-14 for four neighbouring voxels, where
+// `measured` (a pixel with a depth): the truncated distance averaged in with weight one, the
+// weight capped. Far behind the surface (sdf below -truncation) is unknown, not free, and left
+// as it is. All four lanes are computed and the unchanged ones written back as they were:
+// branching per voxel costs more in mispredictions than the arithmetic of four.
+void updateVoxels(Voxel* voxels, Floats sdf_m, Ints measured, float truncation_m,
+                  float max_weight) {
+  const Ints update = measured & ~(sdf_m < -truncation_m);
+  if (lanes::none(update)) return;
+  static_assert(sizeof(Voxel) == 2 * sizeof(float), "a voxel is its distance, then its weight");
+  float* interleaved = &voxels[0].tsdf;
+  const Floats lo = lanes::load<Floats>(interleaved), hi = lanes::load<Floats>(interleaved + 4);
+  const Floats tsdf = lanes::shuffle<0, 2, 4, 6>(lo, hi);
+  const Floats weight = lanes::shuffle<1, 3, 5, 7>(lo, hi);
+  const Floats measured_tsdf = sdf_m >= truncation_m ? 1.f : sdf_m / truncation_m;
+  const Floats next_weight = weight + 1.f;
+  const Floats averaged = update ? (tsdf * weight + measured_tsdf) / next_weight : tsdf;
+  const Floats capped =
+      update ? (next_weight < max_weight ? next_weight : lanes::splat(max_weight)) : weight;
+  lanes::store(interleaved, lanes::shuffle<0, 4, 1, 5>(averaged, capped));
+  lanes::store(interleaved + 4, lanes::shuffle<2, 6, 3, 7>(averaged, capped));
+}
+
+}  // namespace
+
 TsdfIntegrator::TsdfIntegrator(const Params& params) : params_(params) {}
 
 int TsdfIntegrator::samplesPerBand(const TsdfVolume& volume) const {
@@ -147,15 +174,14 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
           const Ints u = lanes::truncate((near ? uf : 0.f) + 0.5f);
           const Ints v = lanes::truncate((near ? vf : 0.f) + 0.5f);
           const Ints inside = near & (u < depth_m.width()) & (v < depth_m.height());
+          if (lanes::none(inside)) continue;
+          int pixels[kWidth];
+          lanes::store(pixels, inside ? v * depth_m.width() + u : 0);
+          const Floats d = lanes::lookup(depth_m.data(), pixels);
           // Signed distance along the pixel ray, as KinFu computes it (depth scaled by lambda
           // minus range): the ray's scale here, the depth per voxel below.
           const Floats ray_scale = lanes::sqrt(1.f + xn * xn + yn * yn);
-          for (int l = 0; l < kWidth; ++l) {
-            if (!inside[l]) continue;
-            const float d = depth_m(u[l], v[l]);
-            if (d <= 0.f) continue;
-            updateVoxel(&voxel[x0 + l], (d - pz[l]) * ray_scale[l], mu, max_weight);
-          }
+          updateVoxels(voxel + x0, (d - pz) * ray_scale, inside & (d > 0.f), mu, max_weight);
         }
       }
   });

@@ -59,13 +59,4 @@ class TsdfIntegrator {
   std::vector<VoxelBlock*> touched_;
 };
 
-// The per-voxel update, shared by every integration loop.
-inline void updateVoxel(Voxel* v, float sdf_m, float truncation_m, float max_weight) {
-  if (sdf_m < -truncation_m) return;  // far behind the surface: unknown, not free
-  const float tsdf = sdf_m >= truncation_m ? 1.f : sdf_m / truncation_m;
-  const float w = v->weight;
-  v->tsdf = (v->tsdf * w + tsdf) / (w + 1.f);
-  v->weight = w + 1.f < max_weight ? w + 1.f : max_weight;
-}
-
 }  // namespace kinfly

@@ -26,6 +26,12 @@ Status TsdfIntegrator::Params::validate(float voxel_size_m) const {
 
 namespace {
 
+// floorToInt in each lane.
+Ints floorToInts(Floats x) {
+  const Ints i = lanes::truncate(x);
+  return i + (lanes::toFloat(i) > x);  // true lanes are -1
+}
+
 // The running weighted average of the seed's steps 10-14 for four neighbouring voxels, where
 // `measured` (a pixel with a depth): the truncated distance averaged in with weight one, the
 // weight capped. Far behind the surface (sdf below -truncation) is unknown, not free, and left
@@ -102,6 +108,14 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
     candidates.clear();
     std::array<BlockIndex, kRecentBlocks> recent;
     recent.fill(BlockIndex::Constant(INT32_MIN));
+    // The blocks of the previous pixel's samples, four to a group, sample by sample: a
+    // neighbouring pixel's band mostly crosses the same blocks, and a block listed before in
+    // this chunk may be left out (the blocks' order is that of their first listing). The
+    // comparison spares the hash of the recent blocks for most samples.
+    constexpr int kComparedGroups = 4;
+    std::array<Ints, kComparedGroups> previous_x, previous_y, previous_z;
+    previous_x.fill(lanes::Ints{} + INT32_MIN);
+    previous_y = previous_z = previous_x;
     for (int r = rows * c / kAllocationChunks; r < rows * (c + 1) / kAllocationChunks; ++r) {
       const int y = r * stride;
       const float* row = depth_m.row(y);
@@ -113,13 +127,25 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
         const float z0 = std::max(d - mu / ray_len, 1e-3f), z1 = d + mu / ray_len;
         const Eigen::Vector3f ray_blk = R_wc * ray * blocks_per_m;  // blocks per metre of depth
         const float dz = (z1 - z0) / static_cast<float>(samples);
-        for (int i = 0; i <= samples; ++i) {
-          const Eigen::Vector3f p_blk = origin_blk + ray_blk * (z0 + dz * static_cast<float>(i));
-          const BlockIndex b(floorToInt(p_blk.x()), floorToInt(p_blk.y()), floorToInt(p_blk.z()));
-          BlockIndex& slot = recent[hashBlockIndex(b) % kRecentBlocks];
-          if (slot == b) continue;
-          slot = b;
-          candidates.push_back(b);
+        for (int i = 0, g = 0; i <= samples; i += kWidth, ++g) {
+          const Ints sample = i + Ints{0, 1, 2, 3};
+          const Floats along = z0 + dz * lanes::toFloat(sample);
+          const Ints bx = floorToInts(origin_blk.x() + ray_blk.x() * along);
+          const Ints by = floorToInts(origin_blk.y() + ray_blk.y() * along);
+          const Ints bz = floorToInts(origin_blk.z() + ray_blk.z() * along);
+          Ints listed = sample > samples;
+          if (g < kComparedGroups) {
+            listed |= (bx == previous_x[g]) & (by == previous_y[g]) & (bz == previous_z[g]);
+            previous_x[g] = bx, previous_y[g] = by, previous_z[g] = bz;
+          }
+          for (int l = 0; l < kWidth; ++l) {
+            if (listed[l]) continue;
+            const BlockIndex b(bx[l], by[l], bz[l]);
+            BlockIndex& slot = recent[hashBlockIndex(b) % kRecentBlocks];
+            if (slot == b) continue;
+            slot = b;
+            candidates.push_back(b);
+          }
         }
       }
     }

@@ -95,6 +95,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help=f"voxel edge of the full-resolution map [m] (default {d.voxel_size_m})")
     p.add_argument("--threads", type=int, default=d.threads,
                    help=f"fusion threads (default {d.threads})")
+    p.add_argument("--model-level", type=int, default=d.model_level, choices=(0, 1),
+                   help="resolution of the map's raycast that keyframes are registered against: "
+                        "0 every pixel, 1 half (a quarter of the rays; the map is still fused at "
+                        f"full resolution) (default {d.model_level})")
     p.add_argument("--reset-translation", type=float, default=d.reset_translation_m, metavar="M",
                    help="a correction moving the pose further than this increments the reset "
                         f"counter [m] (default {d.reset_translation_m})")
@@ -209,6 +213,7 @@ def _params(args: argparse.Namespace, **extra: Any) -> StationParams:
         raise UsageError(f"--submap-distance {args.submap_distance:g} and --submap-duration "
                          f"{args.submap_duration:g} must be positive") from None
     params = StationParams(voxel_size_m=args.voxel_size, threads=args.threads,
+                           model_level=args.model_level,
                            reset_translation_m=args.reset_translation,
                            reset_rotation_rad=math.radians(args.reset_rotation), submaps=submaps,
                            **extra)

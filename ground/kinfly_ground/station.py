@@ -42,6 +42,10 @@ class StationParams:
     # The map's voxel (HashedVolumeParams.voxel_size_m); the truncation band is four of them.
     voxel_size_m: float = 0.01          # [m] (0.002, 0.1]
     threads: int = 2                    # [1, 64] engine threads for fusion
+    # Each keyframe is registered against the map raycast at this level of its pyramid
+    # (FusionPipelineParams.model_level): 1, half the keyframe's resolution, a quarter of the
+    # rays; the map itself is fused at full resolution. 0: the rays of every pixel, the seed's.
+    model_level: int = 1                # [0, 1]
     queue_keyframes: int = 32           # [1, 1000] keyframes waiting to be fused (then drop oldest)
     # A correction that moves the drone's pose further than this is a jump: reset_counter + 1,
     # which tells consumers such as an autopilot's EKF to re-initialise rather than fuse it.
@@ -101,9 +105,11 @@ class StationParams:
 
     def pipeline_params(self) -> FusionPipelineParams:
         """The engine's parameters for each map's pipeline: its defaults, with a truncation band
-        of four voxels. The depth scale is each map's first keyframe's (mapping.py)."""
+        of four voxels and the model at model_level. The depth scale is each map's first
+        keyframe's (mapping.py)."""
         pipeline = FusionPipelineParams()
         pipeline.integrate.truncation_m = 4.0 * self.voxel_size_m
+        pipeline.model_level = self.model_level
         return pipeline
 
     def validate(self) -> str:

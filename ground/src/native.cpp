@@ -390,6 +390,7 @@ void bindParams(nb::module_& m) {
       .def_rw("icp", &FusionPipeline::Params::icp)
       .def_rw("integrate", &FusionPipeline::Params::integrate)
       .def_rw("raycast", &FusionPipeline::Params::raycast)
+      .def_rw("model_level", &FusionPipeline::Params::model_level)
       .def_rw("min_valid_depth_fraction", &FusionPipeline::Params::min_valid_depth_fraction)
       .def_rw("max_recovery_gate_scale", &FusionPipeline::Params::max_recovery_gate_scale)
       .def_rw("max_prior_disagreement_m", &FusionPipeline::Params::max_prior_disagreement_m)

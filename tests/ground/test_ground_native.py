@@ -283,6 +283,7 @@ def test_parameter_structs_are_the_engines_with_their_defaults_and_checks() -> N
 
     pipeline = FusionPipelineParams()
     assert pipeline.icp.iterations_coarse_to_fine == [10, 5, 4]
+    assert pipeline.model_level == 0
     assert pipeline.validate(0.01) == ""
     # The stages' structs are the pipeline's own, changed in place.
     pipeline.integrate.truncation_m = 0.015

@@ -97,8 +97,9 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help=f"fusion threads (default {d.threads})")
     p.add_argument("--model-level", type=int, default=d.model_level, choices=(0, 1),
                    help="resolution of the map's raycast that keyframes are registered against: "
-                        "0 every pixel, 1 half (a quarter of the rays; the map is still fused at "
-                        f"full resolution) (default {d.model_level})")
+                        "0 every pixel, 1 half (a quarter of the rays, for a station short of "
+                        "time; less accurate, docs/ground.md; the map is still fused at full "
+                        f"resolution) (default {d.model_level})")
     p.add_argument("--reset-translation", type=float, default=d.reset_translation_m, metavar="M",
                    help="a correction moving the pose further than this increments the reset "
                         f"counter [m] (default {d.reset_translation_m})")

@@ -43,9 +43,10 @@ class StationParams:
     voxel_size_m: float = 0.01          # [m] (0.002, 0.1]
     threads: int = 2                    # [1, 64] engine threads for fusion
     # Each keyframe is registered against the map raycast at this level of its pyramid
-    # (FusionPipelineParams.model_level): 1, half the keyframe's resolution, a quarter of the
-    # rays; the map itself is fused at full resolution. 0: the rays of every pixel, the seed's.
-    model_level: int = 1                # [0, 1]
+    # (FusionPipelineParams.model_level): 0, every pixel's ray, the seed's; 1, half the
+    # keyframe's resolution, a quarter of the rays, for a station short of time (the map itself
+    # is fused at full resolution either way). docs/ground.md has what 1 costs in accuracy.
+    model_level: int = 0                # [0, 1]
     queue_keyframes: int = 32           # [1, 1000] keyframes waiting to be fused (then drop oldest)
     # A correction that moves the drone's pose further than this is a jump: reset_counter + 1,
     # which tells consumers such as an autopilot's EKF to re-initialise rather than fuse it.

@@ -5,8 +5,7 @@
         [--data SHARED_DATA] [--out out/bench] [--max-frames N]
 
 Runs, in one go, on the shared TUM freiburg3_teddy sequence (200 frames, 640x480):
-  - kinfly-fuse, ground configuration (hashed volume, 640x480, 2 threads, the map raycast for
-    tracking at half resolution as kinfly-ground does: kinfly_eval.GROUND_ARGS);
+  - kinfly-fuse, ground configuration (hashed volume, 640x480, 2 threads);
   - kinfly-fuse, onboard configuration (QVGA, dense volume, 1 thread);
   - Open3D's t.pipelines.slam.Model frame-to-model SLAM with the parameters of its example
     examples/python/t_reconstruction_system/dense_slam.py (default_config.yml), 2 OpenMP threads.
@@ -44,7 +43,7 @@ import kinfly_eval  # noqa: E402
 GROUND_BUDGET_MS = 33.0
 GROUND_MIN_SPEEDUP_VS_OPEN3D = 4.0
 ONBOARD_BUDGET_MS = 8.0
-GROUND_ARGS = ["--threads", "2", *kinfly_eval.GROUND_ARGS]
+GROUND_ARGS = ["--threads", "2"]
 
 # kinfly-fuse's default truncation (--truncation), given to Open3D too; Replica's depth reaches
 # 3.6 m and nothing of it is left out.

@@ -39,7 +39,7 @@ def _trajectory_rows(path: Path) -> np.ndarray:
 def ground_run(fuse_bin: Path, tum_sequence: Path,
                tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     out = tmp_path_factory.mktemp("tum_ground")
-    stats = kinfly_eval.run_fuse(fuse_bin, tum_sequence, out, kinfly_eval.GROUND_ARGS)
+    stats = kinfly_eval.run_fuse(fuse_bin, tum_sequence, out)
     return {"out": out, "stats": stats}
 
 

@@ -967,10 +967,10 @@ def test_station_params_build_the_engines_parameters() -> None:
     assert params.volume_params().voxel_size_m == pytest.approx(0.02)
     assert params.pipeline_params().integrate.truncation_m == pytest.approx(0.08)  # four voxels
     assert "voxel size" in StationParams(voxel_size_m=0.001).validate()
-    # Keyframes are registered against the map raycast at half resolution unless asked not to;
+    # Keyframes are registered against the map raycast at full resolution unless asked for half;
     # a level the pipeline cannot raycast at is refused by the engine's own check, by name.
-    assert params.pipeline_params().model_level == 1
-    assert StationParams(model_level=0).pipeline_params().model_level == 0
+    assert params.pipeline_params().model_level == 0
+    assert StationParams(model_level=1).pipeline_params().model_level == 1
     assert "model_level" in StationParams(model_level=2).validate()
 
 

@@ -431,7 +431,7 @@ vehicles' maps share a world (groups of vehicle ids) after each merge."""
         if result.status is TrackingStatus.OK:
             # The map as raycast for this keyframe's registration, from its onboard pose (a few
             # mm from the refined one) where it measured depth; a map's first keyframe has none.
-            state.view.render(m.utime, active.fusion.render())
+            state.view.render(m.utime, active.fusion.render(), depth.shape)
         # What the viewer's two plots show (viewer._layout): the keyframes' fate as the progress
         # line counts it, and how well the ground registered them. The other counters are in
         # summary.json; a first keyframe is not registered, so it has no tracking figures.

@@ -75,6 +75,16 @@ _SIDE_ROW_SHARES = [2.0, 1.0, 1.0]
 _RENDER_OPACITY = 0.5
 
 
+
+def at_resolution(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """IMAGE resized to SHAPE (height, width) by nearest neighbour: each pixel of SHAPE takes the
+    IMAGE pixel it falls in. IMAGE itself when it has SHAPE already."""
+    if image.shape[:2] == tuple(shape):
+        return image
+    rows = np.arange(shape[0]) * image.shape[0] // shape[0]
+    columns = np.arange(shape[1]) * image.shape[1] // shape[1]
+    return image[rows[:, None], columns]
+
 class ViewerError(Exception):
     """The viewer could not be started or the recording not written."""
 
@@ -233,12 +243,15 @@ class VehicleView:
         self._stamp(utime)
         self._trajectories["ground_truth"].replace(positions)
 
-    def render(self, utime: int, image: np.ndarray) -> None:
-        """IMAGE: uint8 HxW, the model raycast from the current pose, at the depth's resolution."""
+    def render(self, utime: int, image: np.ndarray, shape: tuple[int, int]) -> None:
+        """IMAGE: uint8, the model raycast from the current pose; SHAPE: the keyframe depth's
+        (height, width), its pinhole's. A render at a coarser resolution (kinfly-ground
+        --model-level 1) is shown at SHAPE, so that it lies under that pinhole."""
         if self._rec is None:
             return
         self._stamp(utime)
-        self._rec.log(f"{self._prefix}world/drone/camera/render", rr.Image(image, color_model="L"))
+        self._rec.log(f"{self._prefix}world/drone/camera/render",
+                      rr.Image(at_resolution(image, shape), color_model="L"))
 
     def mesh(self, utime: int, submap: int, vertices: np.ndarray, triangles: np.ndarray,
              normals: np.ndarray | None) -> None:

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <memory>
+#include <random>
 #include <vector>
 
 #include "kinfly/raycast/raycaster.h"
@@ -343,6 +344,90 @@ TEST(TsdfIntegrator, SerialAndParallelGiveIdenticalVoxels) {
       ASSERT_EQ(a->voxels[i].weight, b->voxels[i].weight);
     }
   }
+}
+
+TEST(TsdfIntegrator, EachChangedVoxelIsTheRunningAverageOfItsPixelsDistance) {
+  // The update four voxels at a time against the seed's per-voxel definition, computed here in
+  // double: the voxel's pixel (nearest, of its projection), the distance along that pixel's
+  // ray, then the truncated distance averaged in with weight one, the weight capped. A voxel
+  // whose projection or distance lies within rounding of a decision (a pixel's edge, a hole's
+  // border, the band's far edge) is left out of the check, not judged.
+  const SyntheticScene scene = SyntheticScene::cornerRoom();
+  const PinholeCamera cam = test::tumCamera();
+  HashedVolume volume(HashedVolume::Params{});
+  TsdfIntegrator::Params params;
+  params.max_weight = 2.f;  // the third frame reaches the cap
+  TsdfIntegrator integrator(params);
+  const double mu = params.truncation_m;
+  constexpr double kEdgePx = 1e-3;        // [px] projections this close to a pixel's edge
+  constexpr double kEdgeM = 1e-4;         // [m] distances this close to -truncation
+  constexpr double kMaxMissedBandShare = 1e-3;
+  // The engine places voxels in float, stepping along block rows: up to 4 m off, a few of its
+  // ulps (0.24 um there) against this double position.
+  constexpr double kDistanceToleranceM = 4e-6;
+  Image<uint16_t> raw(cam.width, cam.height);
+  Image<float> depth(cam.width, cam.height);
+  std::mt19937 holes(7);
+  int checked = 0, updated = 0, band = 0, missed = 0;
+  for (int frame = 0; frame < 3; ++frame) {
+    const Pose T = test::makePose(Eigen::Vector3d(0.0, 0.03 * frame, 0.0),
+                                  Eigen::Vector3d(0.02 * frame, 0.0, 0.01 * frame));
+    test::renderNoisyMetres(scene, cam, T, 60 + frame, raw, depth);
+    for (int y = 0; y < cam.height; ++y)
+      for (int x = 0; x < cam.width; ++x)
+        if (holes() % 10 == 0) depth(x, y) = 0.f;  // a tenth of the pixels without depth
+    std::vector<VoxelBlock> before;
+    for (const VoxelBlock* b : volume.allocatedBlocks()) before.push_back(*b);
+    integrator.integrate(depth, cam, T, &volume);
+    const Pose T_cam_world = T.inverse();
+    for (const VoxelBlock* b : volume.allocatedBlocks()) {
+      const auto old = std::find_if(before.begin(), before.end(),
+                                    [&](const VoxelBlock& o) { return o.index == b->index; });
+      for (int z = 0; z < kBlockSide; ++z)
+        for (int y = 0; y < kBlockSide; ++y)
+          for (int x = 0; x < kBlockSide; ++x) {
+            const int i = VoxelBlock::linear(x, y, z);
+            const Voxel was = old == before.end() ? Voxel() : old->voxels[i];
+            const Voxel now = b->voxels[i];
+            const bool changed = now.tsdf != was.tsdf || now.weight != was.weight;
+            const Eigen::Vector3d p =
+                T_cam_world * volume.voxelCentre(b->index, x, y, z).cast<double>();
+            const double u = cam.fx * p.x() / p.z() + cam.cx, v = cam.fy * p.y() / p.z() + cam.cy;
+            const double u_frac = u + 0.5 - std::floor(u + 0.5), v_frac = v + 0.5 - std::floor(v + 0.5);
+            if (p.z() <= 0.0 || u_frac < kEdgePx || u_frac > 1.0 - kEdgePx ||
+                v_frac < kEdgePx || v_frac > 1.0 - kEdgePx)
+              continue;
+            const int pu = static_cast<int>(std::floor(u + 0.5));
+            const int pv = static_cast<int>(std::floor(v + 0.5));
+            const bool in_image = pu >= 0 && pv >= 0 && pu < cam.width && pv < cam.height;
+            const double d = in_image ? depth(pu, pv) : 0.0;
+            const double lambda = std::sqrt(1.0 + (p.x() * p.x() + p.y() * p.y()) / (p.z() * p.z()));
+            const double sdf = (d - p.z()) * lambda;
+            if (d > 0.0 && std::abs(sdf + mu) < kEdgeM) continue;
+            const bool measured = d > 0.0 && sdf >= -mu;
+            ++checked;
+            const bool in_band = measured && std::abs(sdf) < mu - kEdgeM;
+            band += in_band;
+            if (!changed) {
+              // One in front of the band may lie in a block no band crosses.
+              missed += in_band;
+              continue;
+            }
+            ++updated;
+            ASSERT_TRUE(measured) << "voxel updated without a measurement, frame " << frame;
+            const double tsdf = std::min(1.0, sdf / mu);
+            const double expected = (was.tsdf * static_cast<double>(was.weight) + tsdf) /
+                                    (static_cast<double>(was.weight) + 1.0);
+            EXPECT_NEAR(now.tsdf, expected, kDistanceToleranceM / mu) << "frame " << frame;
+            EXPECT_EQ(now.weight, std::min(was.weight + 1.f, params.max_weight));
+          }
+    }
+  }
+  EXPECT_GT(updated, 100000) << "checked " << checked;
+  // Blocks are listed from every second pixel's band (allocation_stride_px), sampled half a
+  // block apart: a block that the bands only clip, or that only holes' rays cross, can be
+  // missed, and its band voxels with it. Measured: 246 of the band's 1.6 million voxels here.
+  EXPECT_LT(missed, kMaxMissedBandShare * band) << missed << " of " << band;
 }
 
 TEST(SampleTsdf, GradientOnSpherePointsOutward) {

@@ -25,6 +25,7 @@ from kinfly_ground._native import (Channel, CorrectionReceiver, DepthCodec, Sign
                                    key_id)
 from kinfly_ground.outputs import (OutputError, ate, check_writable, read_tum, tum_lines,
                                    write_atomically, write_tum)
+from kinfly_ground import cli
 from kinfly_ground.export import export, print_summary
 from kinfly_ground.mapping import pair_due, truth_anchor
 from kinfly_ground.station import Station, StationParams
@@ -972,6 +973,9 @@ def test_station_params_build_the_engines_parameters() -> None:
     assert params.pipeline_params().model_level == 0
     assert StationParams(model_level=1).pipeline_params().model_level == 1
     assert "model_level" in StationParams(model_level=2).validate()
+    # kinfly-ground's option reaches them.
+    args = cli.parser().parse_args(["replay", "flight.lcmlog", "--model-level", "1"])
+    assert cli._params(args).pipeline_params().model_level == 1
 
 
 # --- keyframes in chunks --------------------------------------------------------------------

@@ -16,7 +16,7 @@ import pytest
 from rerun.chunk import RrdReader
 from scipy.spatial.transform import Rotation
 
-from kinfly_ground.viewer import Viewer, ViewerError
+from kinfly_ground.viewer import Viewer, ViewerError, at_resolution
 from rrd_rows import latest, read_rows
 
 SEED = 20261201
@@ -100,7 +100,9 @@ def run_session(viewer: Viewer) -> dict[str, Any]:
         view.flight(utime, estimate, setpoint, {"mode": 3.0, "thrust_n": 4.9 + 0.01 * k})
         last_flight = (estimate, setpoint)
         if k in (2, 8):
-            view.render(utime, rng.integers(0, 256, (HEIGHT, WIDTH), dtype=np.uint8))
+            # The second at half resolution, as a station at --model-level 1 renders.
+            size = (HEIGHT, WIDTH) if k == 2 else (HEIGHT // 2, WIDTH // 2)
+            view.render(utime, rng.integers(0, 256, size, dtype=np.uint8), (HEIGHT, WIDTH))
         utimes.add(utime)
     mesh_utime = T0_US + KEYFRAMES * KEYFRAME_PERIOD_US
     tetrahedron = np.array([[0, 0, 2], [1, 0, 2], [0, 1, 2], [0, 0, 3]], dtype=np.float32)
@@ -221,6 +223,16 @@ def test_unwritable_path_fails_naming_it(tmp_path: Path, where: str) -> None:
         Viewer(save_path=path)
 
 
+def test_a_coarser_render_is_shown_at_the_keyframes_resolution() -> None:
+    """A render at half resolution (kinfly-ground --model-level 1) lies under the keyframe's
+    pinhole: each of its pixels covers the 2x2 pixels of the keyframe it was cast for."""
+    half = np.arange(6, dtype=np.uint8).reshape(2, 3)
+    full = at_resolution(half, (4, 6))
+    assert full.shape == (4, 6)
+    np.testing.assert_array_equal(full, half.repeat(2, axis=0).repeat(2, axis=1))
+    assert at_resolution(full, (4, 6)) is full
+
+
 def test_no_sink_viewer_is_a_no_op(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     viewer = Viewer()
@@ -228,7 +240,7 @@ def test_no_sink_viewer_is_a_no_op(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     view.keyframe(T0_US, np.zeros((HEIGHT, WIDTH), np.uint16), DEPTH_SCALE_M, INTRINSICS,
                   np.eye(4), None)
     view.ground_truth(T0_US, np.eye(4))
-    view.render(T0_US, np.zeros((HEIGHT, WIDTH), np.uint8))
+    view.render(T0_US, np.zeros((HEIGHT, WIDTH), np.uint8), (HEIGHT, WIDTH))
     view.mesh(T0_US, 0, np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), None)
     view.submap_poses(T0_US, {0: np.eye(4)})
     view.pose_graph(T0_US, GRAPH_NODES, GRAPH_ODOMETRY, GRAPH_LOOPS)

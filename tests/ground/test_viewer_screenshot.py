@@ -215,7 +215,8 @@ def record_session(path: Path, prefixes: list[str]) -> int:
             depth_m = 2.0 - 0.02 * k - bump_m + rng.normal(0.0, 0.005, (HEIGHT, WIDTH))
             view.keyframe(last_utime, np.round(depth_m / DEPTH_SCALE_M).astype(np.uint16),
                           DEPTH_SCALE_M, INTRINSICS, T_world_cam, T_world_cam)
-            view.render(last_utime, np.uint8(255 * (depth_m - depth_m.min()) / np.ptp(depth_m)))
+            view.render(last_utime, np.uint8(255 * (depth_m - depth_m.min()) / np.ptp(depth_m)),
+                        depth_m.shape)
             view.health(last_utime, {
                 "link/received": k + 1.0, "link/fused": k + 1.0, "link/not_refined": 0.0,
                 "link/dropped": 0.0, "link/latency_ms": 20.0 + rng.normal(0.0, 2.0),

@@ -3,9 +3,9 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 
 #include "kinfly/core/lanes.h"
-#include "kinfly/core/numeric.h"
 #include <sstream>
 #include "parallel.h"
 
@@ -35,15 +35,16 @@ Ints floorToInts(Floats x) {
 // The running weighted average of the seed's steps 10-14 for four neighbouring voxels, where
 // `measured` (a pixel with a depth): the truncated distance averaged in with weight one, the
 // weight capped. Far behind the surface (sdf below -truncation) is unknown, not free, and left
-// as it is. All four lanes are computed and the unchanged ones written back as they were:
-// branching per voxel costs more in mispredictions than the arithmetic of four.
+// as it is. All four lanes are computed and all four voxels stored, the unchanged ones as they
+// were: branching per voxel costs more in mispredictions than the arithmetic of four.
 void updateVoxels(Voxel* voxels, Floats sdf_m, Ints measured, float truncation_m,
                   float max_weight) {
   const Ints update = measured & ~(sdf_m < -truncation_m);
   if (lanes::none(update)) return;
   static_assert(sizeof(Voxel) == 2 * sizeof(float), "a voxel is its distance, then its weight");
-  float* interleaved = &voxels[0].tsdf;
-  const Floats lo = lanes::load<Floats>(interleaved), hi = lanes::load<Floats>(interleaved + 4);
+  Floats lo, hi;
+  std::memcpy(&lo, voxels, sizeof lo);
+  std::memcpy(&hi, voxels + 2, sizeof hi);
   const Floats tsdf = lanes::shuffle<0, 2, 4, 6>(lo, hi);
   const Floats weight = lanes::shuffle<1, 3, 5, 7>(lo, hi);
   const Floats measured_tsdf = sdf_m >= truncation_m ? 1.f : sdf_m / truncation_m;
@@ -51,8 +52,10 @@ void updateVoxels(Voxel* voxels, Floats sdf_m, Ints measured, float truncation_m
   const Floats averaged = update ? (tsdf * weight + measured_tsdf) / next_weight : tsdf;
   const Floats capped =
       update ? (next_weight < max_weight ? next_weight : lanes::splat(max_weight)) : weight;
-  lanes::store(interleaved, lanes::shuffle<0, 4, 1, 5>(averaged, capped));
-  lanes::store(interleaved + 4, lanes::shuffle<2, 6, 3, 7>(averaged, capped));
+  lo = lanes::shuffle<0, 4, 1, 5>(averaged, capped);
+  hi = lanes::shuffle<2, 6, 3, 7>(averaged, capped);
+  std::memcpy(static_cast<void*>(voxels), &lo, sizeof lo);
+  std::memcpy(static_cast<void*>(voxels + 2), &hi, sizeof hi);
 }
 
 }  // namespace
@@ -121,7 +124,7 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
       const float* row = depth_m.row(y);
       for (int x = 0; x < depth_m.width(); x += stride) {
         const float d = row[x];
-        if (d <= 0.f) continue;
+        if (!(d > 0.f)) continue;
         const Eigen::Vector3f ray = camera.backProject(static_cast<float>(x), static_cast<float>(y), 1.f);
         const float ray_len = ray.norm();
         const float z0 = std::max(d - mu / ray_len, 1e-3f), z1 = d + mu / ray_len;

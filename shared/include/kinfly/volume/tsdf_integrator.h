@@ -18,7 +18,9 @@ namespace kinfly {
 struct IntegrateResult {
   int blocks_updated = 0;     // blocks within the truncation band of this frame
   int blocks_allocated = 0;   // of which new this frame
-  int blocks_rejected = 0;    // outside a bounded volume
+  // Listings of blocks outside a bounded volume; a block listed by several pixels' bands may
+  // count more than once.
+  int blocks_rejected = 0;
 };
 
 class TsdfIntegrator {
@@ -40,7 +42,7 @@ class TsdfIntegrator {
   // band in the candidate lists, and as many touched blocks.
   void reserve(int width_px, int height_px, const TsdfVolume& volume);
 
-  // Integrates metric depth (0 = invalid) seen from T_world_cam into `volume`.
+  // Integrates metric depth (not > 0: invalid) seen from T_world_cam into `volume`.
   IntegrateResult integrate(ImageView<const float> depth_m, const PinholeCamera& camera,
                             const Pose& T_world_cam, TsdfVolume* volume, bool parallel = true);
 

@@ -75,7 +75,6 @@ _SIDE_ROW_SHARES = [2.0, 1.0, 1.0]
 _RENDER_OPACITY = 0.5
 
 
-
 def at_resolution(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """IMAGE resized to SHAPE (height, width) by nearest neighbour: each pixel of SHAPE takes the
     IMAGE pixel it falls in. IMAGE itself when it has SHAPE already."""
@@ -84,6 +83,7 @@ def at_resolution(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     rows = np.arange(shape[0]) * image.shape[0] // shape[0]
     columns = np.arange(shape[1]) * image.shape[1] // shape[1]
     return image[rows[:, None], columns]
+
 
 class ViewerError(Exception):
     """The viewer could not be started or the recording not written."""

@@ -26,12 +26,6 @@ Status TsdfIntegrator::Params::validate(float voxel_size_m) const {
 
 namespace {
 
-// floorToInt in each lane.
-Ints floorToInts(Floats x) {
-  const Ints i = lanes::truncate(x);
-  return i + (lanes::toFloat(i) > x);  // true lanes are -1
-}
-
 // The running weighted average of the seed's steps 10-14 for four neighbouring voxels, where
 // `measured` (a pixel with a depth): the truncated distance averaged in with weight one, the
 // weight capped. Far behind the surface (sdf below -truncation) is unknown, not free, and left
@@ -133,9 +127,9 @@ IntegrateResult TsdfIntegrator::integrate(ImageView<const float> depth_m, const 
         for (int i = 0, g = 0; i <= samples; i += kWidth, ++g) {
           const Ints sample = i + Ints{0, 1, 2, 3};
           const Floats along = z0 + dz * lanes::toFloat(sample);
-          const Ints bx = floorToInts(origin_blk.x() + ray_blk.x() * along);
-          const Ints by = floorToInts(origin_blk.y() + ray_blk.y() * along);
-          const Ints bz = floorToInts(origin_blk.z() + ray_blk.z() * along);
+          const Ints bx = lanes::floorToInt(origin_blk.x() + ray_blk.x() * along);
+          const Ints by = lanes::floorToInt(origin_blk.y() + ray_blk.y() * along);
+          const Ints bz = lanes::floorToInt(origin_blk.z() + ray_blk.z() * along);
           Ints listed = sample > samples;
           if (g < kComparedGroups) {
             listed |= (bx == previous_x[g]) & (by == previous_y[g]) & (bz == previous_z[g]);

@@ -100,6 +100,11 @@ inline int truncate(float x) { return static_cast<int>(x); }
 inline Ints truncate(Floats x) { return __builtin_convertvector(x, Ints); }
 inline float toFloat(int x) { return static_cast<float>(x); }
 inline Floats toFloat(Ints x) { return __builtin_convertvector(x, Floats); }
+// floorToInt (core/numeric.h) in each lane.
+inline Ints floorToInt(Floats x) {
+  const Ints i = truncate(x);
+  return i + (toFloat(i) > x);  // true lanes are -1
+}
 inline float lookup(const float* table, int i) { return table[i]; }
 // table[i[0]] .. table[i[3]], with the indices in memory: SSE2 has no gather, and moving each
 // index out of a register takes more instructions than storing all four and loading each.
